@@ -1,0 +1,1 @@
+"""Multi-camera calibration from board videos (installed as ``freipose.calibration``)."""

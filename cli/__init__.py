@@ -1,0 +1,1 @@
+"""The ``freipose`` command line (installed as ``freipose.cli``)."""

@@ -1,0 +1,208 @@
+"""Labeled datasets ``labels.h5`` (schema in ``docs/formats.md``).
+
+N labeled time instants over V cameras and K keypoints:
+
+* ``session`` (N,) UTF-8, ``frame_index`` (N,) int64: which recording and video frame;
+* ``points2d`` (N, V, K, 2) float64 original-image pixels, NaN = unlabeled;
+* ``points3d`` (N, K, 3) float64 world mm, NaN = unknown;
+* ``visible2d`` (N, V, K) bool, optional: the keypoint is visible (not occluded, inside the
+  image) in that view; absent means "labeled implies visible";
+* ``cameras`` (V,) and ``keypoints`` (K,) UTF-8 names;
+* group ``sessions/<name>`` per session: attribute ``calibration`` (calibration.toml
+  text, may be absent for 2D-only data), attribute ``videos`` (JSON: camera name -> video
+  path, relative to the labels file), attribute ``fps`` (optional).
+
+Sessions may use different rigs: the camera axis is the union of camera names, and a
+camera that a session lacks has NaN labels there.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+
+import h5py
+import numpy as np
+
+from freipose import __version__
+from freipose.geometry.camera import CameraRig
+from freipose.io.atomic import atomic_path
+from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
+
+SCHEMA = "freipose.labels"
+SCHEMA_VERSION = 1
+
+
+class LabelsFormatError(ValueError):
+    """A labels file is malformed; the message names the file and the problem."""
+
+
+@dataclass(frozen=True, eq=False)
+class SessionInfo:
+    """Per-session facts: its cameras, its videos (camera name -> path) and frame rate."""
+
+    calibration: CameraRig | None = None
+    videos: Mapping[str, str] = field(default_factory=dict)
+    fps: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "videos", MappingProxyType(dict(self.videos)))
+
+
+@dataclass(frozen=True, eq=False)
+class LabelSet:
+    """A labeled dataset (see the module docstring for shapes)."""
+
+    session: np.ndarray
+    frame_index: np.ndarray
+    points2d: np.ndarray
+    points3d: np.ndarray
+    cameras: tuple[str, ...]
+    keypoints: tuple[str, ...]
+    sessions: Mapping[str, SessionInfo] = field(default_factory=dict)
+    visible2d: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        sess = np.asarray([str(s) for s in np.asarray(self.session).reshape(-1)], dtype=object)
+        n = len(sess)
+        fi = np.asarray(self.frame_index, dtype=np.int64).reshape(-1)
+        cams = tuple(str(c) for c in self.cameras)
+        kps = tuple(str(k) for k in self.keypoints)
+        v, k = len(cams), len(kps)
+        p2 = np.asarray(self.points2d, dtype=np.float64)
+        p3 = np.asarray(self.points3d, dtype=np.float64)
+        if fi.shape != (n,):
+            raise ValueError(f"frame_index must have shape ({n},), got {fi.shape}")
+        if p2.shape != (n, v, k, 2):
+            raise ValueError(f"points2d must have shape {(n, v, k, 2)}, got {p2.shape}")
+        if p3.shape != (n, k, 3):
+            raise ValueError(f"points3d must have shape {(n, k, 3)}, got {p3.shape}")
+        if len(set(cams)) != v or len(set(kps)) != k:
+            raise ValueError("camera names and keypoint names must be unique")
+        vis = None
+        if self.visible2d is not None:
+            vis = np.asarray(self.visible2d, dtype=bool)
+            if vis.shape != (n, v, k):
+                raise ValueError(f"visible2d must have shape {(n, v, k)}, got {vis.shape}")
+        infos = dict(self.sessions)
+        for s in sorted(set(sess)):
+            infos.setdefault(s, SessionInfo())
+        for s, info in infos.items():
+            if info.calibration is not None:
+                extra = [c for c in info.calibration.names if c not in cams]
+                if extra:
+                    raise ValueError(f"session {s!r}: calibration cameras {extra} not in cameras {list(cams)}")
+        object.__setattr__(self, "session", sess)
+        object.__setattr__(self, "frame_index", fi)
+        object.__setattr__(self, "points2d", p2)
+        object.__setattr__(self, "points3d", p3)
+        object.__setattr__(self, "cameras", cams)
+        object.__setattr__(self, "keypoints", kps)
+        object.__setattr__(self, "visible2d", vis)
+        object.__setattr__(self, "sessions", MappingProxyType(infos))
+
+    def __len__(self) -> int:
+        return len(self.session)
+
+    def select(self, mask_or_index: np.ndarray | Sequence[int]) -> LabelSet:
+        """A subset of the time instants (boolean mask or indices)."""
+        idx = np.asarray(mask_or_index)
+        if idx.dtype == bool:
+            idx = np.flatnonzero(idx)
+        keep = {str(s) for s in self.session[idx]}
+        return LabelSet(
+            self.session[idx],
+            self.frame_index[idx],
+            self.points2d[idx],
+            self.points3d[idx],
+            self.cameras,
+            self.keypoints,
+            {s: i for s, i in self.sessions.items() if s in keep},
+            None if self.visible2d is None else self.visible2d[idx],
+        )
+
+    def rig_for(self, session: str) -> CameraRig | None:
+        """The calibration of ``session`` (None for 2D-only data)."""
+        info = self.sessions.get(session)
+        return None if info is None else info.calibration
+
+
+def _str_array(values: Sequence[str]) -> np.ndarray:
+    return np.array([str(v) for v in values], dtype=h5py.string_dtype("utf-8"))
+
+
+def _decode(arr: np.ndarray) -> list[str]:
+    return [s.decode() if isinstance(s, bytes) else str(s) for s in arr]
+
+
+def write_labels_h5(labels: LabelSet, path: str | Path) -> None:
+    """Write ``labels.h5`` atomically."""
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["schema"] = SCHEMA
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["units"] = "mm"
+        f.attrs["freipose_version"] = __version__
+        f.create_dataset("session", data=_str_array(labels.session))
+        f.create_dataset("frame_index", data=labels.frame_index)
+        f.create_dataset("points2d", data=labels.points2d, compression="gzip")
+        f.create_dataset("points3d", data=labels.points3d, compression="gzip")
+        if labels.visible2d is not None:
+            f.create_dataset("visible2d", data=labels.visible2d, compression="gzip")
+        f.create_dataset("cameras", data=_str_array(labels.cameras))
+        f.create_dataset("keypoints", data=_str_array(labels.keypoints))
+        g = f.create_group("sessions")
+        for name, info in labels.sessions.items():
+            sg = g.create_group(name)
+            if info.calibration is not None:
+                sg.attrs["calibration"] = rig_to_toml_text(info.calibration)
+            sg.attrs["videos"] = json.dumps(dict(info.videos))
+            if info.fps is not None:
+                sg.attrs["fps"] = float(info.fps)
+
+
+def read_labels_h5(path: str | Path) -> LabelSet:
+    """Read and validate ``labels.h5``.
+
+    Raises:
+        LabelsFormatError: the file is not a valid labels file (the message says why).
+        FileNotFoundError: the file does not exist.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"labels file not found: {path}")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise LabelsFormatError(f"{path}: not a readable HDF5 file ({exc}); is it truncated?") from exc
+    with f:
+        need = ["session", "frame_index", "points2d", "points3d", "cameras", "keypoints"]
+        missing = [d for d in need if d not in f]
+        if missing:
+            raise LabelsFormatError(f"{path}: missing datasets {missing}; see docs/formats.md (labels.h5)")
+        try:
+            sessions = {}
+            if "sessions" in f:
+                for name, sg in f["sessions"].items():
+                    cal = sg.attrs.get("calibration")
+                    sessions[name] = SessionInfo(
+                        rig_from_toml_text(cal, f"{path}:sessions/{name}") if cal is not None else None,
+                        json.loads(sg.attrs.get("videos", "{}")),
+                        float(sg.attrs["fps"]) if "fps" in sg.attrs else None,
+                    )
+            return LabelSet(
+                np.array(_decode(f["session"][()]), dtype=object),
+                f["frame_index"][()],
+                f["points2d"][()],
+                f["points3d"][()],
+                tuple(_decode(f["cameras"][()])),
+                tuple(_decode(f["keypoints"][()])),
+                sessions,
+                f["visible2d"][()] if "visible2d" in f else None,
+            )
+        except (ValueError, KeyError) as exc:
+            if isinstance(exc, LabelsFormatError):
+                raise
+            raise LabelsFormatError(f"{path}: {exc}") from exc

@@ -1,0 +1,208 @@
+"""Predictions file ``poses.h5``: 3D poses with confidences (schema in ``docs/formats.md``).
+
+Required: ``poses`` float32 (T, K, 3) world mm (NaN = missing), ``confidence`` float32
+(T, K) in [0, 1], ``keypoints`` (K,) UTF-8, ``frame_index`` (T,) int64; root attributes
+``fps``, ``units = "mm"``, ``up`` (3,), ``freipose_version``. Optional: the calibration
+(``calibration`` attribute, calibration.toml text), the skeleton (``skeleton`` attribute,
+skeleton TOML text), provenance attributes (``provenance/...``) and extra per-frame
+datasets under ``extra/`` (e.g. ``points2d`` (T, C, K, 2), ``boxes`` (T, C, 4),
+``center`` (T, 3)).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import h5py
+import numpy as np
+import tomli_w
+
+from freipose._compat import tomllib
+
+from freipose import __version__
+from freipose.geometry.camera import CameraRig
+from freipose.io.atomic import atomic_path
+from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
+from freipose.skeleton import Skeleton, skeleton_from_dict
+
+SCHEMA = "freipose.poses"
+SCHEMA_VERSION = 1
+
+
+class PosesFormatError(ValueError):
+    """A poses file is malformed; the message names the file and the problem."""
+
+
+@dataclass(frozen=True, eq=False)
+class PoseData:
+    """3D poses of one recording.
+
+    Attributes:
+        poses: (T, K, 3) float32 world mm, NaN where missing.
+        confidence: (T, K) float32 in [0, 1] (0 where missing).
+        keypoints: (K,) keypoint names.
+        frame_index: (T,) int64 video frame numbers.
+        fps: frames per second of the source videos.
+        up: (3,) world up vector (unit).
+        calibration: the cameras, if known.
+        skeleton: the skeleton, if known.
+        provenance: free-form facts (versions, model hash, source videos).
+        extra: further per-frame arrays with time as the first axis.
+    """
+
+    poses: np.ndarray
+    confidence: np.ndarray
+    keypoints: tuple[str, ...]
+    frame_index: np.ndarray
+    fps: float
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    calibration: CameraRig | None = None
+    skeleton: Skeleton | None = None
+    provenance: Mapping[str, Any] = field(default_factory=dict)
+    extra: Mapping[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        poses = np.asarray(self.poses, dtype=np.float32)
+        if poses.ndim != 3 or poses.shape[-1] != 3:
+            raise ValueError(f"poses must have shape (T, K, 3), got {poses.shape}")
+        t, k = poses.shape[:2]
+        conf = np.asarray(self.confidence, dtype=np.float32)
+        if conf.shape != (t, k):
+            raise ValueError(f"confidence must have shape {(t, k)}, got {conf.shape}")
+        if np.any(conf[np.isfinite(conf)] < 0) or np.any(conf[np.isfinite(conf)] > 1):
+            raise ValueError("confidence values must lie in [0, 1]")
+        kps = tuple(str(s) for s in self.keypoints)
+        if len(kps) != k:
+            raise ValueError(f"{len(kps)} keypoint names for {k} keypoints in poses")
+        fi = np.asarray(self.frame_index, dtype=np.int64)
+        if fi.shape != (t,):
+            raise ValueError(f"frame_index must have shape ({t},), got {fi.shape}")
+        fps = float(self.fps)
+        if not np.isfinite(fps) or fps <= 0:
+            raise ValueError(f"fps must be a positive number, got {self.fps!r}")
+        up = np.asarray(self.up, dtype=np.float64).reshape(-1)
+        if up.shape != (3,) or not np.isfinite(up).all() or np.linalg.norm(up) == 0:
+            raise ValueError(f"up must be a non-zero 3-vector, got {self.up!r}")
+        if self.skeleton is not None and tuple(self.skeleton.keypoints) != kps:
+            raise ValueError(
+                f"skeleton {self.skeleton.name!r} keypoints {list(self.skeleton.keypoints)} do not "
+                f"match the poses' keypoints {list(kps)}"
+            )
+        extra = {}
+        for name, arr in dict(self.extra).items():
+            a = np.asarray(arr)
+            if a.ndim == 0 or a.shape[0] != t:
+                raise ValueError(f"extra dataset {name!r} must have T={t} rows, got {a.shape}")
+            extra[name] = a
+        object.__setattr__(self, "poses", poses)
+        object.__setattr__(self, "confidence", conf)
+        object.__setattr__(self, "keypoints", kps)
+        object.__setattr__(self, "frame_index", fi)
+        object.__setattr__(self, "fps", fps)
+        object.__setattr__(self, "up", up / np.linalg.norm(up))
+        object.__setattr__(self, "provenance", MappingProxyType(dict(self.provenance)))
+        object.__setattr__(self, "extra", MappingProxyType(extra))
+
+    @property
+    def num_frames(self) -> int:
+        return self.poses.shape[0]
+
+    @property
+    def times(self) -> np.ndarray:
+        """(T,) seconds from the first frame of the video (frame_index / fps)."""
+        return self.frame_index / self.fps
+
+
+def _str_array(values: Any) -> np.ndarray:
+    return np.array([str(v) for v in values], dtype=h5py.string_dtype("utf-8"))
+
+
+def write_poses_h5(data: PoseData, path: str | Path) -> None:
+    """Write ``poses.h5`` atomically (temporary name, then rename)."""
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        write_poses_group(f, data)
+
+
+def write_poses_group(f: h5py.Group, data: PoseData) -> None:
+    """Write the schema into an open HDF5 file or group (used by incremental writers)."""
+    f.attrs["schema"] = SCHEMA
+    f.attrs["schema_version"] = SCHEMA_VERSION
+    f.create_dataset("poses", data=data.poses, compression="gzip", compression_opts=4)
+    f.create_dataset("confidence", data=data.confidence, compression="gzip", compression_opts=4)
+    f.create_dataset("keypoints", data=_str_array(data.keypoints))
+    f.create_dataset("frame_index", data=data.frame_index)
+    f.attrs["fps"] = data.fps
+    f.attrs["units"] = "mm"
+    f.attrs["up"] = data.up
+    f.attrs["freipose_version"] = __version__
+    if data.calibration is not None:
+        f.attrs["calibration"] = rig_to_toml_text(data.calibration)
+    if data.skeleton is not None:
+        f.attrs["skeleton"] = tomli_w.dumps(data.skeleton.to_dict())
+    if data.provenance:
+        f.attrs["provenance"] = json.dumps(dict(data.provenance), default=str)
+    if data.extra:
+        g = f.create_group("extra")
+        for k, v in data.extra.items():
+            g.create_dataset(k, data=v, compression="gzip", compression_opts=4)
+
+
+def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
+    """Read and validate ``poses.h5``.
+
+    Raises:
+        PosesFormatError: the file is not a valid poses file (the message says why).
+        FileNotFoundError: the file does not exist.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"poses file not found: {path}")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise PosesFormatError(f"{path}: not a readable HDF5 file ({exc}); is it truncated?") from exc
+    with f:
+        missing = [d for d in ("poses", "confidence", "keypoints", "frame_index") if d not in f]
+        if missing:
+            raise PosesFormatError(
+                f"{path}: missing datasets {missing}; a poses file needs poses (T,K,3), "
+                f"confidence (T,K), keypoints (K,) and frame_index (T,)"
+            )
+        if "fps" not in f.attrs:
+            raise PosesFormatError(f"{path}: missing the 'fps' attribute")
+        if require_up and "up" not in f.attrs:
+            raise PosesFormatError(
+                f"{path}: missing the 'up' attribute (the world up vector); re-export the poses "
+                f"with FreiPose or add it, e.g. h5py.File(path, 'a').attrs['up'] = [0, 0, 1]"
+            )
+        units = str(f.attrs.get("units", "mm"))
+        if units != "mm":
+            raise PosesFormatError(f"{path}: units are {units!r}; FreiPose poses are in 'mm'")
+        try:
+            calib = rig_from_toml_text(f.attrs["calibration"], f"{path}:calibration") if "calibration" in f.attrs else None
+            skel = None
+            if "skeleton" in f.attrs:
+                skel = skeleton_from_dict(tomllib.loads(f.attrs["skeleton"]), f"{path}:skeleton")
+            prov = json.loads(f.attrs["provenance"]) if "provenance" in f.attrs else {}
+            extra = {k: f["extra"][k][()] for k in f["extra"]} if "extra" in f else {}
+            return PoseData(
+                poses=f["poses"][()],
+                confidence=f["confidence"][()],
+                keypoints=tuple(s.decode() if isinstance(s, bytes) else str(s) for s in f["keypoints"][()]),
+                frame_index=f["frame_index"][()],
+                fps=float(f.attrs["fps"]),
+                up=np.asarray(f.attrs.get("up", [0.0, 0.0, 1.0])),
+                calibration=calib,
+                skeleton=skel,
+                provenance=prov,
+                extra=extra,
+            )
+        except ValueError as exc:
+            if isinstance(exc, PosesFormatError):
+                raise
+            raise PosesFormatError(f"{path}: {exc}") from exc

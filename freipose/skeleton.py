@@ -1,0 +1,183 @@
+"""Skeleton definitions: keypoint names and order, limbs, left/right symmetry, analysis frames.
+
+Shipped skeletons (``rat``, ``mouse``, ``paw``) live in ``freipose/skeletons/*.toml``;
+users pass their own TOML file with the same fields (see ``docs/formats.md``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from freipose._compat import tomllib
+
+
+# A limb end or an analysis point: one keypoint index, or a tuple of indices (their mean).
+PointRef = tuple[int, ...]
+
+BUILTIN_SKELETONS = ("rat", "mouse", "paw")
+
+
+@dataclass(frozen=True, eq=False)
+class Skeleton:
+    """Keypoints of an animal model and how they connect.
+
+    Attributes:
+        name: skeleton name.
+        keypoints: keypoint names in order (the keypoint axis of every array).
+        limbs: pairs of ends; each end is a tuple of keypoint indices whose mean is the end.
+        symmetry: (left, right) index pairs of mirror-image keypoints.
+        feet: indices of keypoints that touch the floor when standing.
+        frame: analysis body frame, ``{"origin": PointRef, "toward": PointRef}`` (may be empty).
+        angles: analysis angles, name -> (vector_a, vector_b); a vector is ``("g",)`` for the
+            world up vector or ``(from PointRef, to PointRef)``.
+    """
+
+    name: str
+    keypoints: tuple[str, ...]
+    limbs: tuple[tuple[PointRef, PointRef], ...] = ()
+    symmetry: tuple[tuple[int, int], ...] = ()
+    feet: tuple[int, ...] = ()
+    frame: Mapping[str, PointRef] = field(default_factory=dict)
+    angles: Mapping[str, tuple[Any, Any]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        kps = tuple(self.keypoints)
+        if not kps:
+            raise ValueError(f"skeleton {self.name!r} has no keypoints")
+        dupes = sorted({k for k in kps if kps.count(k) > 1})
+        if dupes:
+            raise ValueError(f"skeleton {self.name!r}: repeated keypoint names {dupes}")
+        object.__setattr__(self, "keypoints", kps)
+        object.__setattr__(self, "frame", MappingProxyType(dict(self.frame)))
+        object.__setattr__(self, "angles", MappingProxyType(dict(self.angles)))
+        n = len(kps)
+        for limb in self.limbs:
+            for end in limb:
+                if not end or any(not 0 <= i < n for i in end):
+                    raise ValueError(f"skeleton {self.name!r}: limb end {end} out of range")
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.keypoints)
+
+    def index(self, name: str) -> int:
+        try:
+            return self.keypoints.index(name)
+        except ValueError:
+            raise KeyError(
+                f"skeleton {self.name!r} has no keypoint {name!r}; it has {list(self.keypoints)}"
+            ) from None
+
+    def point(self, poses: np.ndarray, ref: PointRef) -> np.ndarray:
+        """The (mean) position of a point reference: poses (..., K, D) -> (..., D)."""
+        return np.mean(poses[..., list(ref), :], axis=-2)
+
+    def limb_lengths(self, poses: np.ndarray) -> np.ndarray:
+        """Limb lengths of 3D poses (..., K, 3) -> (..., L)."""
+        return np.stack(
+            [np.linalg.norm(self.point(poses, b) - self.point(poses, a), axis=-1) for a, b in self.limbs],
+            axis=-1,
+        )
+
+    def mirror_permutation(self) -> np.ndarray:
+        """Index permutation (K,) that swaps left and right keypoints."""
+        perm = np.arange(self.num_keypoints)
+        for a, b in self.symmetry:
+            perm[a], perm[b] = b, a
+        return perm
+
+    def to_dict(self) -> dict[str, Any]:
+        """A TOML-ready dict using keypoint names (inverse of :func:`skeleton_from_dict`)."""
+
+        def ref(r: PointRef) -> Any:
+            return self.keypoints[r[0]] if len(r) == 1 else [self.keypoints[i] for i in r]
+
+        def vec(v: Any) -> list[Any]:
+            return ["g"] if tuple(v) == ("g",) else [ref(v[0]), ref(v[1])]
+
+        d: dict[str, Any] = {
+            "name": self.name,
+            "keypoints": list(self.keypoints),
+            "limbs": [[ref(a), ref(b)] for a, b in self.limbs],
+            "symmetry": [[self.keypoints[a], self.keypoints[b]] for a, b in self.symmetry],
+            "feet": [self.keypoints[i] for i in self.feet],
+        }
+        if self.frame:
+            d["frame"] = {k: [self.keypoints[i] for i in v] for k, v in self.frame.items()}
+        if self.angles:
+            d["angles"] = {k: [vec(a), vec(b)] for k, (a, b) in self.angles.items()}
+        return d
+
+
+def _ref(names: Sequence[str], value: Any, where: str, skel: str) -> PointRef:
+    items = [value] if isinstance(value, str) else list(value)
+    out = []
+    for v in items:
+        if not isinstance(v, str) or v not in names:
+            raise ValueError(
+                f"skeleton {skel!r}: {where} names unknown keypoint {v!r}; known: {list(names)}"
+            )
+        out.append(names.index(v))
+    return tuple(out)
+
+
+def skeleton_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Skeleton:
+    """Build a ``Skeleton`` from the TOML structure documented in ``docs/formats.md``."""
+    for key in ("name", "keypoints"):
+        if key not in data:
+            raise ValueError(f"skeleton file {source}: missing required field {key!r}")
+    name = str(data["name"])
+    kps = [str(k) for k in data["keypoints"]]
+    limbs = []
+    for i, limb in enumerate(data.get("limbs", [])):
+        if len(limb) != 2:
+            raise ValueError(f"skeleton file {source}: limb {i} must have two ends, got {limb!r}")
+        limbs.append((_ref(kps, limb[0], f"limb {i}", name), _ref(kps, limb[1], f"limb {i}", name)))
+    sym = []
+    for pair in data.get("symmetry", []):
+        a, b = (_ref(kps, p, "symmetry", name) for p in pair)
+        sym.append((a[0], b[0]))
+    feet = tuple(_ref(kps, f, "feet", name)[0] for f in data.get("feet", []))
+    frame = {k: _ref(kps, v, f"frame.{k}", name) for k, v in dict(data.get("frame", {})).items()}
+    angles = {}
+    for aname, (va, vb) in dict(data.get("angles", {})).items():
+
+        def vec(v: Any, aname: str = aname) -> Any:
+            if list(v) == ["g"]:
+                return ("g",)
+            if len(v) != 2:
+                raise ValueError(
+                    f"skeleton file {source}: angle {aname!r} vector must be ['g'] or [FROM, TO]"
+                )
+            return (_ref(kps, v[0], f"angle {aname}", name), _ref(kps, v[1], f"angle {aname}", name))
+
+        angles[aname] = (vec(va), vec(vb))
+    return Skeleton(name, tuple(kps), tuple(limbs), tuple(sym), feet, frame, angles)
+
+
+def load_skeleton(name_or_path: str | Path) -> Skeleton:
+    """Load a shipped skeleton by name (``rat``, ``mouse``, ``paw``) or a TOML file by path."""
+    text: str
+    source = str(name_or_path)
+    if str(name_or_path) in BUILTIN_SKELETONS:
+        text = resources.files("freipose.skeletons").joinpath(f"{name_or_path}.toml").read_text()
+    else:
+        path = Path(name_or_path)
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"skeleton {source!r} is neither a shipped skeleton {list(BUILTIN_SKELETONS)} "
+                f"nor an existing TOML file"
+            )
+        text = path.read_text()
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"skeleton file {source}: not valid TOML ({exc})") from exc
+    return skeleton_from_dict(data, source)

@@ -1,0 +1,74 @@
+"""Shared fixtures: a seeded RNG and a synthetic camera rig whose answers can be checked by hand."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from freipose.geometry import Camera, CameraRig
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A seeded random generator (the same numbers in every test run)."""
+    return np.random.default_rng(12345)
+
+
+def make_circle_rig(
+    n: int = 6,
+    radius: float = 1000.0,
+    height: float = 600.0,
+    size: tuple[int, int] = (640, 480),
+    focal: float = 800.0,
+    distortion: bool = False,
+) -> CameraRig:
+    """``n`` cameras evenly spaced on a circle of ``radius`` mm at ``height`` mm, looking at
+    the origin, z up. With ``distortion`` each camera gets a mild, different lens distortion."""
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        pos = (radius * np.cos(a), radius * np.sin(a), height)
+        dist = (
+            np.array([-0.12 + 0.02 * i, 0.05, 0.001 * (i - 2), -0.0005 * i, -0.01])
+            if distortion
+            else None
+        )
+        cams.append(Camera.look_at(f"cam{i}", pos, (0, 0, 0), size, focal, dist=dist))
+    return CameraRig(tuple(cams), {"world": "origin at the arena centre, z up"})
+
+
+@pytest.fixture
+def circle_rig() -> CameraRig:
+    """Six 640x480 cameras, f = 800 px, on a 1 m circle at 0.6 m height looking at the origin."""
+    return make_circle_rig()
+
+
+@pytest.fixture
+def distorted_rig() -> CameraRig:
+    """The circle rig with a mild, different lens distortion per camera."""
+    return make_circle_rig(distortion=True)
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The read-only shared data folder; tests using it skip when it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data folder not found at {SHARED_DATA} (only in the full workspace)")
+    return SHARED_DATA
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Skip tests marked ``gpu`` when no CUDA device is present."""
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU; none is available on this machine")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)
