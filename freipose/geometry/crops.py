@@ -1,0 +1,79 @@
+"""Square crops around a 3D point, and the cameras that see those crops.
+
+A crop box is ``(x0, y0, x1, y1)`` in continuous pixel coordinates of the full image
+(box edges, not pixel centres). Resizing it to ``out`` x ``out`` pixels maps an input
+pixel ``u`` to ``(u + 0.5 - x0) / s - 0.5`` with ``s = (x1 - x0) / out``; the same affine
+map applied to ``K`` (distortion unchanged, it acts before ``K``) gives the crop camera,
+so projecting with the crop camera lands exactly on the cropped image.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from freipose.geometry.camera import Camera, CameraRig
+from freipose.geometry.projection import project
+
+
+def crop_affine(box: np.ndarray, out_size: int) -> np.ndarray:
+    """The 3x3 affine map from full-image pixels to crop pixels for ``box`` (4,)."""
+    x0, y0, x1, y1 = (float(v) for v in box)
+    s = (x1 - x0) / out_size
+    sy = (y1 - y0) / out_size
+    if s <= 0 or sy <= 0:
+        raise ValueError(f"crop box must have positive size, got {box}")
+    return np.array(
+        [[1 / s, 0.0, (0.5 - x0) / s - 0.5], [0.0, 1 / sy, (0.5 - y0) / sy - 0.5], [0.0, 0.0, 1.0]]
+    )
+
+
+def crop_camera(camera: Camera, box: np.ndarray, out_size: int) -> Camera:
+    """The camera whose image is ``box`` of ``camera``'s image resized to ``out_size``."""
+    A = crop_affine(box, out_size)
+    return camera.replace(K=A @ camera.K, size=(out_size, out_size))
+
+
+def crop_image(image: np.ndarray, box: np.ndarray, out_size: int, border: int = 128) -> np.ndarray:
+    """Cut ``box`` out of ``image`` (H, W[, 3]) and resize to (out_size, out_size[, 3]).
+
+    Areas outside the image are filled with ``border`` (grey).
+    """
+    A = crop_affine(box, out_size)
+    bv = (border,) * (image.shape[2] if image.ndim == 3 else 1)
+    return cv2.warpAffine(
+        image, A[:2], (out_size, out_size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+        borderValue=bv,
+    )
+
+
+def cube_corners(center: np.ndarray, size: float) -> np.ndarray:
+    """Corners (..., 8, 3) of axis-aligned cubes of edge ``size`` mm around centres (..., 3)."""
+    c = np.asarray(center, dtype=np.float64)
+    offs = (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, 8).T) * (size / 2)
+    return c[..., None, :] + offs
+
+
+def cube_crop_boxes(rig: CameraRig, centers: np.ndarray, cube_size: float) -> np.ndarray:
+    """Square boxes enclosing the projection of a cube around each centre, per camera.
+
+    Args:
+        rig: the cameras (C).
+        centers: (..., 3) world mm (NaN gives NaN boxes).
+        cube_size: cube edge in mm.
+
+    Returns:
+        (..., C, 4) boxes ``(x0, y0, x1, y1)``, square, centred on the projected centre.
+    """
+    c = np.asarray(centers, dtype=np.float64)
+    corners = cube_corners(c, cube_size)  # (..., 8, 3)
+    out = []
+    for cam in rig:
+        uv = project(corners, cam)  # (..., 8, 2)
+        mid = project(c, cam)  # (..., 2)
+        half = np.max(np.abs(uv - mid[..., None, :]), axis=(-2, -1))  # (...,)
+        half = np.where(np.isfinite(half), half, np.nan)
+        out.append(
+            np.stack([mid[..., 0] - half, mid[..., 1] - half, mid[..., 0] + half, mid[..., 1] + half], -1)
+        )
+    return np.stack(out, axis=-2)

@@ -1,0 +1,226 @@
+"""Video and image-folder input/output (OpenCV), with clear errors for unreadable media.
+
+A *frame source* is a video file or a folder of images (sorted by name); both give BGR
+uint8 frames (H, W, 3) by index. Writers encode to a temporary name and rename on close.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections import OrderedDict
+from pathlib import Path
+from types import TracebackType
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".mpg", ".mpeg", ".wmv")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+# FourCC per suffix for writing; .mkv is lossless (FFV1).
+FOURCC = {".mp4": "mp4v", ".avi": "MJPG", ".mkv": "FFV1"}
+
+
+class MediaError(ValueError):
+    """A video or image folder cannot be read; the message names it and says why."""
+
+
+class FrameSource:
+    """Random and sequential access to the frames of a video file or an image folder.
+
+    Args:
+        path: a video file or a folder of images.
+        cache_size: how many decoded frames to keep (least recently used).
+    """
+
+    def __init__(self, path: str | Path, cache_size: int = 0):
+        self.path = Path(path)
+        self.cache_size = cache_size
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._cap: cv2.VideoCapture | None = None
+        self._next = 0  # index the capture will return next
+        self._images: list[Path] | None = None
+        if not self.path.exists():
+            raise MediaError(f"{self.path}: no such video file or image folder")
+        if self.path.is_dir():
+            imgs = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not imgs:
+                raise MediaError(
+                    f"{self.path}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})"
+                )
+            self._images = imgs
+            first = cv2.imread(str(imgs[0]), cv2.IMREAD_COLOR)
+            if first is None:
+                raise MediaError(f"{imgs[0]}: cannot be read as an image")
+            self.height, self.width = first.shape[:2]
+            self.num_frames = len(imgs)
+            self.fps = float("nan")
+        else:
+            self._open()
+            cap = self._cap
+            assert cap is not None
+            ok, first = cap.read()
+            if not ok or first is None:
+                raise MediaError(
+                    f"{self.path}: OpenCV cannot decode a frame; the file is not a video, is "
+                    f"corrupt, or uses a codec this OpenCV build lacks"
+                )
+            self._next = 1
+            self.height, self.width = first.shape[:2]
+            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+            self.num_frames = n if n > 0 else self._count_frames()
+            fps = float(cap.get(cv2.CAP_PROP_FPS))
+            self.fps = fps if fps > 0 else float("nan")
+            self._put(0, first)
+
+    @property
+    def name(self) -> str:
+        """The camera name: the file or folder stem."""
+        return self.path.stem if self.path.is_file() else self.path.name
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height)"""
+        return self.width, self.height
+
+    def _open(self) -> None:
+        self._cap = cv2.VideoCapture(str(self.path))
+        if not self._cap.isOpened():
+            raise MediaError(f"{self.path}: OpenCV cannot open this file as a video")
+        self._next = 0
+
+    def _count_frames(self) -> int:
+        cap = cv2.VideoCapture(str(self.path))
+        n = 0
+        while cap.grab():
+            n += 1
+        cap.release()
+        return n
+
+    def _put(self, i: int, frame: np.ndarray) -> None:
+        if self.cache_size > 0:
+            self._cache[i] = frame
+            self._cache.move_to_end(i)
+            while len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    def read(self, index: int) -> np.ndarray:
+        """Frame ``index`` as BGR uint8 (H, W, 3).
+
+        Raises:
+            IndexError: the index is outside the video.
+            MediaError: the frame cannot be decoded (e.g. a truncated file).
+        """
+        if not 0 <= index < self.num_frames:
+            raise IndexError(f"{self.path}: frame {index} is outside 0..{self.num_frames - 1}")
+        if index in self._cache:
+            self._cache.move_to_end(index)
+            return self._cache[index]
+        if self._images is not None:
+            frame = cv2.imread(str(self._images[index]), cv2.IMREAD_COLOR)
+            if frame is None:
+                raise MediaError(f"{self._images[index]}: cannot be read as an image")
+        else:
+            if self._cap is None:
+                self._open()
+            assert self._cap is not None
+            if index != self._next:
+                if index < self._next or index - self._next > 32:
+                    self._cap.set(cv2.CAP_PROP_POS_FRAMES, index)
+                    self._next = index
+                while self._next < index:  # short forward skips: grab is exact and cheap
+                    if not self._cap.grab():
+                        break
+                    self._next += 1
+            ok, frame = self._cap.read()
+            if not ok or frame is None:
+                raise MediaError(f"{self.path}: frame {index} cannot be decoded (truncated file?)")
+            self._next = index + 1
+        self._put(index, frame)
+        return frame
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        return self.read(index)
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+    def __enter__(self) -> FrameSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class VideoWriter:
+    """Write BGR uint8 frames to a video; the file appears under its name only on ``close``.
+
+    Args:
+        path: output file; the suffix picks the codec (.mp4 mp4v, .avi MJPG, .mkv lossless FFV1).
+        fps: frame rate.
+        size: (width, height).
+    """
+
+    def __init__(self, path: str | Path, fps: float, size: tuple[int, int]):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        sfx = self.path.suffix.lower()
+        if sfx not in FOURCC:
+            raise MediaError(f"{self.path}: cannot write {sfx!r} videos; use one of {sorted(FOURCC)}")
+        self._tmp = self.path.with_name(f".{self.path.stem}.partial{sfx}")
+        self.size = (int(size[0]), int(size[1]))
+        self._w = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*FOURCC[sfx]), float(fps), self.size)
+        if not self._w.isOpened():
+            raise MediaError(f"{self.path}: OpenCV cannot open a {FOURCC[sfx]} writer")
+        self.frames = 0
+
+    def write(self, frame: np.ndarray) -> None:
+        """Append one frame (H, W, 3) BGR or (H, W) gray uint8."""
+        f = np.asarray(frame)
+        if f.ndim == 2:
+            f = cv2.cvtColor(f, cv2.COLOR_GRAY2BGR)
+        if (f.shape[1], f.shape[0]) != self.size or f.dtype != np.uint8:
+            raise ValueError(f"frame must be uint8 of size {self.size}, got {f.dtype} {f.shape}")
+        self._w.write(np.ascontiguousarray(f))
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._w is not None:
+            self._w.release()
+            self._w = None
+            os.replace(self._tmp, self.path)
+
+    def abort(self) -> None:
+        if self._w is not None:
+            self._w.release()
+            self._w = None
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def find_camera_videos(folder: str | Path) -> dict[str, Path]:
+    """Videos in a session folder, keyed by camera name (file stem), sorted by name."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise MediaError(f"{folder}: not a folder; a session is a folder with one video per camera")
+    vids = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES and not p.name.startswith(".")}
+    if not vids:
+        raise MediaError(f"{folder}: no videos found ({', '.join(VIDEO_SUFFIXES)})")
+    return vids
