@@ -150,7 +150,7 @@ Writer = Callable[[CameraRig, Path], None]
 # Format name -> reader / writer. Other modules register more formats here.
 READERS: dict[str, Reader] = {"toml": read_calibration_toml}
 WRITERS: dict[str, Writer] = {"toml": write_calibration_toml}
-# Suffix (lower case) -> format name.
+# Suffix (lower case) -> format name; the key "/" names the format of an existing folder.
 SUFFIXES: dict[str, str] = {".toml": "toml"}
 
 
@@ -173,13 +173,16 @@ def detect_format(path: str | Path, fmt: str | None = None) -> str:
             )
         return fmt
     p = Path(path)
+    if p.is_dir() and "/" in SUFFIXES:
+        return SUFFIXES["/"]
     name = p.name.lower()
     for sfx, f in sorted(SUFFIXES.items(), key=lambda kv: -len(kv[0])):
-        if name.endswith(sfx):
+        if sfx != "/" and name.endswith(sfx):
             return f
     raise CalibrationFormatError(
         f"cannot tell the calibration format of {p.name!r} from its suffix; known suffixes: "
-        f"{sorted(SUFFIXES)}; pass --format one of {sorted(set(READERS) | set(WRITERS))}"
+        f"{sorted(s for s in SUFFIXES if s != '/')}; pass --format one of "
+        f"{sorted(set(READERS) | set(WRITERS))}"
     )
 
 
