@@ -1,0 +1,490 @@
+"""Board detection in images and videos, in parallel processes, with an on-disk cache.
+
+Detections of one camera are a dense ``(F, P, 2)`` float64 array of pixel coordinates (pixel-centre
+convention), NaN where board point ``p`` was not found in frame ``f``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from freipose.calibration.boards import (
+    AprilGridBoard,
+    Board,
+    CharucoBoard,
+    ChessboardBoard,
+    board_hash,
+    get_dictionary,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "CameraDetections",
+    "DetectionError",
+    "detect_image",
+    "detect_cameras",
+    "diagnose_board",
+    "CACHE_VERSION",
+]
+
+CACHE_VERSION = 1
+CHUNK_FRAMES = 40
+
+
+class DetectionError(ValueError):
+    """The board cannot be detected (and the message says what was seen instead)."""
+
+
+@dataclass(frozen=True)
+class CameraDetections:
+    """Board corners found in every frame of one camera.
+
+    Attributes:
+        name: camera name (video stem).
+        size: image (width, height).
+        points: (F, P, 2) pixel coordinates, NaN where not detected.
+        source: the video file or image folder.
+    """
+
+    name: str
+    size: tuple[int, int]
+    points: np.ndarray
+    source: str = ""
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(F, P) bool: point detected."""
+        return np.isfinite(self.points[..., 0])
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(F,) number of points detected per frame."""
+        return self.mask.sum(axis=1)
+
+    def truncated(self, n: int) -> CameraDetections:
+        return CameraDetections(self.name, self.size, self.points[:n], self.source)
+
+
+# --------------------------------------------------------------------------------------------
+# single-image detection
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    return img
+
+
+def _subpix(gray: np.ndarray, pts: np.ndarray, win: int) -> np.ndarray:
+    import cv2
+
+    if len(pts) == 0:
+        return pts
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.001)
+    p = np.ascontiguousarray(pts.reshape(-1, 1, 2).astype(np.float32))
+    out = cv2.cornerSubPix(gray, p, (win, win), (-1, -1), crit)
+    return np.asarray(out, dtype=np.float64).reshape(-1, 2)
+
+
+def _detect_charuco(gray: np.ndarray, board: CharucoBoard, detector=None):
+    import cv2
+
+    if detector is None:
+        detector = _charuco_detector(board)
+    cc, ci, _mc, _mi = detector.detectBoard(gray)
+    if ci is None or cc is None or len(ci) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    del cv2
+    return np.asarray(ci, np.int64).reshape(-1), np.asarray(cc, np.float64).reshape(-1, 2)
+
+
+def _charuco_detector(board: CharucoBoard):
+    import cv2
+
+    cp = cv2.aruco.CharucoParameters()
+    cp.minMarkers = 2  # a corner needs both neighbouring markers (no edge artefacts)
+    dp = cv2.aruco.DetectorParameters()
+    return cv2.aruco.CharucoDetector(board.cv_board(), cp, dp)
+
+
+def _detect_chessboard(gray: np.ndarray, board: ChessboardBoard):
+    import cv2
+
+    nx, ny = board.inner_corners_x, board.inner_corners_y
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+    ok, corners = cv2.findChessboardCorners(gray, (nx, ny), flags=flags)
+    if not ok or corners is None:
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    pts = np.asarray(corners, np.float64).reshape(-1, 2)  # OpenCV 5 gives (N,2), 4.x (N,1,2)
+    # window: a third of the smallest corner spacing, at least 2 px
+    grid = pts.reshape(ny, nx, 2)
+    spacing = min(
+        np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(),
+        np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
+    )
+    win = int(np.clip(spacing / 3, 2, 11))
+    pts = _subpix(gray, pts, win)
+    grid = pts.reshape(ny, nx, 2)
+    # orientation: OpenCV may return the grid rotated by 180 degrees. Square (0, 0) (outside
+    # corner 0) is black on our board, its neighbour (1, 0) white; compare their intensities.
+    g00, g10, g01 = grid[0, 0], grid[0, 1], grid[1, 0]
+    c_sq00 = g00 - 0.5 * (g10 - g00) - 0.5 * (g01 - g00)
+    c_sq10 = g00 + 0.5 * (g10 - g00) - 0.5 * (g01 - g00)
+    if (nx + ny) % 2 == 1 and _intensity(gray, c_sq00) > _intensity(gray, c_sq10):
+        pts = pts[::-1].copy()
+    return np.arange(nx * ny, dtype=np.int64), pts
+
+
+def _intensity(gray: np.ndarray, xy: np.ndarray) -> float:
+    h, w = gray.shape[:2]
+    x = int(round(float(np.clip(xy[0], 0, w - 1))))
+    y = int(round(float(np.clip(xy[1], 0, h - 1))))
+    patch = gray[max(0, y - 1) : y + 2, max(0, x - 1) : x + 2]
+    return float(patch.mean())
+
+
+def _aruco_detector(dictionary_name: str, border_bits: int = 1):
+    import cv2
+
+    p = cv2.aruco.DetectorParameters()
+    p.markerBorderBits = int(border_bits)
+    p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
+    return cv2.aruco.ArucoDetector(get_dictionary(dictionary_name), p)
+
+
+def _detect_aprilgrid(gray: np.ndarray, board: AprilGridBoard, detector=None):
+    if detector is None:
+        detector = _aruco_detector(board.dictionary, board.border)
+    corners, ids, _ = detector.detectMarkers(gray)
+    if ids is None or len(ids) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    ids = np.asarray(ids, np.int64).reshape(-1)
+    corners = [np.asarray(c, np.float64).reshape(4, 2) for c in corners]
+    keep = ids < board.n_tags
+    if not keep.any():
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    ids = ids[keep]
+    cs = np.stack([c for c, k in zip(corners, keep) if k])  # (M, 4, 2) TL TR BR BL
+    side = np.linalg.norm(cs - np.roll(cs, 1, axis=1), axis=-1).min()
+    # the tag corners are X-junctions with the black corner squares: refine on them
+    win = int(np.clip(side * board.tag_spacing / 2.5, 2, 9))
+    pts = _subpix(gray, cs.reshape(-1, 2), win).reshape(-1, 4, 2)
+    order = np.asarray(board.OPENCV_TO_CORNER)
+    pid = (4 * ids[:, None] + order[None, :]).reshape(-1)
+    return pid, pts.reshape(-1, 2)
+
+
+def detect_image(image: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray]:
+    """Detect the board in one image.
+
+    Args:
+        image: (H, W, 3) BGR or (H, W) gray uint8.
+        board: the board.
+
+    Returns:
+        ``(ids (N,) int, corners (N, 2) float64)``: point ids into ``board.object_points`` and
+        their pixel coordinates; empty when the board is not found.
+    """
+    gray = _gray(image)
+    if isinstance(board, CharucoBoard):
+        return _detect_charuco(gray, board)
+    if isinstance(board, ChessboardBoard):
+        return _detect_chessboard(gray, board)
+    if isinstance(board, AprilGridBoard):
+        return _detect_aprilgrid(gray, board)
+    raise TypeError(f"unsupported board {type(board).__name__}")
+
+
+class _Detector:
+    """Reusable per-process detector (builds OpenCV objects once)."""
+
+    def __init__(self, board: Board):
+        self.board = board
+        self.P = len(board.object_points)
+        self._cv = None
+        if isinstance(board, CharucoBoard):
+            self._cv = _charuco_detector(board)
+        elif isinstance(board, AprilGridBoard):
+            self._cv = _aruco_detector(board.dictionary, board.border)
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        gray = _gray(image)
+        b = self.board
+        if isinstance(b, CharucoBoard):
+            ids, pts = _detect_charuco(gray, b, self._cv)
+        elif isinstance(b, AprilGridBoard):
+            ids, pts = _detect_aprilgrid(gray, b, self._cv)
+        else:
+            ids, pts = _detect_chessboard(gray, b)
+        out = np.full((self.P, 2), np.nan)
+        ok = (ids >= 0) & (ids < self.P)
+        out[ids[ok]] = pts[ok]
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# videos, in parallel, cached
+
+
+def _detect_chunk(path: str, board: Board, start: int, stop: int) -> tuple[int, np.ndarray]:
+    from freipose.io.video import FrameSource
+
+    det = _Detector(board)
+    out = np.full((stop - start, det.P, 2), np.nan)
+    with FrameSource(path) as src:
+        for i in range(start, stop):
+            out[i - start] = det(src.read(i))
+    return start, out
+
+
+def _source_signature(path: Path) -> str:
+    """Hash of the absolute path, size and modification time (files) or listing (folders)."""
+    p = path.resolve()
+    h = hashlib.sha1(str(p).encode())
+    if p.is_dir():
+        for f in sorted(p.iterdir()):
+            st = f.stat()
+            h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+    else:
+        st = p.stat()
+        h.update(f"{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()[:12]
+
+
+def cache_file(cache_dir: Path, source: Path, board: Board) -> Path:
+    """Cache path for one camera's detections: ``<stem>-<video hash>-<board hash>.npz``."""
+    name = source.stem if source.is_file() else source.name
+    return Path(cache_dir) / f"{name}-{_source_signature(source)}-{board_hash(board)}.npz"
+
+
+def _load_cache(path: Path, num_frames: int, num_points: int) -> np.ndarray | None:
+    try:
+        with np.load(path) as z:
+            if int(z["version"]) != CACHE_VERSION:
+                return None
+            pts = np.asarray(z["points"], np.float64)
+    except (OSError, KeyError, ValueError):
+        return None
+    if pts.shape != (num_frames, num_points, 2):
+        return None
+    return pts
+
+
+def _save_cache(path: Path, points: np.ndarray) -> None:
+    from freipose.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, points=points, version=np.int64(CACHE_VERSION))
+
+
+def detect_cameras(
+    sources: Sequence[str | Path],
+    board: Board,
+    cache_dir: str | Path | None = None,
+    jobs: int | None = None,
+    progress: bool = True,
+) -> list[CameraDetections]:
+    """Detect the board in every frame of every camera (video files or image folders).
+
+    Frames are split into chunks that run in ``jobs`` worker processes (default: the CPU
+    count; ``1`` runs in this process). Results are cached in ``cache_dir`` keyed by video and
+    board hash, so a second call with the same inputs does not re-detect.
+
+    Returns:
+        one :class:`CameraDetections` per source, in order.
+    """
+    from tqdm import tqdm
+
+    from freipose.io.video import FrameSource
+
+    sources = [Path(s) for s in sources]
+    infos = []
+    for s in sources:
+        with FrameSource(s) as src:
+            infos.append((src.name, src.size, src.num_frames))
+    P = len(board.object_points)
+    results: dict[int, np.ndarray] = {}
+    todo: list[tuple[int, int, int]] = []
+    cache_paths: dict[int, Path] = {}
+    for ci, (s, (_name, _size, n)) in enumerate(zip(sources, infos)):
+        if cache_dir is not None:
+            cp = cache_file(Path(cache_dir), s, board)
+            cache_paths[ci] = cp
+            if cp.is_file():
+                pts = _load_cache(cp, n, P)
+                if pts is not None:
+                    logger.info("%s: using cached detections %s", s, cp)
+                    results[ci] = pts
+                    continue
+        results[ci] = np.full((n, P, 2), np.nan)
+        for a in range(0, n, CHUNK_FRAMES):
+            todo.append((ci, a, min(n, a + CHUNK_FRAMES)))
+    total = sum(b - a for _, a, b in todo)
+    if jobs is None:
+        jobs = os.cpu_count() or 1
+    jobs = max(1, min(int(jobs), len(todo) or 1))
+    bar = tqdm(
+        total=total, desc="detecting board", unit="frame", disable=None if progress else True
+    )
+    try:
+        if jobs == 1:
+            for ci, a, b in todo:
+                _, pts = _detect_chunk(str(sources[ci]), board, a, b)
+                results[ci][a:b] = pts
+                bar.update(b - a)
+        elif todo:
+            with ProcessPoolExecutor(max_workers=jobs) as ex:
+                futs = {
+                    ex.submit(_detect_chunk, str(sources[ci]), board, a, b): (ci, a, b)
+                    for ci, a, b in todo
+                }
+                for fut in as_completed(futs):
+                    ci, a, b = futs[fut]
+                    _, pts = fut.result()
+                    results[ci][a:b] = pts
+                    bar.update(b - a)
+    finally:
+        bar.close()
+    done = {ci for ci, _, _ in todo}
+    for ci in done:
+        if ci in cache_paths:
+            _save_cache(cache_paths[ci], results[ci])
+    return [
+        CameraDetections(name, size, results[ci], str(sources[ci]))
+        for ci, (name, size, _n) in enumerate(infos)
+    ]
+
+
+# --------------------------------------------------------------------------------------------
+# diagnosis: what board does the user probably have?
+
+
+def _all_dictionary_names() -> list[str]:
+    import cv2
+
+    return sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+
+
+def diagnose_board(images: Sequence[np.ndarray], board: Board) -> str:
+    """Explain why ``board`` is not found in ``images`` by trying other boards.
+
+    Tries every OpenCV marker dictionary (1- and 2-bit borders), the legacy ChArUco layout and
+    other ChArUco sizes. Returns a sentence for the user (empty when nothing was found at all).
+    """
+    grays = [_gray(im) for im in images]
+    hints: list[str] = []
+    # 1. markers of which dictionary?
+    found: dict[tuple[str, int], tuple[int, int]] = {}  # (dict, border) -> (count, max id)
+    for dname in _all_dictionary_names():
+        for border in (1, 2):
+            det = _aruco_detector(dname, border)
+            count, max_id = 0, -1
+            for g in grays:
+                _c, ids, _ = det.detectMarkers(g)
+                if ids is not None and len(ids):
+                    count += len(ids)
+                    max_id = max(max_id, int(np.max(ids)))
+            if count:
+                found[(dname, border)] = (count, max_id)
+    own_dict = getattr(board, "dictionary", None)
+    own_border = board.border if isinstance(board, AprilGridBoard) else 1
+    if not found:
+        if isinstance(board, ChessboardBoard):
+            return (
+                "no chessboard with the configured number of inner corners "
+                f"({board.inner_corners_x}x{board.inner_corners_y}) and no markers were found; "
+                "count the inner corners (squares minus one in each direction)"
+            )
+        return "no markers of any OpenCV dictionary were found in the sampled frames"
+    top = max(c for c, _ in found.values())
+    ties = [k for k, (c, _) in found.items() if c == top]
+    if (own_dict, own_border) in ties:  # nested dictionaries (6X6_50 in 6X6_250) tie
+        dname, border = own_dict, own_border
+    else:  # the smallest dictionary holding every id seen
+        dname, border = min(ties, key=lambda k: get_dictionary(k[0]).bytesList.shape[0])
+    count, max_id = found[(dname, border)]
+    if isinstance(board, ChessboardBoard):
+        return (
+            f"the images show {dname} markers ({count} found), not a plain chessboard; "
+            f'describe the board as type = "charuco" or "aprilgrid"'
+        )
+    if dname != own_dict or border != own_border:
+        hint = f"the images show markers of {dname}"
+        if border != 1:
+            hint += f" with a {border}-bit border"
+        hint += f" ({count} found, ids up to {max_id}), but the board file says {own_dict}"
+        if isinstance(board, AprilGridBoard) and own_dict == dname:
+            hint += f" with border = {own_border}; set border = {border}"
+        elif isinstance(board, AprilGridBoard) and not dname.startswith("DICT_APRILTAG"):
+            hint += f'; is it a ChArUco board (type = "charuco", dictionary = "{dname}")?'
+        elif dname.startswith("DICT_APRILTAG") and isinstance(board, CharucoBoard):
+            fam = dname.replace("DICT_APRILTAG_", "")
+            hint += f'; is it an AprilTag grid (type = "aprilgrid", family = "{fam}")?'
+        else:
+            hint += f'; set dictionary = "{dname}"'
+        return hint
+    # right dictionary
+    if isinstance(board, CharucoBoard):
+        if max_id >= board.n_markers:
+            hints.append(
+                f"markers with ids up to {max_id} were found but a {board.squares_x}x"
+                f"{board.squares_y} board has only ids 0..{board.n_markers - 1}: "
+                "the board is larger"
+            )
+        alt = []
+        for sx, sy, legacy in _charuco_candidates(board, max_id):
+            cand = CharucoBoard(
+                sx, sy, board.square_size, board.marker_size, board.dictionary, legacy
+            )
+            n = sum(len(_detect_charuco(g, cand)[0]) for g in grays)
+            if n:
+                alt.append((n, -cand.n_markers, cand))
+        if alt:
+            n, _, cand = max(alt, key=lambda t: t[:2])
+            desc = f"squares_x = {cand.squares_x}, squares_y = {cand.squares_y}"
+            if cand.legacy_pattern != board.legacy_pattern and cand.squares_y % 2 == 0:
+                desc += f", legacy_pattern = {str(cand.legacy_pattern).lower()}"
+            hints.append(f"a board with {desc} finds {n} corners: that is probably your board")
+        if not hints:
+            hints.append(
+                f"{count} {dname} markers were found but no ChArUco corners; check squares_x, "
+                f"squares_y and legacy_pattern"
+            )
+        return "; ".join(hints)
+    return (
+        f"{count} {dname} markers were found (ids up to {max_id}) but no board corners; "
+        f"check tags_x/tags_y"
+    )
+
+
+def _charuco_candidates(board: CharucoBoard, max_id: int) -> list[tuple[int, int, bool]]:
+    out = []
+    need = max_id + 1
+    for sx in range(3, 16):
+        for sy in range(3, 16):
+            if (sx * sy) // 2 < need:
+                continue
+            for legacy in (False, True):
+                if (sx, sy, legacy) == (board.squares_x, board.squares_y, board.legacy_pattern):
+                    continue
+                if legacy and sy % 2 == 1:
+                    continue
+                if (sx * sy) // 2 > need + max(sx, sy):  # keep sizes that fit the seen ids
+                    continue
+                out.append((sx, sy, legacy))
+    return out
