@@ -205,8 +205,14 @@ def triangulate_robust(
     lead = uv.shape[:-2]
     flat = uv.reshape(-1, c, 2)
     n = flat.shape[0]
-    w = np.ones((n, c)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(n, c)
-    w = np.where(np.isfinite(w), w, 0.0)
+    if weights is None:
+        w = np.ones((n, c))
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != uv.shape[:-1]:
+            raise ValueError(f"weights must have shape {uv.shape[:-1]}, got shape {w.shape}")
+        w = w.reshape(n, c)
+    w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
     obs = np.isfinite(flat).all(-1) & (w > 0)
     xy = _normalized_obs(flat, rig)
     Rt = _rt(rig)
