@@ -1,0 +1,150 @@
+"""Test helpers for the prediction package: a synthetic two-blob session and an estimator
+that finds the blobs by colour and triangulates them (deterministic, frame by frame)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from freipose.geometry import Camera, CameraRig, triangulate
+from freipose.io.calibration import save_calibration
+from freipose.io.video import VideoWriter
+from freipose.predict.estimator import Estimate
+
+KEYPOINTS = ("red", "green")
+SIZE = (160, 120)
+# BGR colours of the keypoints' blobs
+COLORS = ((0, 0, 255), (0, 255, 0))
+
+
+def small_rig(n: int = 4) -> CameraRig:
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n + 0.3
+        pos = (1000 * np.cos(a), 1000 * np.sin(a), 700.0)
+        cams.append(Camera.look_at(f"cam{i}", pos, (0, 0, 0), SIZE, 160.0))
+    return CameraRig(tuple(cams), {"world": "test"})
+
+
+def trajectory(n_frames: int) -> np.ndarray:
+    """(T, 2, 3) mm: two points circling around the origin."""
+    t = np.arange(n_frames) / 10.0
+    red = np.stack([120 * np.cos(t), 120 * np.sin(t), 40 + 20 * np.sin(2 * t)], -1)
+    green = red + np.array([0.0, 0.0, 80.0])
+    return np.stack([red, green], 1)
+
+
+def make_session(
+    folder: Path,
+    n_frames: int = 40,
+    n_cams: int = 4,
+    absent: tuple[int, ...] = (),
+    suffix: str = ".mp4",
+    fps: float = 25.0,
+) -> tuple[CameraRig, np.ndarray]:
+    """Write ``folder/cam<i><suffix>`` videos and ``calibration.toml``; the blobs are not
+    drawn in frames ``absent``. Returns (rig, true poses (T, 2, 3))."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rig = small_rig(n_cams)
+    truth = trajectory(n_frames)
+    uv = rig.project(truth)  # (T, C, 2, 2)
+    for c, cam in enumerate(rig):
+        with VideoWriter(folder / f"{cam.name}{suffix}", fps, SIZE) as w:
+            for i in range(n_frames):
+                img = np.full((SIZE[1], SIZE[0], 3), 20, np.uint8)
+                if i not in absent:
+                    for k, col in enumerate(COLORS):
+                        x, y = uv[i, c, k]
+                        cv2.circle(img, (int(round(x)), int(round(y))), 4, col, -1, cv2.LINE_AA)
+                w.write(img)
+    save_calibration(rig, folder / "calibration.toml")
+    return rig, truth
+
+
+def _blob(img: np.ndarray, channel: int) -> tuple[np.ndarray, float]:
+    others = [c for c in range(3) if c != channel]
+    score = img[..., channel].astype(np.float32) - img[..., others].astype(np.float32).max(-1)
+    mask = score > 100
+    if mask.sum() < 3:
+        return np.full(2, np.nan), 0.0
+    ys, xs = np.nonzero(mask)
+    w = score[ys, xs]
+    return np.array([np.sum(xs * w) / w.sum(), np.sum(ys * w) / w.sum()]), 1.0
+
+
+class BlobEstimator:
+    """Finds a red and a green blob in every view and triangulates them."""
+
+    keypoints = KEYPOINTS
+    provenance = {"model": "blob-test-estimator"}
+
+    def __init__(self) -> None:
+        self.calls = 0
+        self.frames = 0
+
+    def __call__(self, images, rig):
+        self.calls += 1
+        B = images[0].shape[0]
+        C, K = len(rig), len(KEYPOINTS)
+        self.frames += B
+        p2 = np.full((B, C, K, 2), np.nan)
+        c2 = np.zeros((B, C, K))
+        for c in range(C):
+            for b in range(B):
+                for k, ch in enumerate((2, 1)):
+                    p2[b, c, k], c2[b, c, k] = _blob(images[c][b], ch)
+        poses = np.full((B, K, 3), np.nan)
+        conf = np.zeros((B, K))
+        for b in range(B):
+            for k in range(K):
+                ok = c2[b, :, k] > 0
+                if ok.sum() >= 2:
+                    sub = rig.subset([rig.names[i] for i in np.flatnonzero(ok)])
+                    poses[b, k] = triangulate(p2[b, ok, k], sub)
+                    conf[b, k] = ok.mean()
+        center = np.nanmean(poses, axis=1) if K else np.full((B, 3), np.nan)
+        center = np.where(np.isfinite(center), center, np.nan)
+        mid = np.nanmean(p2, axis=2)  # (B, C, 2)
+        boxes = np.concatenate([mid - 20, mid + 20], -1)
+        return Estimate(poses, conf, p2, c2, boxes, center)
+
+
+def h5_equal(a: Path, b: Path, ignore_attrs: tuple[str, ...] = ()) -> list[str]:
+    """Differences between two HDF5 files (datasets bitwise incl. NaN, attributes)."""
+    import h5py
+
+    diffs: list[str] = []
+    with h5py.File(a, "r") as fa, h5py.File(b, "r") as fb:
+
+        def attrs(x, y, where):
+            ka, kb = set(x.attrs) - set(ignore_attrs), set(y.attrs) - set(ignore_attrs)
+            if ka != kb:
+                diffs.append(f"{where}: attrs {sorted(ka ^ kb)}")
+            for k in ka & kb:
+                va, vb = x.attrs[k], y.attrs[k]
+                if not np.array_equal(np.asarray(va), np.asarray(vb)):
+                    diffs.append(f"{where}: attr {k} {va!r} != {vb!r}")
+
+        attrs(fa, fb, "/")
+        names_a, names_b = [], []
+        fa.visit(names_a.append)
+        fb.visit(names_b.append)
+        if sorted(names_a) != sorted(names_b):
+            diffs.append(f"objects differ: {sorted(set(names_a) ^ set(names_b))}")
+        for n in names_a:
+            if n not in fb:
+                continue
+            oa, ob = fa[n], fb[n]
+            attrs(oa, ob, n)
+            if isinstance(oa, h5py.Dataset):
+                x, y = oa[()], ob[()]
+                if x.shape != y.shape or x.dtype != y.dtype:
+                    diffs.append(f"{n}: {x.shape} {x.dtype} vs {y.shape} {y.dtype}")
+                elif x.dtype.kind == "f":
+                    if not np.array_equal(x, y, equal_nan=True):
+                        diffs.append(f"{n}: values differ")
+                elif not np.array_equal(x, y):
+                    diffs.append(f"{n}: values differ")
+    return diffs
