@@ -305,28 +305,35 @@ def _read_jarvis_file(path: Path) -> tuple[str, dict[str, Any]]:
     if not fs.isOpened():
         raise CalibrationFormatError(f"{path}: OpenCV cannot open this file as FileStorage YAML")
     try:
-        vals: dict[str, Any] = {}
-        for key in ("intrinsicMatrix", "distortionCoefficients", "R", "T"):
-            node = fs.getNode(key)
-            mat = None if node.empty() else node.mat()
-            if mat is None:
-                raise CalibrationFormatError(
-                    f"{path}: missing {key!r}; a JARVIS camera file holds intrinsicMatrix (K "
-                    f"transposed), distortionCoefficients, R (transposed) and T (mm)"
-                )
-            vals[key] = np.asarray(mat, dtype=np.float64)
-        size = None
-        w, h = fs.getNode("image_width"), fs.getNode("image_height")
-        if not w.empty() and not h.empty():
-            size = (int(w.real()), int(h.real()))
-        elif not fs.getNode("imageSize").empty():
-            node = fs.getNode("imageSize")
-            arr = node.mat() if node.isMap() else [node.at(i).real() for i in range(node.size())]
-            size = tuple(int(v) for v in np.asarray(arr).ravel()[:2])
-        vals["size"] = size
+        return path.stem, _jarvis_values(fs, path)
+    except cv2.error as exc:
+        raise CalibrationFormatError(f"{path}: malformed OpenCV FileStorage entry ({exc})") from exc
     finally:
         fs.release()
-    return path.stem, vals
+
+
+def _jarvis_values(fs: Any, path: Path) -> dict[str, Any]:
+    """The camera entries of an open FileStorage (K, R still transposed as stored)."""
+    vals: dict[str, Any] = {}
+    for key in ("intrinsicMatrix", "distortionCoefficients", "R", "T"):
+        node = fs.getNode(key)
+        mat = None if node.empty() else node.mat()
+        if mat is None:
+            raise CalibrationFormatError(
+                f"{path}: missing {key!r}; a JARVIS camera file holds intrinsicMatrix (K "
+                f"transposed), distortionCoefficients, R (transposed) and T (mm)"
+            )
+        vals[key] = np.asarray(mat, dtype=np.float64)
+    size = None
+    w, h = fs.getNode("image_width"), fs.getNode("image_height")
+    if not w.empty() and not h.empty():
+        size = (int(w.real()), int(h.real()))
+    elif not fs.getNode("imageSize").empty():  # cv::Size as written by OpenCV: [w, h]
+        node = fs.getNode("imageSize")
+        arr = node.mat() if node.isMap() else [node.at(i).real() for i in range(node.size())]
+        size = tuple(int(v) for v in np.asarray(arr).ravel()[:2])
+    vals["size"] = size
+    return vals
 
 
 def _jarvis_files(path: Path) -> list[Path]:
