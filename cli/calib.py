@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import click
-
 from freipose.cli._lazy import DefaultLazyGroup
 
 SUBCOMMANDS = {

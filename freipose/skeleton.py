@@ -17,7 +17,6 @@ import numpy as np
 
 from freipose._compat import tomllib
 
-
 # A limb end or an analysis point: one keypoint index, or a tuple of indices (their mean).
 PointRef = tuple[int, ...]
 
@@ -82,7 +81,10 @@ class Skeleton:
     def limb_lengths(self, poses: np.ndarray) -> np.ndarray:
         """Limb lengths of 3D poses (..., K, 3) -> (..., L)."""
         return np.stack(
-            [np.linalg.norm(self.point(poses, b) - self.point(poses, a), axis=-1) for a, b in self.limbs],
+            [
+                np.linalg.norm(self.point(poses, b) - self.point(poses, a), axis=-1)
+                for a, b in self.limbs
+            ],
             axis=-1,
         )
 
@@ -156,7 +158,10 @@ def skeleton_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Skele
                 raise ValueError(
                     f"skeleton file {source}: angle {aname!r} vector must be ['g'] or [FROM, TO]"
                 )
-            return (_ref(kps, v[0], f"angle {aname}", name), _ref(kps, v[1], f"angle {aname}", name))
+            return (
+                _ref(kps, v[0], f"angle {aname}", name),
+                _ref(kps, v[1], f"angle {aname}", name),
+            )
 
         angles[aname] = (vec(va), vec(vb))
     return Skeleton(name, tuple(kps), tuple(limbs), tuple(sym), feet, frame, angles)

@@ -20,9 +20,7 @@ def _frozen_array(value: Any, shape: tuple[int, ...], what: str, owner: str) -> 
     if arr.size == int(np.prod(shape)) and arr.shape != shape:
         arr = arr.reshape(shape)
     if arr.shape != shape:
-        raise ValueError(
-            f"camera {owner!r}: {what} must have shape {shape}, got shape {arr.shape}"
-        )
+        raise ValueError(f"camera {owner!r}: {what} must have shape {shape}, got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"camera {owner!r}: {what} contains NaN or infinite values")
     arr.setflags(write=False)
@@ -252,7 +250,9 @@ class CameraRig:
         try:
             return self.names.index(name)
         except ValueError:
-            raise KeyError(f"no camera named {name!r} in the rig; cameras are {self.names}") from None
+            raise KeyError(
+                f"no camera named {name!r} in the rig; cameras are {self.names}"
+            ) from None
 
     def subset(self, names: Iterable[str | int]) -> CameraRig:
         """A rig with only the given cameras, in the given order."""

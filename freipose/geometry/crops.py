@@ -42,7 +42,11 @@ def crop_image(image: np.ndarray, box: np.ndarray, out_size: int, border: int = 
     A = crop_affine(box, out_size)
     bv = (border,) * (image.shape[2] if image.ndim == 3 else 1)
     return cv2.warpAffine(
-        image, A[:2], (out_size, out_size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+        image,
+        A[:2],
+        (out_size, out_size),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
         borderValue=bv,
     )
 
@@ -50,7 +54,9 @@ def crop_image(image: np.ndarray, box: np.ndarray, out_size: int, border: int = 
 def cube_corners(center: np.ndarray, size: float) -> np.ndarray:
     """Corners (..., 8, 3) of axis-aligned cubes of edge ``size`` mm around centres (..., 3)."""
     c = np.asarray(center, dtype=np.float64)
-    offs = (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, 8).T) * (size / 2)
+    offs = (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, 8).T) * (
+        size / 2
+    )
     return c[..., None, :] + offs
 
 
@@ -74,6 +80,8 @@ def cube_crop_boxes(rig: CameraRig, centers: np.ndarray, cube_size: float) -> np
         half = np.max(np.abs(uv - mid[..., None, :]), axis=(-2, -1))  # (...,)
         half = np.where(np.isfinite(half), half, np.nan)
         out.append(
-            np.stack([mid[..., 0] - half, mid[..., 1] - half, mid[..., 0] + half, mid[..., 1] + half], -1)
+            np.stack(
+                [mid[..., 0] - half, mid[..., 1] - half, mid[..., 0] + half, mid[..., 1] + half], -1
+            )
         )
     return np.stack(out, axis=-2)

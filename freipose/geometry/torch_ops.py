@@ -17,7 +17,7 @@ from freipose.geometry.camera import CameraRig
 def rig_to_tensors(
     rig: CameraRig, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"
 ) -> dict[str, torch.Tensor]:
-    """Stacked camera parameters of a rig: ``K`` (C,3,3), ``dist`` (C,5), ``R`` (C,3,3), ``t`` (C,3)."""
+    """Stacked rig parameters: ``K`` (C,3,3), ``dist`` (C,5), ``R`` (C,3,3), ``t`` (C,3)."""
     return {
         k: torch.as_tensor(np.ascontiguousarray(getattr(rig, k)), dtype=dtype, device=device)
         for k in ("K", "dist", "R", "t")

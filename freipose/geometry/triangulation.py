@@ -154,7 +154,9 @@ def _refine(
         )  # (n, 2C, 3)
         JtJ = J.transpose(0, 2, 1) @ J
         g = J.transpose(0, 2, 1) @ r[..., None]
-        A = JtJ + lam[:, None, None] * np.eye(3) * (np.trace(JtJ, axis1=1, axis2=2)[:, None, None] / 3 + 1e-12)
+        A = JtJ + lam[:, None, None] * np.eye(3) * (
+            np.trace(JtJ, axis1=1, axis2=2)[:, None, None] / 3 + 1e-12
+        )
         try:
             step = np.linalg.solve(A, g)[..., 0]
         except np.linalg.LinAlgError:

@@ -17,10 +17,8 @@ import numpy as np
 import tomli_w
 
 from freipose._compat import tomllib
-
 from freipose.geometry.camera import Camera, CameraRig
 from freipose.io.atomic import atomic_write_text
-
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +64,9 @@ def _toml_value(v: Any) -> Any:
     return v
 
 
-def rig_from_toml_dict(data: dict[str, Any], source: str = "<toml>", units: str | None = None) -> CameraRig:
+def rig_from_toml_dict(
+    data: dict[str, Any], source: str = "<toml>", units: str | None = None
+) -> CameraRig:
     """Parse the ``calibration.toml`` structure; lengths are converted to millimetres.
 
     Args:

@@ -94,7 +94,9 @@ class LabelSet:
             if info.calibration is not None:
                 extra = [c for c in info.calibration.names if c not in cams]
                 if extra:
-                    raise ValueError(f"session {s!r}: calibration cameras {extra} not in cameras {list(cams)}")
+                    raise ValueError(
+                        f"session {s!r}: calibration cameras {extra} not in cameras {list(cams)}"
+                    )
         object.__setattr__(self, "session", sess)
         object.__setattr__(self, "frame_index", fi)
         object.__setattr__(self, "points2d", p2)
@@ -176,19 +178,25 @@ def read_labels_h5(path: str | Path) -> LabelSet:
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
-        raise LabelsFormatError(f"{path}: not a readable HDF5 file ({exc}); is it truncated?") from exc
+        raise LabelsFormatError(
+            f"{path}: not a readable HDF5 file ({exc}); is it truncated?"
+        ) from exc
     with f:
         need = ["session", "frame_index", "points2d", "points3d", "cameras", "keypoints"]
         missing = [d for d in need if d not in f]
         if missing:
-            raise LabelsFormatError(f"{path}: missing datasets {missing}; see docs/formats.md (labels.h5)")
+            raise LabelsFormatError(
+                f"{path}: missing datasets {missing}; see docs/formats.md (labels.h5)"
+            )
         try:
             sessions = {}
             if "sessions" in f:
                 for name, sg in f["sessions"].items():
                     cal = sg.attrs.get("calibration")
                     sessions[name] = SessionInfo(
-                        rig_from_toml_text(cal, f"{path}:sessions/{name}") if cal is not None else None,
+                        rig_from_toml_text(cal, f"{path}:sessions/{name}")
+                        if cal is not None
+                        else None,
                         json.loads(sg.attrs.get("videos", "{}")),
                         float(sg.attrs["fps"]) if "fps" in sg.attrs else None,
                     )
@@ -206,3 +214,7 @@ def read_labels_h5(path: str | Path) -> LabelSet:
             if isinstance(exc, LabelsFormatError):
                 raise
             raise LabelsFormatError(f"{path}: {exc}") from exc
+        except OSError as exc:  # a dataset whose data lies beyond a truncated end
+            raise LabelsFormatError(
+                f"{path}: data cannot be read ({exc}); is the file truncated?"
+            ) from exc

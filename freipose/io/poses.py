@@ -22,9 +22,8 @@ import h5py
 import numpy as np
 import tomli_w
 
-from freipose._compat import tomllib
-
 from freipose import __version__
+from freipose._compat import tomllib
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
@@ -165,7 +164,9 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
-        raise PosesFormatError(f"{path}: not a readable HDF5 file ({exc}); is it truncated?") from exc
+        raise PosesFormatError(
+            f"{path}: not a readable HDF5 file ({exc}); is it truncated?"
+        ) from exc
     with f:
         missing = [d for d in ("poses", "confidence", "keypoints", "frame_index") if d not in f]
         if missing:
@@ -184,7 +185,11 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
         if units != "mm":
             raise PosesFormatError(f"{path}: units are {units!r}; FreiPose poses are in 'mm'")
         try:
-            calib = rig_from_toml_text(f.attrs["calibration"], f"{path}:calibration") if "calibration" in f.attrs else None
+            calib = (
+                rig_from_toml_text(f.attrs["calibration"], f"{path}:calibration")
+                if "calibration" in f.attrs
+                else None
+            )
             skel = None
             if "skeleton" in f.attrs:
                 skel = skeleton_from_dict(tomllib.loads(f.attrs["skeleton"]), f"{path}:skeleton")
@@ -193,7 +198,9 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
             return PoseData(
                 poses=f["poses"][()],
                 confidence=f["confidence"][()],
-                keypoints=tuple(s.decode() if isinstance(s, bytes) else str(s) for s in f["keypoints"][()]),
+                keypoints=tuple(
+                    s.decode() if isinstance(s, bytes) else str(s) for s in f["keypoints"][()]
+                ),
                 frame_index=f["frame_index"][()],
                 fps=float(f.attrs["fps"]),
                 up=np.asarray(f.attrs.get("up", [0.0, 0.0, 1.0])),
@@ -206,3 +213,7 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
             if isinstance(exc, PosesFormatError):
                 raise
             raise PosesFormatError(f"{path}: {exc}") from exc
+        except OSError as exc:  # a dataset whose data lies beyond a truncated end
+            raise PosesFormatError(
+                f"{path}: data cannot be read ({exc}); is the file truncated?"
+            ) from exc

@@ -1,13 +1,15 @@
 """Video and image-folder input/output (OpenCV), with clear errors for unreadable media.
 
-A *frame source* is a video file or a folder of images (sorted by name); both give BGR
-uint8 frames (H, W, 3) by index. Writers encode to a temporary name and rename on close.
+A *frame source* is a video file or a folder of images (sorted by name, numbers
+numerically); both give BGR uint8 frames (H, W, 3) by index. Writers encode to a
+temporary name and rename on close.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import re
 from collections import OrderedDict
 from pathlib import Path
 from types import TracebackType
@@ -21,6 +23,11 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".mpg", ".mpeg", ".wmv
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 # FourCC per suffix for writing; .mkv is lossless (FFV1).
 FOURCC = {".mp4": "mp4v", ".avi": "MJPG", ".mkv": "FFV1"}
+
+
+def _natural_key(name: str) -> list[object]:
+    """Sort key with numbers compared numerically (``frame_2.png`` before ``frame_10.png``)."""
+    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name)]
 
 
 class MediaError(ValueError):
@@ -45,7 +52,14 @@ class FrameSource:
         if not self.path.exists():
             raise MediaError(f"{self.path}: no such video file or image folder")
         if self.path.is_dir():
-            imgs = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            imgs = sorted(
+                (
+                    p
+                    for p in self.path.iterdir()
+                    if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
+                ),
+                key=lambda p: _natural_key(p.name),
+            )
             if not imgs:
                 raise MediaError(
                     f"{self.path}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})"
@@ -173,10 +187,14 @@ class VideoWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         sfx = self.path.suffix.lower()
         if sfx not in FOURCC:
-            raise MediaError(f"{self.path}: cannot write {sfx!r} videos; use one of {sorted(FOURCC)}")
+            raise MediaError(
+                f"{self.path}: cannot write {sfx!r} videos; use one of {sorted(FOURCC)}"
+            )
         self._tmp = self.path.with_name(f".{self.path.stem}.partial{sfx}")
         self.size = (int(size[0]), int(size[1]))
-        self._w = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*FOURCC[sfx]), float(fps), self.size)
+        self._w = cv2.VideoWriter(
+            str(self._tmp), cv2.VideoWriter_fourcc(*FOURCC[sfx]), float(fps), self.size
+        )
         if not self._w.isOpened():
             raise MediaError(f"{self.path}: OpenCV cannot open a {FOURCC[sfx]} writer")
         self.frames = 0
@@ -207,7 +225,10 @@ class VideoWriter:
         return self
 
     def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
     ) -> None:
         if exc_type is None:
             self.close()
@@ -220,7 +241,11 @@ def find_camera_videos(folder: str | Path) -> dict[str, Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise MediaError(f"{folder}: not a folder; a session is a folder with one video per camera")
-    vids = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES and not p.name.startswith(".")}
+    vids = {
+        p.stem: p
+        for p in sorted(folder.iterdir())
+        if p.suffix.lower() in VIDEO_SUFFIXES and not p.name.startswith(".")
+    }
     if not vids:
         raise MediaError(f"{folder}: no videos found ({', '.join(VIDEO_SUFFIXES)})")
     return vids
