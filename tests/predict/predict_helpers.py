@@ -3,6 +3,7 @@ that finds the blobs by colour and triangulates them (deterministic, frame by fr
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import cv2
@@ -104,9 +105,10 @@ class BlobEstimator:
                     sub = rig.subset([rig.names[i] for i in np.flatnonzero(ok)])
                     poses[b, k] = triangulate(p2[b, ok, k], sub)
                     conf[b, k] = ok.mean()
-        center = np.nanmean(poses, axis=1) if K else np.full((B, 3), np.nan)
-        center = np.where(np.isfinite(center), center, np.nan)
-        mid = np.nanmean(p2, axis=2)  # (B, C, 2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN frames give NaN
+            center = np.nanmean(poses, axis=1)
+            mid = np.nanmean(p2, axis=2)  # (B, C, 2)
         boxes = np.concatenate([mid - 20, mid + 20], -1)
         return Estimate(poses, conf, p2, c2, boxes, center)
 

@@ -1,0 +1,300 @@
+"""Export ``poses.h5`` to the formats other tools read (described in ``docs/formats.md``).
+
+* ``csv``: a tidy CSV, one row per frame: ``frame, time, <kp>_x, <kp>_y, <kp>_z,
+  <kp>_confidence, ...`` (mm, seconds; empty cell = NaN).
+* ``anipose``: Anipose's ``pose-3d`` CSV: ``<kp>_x/_y/_z/_error/_ncams/_score`` per
+  keypoint, then ``M_00..M_22``, ``center_0..2`` and ``fnum`` (movement and
+  keypoint-MoSeq load it as Anipose output).
+* ``dlc3d``: a DeepLabCut-3D style CSV with the three header rows ``scorer / bodyparts /
+  coords`` (coords x, y, z) and the frame number as the index.
+* ``nwb``: an NWB file with an ndx-pose ``PoseEstimation`` (one 3D
+  ``PoseEstimationSeries`` per keypoint, unit mm, confidences, timestamps in seconds) and
+  a ``Skeleton`` in the processing module ``behavior`` (pynwb, movement and
+  keypoint-MoSeq read it). Needs the optional extra ``nwb`` (``pip install pynwb ndx-pose``).
+
+Every writer writes atomically. ``read_*`` functions read the files back (used by the
+round-trip tests and handy for users).
+"""
+
+from __future__ import annotations
+
+import datetime
+import logging
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from freipose.geometry.projection import project_rig
+from freipose.io.atomic import atomic_path
+from freipose.io.poses import PoseData, read_poses_h5
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("csv", "anipose", "dlc3d", "nwb")
+SUFFIXES = {"csv": ".csv", "anipose": ".anipose.csv", "dlc3d": ".dlc3d.csv", "nwb": ".nwb"}
+
+
+class ExportError(ValueError):
+    """An export cannot be written (e.g. a missing optional dependency)."""
+
+
+def default_output(poses_path: str | Path, fmt: str) -> Path:
+    """``x.poses.h5`` -> ``x.csv`` / ``x.anipose.csv`` / ``x.dlc3d.csv`` / ``x.nwb``."""
+    p = Path(poses_path)
+    stem = p.name[: -len(".poses.h5")] if p.name.endswith(".poses.h5") else p.stem
+    return p.with_name(stem + SUFFIXES[fmt])
+
+
+# -- tidy CSV ------------------------------------------------------------------------------
+
+
+def tidy_frame(data: PoseData) -> pd.DataFrame:
+    """The tidy table: one row per frame (see the module docstring)."""
+    cols: dict[str, Any] = {"frame": data.frame_index, "time": data.times}
+    for k, name in enumerate(data.keypoints):
+        for a, axis in enumerate("xyz"):
+            cols[f"{name}_{axis}"] = data.poses[:, k, a].astype(np.float64)
+        cols[f"{name}_confidence"] = data.confidence[:, k].astype(np.float64)
+    return pd.DataFrame(cols)
+
+
+def write_tidy_csv(data: PoseData, path: str | Path) -> Path:
+    """Write the tidy CSV (mm, seconds)."""
+    with atomic_path(path) as tmp:
+        tidy_frame(data).to_csv(tmp, index=False, float_format="%.9g")
+    return Path(path)
+
+
+def read_tidy_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """Read a tidy CSV back: (frame_index (T,), poses (T, K, 3), confidence (T, K), keypoints)."""
+    df = pd.read_csv(path)
+    if "frame" not in df.columns:
+        raise ExportError(f"{path}: no 'frame' column; not a FreiPose tidy CSV")
+    kps = tuple(c[: -len("_confidence")] for c in df.columns if c.endswith("_confidence"))
+    poses = np.stack([df[[f"{k}_{a}" for a in "xyz"]].to_numpy(np.float64) for k in kps], 1)
+    conf = np.stack([df[f"{k}_confidence"].to_numpy(np.float64) for k in kps], 1)
+    return df["frame"].to_numpy(np.int64), poses, conf, kps
+
+
+# -- Anipose -------------------------------------------------------------------------------
+
+
+def _reprojection_stats(data: PoseData) -> tuple[np.ndarray, np.ndarray]:
+    """Mean reprojection error (px) against the stored per-view 2D points, and the number
+    of views that contributed, per frame and keypoint; NaN where unknown."""
+    T, K = data.poses.shape[:2]
+    err = np.full((T, K), np.nan)
+    ncams = np.full((T, K), np.nan)
+    p2 = data.extra.get("points2d")
+    if data.calibration is None or p2 is None:
+        if data.calibration is not None:
+            ncams[np.isfinite(data.poses).all(-1)] = len(data.calibration)
+        return err, ncams
+    proj = project_rig(data.poses.astype(np.float64), data.calibration)  # (T, C, K, 2)
+    obs = np.asarray(p2, np.float64)
+    c2 = data.extra.get("confidence2d")
+    used = np.isfinite(obs).all(-1)
+    if c2 is not None:
+        used &= np.asarray(c2) > 0
+    d = np.linalg.norm(proj - obs, axis=-1)
+    d = np.where(used, d, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices give NaN
+        err = np.nanmean(d, axis=1)
+    ncams = used.sum(1).astype(np.float64)
+    found = np.isfinite(data.poses).all(-1)
+    err[~found] = np.nan
+    ncams[~found] = np.nan
+    return err, ncams
+
+
+def anipose_frame(data: PoseData) -> pd.DataFrame:
+    """Anipose's ``pose-3d`` table (see the module docstring)."""
+    err, ncams = _reprojection_stats(data)
+    found = np.isfinite(data.poses).all(-1)
+    cols: dict[str, Any] = {}
+    for k, name in enumerate(data.keypoints):
+        for a, axis in enumerate("xyz"):
+            cols[f"{name}_{axis}"] = data.poses[:, k, a].astype(np.float64)
+        cols[f"{name}_error"] = err[:, k]
+        cols[f"{name}_ncams"] = ncams[:, k]
+        cols[f"{name}_score"] = np.where(found[:, k], data.confidence[:, k], np.nan)
+    T = data.num_frames
+    for i in range(3):
+        for j in range(3):
+            cols[f"M_{i}{j}"] = np.full(T, float(i == j))
+    for i in range(3):
+        cols[f"center_{i}"] = np.zeros(T)
+    cols["fnum"] = data.frame_index
+    return pd.DataFrame(cols)
+
+
+def write_anipose_csv(data: PoseData, path: str | Path) -> Path:
+    with atomic_path(path) as tmp:
+        anipose_frame(data).to_csv(tmp, index=False, float_format="%.9g")
+    return Path(path)
+
+
+def read_anipose_csv(
+    path: str | Path,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """(fnum (T,), poses (T, K, 3), score (T, K), keypoints) from an Anipose 3D CSV."""
+    df = pd.read_csv(path)
+    kps = tuple(c[: -len("_score")] for c in df.columns if c.endswith("_score"))
+    poses = np.stack([df[[f"{k}_{a}" for a in "xyz"]].to_numpy(np.float64) for k in kps], 1)
+    score = np.stack([df[f"{k}_score"].to_numpy(np.float64) for k in kps], 1)
+    return df["fnum"].to_numpy(np.int64), poses, score, kps
+
+
+# -- DeepLabCut 3D -------------------------------------------------------------------------
+
+
+def dlc3d_frame(data: PoseData, scorer: str = "FreiPose") -> pd.DataFrame:
+    """DLC-3D style table: MultiIndex columns (scorer, bodyparts, coords), index = frame."""
+    cols = pd.MultiIndex.from_product(
+        [[scorer], list(data.keypoints), ["x", "y", "z"]], names=["scorer", "bodyparts", "coords"]
+    )
+    values = data.poses.reshape(data.num_frames, -1).astype(np.float64)
+    return pd.DataFrame(values, columns=cols, index=pd.Index(data.frame_index, name="frame"))
+
+
+def write_dlc3d_csv(data: PoseData, path: str | Path) -> Path:
+    with atomic_path(path) as tmp:
+        dlc3d_frame(data).to_csv(tmp, float_format="%.9g")
+    return Path(path)
+
+
+def read_dlc3d_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """(frame (T,), poses (T, K, 3), keypoints) from a DLC-3D style CSV."""
+    df = pd.read_csv(path, header=[0, 1, 2], index_col=0)
+    kps = tuple(dict.fromkeys(df.columns.get_level_values(1)))
+    poses = df.to_numpy(np.float64).reshape(len(df), len(kps), 3)
+    return df.index.to_numpy(np.int64), poses, kps
+
+
+# -- NWB -----------------------------------------------------------------------------------
+
+
+def _require_nwb() -> tuple[Any, Any]:
+    try:
+        import ndx_pose
+        import pynwb
+    except ImportError as exc:
+        raise ExportError(
+            "NWB export needs the optional packages pynwb and ndx-pose: "
+            "pip install 'freipose[nwb]' (or pip install pynwb ndx-pose)"
+        ) from exc
+    return pynwb, ndx_pose
+
+
+def write_nwb(
+    data: PoseData,
+    path: str | Path,
+    session_description: str = "3D poses from FreiPose",
+    session_start_time: datetime.datetime | None = None,
+    identifier: str | None = None,
+    subject: str = "animal",
+) -> Path:
+    """Write an NWB file with an ndx-pose ``PoseEstimation`` in processing module ``behavior``.
+
+    Args:
+        session_start_time: recording start (timezone-aware); default the Unix epoch in UTC
+            (NWB requires a value; pass the real start when known).
+        identifier: NWB identifier; default the session name from the provenance.
+    """
+    pynwb, ndx_pose = _require_nwb()
+    start = session_start_time or datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc)
+    if start.tzinfo is None:
+        raise ExportError(
+            "session_start_time must be timezone-aware (e.g. 2024-05-01T10:00:00+02:00)"
+        )
+    prov = dict(data.provenance)
+    ident = identifier or str(prov.get("session", Path(path).stem))
+    nwb = pynwb.NWBFile(
+        session_description=session_description, identifier=ident, session_start_time=start
+    )
+    names = list(data.keypoints)
+    edges = None
+    if data.skeleton is not None:
+        pairs = []
+        for a, b in data.skeleton.limbs:
+            if len(a) == 1 and len(b) == 1:  # NWB edges join nodes; midpoint limbs are skipped
+                pairs.append([int(a[0]), int(b[0])])
+        edges = np.asarray(pairs, dtype=np.uint8 if len(names) < 256 else np.uint16).reshape(-1, 2)
+    skel_name = data.skeleton.name if data.skeleton is not None else "skeleton"
+    skeleton = ndx_pose.Skeleton(name=skel_name, nodes=names, edges=edges)
+    times = data.times.astype(np.float64)
+    frame_desc = "world frame of the FreiPose calibration, millimetres, up = " + ", ".join(
+        f"{u:g}" for u in data.up
+    )
+    series = []
+    for k, name in enumerate(names):
+        series.append(
+            ndx_pose.PoseEstimationSeries(
+                name=name,
+                description=f"3D position of {name}",
+                data=data.poses[:, k, :].astype(np.float64),
+                unit="mm",
+                reference_frame=frame_desc,
+                timestamps=times if not series else series[0],
+                confidence=data.confidence[:, k].astype(np.float64),
+                confidence_definition="FreiPose confidence in [0, 1]; 0 where not found",
+            )
+        )
+    pe = ndx_pose.PoseEstimation(
+        name="PoseEstimation",
+        pose_estimation_series=series,
+        description=(
+            f"3D poses of {subject} estimated by FreiPose from the synchronized videos "
+            + ", ".join(str(v) for v in dict(prov.get("videos", {})).values())
+        ),
+        scorer=str(prov.get("model_sha256", "FreiPose")),
+        source_software="FreiPose",
+        source_software_version=str(prov.get("freipose_version", "")),
+        skeleton=skeleton,
+    )
+    module = nwb.create_processing_module(name="behavior", description="processed behavioral data")
+    module.add(ndx_pose.Skeletons(skeletons=[skeleton]))
+    module.add(pe)
+    with atomic_path(path) as tmp, pynwb.NWBHDF5IO(str(tmp), mode="w") as io:
+        io.write(nwb)
+    return Path(path)
+
+
+def read_nwb(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """(timestamps (T,), poses (T, K, 3), confidence (T, K), keypoints) from our NWB export."""
+    pynwb, _ = _require_nwb()
+    with pynwb.NWBHDF5IO(str(path), mode="r") as io:
+        nwb = io.read()
+        pe = nwb.processing["behavior"]["PoseEstimation"]
+        kps = tuple(pe.skeleton.nodes[:])
+        ser = pe.pose_estimation_series
+        poses = np.stack([np.asarray(ser[k].data[:]) for k in kps], 1)
+        conf = np.stack([np.asarray(ser[k].confidence[:]) for k in kps], 1)
+        times = np.asarray(ser[kps[0]].timestamps[:])
+    return times, poses, conf, kps
+
+
+# -- dispatch ------------------------------------------------------------------------------
+
+
+def export_poses(
+    poses_path: str | Path, fmt: str, output: str | Path | None = None, **kwargs: Any
+) -> Path:
+    """Export a ``poses.h5`` file to ``fmt`` (one of :data:`FORMATS`); returns the output path."""
+    if fmt not in FORMATS:
+        raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    if fmt == "nwb":
+        _require_nwb()  # fail before reading a large file
+    data = read_poses_h5(poses_path)
+    out = Path(output) if output is not None else default_output(poses_path, fmt)
+    if fmt == "csv":
+        return write_tidy_csv(data, out)
+    if fmt == "anipose":
+        return write_anipose_csv(data, out)
+    if fmt == "dlc3d":
+        return write_dlc3d_csv(data, out)
+    return write_nwb(data, out, **kwargs)
