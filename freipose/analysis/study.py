@@ -1,0 +1,256 @@
+"""Study manifest ``STUDY.toml``, stimulation events ``events.csv`` and frame labelling.
+
+STUDY.toml (paths relative to the study file)::
+
+    skeleton = "rat"                  # optional: name or path (default: the poses' own)
+
+    [[recordings]]
+    name = "rat1_day1"
+    poses = "rat1_day1.poses.h5"
+    events = "rat1_day1_events.csv"   # columns start_s,end_s (seconds from the first frame)
+    animal = "rat1"
+    condition = "10Hz"
+    split = "train"                   # or "test"
+    floor = "auto"                    # optional: world | auto | floor TOML (default: --floor)
+
+events.csv: a header ``start_s,end_s`` and one row per stimulation window; windows must lie
+inside the recording and must not overlap. A file with only the header means "never
+stimulated" (a control recording).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from freipose._compat import tomllib
+
+log = logging.getLogger(__name__)
+
+RECORDING_KEYS = ("name", "poses", "events", "animal", "condition", "split", "floor")
+REQUIRED_KEYS = ("name", "poses", "events", "animal", "condition", "split")
+SPLITS = ("train", "test")
+STIMULATED, NOT_STIMULATED, IGNORED = 1, 0, -1
+
+
+class StudyError(ValueError):
+    """A study manifest or events file is invalid; the message says what and how to fix it."""
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One recording of a study (paths resolved against the study file's folder)."""
+
+    name: str
+    poses: Path
+    events: Path
+    animal: str
+    condition: str
+    split: str
+    floor: str | None = None
+
+
+@dataclass(frozen=True)
+class Study:
+    """A study: recordings grouped by (animal, condition), each in the train or test split."""
+
+    path: Path
+    recordings: tuple[Recording, ...]
+    skeleton: str | None = None
+
+    @property
+    def groups(self) -> list[tuple[str, str]]:
+        """(animal, condition) pairs in order of first appearance."""
+        seen: dict[tuple[str, str], None] = {}
+        for r in self.recordings:
+            seen.setdefault((r.animal, r.condition), None)
+        return list(seen)
+
+    def select(self, animal: str, condition: str, split: str) -> list[Recording]:
+        return [
+            r
+            for r in self.recordings
+            if r.animal == animal and r.condition == condition and r.split == split
+        ]
+
+
+def _floor_entry(value: object, base: Path) -> str | None:
+    if value is None:
+        return None
+    return str(value) if str(value) in ("world", "auto") else str(base / str(value))
+
+
+def load_study(path: str | Path, check_files: bool = True) -> Study:
+    """Read and validate ``STUDY.toml``.
+
+    Every (animal, condition) group needs at least one train and one test recording.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"study file not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise StudyError(f"study file {path}: not valid TOML ({exc})") from exc
+    unknown = sorted(set(data) - {"recordings", "skeleton", "name", "description"})
+    if unknown:
+        raise StudyError(
+            f"study file {path}: unknown top-level keys {unknown}; allowed: recordings, "
+            f"skeleton, name, description"
+        )
+    recs = data.get("recordings")
+    if not isinstance(recs, list) or not recs:
+        raise StudyError(
+            f"study file {path}: no recordings; add [[recordings]] tables with keys "
+            f"{list(REQUIRED_KEYS)}"
+        )
+    base = path.parent
+    out: list[Recording] = []
+    for i, r in enumerate(recs):
+        where = f"study file {path}: recording {i + 1}"
+        if not isinstance(r, dict):
+            raise StudyError(f"{where}: expected a [[recordings]] table")
+        missing = [k for k in REQUIRED_KEYS if k not in r]
+        if missing:
+            raise StudyError(f"{where} ({r.get('name', '?')}): missing keys {missing}")
+        extra = sorted(set(r) - set(RECORDING_KEYS))
+        if extra:
+            raise StudyError(f"{where}: unknown keys {extra}; allowed: {list(RECORDING_KEYS)}")
+        split = str(r["split"])
+        if split not in SPLITS:
+            raise StudyError(
+                f"{where} ({r['name']}): split must be 'train' or 'test', not {split!r}"
+            )
+        rec = Recording(
+            name=str(r["name"]),
+            poses=base / str(r["poses"]),
+            events=base / str(r["events"]),
+            animal=str(r["animal"]),
+            condition=str(r["condition"]),
+            split=split,
+            floor=_floor_entry(r.get("floor"), base),
+        )
+        if check_files:
+            for what, p in (("poses", rec.poses), ("events", rec.events)):
+                if not p.is_file():
+                    raise FileNotFoundError(
+                        f"{where} ({rec.name}): {what} file not found: {p} (paths are relative "
+                        f"to the study file's folder {base})"
+                    )
+        out.append(rec)
+    names = [r.name for r in out]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise StudyError(f"study file {path}: recording names must be unique; repeated: {dupes}")
+    study = Study(path, tuple(out), None if "skeleton" not in data else str(data["skeleton"]))
+    for animal, cond in study.groups:
+        for split in SPLITS:
+            if not study.select(animal, cond, split):
+                raise StudyError(
+                    f"study file {path}: group (animal {animal!r}, condition {cond!r}) has no "
+                    f"{split} recording; every group needs at least one recording with "
+                    f"split = 'train' and one with split = 'test'"
+                )
+    return study
+
+
+def read_events(path: str | Path) -> np.ndarray:
+    """Read ``events.csv`` -> (N, 2) float start/end seconds, sorted by start.
+
+    Raises:
+        StudyError: missing columns, non-numeric values, end <= start, overlapping windows.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"events file not found: {path}")
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        cols = [c.strip() for c in (reader.fieldnames or [])]
+        if "start_s" not in cols or "end_s" not in cols:
+            raise StudyError(
+                f"events file {path}: expected a header with columns start_s,end_s "
+                f"(seconds from the first frame), found {cols}"
+            )
+        rows = []
+        for line, row in enumerate(reader, start=2):
+            row = {k.strip(): v for k, v in row.items() if k is not None}
+            if all(not (v or "").strip() for v in row.values()):
+                continue
+            try:
+                rows.append((float(row["start_s"]), float(row["end_s"])))
+            except (TypeError, ValueError):
+                raise StudyError(
+                    f"events file {path}, line {line}: start_s/end_s must be numbers, got "
+                    f"{row.get('start_s')!r}, {row.get('end_s')!r}"
+                ) from None
+    win = np.array(rows, dtype=float).reshape(-1, 2)
+    if not np.isfinite(win).all():
+        raise StudyError(f"events file {path}: start_s/end_s must be finite numbers")
+    bad = np.flatnonzero(win[:, 1] <= win[:, 0])
+    if len(bad):
+        a, b = win[bad[0]]
+        raise StudyError(
+            f"events file {path}: window {bad[0] + 1} ends ({b} s) before it starts ({a} s)"
+        )
+    win = win[np.argsort(win[:, 0], kind="stable")]
+    over = np.flatnonzero(win[1:, 0] < win[:-1, 1])
+    if len(over):
+        i = over[0]
+        raise StudyError(
+            f"events file {path}: windows overlap: [{win[i, 0]}, {win[i, 1]}] s and "
+            f"[{win[i + 1, 0]}, {win[i + 1, 1]}] s; merge or correct them"
+        )
+    return win
+
+
+def check_windows(windows: np.ndarray, duration_s: float, source: str) -> None:
+    """Raise when a window lies outside ``[0, duration_s]`` (seconds from the first frame)."""
+    win = np.asarray(windows).reshape(-1, 2)
+    tol = 1e-6
+    bad = np.flatnonzero((win[:, 0] < -tol) | (win[:, 1] > duration_s + tol))
+    if len(bad):
+        a, b = win[bad[0]]
+        raise StudyError(
+            f"{source}: stimulation window {bad[0] + 1} [{a}, {b}] s lies outside the recording "
+            f"(0 to {duration_s:.3f} s from the first frame); events are seconds from the "
+            f"first frame of the poses file, not from the start of the video or clock time"
+        )
+
+
+def label_frames(
+    times: np.ndarray, windows: np.ndarray, onset_delay_s: float = 0.4, margin_s: float = 1.5
+) -> np.ndarray:
+    """Label frames stimulated (1), not stimulated (0) or ignored (-1).
+
+    Stimulated: ``start + onset_delay <= t <= end`` for some window. Not stimulated: further
+    than ``margin_s`` from every window (``t < start - margin`` or ``t > end + margin``).
+    Everything else (the onset delay and the margins) is ignored.
+
+    Args:
+        times: (T,) seconds from the first frame.
+        windows: (N, 2) sorted, non-overlapping start/end seconds.
+
+    Returns:
+        (T,) int8 labels.
+    """
+    if onset_delay_s < 0 or margin_s < 0:
+        raise StudyError("onset delay and margin must be >= 0 seconds")
+    t = np.asarray(times, dtype=float)
+    win = np.asarray(windows, dtype=float).reshape(-1, 2)
+    labels = np.full(t.shape, NOT_STIMULATED, dtype=np.int8)
+    if not len(win):
+        return labels
+    i = np.searchsorted(win[:, 0], t, side="right") - 1  # last window starting at or before t
+    has = i >= 0
+    ic = np.clip(i, 0, len(win) - 1)
+    stim = has & (t >= win[ic, 0] + onset_delay_s) & (t <= win[ic, 1])
+    near_prev = has & (t <= win[ic, 1] + margin_s)
+    nxt = np.clip(i + 1, 0, len(win) - 1)
+    near_next = (i + 1 < len(win)) & (t >= win[nxt, 0] - margin_s)
+    labels[near_prev | near_next] = IGNORED
+    labels[stim] = STIMULATED
+    return labels
