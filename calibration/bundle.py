@@ -1,0 +1,486 @@
+"""Multi-camera bundle adjustment of intrinsics, distortion, extrinsics and board poses.
+
+Levenberg-Marquardt with analytic Jacobians and the Schur complement over the per-frame board
+poses (each residual depends on one camera and one board pose, so the normal equations reduce to
+a small dense system in the camera parameters), a robust loss (iteratively reweighted), and
+outlier rejection between rounds. ``method="scipy"`` uses ``scipy.optimize.least_squares``
+with a sparse Jacobian pattern instead (slower; kept as a cross-check).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["BundleResult", "Observations", "bundle_adjust", "rodrigues", "project_observations"]
+
+N_CAM = 15  # fx fy cx cy k1 k2 p1 p2 k3 r1 r2 r3 t1 t2 t3
+
+
+def rodrigues(r: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) -> rotation matrices (..., 3, 3) (vectorized Rodrigues)."""
+    r = np.asarray(r, dtype=np.float64)
+    theta = np.linalg.norm(r, axis=-1)[..., None, None]
+    small = theta < 1e-12
+    safe = np.where(small, 1.0, theta)
+    k = r / safe[..., 0]
+    K = np.zeros(r.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -k[..., 2], k[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = k[..., 2], -k[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -k[..., 1], k[..., 0]
+    s, c = np.sin(theta), np.cos(theta)
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    R = eye + s * K + (1 - c) * (K @ K)
+    # first-order for tiny angles
+    Kr = np.zeros_like(K)
+    Kr[..., 0, 1], Kr[..., 0, 2] = -r[..., 2], r[..., 1]
+    Kr[..., 1, 0], Kr[..., 1, 2] = r[..., 2], -r[..., 0]
+    Kr[..., 2, 0], Kr[..., 2, 1] = -r[..., 1], r[..., 0]
+    return np.where(small, eye + Kr, R)
+
+
+def matrix_to_rvec(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (3,) rotation vector."""
+    import cv2
+
+    rv, _ = cv2.Rodrigues(np.asarray(R, np.float64))
+    return rv.reshape(3)
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Flat list of detections: camera index (N,), frame index (N,), board point (N,3) mm,
+    pixel (N,2)."""
+
+    cam: np.ndarray
+    frame: np.ndarray
+    point: np.ndarray
+    uv: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.cam.shape[0])
+
+    def subset(self, keep: np.ndarray) -> Observations:
+        return Observations(self.cam[keep], self.frame[keep], self.point[keep], self.uv[keep])
+
+
+def project_observations(cam_params: np.ndarray, frame_params: np.ndarray, obs: Observations):
+    """Project every observation's board point.
+
+    Args:
+        cam_params: (C, 15) fx fy cx cy k1 k2 p1 p2 k3 rvec t (world→camera).
+        frame_params: (F, 6) rvec t (board→world).
+
+    Returns:
+        (N, 2) pixels and (N,) depth in the camera.
+    """
+    Rf = rodrigues(frame_params[:, :3])
+    Rc = rodrigues(cam_params[:, 9:12])
+    fi, ci = obs.frame, obs.cam
+    Xw = np.einsum("nij,nj->ni", Rf[fi], obs.point) + frame_params[fi, 3:]
+    Xc = np.einsum("nij,nj->ni", Rc[ci], Xw) + cam_params[ci, 12:]
+    z = Xc[:, 2]
+    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    x, y = Xc[:, 0] / zs, Xc[:, 1] / zs
+    p = cam_params[ci]
+    k1, k2, p1, p2, k3 = p[:, 4], p[:, 5], p[:, 6], p[:, 7], p[:, 8]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    u = p[:, 0] * xd + p[:, 2]
+    v = p[:, 1] * yd + p[:, 3]
+    return np.stack([u, v], axis=1), z
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    """Refined parameters and diagnostics.
+
+    Attributes:
+        cam_params: (C, 15) fx fy cx cy k1 k2 p1 p2 k3 rvec t.
+        frame_params: (F, 6) board→world rvec t for the frames in ``frames``.
+        frames: (F,) video frame index of each board pose.
+        obs: the observations (all, before rejection).
+        inliers: (N,) bool, kept after outlier rejection.
+        errors: (N,) final reprojection error (px) of every observation.
+        rounds, nfev, seconds: solver statistics.
+    """
+
+    cam_params: np.ndarray
+    frame_params: np.ndarray
+    frames: np.ndarray
+    obs: Observations
+    inliers: np.ndarray
+    errors: np.ndarray
+    initial_rms: float
+    rounds: int
+    nfev: int
+    seconds: float
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(N, 3) -> (N, 3, 3) cross-product matrices."""
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+class _Problem:
+    """Residuals and analytic Jacobians with local (left-multiplied) rotation updates.
+
+    State: intrinsics (C, 9), camera rotations (C, 3, 3), translations (C, 3), board rotations
+    (F, 3, 3), translations (F, 3). A camera's 15 local parameters are fx fy cx cy k1 k2 p1 p2
+    k3, δrot (3), δt (3); a board's 6 are δrot (3), δt (3).
+    """
+
+    def __init__(self, obs: Observations, C: int, F: int):
+        order = np.lexsort((obs.frame, obs.cam))
+        self.obs = obs.subset(order)
+        self.order = order
+        key = self.obs.cam * F + self.obs.frame
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        self.starts = starts
+        self.pair_cam = self.obs.cam[starts]
+        self.pair_frame = self.obs.frame[starts]
+        self.C, self.F = C, F
+
+    def residuals(self, intr, Rc, tc, Rf, tf):
+        o = self.obs
+        Xw = np.einsum("nij,nj->ni", Rf[o.frame], o.point) + tf[o.frame]
+        Xc = np.einsum("nij,nj->ni", Rc[o.cam], Xw) + tc[o.cam]
+        z = Xc[:, 2]
+        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        x, y = Xc[:, 0] / zs, Xc[:, 1] / zs
+        p = intr[o.cam]
+        k1, k2, p1, p2, k3 = p[:, 4], p[:, 5], p[:, 6], p[:, 7], p[:, 8]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        r = np.stack([p[:, 0] * xd + p[:, 2], p[:, 1] * yd + p[:, 3]], axis=1) - o.uv
+        return r, (Xw, Xc, zs, x, y, r2, radial, xd, yd, p)
+
+    def jacobians(self, Rc, Rf, cache):
+        o = self.obs
+        Xw, Xc, z, x, y, r2, radial, xd, yd, p = cache
+        N = len(o)
+        fx, fy = p[:, 0], p[:, 1]
+        k1, k2, p1, p2, k3 = p[:, 4], p[:, 5], p[:, 6], p[:, 7], p[:, 8]
+        Jc = np.zeros((N, 2, 15))
+        Jc[:, 0, 0] = xd
+        Jc[:, 1, 1] = yd
+        Jc[:, 0, 2] = 1.0
+        Jc[:, 1, 3] = 1.0
+        r4 = r2 * r2
+        Jc[:, 0, 4:9] = fx[:, None] * np.stack(
+            [x * r2, x * r4, 2 * x * y, r2 + 2 * x * x, x * r4 * r2], 1
+        )
+        Jc[:, 1, 4:9] = fy[:, None] * np.stack(
+            [y * r2, y * r4, r2 + 2 * y * y, 2 * x * y, y * r4 * r2], 1
+        )
+        # d(xd, yd)/d(x, y)
+        dr = k1 + 2 * k2 * r2 + 3 * k3 * r4  # d radial / d r2
+        dxd_dx = radial + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
+        dxd_dy = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
+        dyd_dx = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
+        dyd_dy = radial + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
+        A = np.empty((N, 2, 2))
+        A[:, 0, 0], A[:, 0, 1] = fx * dxd_dx, fx * dxd_dy
+        A[:, 1, 0], A[:, 1, 1] = fy * dyd_dx, fy * dyd_dy
+        Bn = np.zeros((N, 2, 3))  # d(x, y)/d Xc
+        Bn[:, 0, 0] = 1 / z
+        Bn[:, 1, 1] = 1 / z
+        Bn[:, 0, 2] = -x / z
+        Bn[:, 1, 2] = -y / z
+        D = A @ Bn  # (N, 2, 3) d uv / d Xc
+        RcXw = Xc - 0  # Rc Xw + tc; rotation perturbation acts on Rc Xw
+        RcXw = np.einsum("nij,nj->ni", Rc[o.cam], Xw)
+        Jc[:, :, 9:12] = -D @ _skew(RcXw)
+        Jc[:, :, 12:15] = D
+        DR = D @ Rc[o.cam]  # d uv / d Xw
+        RfX = np.einsum("nij,nj->ni", Rf[o.frame], o.point)
+        Jf = np.empty((N, 2, 6))
+        Jf[:, :, :3] = -DR @ _skew(RfX)
+        Jf[:, :, 3:] = DR
+        return Jc, Jf
+
+
+def _robust_weights(e: np.ndarray, loss: str, k: float) -> np.ndarray:
+    """IRLS weights for the error norms ``e`` (N,)."""
+    if loss == "linear":
+        return np.ones_like(e)
+    if loss == "huber":
+        return np.where(e <= k, 1.0, k / np.maximum(e, 1e-12))
+    if loss == "cauchy":
+        return 1.0 / (1.0 + (e / k) ** 2)
+    if loss == "soft_l1":
+        return 1.0 / np.sqrt(1.0 + (e / k) ** 2)
+    raise ValueError(f"unknown loss {loss!r}; expected linear, huber, soft_l1 or cauchy")
+
+
+def _robust_cost(e: np.ndarray, loss: str, k: float) -> float:
+    if loss == "linear":
+        return float(np.sum(e**2))
+    if loss == "huber":
+        return float(np.sum(np.where(e <= k, e**2, 2 * k * e - k * k)))
+    if loss == "cauchy":
+        return float(np.sum(k * k * np.log1p((e / k) ** 2)))
+    return float(np.sum(2 * k * k * (np.sqrt(1 + (e / k) ** 2) - 1)))
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    return rodrigues(w)
+
+
+def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter):
+    """Levenberg-Marquardt with the Schur complement over the board poses."""
+    C, F = cam0.shape[0], frame0.shape[0]
+    prob = _Problem(obs, C, F)
+    intr = cam0[:, :9].copy()
+    Rc = rodrigues(cam0[:, 9:12])
+    tc = cam0[:, 12:15].copy()
+    Rf = rodrigues(frame0[:, :3])
+    tf = frame0[:, 3:].copy()
+    freef = free.astype(float)
+
+    def cost_of(intr, Rc, tc, Rf, tf):
+        r, cache = prob.residuals(intr, Rc, tc, Rf, tf)
+        e = np.linalg.norm(r, axis=1)
+        return _robust_cost(e, loss, f_scale), r, e, cache
+
+    cost, r, e, cache = cost_of(intr, Rc, tc, Rf, tf)
+    lam = 1e-3
+    it = 0
+    nfev = 1
+    starts, pc, pf = prob.starts, prob.pair_cam, prob.pair_frame
+    for it in range(1, max_iter + 1):  # noqa: B007
+        Jc, Jf = prob.jacobians(Rc, Rf, cache)
+        w = _robust_weights(e, loss, f_scale)[:, None, None]
+        Jc = Jc * freef[prob.obs.cam][:, None, :]
+        WJc, WJf = w * Jc, w * Jf
+        Hcc_o = np.einsum("nki,nkj->nij", WJc, Jc)
+        Hff_o = np.einsum("nki,nkj->nij", WJf, Jf)
+        Hcf_o = np.einsum("nki,nkj->nij", WJc, Jf)
+        gc_o = np.einsum("nki,nk->ni", WJc, r)
+        gf_o = np.einsum("nki,nk->ni", WJf, r)
+        Hcc_p = np.add.reduceat(Hcc_o, starts, axis=0)
+        Hff_p = np.add.reduceat(Hff_o, starts, axis=0)
+        Hcf_p = np.add.reduceat(Hcf_o, starts, axis=0)
+        gc_p = np.add.reduceat(gc_o, starts, axis=0)
+        gf_p = np.add.reduceat(gf_o, starts, axis=0)
+        Hcc = np.zeros((C, 15, 15))
+        np.add.at(Hcc, pc, Hcc_p)
+        Hff = np.zeros((F, 6, 6))
+        np.add.at(Hff, pf, Hff_p)
+        gc = np.zeros((C, 15))
+        np.add.at(gc, pc, gc_p)
+        gf = np.zeros((F, 6))
+        np.add.at(gf, pf, gf_p)
+        Hcf = np.zeros((C, F, 15, 6))
+        Hcf[pc, pf] = Hcf_p
+        # fixed parameters: identity rows
+        fixed = ~free
+        for c in range(C):
+            idx = np.flatnonzero(fixed[c])
+            Hcc[c, idx, :] = 0
+            Hcc[c, :, idx] = 0
+            Hcc[c, idx, idx] = 1.0
+        gc[fixed] = 0.0
+        improved = False
+        for _ in range(12):
+            # damped system
+            Hcc_d = Hcc.copy()
+            dc = np.einsum("cii->ci", Hcc_d)
+            dc += lam * np.maximum(dc, 1e-9)
+            Hff_d = Hff.copy()
+            df = np.einsum("fii->fi", Hff_d)
+            df += lam * np.maximum(df, 1e-9) + 1e-12
+            Hff_inv = np.linalg.inv(Hff_d)  # (F, 6, 6)
+            P = C * 15
+            Hcf_flat = Hcf.transpose(0, 2, 1, 3).reshape(P, F * 6)
+            Y = np.einsum("cfij,fjk->cfik", Hcf, Hff_inv)  # (C, F, 15, 6)
+            Y_flat = Y.transpose(0, 2, 1, 3).reshape(P, F * 6)
+            S = np.zeros((P, P))
+            for c in range(C):
+                S[c * 15 : (c + 1) * 15, c * 15 : (c + 1) * 15] = Hcc_d[c]
+            S -= Y_flat @ Hcf_flat.T
+            rhs = -gc.reshape(P) + Y_flat @ gf.reshape(F * 6)
+            try:
+                dcam = np.linalg.solve(S, rhs)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            dcam = dcam.reshape(C, 15) * freef
+            dfr = -np.einsum("fij,fj->fi", Hff_inv, gf + np.einsum("cfij,ci->fj", Hcf, dcam))
+            n_intr = intr + dcam[:, :9]
+            n_Rc = _exp_so3(dcam[:, 9:12]) @ Rc
+            n_tc = tc + dcam[:, 12:15] + 0.0
+            # left rotation update of Rc acts on (Rc Xw); t is updated additively
+            n_Rf = _exp_so3(dfr[:, :3]) @ Rf
+            n_tf = tf + dfr[:, 3:]
+            n_cost, n_r, n_e, n_cache = cost_of(n_intr, n_Rc, n_tc, n_Rf, n_tf)
+            nfev += 1
+            if np.isfinite(n_cost) and n_cost < cost:
+                rel = (cost - n_cost) / max(cost, 1e-300)
+                intr, Rc, tc, Rf, tf = n_intr, n_Rc, n_tc, n_Rf, n_tf
+                cost, r, e, cache = n_cost, n_r, n_e, n_cache
+                lam = max(lam / 3, 1e-9)
+                improved = True
+                break
+            lam *= 4
+        if not improved or rel < 1e-10:
+            break
+    cam = np.zeros_like(cam0)
+    cam[:, :9] = intr
+    cam[:, 9:12] = np.stack([matrix_to_rvec(R) for R in Rc])
+    cam[:, 12:15] = tc
+    fr = np.zeros_like(frame0)
+    fr[:, :3] = np.stack([matrix_to_rvec(R) for R in Rf]) if F else np.zeros((0, 3))
+    fr[:, 3:] = tf
+    return cam, fr, nfev
+
+
+def _sparsity(obs: Observations, cam_cols: np.ndarray, n_cam_free: int, F: int):
+    from scipy.sparse import coo_matrix
+
+    N = len(obs)
+    rows, cols = [], []
+    r0 = 2 * np.arange(N)
+    cc = cam_cols[obs.cam]  # (N, 15), -1 if fixed
+    for k in range(N_CAM):
+        ok = cc[:, k] >= 0
+        for d in (0, 1):
+            rows.append(r0[ok] + d)
+            cols.append(cc[ok, k])
+    for k in range(6):
+        for d in (0, 1):
+            rows.append(r0 + d)
+            cols.append(n_cam_free + 6 * obs.frame + k)
+    rows_a = np.concatenate(rows)
+    cols_a = np.concatenate(cols)
+    data = np.ones(len(rows_a), dtype=np.int8)
+    return coo_matrix((data, (rows_a, cols_a)), shape=(2 * N, n_cam_free + 6 * F)).tocsr()
+
+
+def _solve_scipy(cam0, free, frame0, obs, loss, f_scale, max_iter):
+    """``scipy.optimize.least_squares`` (TRF, LSMR) with a finite-difference sparse Jacobian."""
+    from scipy.optimize import least_squares
+
+    C, F = cam0.shape[0], frame0.shape[0]
+    cam_cols = np.full((C, N_CAM), -1, dtype=np.int64)
+    cam_cols[free] = np.arange(int(free.sum()))
+    n_cam_free = int(free.sum())
+
+    def unpack(x):
+        cam = cam0.copy()
+        cam[free] = x[:n_cam_free]
+        return cam, x[n_cam_free:].reshape(F, 6)
+
+    def fun(x):
+        cam, fr = unpack(x)
+        uv, _z = project_observations(cam, fr, obs)
+        return (uv - obs.uv).ravel()
+
+    x0 = np.concatenate([cam0[free], frame0.ravel()])
+    res = least_squares(
+        fun,
+        x0,
+        jac_sparsity=_sparsity(obs, cam_cols, n_cam_free, F),
+        loss=loss,
+        f_scale=f_scale,
+        x_scale="jac",
+        method="trf",
+        tr_solver="lsmr",
+        ftol=1e-10,
+        xtol=1e-10,
+        gtol=1e-10,
+        max_nfev=2 * max_iter,
+    )
+    cam, fr = unpack(res.x)
+    return cam, fr, int(res.nfev)
+
+
+def bundle_adjust(
+    cam_params: np.ndarray,
+    free: np.ndarray,
+    frame_params: np.ndarray,
+    frames: np.ndarray,
+    obs: Observations,
+    loss: str = "huber",
+    f_scale: float = 1.0,
+    max_rounds: int = 4,
+    outlier_px: float = 2.0,
+    max_iter: int = 100,
+    method: str = "lm",
+) -> BundleResult:
+    """Jointly refine cameras and board poses.
+
+    Args:
+        cam_params: (C, 15) initial fx fy cx cy k1 k2 p1 p2 k3 rvec t (world→camera).
+        free: (C, 15) bool, which camera parameters are optimised (fix one camera's extrinsics
+            to remove the gauge freedom).
+        frame_params: (F, 6) initial board→world rvec t.
+        frames: (F,) video frame indices (bookkeeping only).
+        obs: observations whose ``frame`` indexes ``frame_params``.
+        loss, f_scale: robust loss of ``least_squares`` (px).
+        max_rounds: solve / reject rounds.
+        method: ``"lm"`` (Levenberg-Marquardt with Schur complement, analytic Jacobian) or
+            ``"scipy"`` (``least_squares`` with a sparse finite-difference Jacobian).
+        outlier_px: a detection is rejected when its error exceeds
+            ``max(outlier_px, 5 * median error)`` after a round.
+    """
+    if method not in ("lm", "scipy"):
+        raise ValueError(f"unknown bundle-adjustment method {method!r}; expected lm or scipy")
+    solver = _solve if method == "lm" else _solve_scipy
+    t0 = time.perf_counter()
+    cam = np.asarray(cam_params, np.float64).copy()
+    fr = np.asarray(frame_params, np.float64).copy()
+    uv, _ = project_observations(cam, fr, obs)
+    e0 = np.linalg.norm(uv - obs.uv, axis=1)
+    initial_rms = float(np.sqrt(np.mean(e0**2)))
+    keep = np.ones(len(obs), bool)
+    # grossly wrong initial detections would drag the first round
+    if len(obs) > 20:
+        keep &= e0 < max(50.0, 20 * np.median(e0))
+    nfev = 0
+    rounds = 0
+    for rounds in range(1, max_rounds + 1):  # noqa: B007
+        cam, fr, n = solver(cam, free, fr, obs.subset(keep), loss, f_scale, max_iter)
+        nfev += n
+        uv, _ = project_observations(cam, fr, obs)
+        err = np.linalg.norm(uv - obs.uv, axis=1)
+        thr = max(outlier_px, 5.0 * float(np.median(err[keep])))
+        new_keep = err < thr
+        logger.info(
+            "bundle round %d: RMS %.3f px over %d detections, %d rejected (> %.2f px)",
+            rounds,
+            float(np.sqrt(np.mean(err[keep] ** 2))),
+            int(keep.sum()),
+            int((~new_keep).sum()),
+            thr,
+        )
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    uv, _ = project_observations(cam, fr, obs)
+    err = np.linalg.norm(uv - obs.uv, axis=1)
+    return BundleResult(
+        cam_params=cam,
+        frame_params=fr,
+        frames=np.asarray(frames),
+        obs=obs,
+        inliers=keep,
+        errors=err,
+        initial_rms=initial_rms,
+        rounds=rounds,
+        nfev=nfev,
+        seconds=time.perf_counter() - t0,
+    )

@@ -1,0 +1,460 @@
+"""The calibration pipeline: detections -> intrinsics -> extrinsics -> bundle adjustment -> world.
+
+``calibrate(sources, board, output, options)`` runs everything from videos (detections are
+cached next to the output); ``calibrate_detections(detections, board, options)`` starts from
+detections (tests, other detectors).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from freipose.calibration.boards import Board
+from freipose.calibration.bundle import (
+    BundleResult,
+    Observations,
+    bundle_adjust,
+    matrix_to_rvec,
+    rodrigues,
+)
+from freipose.calibration.detect import CameraDetections, detect_cameras, diagnose_board
+from freipose.calibration.extrinsics import (
+    CameraGraph,
+    board_poses_per_camera,
+    initial_board_poses,
+    initial_extrinsics,
+)
+from freipose.calibration.intrinsics import (
+    CalibrationError,
+    IntrinsicsResult,
+    calibrate_intrinsics,
+    dist_free_mask,
+)
+
+from freipose.geometry import Camera, CameraRig
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "CalibrationError",
+    "CalibrationOptions",
+    "CalibrationResult",
+    "CameraStats",
+    "calibrate",
+    "calibrate_detections",
+    "detection_cache_dir",
+]
+
+HIGH_ERROR_PX = 1.0
+# board frame (x right, y down the print, z into the board) -> floor frame (z up out of it)
+BOARD_TO_FLOOR = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Solver options.
+
+    Attributes:
+        origin_frame: video frame whose board pose defines the world (board on the floor: origin
+            at the board's top-left pattern corner, x along the board's rows, z up out of the
+            floor); ``None`` = the first camera's frame.
+        intrinsics_only: stop after per-camera intrinsics (extrinsics are identity).
+        fixed_intrinsics: a rig whose K and distortion are used (and kept fixed) for every
+            camera of the same name.
+        dist_model: ``none``, ``k1``, ``k1k2``, ``k1k2p`` (k1 k2 p1 p2; default) or ``full``.
+        jobs: detection processes (default: CPU count).
+        max_views: views per camera for the intrinsics initialisation.
+        loss, f_scale: robust loss of the bundle adjustment (px).
+        outlier_px: minimum rejection threshold (px).
+        solver: ``lm`` (Schur-complement Levenberg-Marquardt) or ``scipy`` (least_squares).
+    """
+
+    origin_frame: int | None = None
+    intrinsics_only: bool = False
+    fixed_intrinsics: CameraRig | None = None
+    dist_model: str = "k1k2p"
+    jobs: int | None = None
+    max_views: int = 40
+    loss: str = "huber"
+    f_scale: float = 1.0
+    outlier_px: float = 2.0
+    solver: str = "lm"
+    progress: bool = True
+
+
+@dataclass(frozen=True)
+class CameraStats:
+    """Per-camera result figures (px)."""
+
+    name: str
+    frames_detected: int
+    points_detected: int
+    points_used: int
+    rms: float
+    median: float
+    intrinsics_frames: int
+
+    def to_dict(self) -> dict:
+        return {
+            "frames_with_detections": self.frames_detected,
+            "points_detected": self.points_detected,
+            "points_used": self.points_used,
+            "reprojection_rms_px": round(self.rms, 4) if np.isfinite(self.rms) else None,
+            "reprojection_median_px": round(self.median, 4) if np.isfinite(self.median) else None,
+            "intrinsics_frames": self.intrinsics_frames,
+        }
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Everything a report needs.
+
+    Attributes:
+        rig: the calibrated cameras (world→camera, mm).
+        board: the board.
+        detections: per camera (F frames each, common prefix).
+        stats: per camera, in rig order.
+        board_poses: (F, 4, 4) board→world per frame, NaN where not estimated.
+        world: the world-frame definition (also in ``rig.metadata["world"]``).
+        graph: camera graph (None for ``intrinsics_only``).
+        bundle: bundle-adjustment result (None for ``intrinsics_only``).
+        warnings: messages for the user.
+    """
+
+    rig: CameraRig
+    board: Board
+    detections: list[CameraDetections]
+    stats: list[CameraStats]
+    board_poses: np.ndarray
+    world: str
+    graph: CameraGraph | None = None
+    bundle: BundleResult | None = None
+    warnings: list[str] = field(default_factory=list)
+    intrinsics: dict[str, IntrinsicsResult] = field(default_factory=dict)
+
+    def camera_errors(self, camera: int) -> np.ndarray:
+        """Final reprojection errors (px) of the inlier detections of camera index ``camera``."""
+        if self.bundle is None:
+            return np.zeros(0)
+        b = self.bundle
+        m = (b.obs.cam == camera) & b.inliers
+        return b.errors[m]
+
+
+def _T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    return _T(T[:3, :3].T, -T[:3, :3].T @ T[:3, 3])
+
+
+def _common_prefix(detections: list[CameraDetections], warnings: list[str]):
+    counts = [d.num_frames for d in detections]
+    n = min(counts)
+    if len(set(counts)) > 1:
+        desc = ", ".join(f"{d.name}: {d.num_frames}" for d in detections)
+        msg = (
+            f"the cameras have different frame counts ({desc}); using the first {n} frames of "
+            f"each. If the videos are not synchronized from frame 0, trim them first"
+        )
+        logger.warning(msg)
+        warnings.append(msg)
+        detections = [d.truncated(n) for d in detections]
+    return detections
+
+
+def _check_detected(detections: list[CameraDetections], board: Board) -> None:
+    empty = [d.name for d in detections if not d.mask.any()]
+    if empty:
+        raise CalibrationError(
+            f"the board was never detected in camera(s) {', '.join(empty)}; check that the board "
+            f"file matches the printed board ({board.to_dict()}) and that those cameras see it"
+        )
+
+
+def calibrate_detections(
+    detections: Sequence[CameraDetections],
+    board: Board,
+    options: CalibrationOptions | None = None,
+) -> CalibrationResult:
+    """Calibrate a rig from per-camera detections of ``board`` (synchronized by frame index)."""
+    opt = options or CalibrationOptions()
+    warnings: list[str] = []
+    dets = _common_prefix(list(detections), warnings)
+    if not dets:
+        raise CalibrationError("no cameras given")
+    names = [d.name for d in dets]
+    if len(set(names)) != len(names):
+        raise CalibrationError(
+            f"camera names must be unique (they are the file or folder stems): {names}"
+        )
+    _check_detected(dets, board)
+    obj = board.object_points
+    F = dets[0].num_frames
+    C = len(dets)
+    free_dist = dist_free_mask(opt.dist_model)
+
+    # ---- intrinsics
+    Ks, dists, intr = [], [], {}
+    fixed_names: set[str] = set()
+    for d in dets:
+        if opt.fixed_intrinsics is not None:
+            if d.name not in opt.fixed_intrinsics:
+                raise CalibrationError(
+                    f"camera {d.name} is not in the --fix-intrinsics file (it has "
+                    f"{', '.join(opt.fixed_intrinsics.names)}); name the videos like its cameras"
+                )
+            cam = opt.fixed_intrinsics[d.name]
+            if tuple(cam.size) != tuple(d.size):
+                raise CalibrationError(
+                    f"camera {d.name}: the --fix-intrinsics file is for {cam.size[0]}x"
+                    f"{cam.size[1]} images but the video is {d.size[0]}x{d.size[1]}"
+                )
+            Ks.append(cam.K.copy())
+            dists.append(cam.dist.copy())
+            fixed_names.add(d.name)
+            continue
+        res = calibrate_intrinsics(
+            d.points, obj, d.size, opt.dist_model, camera=d.name, max_views=opt.max_views
+        )
+        intr[d.name] = res
+        Ks.append(res.K)
+        dists.append(res.dist)
+        logger.info(
+            "camera %s: intrinsics from %d views, RMS %.3f px, f = %.1f, %.1f",
+            d.name,
+            len(res.frames),
+            res.rms,
+            res.K[0, 0],
+            res.K[1, 1],
+        )
+
+    if opt.intrinsics_only:
+        cams = tuple(
+            Camera(d.name, tuple(d.size), Ks[i], dists[i], np.eye(3), np.zeros(3))
+            for i, d in enumerate(dets)
+        )
+        world = "intrinsics only: extrinsics are identity (not calibrated)"
+        rig = CameraRig(cams, {"world": world, "calibrated_by": "freipose calib"})
+        stats = []
+        for d in dets:
+            r = intr.get(d.name)
+            stats.append(
+                CameraStats(
+                    d.name,
+                    int((d.counts > 0).sum()),
+                    int(d.mask.sum()),
+                    int(sum(d.mask[f].sum() for f in r.frames)) if r else 0,
+                    r.rms if r else float("nan"),
+                    float("nan"),
+                    len(r.frames) if r else 0,
+                )
+            )
+        _warn_high(stats, warnings)
+        return CalibrationResult(
+            rig, board, dets, stats, np.full((F, 4, 4), np.nan), world, None, None, warnings, intr
+        )
+
+    # ---- board poses, camera graph, initial extrinsics
+    poses = np.full((C, F, 4, 4), np.nan)
+    for i, d in enumerate(dets):
+        poses[i], _rms = board_poses_per_camera(d.points, obj, Ks[i], dists[i])
+        if not np.isfinite(poses[i, :, 0, 0]).any():
+            raise CalibrationError(
+                f"camera {d.name}: no frame gives a consistent board pose (reprojection error "
+                f"< 3 px with the estimated intrinsics); the detections or the board's "
+                f"dimensions are wrong"
+            )
+    T_world, graph = initial_extrinsics(names, poses)
+    counts = np.stack([d.counts for d in dets])
+    B0 = initial_board_poses(T_world, poses, counts)
+    frames = np.flatnonzero(np.isfinite(B0[:, 0, 0]))
+    frame_pos = np.full(F, -1)
+    frame_pos[frames] = np.arange(len(frames))
+
+    # ---- observations: every detection in a frame with a board pose
+    cam_i, fr_i, pt_i, uv = [], [], [], []
+    for i, d in enumerate(dets):
+        m = d.mask & (frame_pos >= 0)[:, None]
+        f_idx, p_idx = np.nonzero(m)
+        cam_i.append(np.full(len(f_idx), i))
+        fr_i.append(frame_pos[f_idx])
+        pt_i.append(p_idx)
+        uv.append(d.points[f_idx, p_idx])
+    obs = Observations(
+        np.concatenate(cam_i),
+        np.concatenate(fr_i),
+        obj[np.concatenate(pt_i)],
+        np.concatenate(uv),
+    )
+
+    cam0 = np.zeros((C, 15))
+    free = np.zeros((C, 15), bool)
+    for i, d in enumerate(dets):
+        K = Ks[i]
+        cam0[i, :4] = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+        cam0[i, 4:9] = dists[i]
+        cam0[i, 9:12] = matrix_to_rvec(T_world[i, :3, :3])
+        cam0[i, 12:15] = T_world[i, :3, 3]
+        if d.name not in fixed_names:
+            free[i, :4] = True
+            free[i, 4:9] = free_dist
+        if i != graph.root:
+            free[i, 9:] = True
+    fr0 = np.zeros((len(frames), 6))
+    for k, f in enumerate(frames):
+        fr0[k, :3] = matrix_to_rvec(B0[f, :3, :3])
+        fr0[k, 3:] = B0[f, :3, 3]
+    ba = bundle_adjust(
+        cam0,
+        free,
+        fr0,
+        frames,
+        obs,
+        loss=opt.loss,
+        f_scale=opt.f_scale,
+        outlier_px=opt.outlier_px,
+        method=opt.solver,
+    )
+    logger.info(
+        "bundle adjustment: RMS %.3f -> %.3f px in %.2f s (%d evaluations)",
+        ba.initial_rms,
+        float(np.sqrt(np.mean(ba.errors[ba.inliers] ** 2))),
+        ba.seconds,
+        ba.nfev,
+    )
+
+    # ---- world frame
+    Tc = np.stack([_T(rodrigues(p[9:12]), p[12:15]) for p in ba.cam_params])  # world→cam
+    Bw = np.full((F, 4, 4), np.nan)
+    for k, f in enumerate(frames):
+        Bw[f] = _T(rodrigues(ba.frame_params[k, :3]), ba.frame_params[k, 3:])
+    if opt.origin_frame is not None:
+        N = int(opt.origin_frame)
+        if not (0 <= N < F) or not np.isfinite(Bw[N, 0, 0]):
+            seen = np.flatnonzero(np.isfinite(Bw[:, 0, 0]))
+            near = seen[np.argsort(np.abs(seen - N))[:5]] if len(seen) else []
+            raise CalibrationError(
+                f"--origin-frame {N}: the board pose in that frame is unknown (no camera "
+                f"detected enough of the board; the videos have {F} frames). Frames with a board "
+                f"pose near it: {', '.join(str(int(x)) for x in sorted(near))}"
+            )
+        W = BOARD_TO_FLOOR @ _inv(Bw[N])
+        world = (
+            f"board on the floor in frame {N}: origin at the board's top-left pattern corner, "
+            f"x along the board's rows, y toward its first row, z up out of the floor; mm"
+        )
+    else:
+        W = Tc[0].copy()
+        world = (
+            f"camera {names[0]}'s frame (origin at its optical centre, x right, y down, "
+            f"z forward); mm"
+        )
+    Tc = np.stack([T @ _inv(W) for T in Tc])
+    Bw = np.einsum("ij,fjk->fik", W, Bw)
+
+    cams = []
+    for i, d in enumerate(dets):
+        p = ba.cam_params[i]
+        K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
+        R = Tc[i, :3, :3]
+        U, _s, Vt = np.linalg.svd(R)
+        cams.append(Camera(d.name, tuple(d.size), K, p[4:9].copy(), U @ Vt, Tc[i, :3, 3]))
+    stats = []
+    for i, d in enumerate(dets):
+        m = obs.cam == i
+        e = ba.errors[m & ba.inliers]
+        r = intr.get(d.name)
+        stats.append(
+            CameraStats(
+                d.name,
+                int((d.counts > 0).sum()),
+                int(d.mask.sum()),
+                int(e.size),
+                float(np.sqrt(np.mean(e**2))) if e.size else float("nan"),
+                float(np.median(e)) if e.size else float("nan"),
+                len(r.frames) if r else 0,
+            )
+        )
+    _warn_high(stats, warnings)
+    rms_all = float(np.sqrt(np.mean(ba.errors[ba.inliers] ** 2)))
+    metadata = {
+        "world": world,
+        "calibrated_by": "freipose calib",
+        "board": board.to_dict(),
+        "reprojection_rms_px": round(rms_all, 4),
+        "distortion_model": opt.dist_model,
+    }
+    if opt.origin_frame is not None:
+        metadata["origin_frame"] = int(opt.origin_frame)
+    rig = CameraRig(tuple(cams), metadata)
+    return CalibrationResult(rig, board, dets, stats, Bw, world, graph, ba, warnings, intr)
+
+
+def _warn_high(stats: list[CameraStats], warnings: list[str]) -> None:
+    for s in stats:
+        if np.isfinite(s.rms) and s.rms > HIGH_ERROR_PX:
+            msg = (
+                f"camera {s.name}: reprojection RMS {s.rms:.2f} px is above "
+                f"{HIGH_ERROR_PX:.0f} px; "
+                f"check focus and motion blur, the board's flatness and dimensions, or "
+                f"try --dist-model full"
+            )
+            logger.warning(msg)
+            warnings.append(msg)
+
+
+def detection_cache_dir(output: str | Path) -> Path:
+    """Folder next to the output that caches detections: ``<output stem>.detections/``."""
+    out = Path(output)
+    return out.with_name(out.stem + ".detections")
+
+
+def calibrate(
+    sources: Sequence[str | Path],
+    board: Board,
+    output: str | Path | None = None,
+    options: CalibrationOptions | None = None,
+) -> CalibrationResult:
+    """Detect ``board`` in every frame of every source (video or image folder) and calibrate.
+
+    Detections are cached in :func:`detection_cache_dir` of ``output`` (when given). A camera
+    that never sees the board raises :class:`CalibrationError` saying which board the images
+    probably show.
+    """
+    from freipose.io.video import FrameSource
+
+    opt = options or CalibrationOptions()
+    if not sources:
+        raise CalibrationError("no input videos or image folders given")
+    paths = [Path(s) for s in sources]
+    stems = [p.stem if p.is_file() else p.name for p in paths]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise CalibrationError(
+            f"camera names come from the file or folder stems and must be unique; "
+            f"{', '.join(dup)} appear(s) more than once"
+        )
+    cache = detection_cache_dir(output) if output is not None else None
+    dets = detect_cameras(paths, board, cache_dir=cache, jobs=opt.jobs, progress=opt.progress)
+    for d, p in zip(dets, paths):
+        if d.mask.any():
+            continue
+        with FrameSource(p) as src:
+            n = src.num_frames
+            idx = np.unique(np.linspace(0, n - 1, min(n, 4)).round().astype(int))
+            imgs = [src.read(int(i)) for i in idx]
+        hint = diagnose_board(imgs, board)
+        raise CalibrationError(
+            f"camera {d.name}: the board was never detected in its {d.num_frames} frames ({p})"
+            + (f"; {hint}" if hint else "; make sure the camera sees the whole board")
+        )
+    return calibrate_detections(dets, board, opt)
