@@ -1,0 +1,171 @@
+"""Training-time augmentation of one image and its box, and CenterNet targets.
+
+Images are cached at (about) the network's input scale; one random affine map (scale,
+translation, i.e. random crops, and flips) takes a cached image to the square network
+input, followed by photometric changes: brightness, contrast, saturation, hue, blur and
+pixel noise. The box is mapped with the same affine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from freipose.detect.boxes import clip_boxes, transform_boxes
+from freipose.detect.model import STRIDE
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Augmentation strengths (0 disables one).
+
+    Attributes:
+        scale: (min, max) zoom relative to letterboxing the whole frame.
+        hflip, vflip: probabilities of horizontal / vertical flips.
+        color: strength of brightness/contrast/saturation jitter (fraction).
+        hue: hue shift in OpenCV hue units (0..180 is a full turn).
+        blur: probability of a Gaussian blur (sigma up to 1.5 px).
+        noise: standard deviation of additive pixel noise (grey levels), drawn uniformly
+            from 0 to this per image.
+    """
+
+    scale: tuple[float, float] = (0.7, 1.5)
+    hflip: float = 0.5
+    vflip: float = 0.5
+    color: float = 0.3
+    hue: float = 8.0
+    blur: float = 0.3
+    noise: float = 6.0
+
+    def __post_init__(self) -> None:
+        lo, hi = self.scale
+        if not 0 < lo <= hi:
+            raise ValueError(
+                f"augmentation scale must be (min, max) with 0 < min <= max, got {self.scale}"
+            )
+        for name in ("hflip", "vflip", "blur"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} is a probability in [0, 1], got {getattr(self, name)}")
+
+
+def augment(
+    image: np.ndarray,
+    box: np.ndarray,
+    input_size: int,
+    cfg: AugmentConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A random view of ``image`` (h, w, 3) as a square (S, S, 3) input and its box.
+
+    Args:
+        image: BGR uint8, at roughly the network scale (longest side about ``input_size``).
+        box: (4,) the animal's box in ``image`` pixels, or NaN (no animal in the image).
+        input_size: S.
+        cfg: augmentation strengths.
+        rng: random generator.
+
+    Returns:
+        ``(input_image (S, S, 3) uint8, box (4,))`` with the box clipped to the input, NaN
+        when there is no animal.
+    """
+    h, w = image.shape[:2]
+    base = input_size / max(w, h)
+    z = float(np.exp(rng.uniform(np.log(cfg.scale[0]), np.log(cfg.scale[1]))))
+    s = base * z
+    # Translation: random, but keep the box centre inside the input (random crops).
+    tx = rng.uniform(min(0.0, input_size - w * s), max(0.0, input_size - w * s))
+    ty = rng.uniform(min(0.0, input_size - h * s), max(0.0, input_size - h * s))
+    has_box = bool(np.isfinite(box).all())
+    if has_box:
+        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+        m = 0.05 * input_size
+        lo_x, hi_x = m - (cx + 0.5) * s, input_size - m - (cx + 0.5) * s
+        lo_y, hi_y = m - (cy + 0.5) * s, input_size - m - (cy + 0.5) * s
+        if not lo_x <= tx <= hi_x:
+            tx = rng.uniform(lo_x, hi_x)
+        if not lo_y <= ty <= hi_y:
+            ty = rng.uniform(lo_y, hi_y)
+    A = np.array([[s, 0.0, 0.5 * s - 0.5 + tx], [0.0, s, 0.5 * s - 0.5 + ty], [0.0, 0.0, 1.0]])
+    if rng.random() < cfg.hflip:
+        A = np.array([[-1.0, 0, input_size - 1], [0, 1, 0], [0, 0, 1]]) @ A
+    if rng.random() < cfg.vflip:
+        A = np.array([[1.0, 0, 0], [0, -1, input_size - 1], [0, 0, 1]]) @ A
+    fill = tuple(int(v) for v in rng.integers(0, 256, 3)) if rng.random() < 0.5 else (114,) * 3
+    out = cv2.warpAffine(
+        image,
+        A[:2],
+        (input_size, input_size),
+        flags=cv2.INTER_LINEAR if z > 0.8 else cv2.INTER_AREA,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=fill,
+    )
+    out = _photometric(out, cfg, rng)
+    if has_box:
+        b = clip_boxes(transform_boxes(box, A), (input_size, input_size))
+    else:
+        b = np.full(4, np.nan)
+    return out, b
+
+
+def _photometric(img: np.ndarray, cfg: AugmentConfig, rng: np.random.Generator) -> np.ndarray:
+    x = img.astype(np.float32)
+    if cfg.color > 0:
+        c = cfg.color
+        if rng.random() < 0.8:
+            hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV).astype(np.float32)
+            hsv[..., 0] = (hsv[..., 0] + rng.uniform(-cfg.hue, cfg.hue)) % 180
+            hsv[..., 1] *= rng.uniform(1 - c, 1 + c)
+            x = cv2.cvtColor(np.clip(hsv, 0, 255).astype(np.uint8), cv2.COLOR_HSV2BGR).astype(
+                np.float32
+            )
+        mean = x.mean()
+        x = (x - mean) * rng.uniform(1 - c, 1 + c) + mean * rng.uniform(1 - c, 1 + c)
+        x *= rng.uniform(1 - c / 3, 1 + c / 3, size=3).astype(np.float32)  # white balance
+    if cfg.blur > 0 and rng.random() < cfg.blur:
+        x = cv2.GaussianBlur(x, (0, 0), rng.uniform(0.3, 1.5))
+    if cfg.noise > 0:
+        x += rng.normal(0, rng.uniform(0, cfg.noise), size=x.shape).astype(np.float32)
+    return np.clip(x, 0, 255).astype(np.uint8)
+
+
+def make_targets(
+    boxes: np.ndarray, input_size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """CenterNet targets for a batch with at most one box per image.
+
+    Args:
+        boxes: (B, 4) boxes in input pixels, NaN for images without an animal.
+        input_size: S (the output grid is S / 4).
+
+    Returns:
+        ``heat (B, 1, G, G)`` Gaussian peaks (1 at the centre cell), ``index (B,)`` flat
+        centre cell, ``size (B, 2)`` log box size in cells, ``offset (B, 2)`` sub-cell
+        centre offset, ``mask (B,)`` float 1 where the image has a box.
+    """
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    n = len(b)
+    g = input_size // STRIDE
+    heat = np.zeros((n, 1, g, g), np.float32)
+    index = np.zeros(n, np.int64)
+    size = np.zeros((n, 2), np.float32)
+    offset = np.zeros((n, 2), np.float32)
+    mask = np.zeros(n, np.float32)
+    yy, xx = np.mgrid[0:g, 0:g]
+    for i, bx in enumerate(b):
+        if not np.isfinite(bx).all():
+            continue
+        w, h = bx[2] - bx[0], bx[3] - bx[1]
+        if w < 1 or h < 1:
+            continue
+        gx = ((bx[0] + bx[2]) / 2 + 0.5) / STRIDE  # centre in grid units (cell corners at k)
+        gy = ((bx[1] + bx[3]) / 2 + 0.5) / STRIDE
+        cx, cy = int(np.clip(np.floor(gx), 0, g - 1)), int(np.clip(np.floor(gy), 0, g - 1))
+        sigma = max(0.7, 0.12 * np.sqrt(w * h) / STRIDE)
+        heat[i, 0] = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma**2))
+        index[i] = cy * g + cx
+        size[i] = np.log([w / STRIDE, h / STRIDE])
+        offset[i] = [gx - cx, gy - cy]
+        mask[i] = 1.0
+    return heat, index, size, offset, mask

@@ -1,0 +1,478 @@
+"""Training the detector from ``labels.h5`` (``freipose train CONFIG --stage detector``).
+
+The training TOML's ``[data]`` table names the data (paths relative to the TOML file)::
+
+    [data]
+    labels = "labels.h5"            # or a list of files
+    eval_labels = "eval/labels.h5"  # optional; else a held-out fraction of `labels`
+    root = "."                      # optional: folder the labels' video paths are relative to
+
+and its ``[detector]`` table the training (every key optional; defaults below)::
+
+    [detector]
+    input_size = 256        # network input side (px, multiple of 32); frames are letterboxed
+    width = 0.5             # backbone width multiplier
+    neck_channels = 48
+    steps = 3000            # optimizer steps
+    batch_size = 16
+    lr = 2e-3               # AdamW peak learning rate (linear warm-up, cosine decay)
+    weight_decay = 1e-4
+    warmup_steps = 100
+    box_margin = 0.1        # ground-truth box = label bbox + this fraction of its longer side
+    min_visible = 0.5       # views with less of the box inside the image are not scored
+    scale = [0.7, 1.5]      # augmentation: zoom range (random crops)
+    hflip = 0.5             # flip probabilities
+    vflip = 0.5
+    color = 0.3             # brightness/contrast/saturation jitter
+    hue = 8.0
+    blur = 0.3              # blur probability
+    noise = 6.0             # max pixel noise std
+    eval_fraction = 0.1     # held out when there is no eval_labels
+    max_images = 4000       # most training views kept in memory (evenly subsampled)
+    max_eval_instants = 200 # most time instants evaluated
+    backbone_weights = ""   # optional local file with backbone weights to start from
+    checkpoint_every = 500
+    log_every = 100
+    seed = 0
+    cube_size = 400.0       # mm, multi-view step during evaluation
+    num_workers = 0         # DataLoader workers preparing augmented batches
+
+Writes ``detector_last.pt`` (resumable: weights, optimizer, step) every
+``checkpoint_every`` steps and ``detector.pt`` (weights and metrics) at the end, and prints
+recall at IoU 0.5, the median 3D centre error and CPU frames per second.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from freipose.detect.augment import AugmentConfig, augment, make_targets
+from freipose.detect.boxes import clip_boxes, visible_fraction
+from freipose.detect.detector import (
+    Detector,
+    load_backbone_weights,
+    load_checkpoint,
+    resolve_device,
+    save_checkpoint,
+)
+from freipose.detect.evaluate import DetectionMetrics, evaluate_source, gt_boxes, measure_fps
+from freipose.detect.model import DetectorConfig, DetectorNet, to_tensor
+from freipose.detect.multiview import ConsistencyConfig
+
+log = logging.getLogger(__name__)
+
+LAST = "detector_last.pt"
+FINAL = "detector.pt"
+
+
+@dataclass(frozen=True)
+class DetectorTrainConfig:
+    """The ``[detector]`` table of the training TOML (see the module docstring)."""
+
+    input_size: int = 256
+    width: float = 0.5
+    neck_channels: int = 48
+    steps: int = 3000
+    batch_size: int = 16
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    warmup_steps: int = 100
+    box_margin: float = 0.1
+    min_visible: float = 0.5
+    scale: tuple[float, float] = (0.7, 1.5)
+    hflip: float = 0.5
+    vflip: float = 0.5
+    color: float = 0.3
+    hue: float = 8.0
+    blur: float = 0.3
+    noise: float = 6.0
+    eval_fraction: float = 0.1
+    max_images: int = 4000
+    max_eval_instants: int = 200
+    backbone_weights: str = ""
+    checkpoint_every: int = 500
+    log_every: int = 100
+    seed: int = 0
+    cube_size: float = 400.0
+    num_workers: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scale", tuple(float(v) for v in self.scale))
+        for name in ("steps", "batch_size", "max_images", "checkpoint_every", "log_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"[detector] {name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.eval_fraction < 1:
+            raise ValueError(
+                f"[detector] eval_fraction must be in [0, 1), got {self.eval_fraction}"
+            )
+        if self.lr <= 0:
+            raise ValueError(f"[detector] lr must be positive, got {self.lr}")
+        self.model_config()  # validates input_size etc.
+        self.augment_config()
+
+    @classmethod
+    def from_dict(cls, table: dict[str, Any] | None) -> DetectorTrainConfig:
+        """Build from the ``[detector]`` table; unknown keys are an error (typos)."""
+        table = dict(table or {})
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(table) - known)
+        if unknown:
+            raise ValueError(
+                f"[detector] has unknown keys {unknown}; known keys are {sorted(known)}"
+            )
+        try:
+            return cls(**table)
+        except TypeError as exc:
+            raise ValueError(f"[detector]: {exc}") from exc
+
+    def model_config(self) -> DetectorConfig:
+        return DetectorConfig(self.input_size, self.width, self.neck_channels)
+
+    def augment_config(self) -> AugmentConfig:
+        return AugmentConfig(
+            self.scale, self.hflip, self.vflip, self.color, self.hue, self.blur, self.noise
+        )
+
+
+@dataclass
+class ViewImages:
+    """Training views cached at network scale: images and boxes (NaN = no animal)."""
+
+    images: list[np.ndarray]
+    boxes: np.ndarray  # (N, 4) in cached-image pixels
+
+
+def _data_paths(config: dict, config_path: Path) -> tuple[list[Path], list[Path], Path | None]:
+    data = config.get("data")
+    if not isinstance(data, dict) or "labels" not in data:
+        raise ValueError(
+            f"{config_path}: the training config needs a [data] table with `labels = "
+            f'"labels.h5"` (a path or a list of paths, relative to the config file)'
+        )
+    base = Path(config_path).resolve().parent
+
+    def paths(v: Any, key: str) -> list[Path]:
+        vs = [v] if isinstance(v, (str, Path)) else list(v)
+        if not vs or not all(isinstance(x, (str, Path)) for x in vs):
+            raise ValueError(f"{config_path}: [data] {key} must be a path or a list of paths")
+        out = [p if p.is_absolute() else base / p for p in map(Path, vs)]
+        for p in out:
+            if not p.is_file():
+                raise FileNotFoundError(f"{config_path}: [data] {key}: {p} does not exist")
+        return out
+
+    train = paths(data["labels"], "labels")
+    ev = paths(data["eval_labels"], "eval_labels") if data.get("eval_labels") else []
+    root = data.get("root")
+    root_p = None if root is None else (Path(root) if Path(root).is_absolute() else base / root)
+    return train, ev, root_p
+
+
+def _datasets(paths: Sequence[Path], root: Path | None) -> list:
+    from freipose.labels.dataset import MultiViewDataset
+
+    return [MultiViewDataset(p, root=root) for p in paths]
+
+
+def collect_views(
+    samples: Sequence[dict] | Any, indices: Sequence[int], cfg: DetectorTrainConfig
+) -> ViewImages:
+    """Cache the training views of ``samples[i]`` for ``i`` in ``indices`` at network scale.
+
+    Views whose ground-truth box is unknown (no labels) are skipped; views whose box lies
+    entirely outside the image are kept as negatives (no animal).
+    """
+    images: list[np.ndarray] = []
+    boxes: list[np.ndarray] = []
+    for i in tqdm(indices, desc="loading training views", disable=None, leave=False):
+        s = samples[int(i)]
+        gt = gt_boxes(s, cfg.box_margin)
+        for v, img in enumerate(s["images"]):
+            if not np.isfinite(gt[v]).all():
+                continue
+            h, w = img.shape[:2]
+            frac = float(visible_fraction(gt[v], (w, h)))
+            box = clip_boxes(gt[v], (w, h)) if frac > 0 else np.full(4, np.nan)
+            sc = cfg.input_size / max(w, h)
+            small = cv2.resize(
+                img,
+                (max(1, round(w * sc)), max(1, round(h * sc))),
+                interpolation=cv2.INTER_AREA if sc < 1 else cv2.INTER_LINEAR,
+            )
+            images.append(small)
+            boxes.append((box + 0.5) * sc - 0.5)
+    return ViewImages(images, np.array(boxes).reshape(-1, 4))
+
+
+class AugmentedBatches(torch.utils.data.Dataset):
+    """Item ``k`` is augmented view number ``k`` of the training stream (deterministic)."""
+
+    def __init__(self, views: ViewImages, cfg: DetectorTrainConfig, length: int):
+        self.views = views
+        self.cfg = cfg
+        self.aug = cfg.augment_config()
+        self.length = length
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        rng = np.random.default_rng((self.cfg.seed, int(k)))
+        i = int(rng.integers(len(self.views.images)))
+        return augment(
+            self.views.images[i], self.views.boxes[i], self.cfg.input_size, self.aug, rng
+        )
+
+
+def _collate(batch: list[tuple[np.ndarray, np.ndarray]]) -> tuple[torch.Tensor, np.ndarray]:
+    imgs = np.stack([b[0] for b in batch])
+    return to_tensor(imgs), np.stack([b[1] for b in batch])
+
+
+def focal_loss(logits: torch.Tensor, target: torch.Tensor, n_pos: torch.Tensor) -> torch.Tensor:
+    """CenterNet's penalty-reduced pixel-wise focal loss (alpha 2, beta 4)."""
+    p = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
+    pos = target.ge(0.999).float()
+    pos_loss = -torch.log(p) * (1 - p) ** 2 * pos
+    neg_loss = -torch.log(1 - p) * p**2 * (1 - target) ** 4 * (1 - pos)
+    return (pos_loss.sum() + neg_loss.sum()) / n_pos.clamp(min=1.0)
+
+
+def detection_loss(
+    outputs: tuple[torch.Tensor, torch.Tensor, torch.Tensor], boxes: np.ndarray, input_size: int
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Focal heat-map loss + L1 on log size and offset at the centre cell."""
+    heat_l, size_p, off_p = outputs
+    dev = heat_l.device
+    heat, index, size, offset, mask = (
+        torch.from_numpy(a).to(dev) for a in make_targets(boxes, input_size)
+    )
+    n_pos = mask.sum()
+    l_heat = focal_loss(heat_l.float(), heat, n_pos)
+    b = heat_l.shape[0]
+    sp = size_p.float().flatten(2).gather(2, index.view(b, 1, 1).expand(b, 2, 1))[..., 0]
+    op = off_p.float().flatten(2).gather(2, index.view(b, 1, 1).expand(b, 2, 1))[..., 0]
+    m = mask[:, None]
+    denom = n_pos.clamp(min=1.0) * 2
+    l_size = (F.l1_loss(sp, size, reduction="none") * m).sum() / denom
+    l_off = (F.l1_loss(op, offset, reduction="none") * m).sum() / denom
+    total = l_heat + l_size + l_off
+    parts = {"heat": l_heat.item(), "size": l_size.item(), "offset": l_off.item()}
+    return total, parts
+
+
+def _lr_factor(step: int, cfg: DetectorTrainConfig) -> float:
+    if step < cfg.warmup_steps:
+        return (step + 1) / cfg.warmup_steps
+    t = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, t)))
+
+
+def fit(
+    views: ViewImages,
+    cfg: DetectorTrainConfig,
+    device: str | torch.device = "cpu",
+    out_dir: Path | None = None,
+    resume: bool = False,
+    progress: bool = True,
+) -> tuple[DetectorNet, list[float]]:
+    """Train a detector on cached views; returns the network and the per-step losses.
+
+    With ``out_dir``, writes ``detector_last.pt`` every ``checkpoint_every`` steps (and at
+    the end); with ``resume``, continues from it.
+    """
+    dev = resolve_device(device)
+    if not views.images:
+        raise ValueError("no training views: the labels have no labeled views with images")
+    torch.manual_seed(cfg.seed)
+    net = DetectorNet(cfg.model_config())
+    if cfg.backbone_weights:
+        load_backbone_weights(net, cfg.backbone_weights)
+    net.to(dev)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg))
+    start = 0
+    last = None if out_dir is None else Path(out_dir) / LAST
+    if resume and last is not None and last.is_file():
+        ckpt = load_checkpoint(last)
+        if ckpt["config"] != cfg.model_config().to_dict():
+            raise ValueError(
+                f"{last}: was trained with {ckpt['config']}, the config asks for "
+                f"{cfg.model_config().to_dict()}; use another output folder or drop --resume"
+            )
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        sched.load_state_dict(ckpt["scheduler"])
+        start = int(ckpt["step"])
+        log.info("resuming detector training from %s at step %d", last, start)
+    data = AugmentedBatches(views, cfg, cfg.steps * cfg.batch_size)
+    sampler = range(start * cfg.batch_size, cfg.steps * cfg.batch_size)
+    loader = torch.utils.data.DataLoader(
+        data,
+        batch_size=cfg.batch_size,
+        sampler=sampler,
+        collate_fn=_collate,
+        num_workers=cfg.num_workers,
+    )
+    net.train()
+    losses: list[float] = []
+    bar = tqdm(total=cfg.steps, initial=start, desc="detector", disable=None if progress else True)
+    step = start
+    window: list[float] = []
+    for x, boxes in loader:
+        out = net(x.to(dev, non_blocking=True))
+        loss, parts = detection_loss(out, boxes, cfg.input_size)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
+        opt.step()
+        sched.step()
+        step += 1
+        lv = loss.item()
+        losses.append(lv)
+        window.append(lv)
+        bar.update(1)
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            log.info(
+                "step %d/%d loss %.4f (heat %.4f size %.4f offset %.4f) lr %.2e",
+                step, cfg.steps, np.mean(window), parts["heat"], parts["size"],
+                parts["offset"], sched.get_last_lr()[0],
+            )  # fmt: skip
+            window = []
+        if last is not None and (step % cfg.checkpoint_every == 0 or step == cfg.steps):
+            save_checkpoint(
+                last,
+                net,
+                extra={
+                    "optimizer": opt.state_dict(),
+                    "scheduler": sched.state_dict(),
+                    "step": step,
+                    "box_margin": cfg.box_margin,
+                },
+            )
+    bar.close()
+    net.eval()
+    return net, losses
+
+
+def train_detector(
+    config: dict, config_path: Path, out_dir: Path, resume: bool, device: str
+) -> Path:
+    """Train the detector as the training TOML says; returns the checkpoint path.
+
+    Args:
+        config: the parsed training TOML (``[data]`` and ``[detector]`` tables are used).
+        config_path: the TOML's path (relative data paths are relative to its folder).
+        out_dir: where ``detector_last.pt`` and ``detector.pt`` go.
+        resume: continue from ``out_dir/detector_last.pt`` when it exists.
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"`` or ``"auto"``.
+
+    Prints recall at IoU 0.5, the median 3D centre error (mm) on the evaluation set and
+    the CPU frames per second at the end.
+    """
+    cfg = DetectorTrainConfig.from_dict(config.get("detector"))
+    train_paths, eval_paths, root = _data_paths(config, Path(config_path))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dev = resolve_device(device)
+    train_sets = _datasets(train_paths, root)
+    eval_sets = _datasets(eval_paths, root) if eval_paths else []
+    rng = np.random.default_rng(cfg.seed)
+    train_items: list[tuple[int, int]] = []
+    eval_items: list[tuple[int, int]] = []
+    for d, ds in enumerate(train_sets):
+        idx = np.arange(len(ds))
+        if not eval_sets and cfg.eval_fraction > 0 and len(idx) > 1:
+            # Hold out whole contiguous blocks so neighbouring frames do not leak.
+            n_ev = max(1, round(cfg.eval_fraction * len(idx)))
+            start = int(rng.integers(0, len(idx) - n_ev + 1))
+            ev = idx[start : start + n_ev]
+            eval_items += [(d, int(i)) for i in ev]
+            idx = np.setdiff1d(idx, ev)
+        train_items += [(d, int(i)) for i in idx]
+    for d, ds in enumerate(eval_sets):
+        eval_items += [(d, int(i)) for i in range(len(ds))]
+    if not train_items:
+        raise ValueError(f"{train_paths}: no labeled time instants to train the detector on")
+
+    # Cache the training views (evenly subsampled to max_images).
+    n_views_est = sum(len(train_sets[d].labels.cameras) for d, _ in train_items[:1]) or 1
+    keep = min(len(train_items), max(1, cfg.max_images // n_views_est))
+    sel = np.unique(np.linspace(0, len(train_items) - 1, keep).round().astype(int))
+    views = _collect_items(train_sets, [train_items[i] for i in sel], cfg)
+    n_neg = int((~np.isfinite(views.boxes).all(-1)).sum())
+    log.info(
+        "detector: %d training views from %d time instants (%d without the animal), "
+        "%d evaluation time instants", len(views.images), len(sel), n_neg, len(eval_items),
+    )  # fmt: skip
+    t0 = time.perf_counter()
+    net, losses = fit(views, cfg, dev, out_dir, resume)
+    train_s = time.perf_counter() - t0
+    del views
+
+    det = Detector(net, dev)
+    metrics: DetectionMetrics | None = None
+    if eval_items:
+        ev_sets = eval_sets if eval_sets else train_sets
+        if len(eval_items) > cfg.max_eval_instants:
+            pick = np.linspace(0, len(eval_items) - 1, cfg.max_eval_instants).round().astype(int)
+            eval_items = [eval_items[i] for i in np.unique(pick)]
+        metrics = evaluate_source(
+            det,
+            (ev_sets[d][i] for d, i in eval_items),
+            margin=cfg.box_margin,
+            consistency=ConsistencyConfig(cube_size=cfg.cube_size),
+            min_visible=cfg.min_visible,
+        )
+    cpu = Detector(net.to("cpu"), "cpu")
+    fps = measure_fps(cpu)
+    net.to(dev)
+    final = out_dir / FINAL
+    extra: dict[str, Any] = {
+        "step": cfg.steps,
+        "box_margin": cfg.box_margin,
+        "train_config": {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(cfg).items()
+        },
+        "metrics": {
+            "cpu_fps": fps,
+            "train_seconds": train_s,
+            "final_loss": float(np.mean(losses[-20:])) if losses else float("nan"),
+        },
+    }
+    if metrics is not None:
+        extra["metrics"].update(dataclasses.asdict(metrics))
+    save_checkpoint(final, net, extra=extra)
+    print(f"detector: trained {cfg.steps} steps in {train_s:.0f} s; checkpoint {final}")
+    if metrics is not None:
+        print(f"detector eval: {metrics.summary()}")
+    else:
+        print("detector eval: no evaluation data (set [data] eval_labels or eval_fraction > 0)")
+    print(f"detector speed: {fps:.1f} frames/s on CPU (640x480, {torch.get_num_threads()} threads)")
+    return final
+
+
+def _collect_items(
+    sets: list, items: list[tuple[int, int]], cfg: DetectorTrainConfig
+) -> ViewImages:
+    parts = []
+    for d, ds in enumerate(sets):
+        idx = [i for dd, i in items if dd == d]
+        if idx:
+            parts.append(collect_views(ds, idx, cfg))
+    images = [im for p in parts for im in p.images]
+    boxes = np.concatenate([p.boxes for p in parts]) if parts else np.zeros((0, 4))
+    return ViewImages(images, boxes)
