@@ -1,0 +1,248 @@
+"""``freipose calib run`` (calibrate cameras from board videos) and ``freipose calib board``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+from freipose.cli._common import user_errors
+
+BOARD_OPTIONS = [
+    click.option(
+        "--board",
+        "board_file",
+        type=click.Path(dir_okay=False, path_type=Path),
+        help="Board file (TOML or JSON, lengths in mm; FreiCalib marker JSON works).",
+    ),
+    click.option(
+        "--board-type",
+        type=click.Choice(["charuco", "chessboard", "aprilgrid"]),
+        help="Board type when the board is given by options instead of a file.",
+    ),
+    click.option("--squares-x", type=int, help="ChArUco: squares along x."),
+    click.option("--squares-y", type=int, help="ChArUco: squares along y."),
+    click.option("--square-size", type=float, help="ChArUco/chessboard: square side (mm)."),
+    click.option("--marker-size", type=float, help="ChArUco: marker side (mm)."),
+    click.option("--dictionary", help="ChArUco: OpenCV dictionary, e.g. DICT_4X4_50."),
+    click.option(
+        "--legacy-pattern/--no-legacy-pattern",
+        default=None,
+        help="ChArUco: board printed by OpenCV < 4.6 or aniposelib.",
+    ),
+    click.option("--inner-corners-x", type=int, help="Chessboard: inner corners along x."),
+    click.option("--inner-corners-y", type=int, help="Chessboard: inner corners along y."),
+    click.option("--tags-x", type=int, help="AprilGrid: tags along x."),
+    click.option("--tags-y", type=int, help="AprilGrid: tags along y."),
+    click.option("--tag-size", type=float, help="AprilGrid: tag side (mm)."),
+    click.option("--tag-spacing", type=float, help="AprilGrid: gap as a fraction of the tag size."),
+    click.option("--family", help="AprilGrid: tag family (36h11, 16h5, ...)."),
+]
+
+_FIELD_OPTIONS = (
+    "squares_x",
+    "squares_y",
+    "square_size",
+    "marker_size",
+    "dictionary",
+    "legacy_pattern",
+    "inner_corners_x",
+    "inner_corners_y",
+    "tags_x",
+    "tags_y",
+    "tag_size",
+    "tag_spacing",
+    "family",
+)
+
+
+def _board_options(f, with_file: bool = True):
+    for opt in reversed(BOARD_OPTIONS if with_file else BOARD_OPTIONS[1:]):
+        f = opt(f)
+    return f
+
+
+def _board_field_options(f):
+    return _board_options(f, with_file=False)
+
+
+def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
+    """Board from a file, overridden or completed by command-line fields."""
+    from freipose.calibration.boards import BoardError, board_from_dict, load_board
+
+    fields = {k: kw[k] for k in _FIELD_OPTIONS if kw.get(k) is not None}
+    if board_file is None and board_type is None and not fields:
+        raise BoardError(
+            "no board given: pass --board BOARD_FILE (see examples/board.toml) or the board "
+            "fields as options, e.g. --board-type charuco --squares-x 7 --squares-y 5 "
+            "--square-size 40 --marker-size 30 --dictionary DICT_4X4_50"
+        )
+    if board_file is not None:
+        base = load_board(board_file).to_dict()
+        if board_type is not None and board_type != base["type"]:
+            raise BoardError(
+                f"--board-type {board_type} contradicts {board_file} (type {base['type']})"
+            )
+        base.update(fields)
+        return board_from_dict(base, source=f"{board_file} with command-line fields")
+    if board_type is None:
+        raise BoardError("board fields given without --board-type (charuco, chessboard, aprilgrid)")
+    return board_from_dict({"type": board_type, **fields}, source="command-line board options")
+
+
+@click.command("run")
+@click.argument("inputs", nargs=-1, type=click.Path(path_type=Path))
+@_board_options
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Output calibration file (calibration.toml).",
+)
+@click.option(
+    "--origin-frame",
+    type=int,
+    default=None,
+    help="Frame whose board pose defines the world (board on the floor, z up).",
+)
+@click.option("--intrinsics-only", is_flag=True, help="Calibrate intrinsics only.")
+@click.option(
+    "--fix-intrinsics",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Calibration file with known intrinsics, kept fixed (cameras matched by name).",
+)
+@click.option(
+    "--report",
+    "report_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Write summary.json and figures to this folder.",
+)
+@click.option(
+    "--dist-model",
+    type=click.Choice(["none", "k1", "k1k2", "k1k2p", "full"]),
+    default="k1k2p",
+    show_default=True,
+    help="Distortion coefficients to estimate (k1k2p = k1 k2 p1 p2).",
+)
+@click.option("--jobs", "-j", type=int, default=None, help="Detection processes (default: CPUs).")
+@click.option("--no-cache", is_flag=True, help="Re-detect even if cached detections exist.")
+def run(
+    inputs,
+    board_file,
+    board_type,
+    output,
+    origin_frame,
+    intrinsics_only,
+    fix_intrinsics,
+    report_dir,
+    dist_model,
+    jobs,
+    no_cache,
+    **board_fields,
+) -> None:
+    """Calibrate synchronized cameras from videos (or image folders) of a moving board.
+
+    Each INPUT is one camera (its name is the file or folder stem); frames are matched by index.
+    Detections are cached in OUTPUT's folder as <output stem>.detections/.
+
+    \b
+    Example:
+      freipose calib cams/cam0.mp4 cams/cam1.mp4 cams/cam2.mp4 --board board.toml \\
+          -o calibration.toml --origin-frame 0 --report calib_report/
+      freipose calib left/ right/ --board-type chessboard --inner-corners-x 9 \\
+          --inner-corners-y 6 --square-size 30 -o stereo.toml
+    """
+    import logging
+    import shutil
+
+    with user_errors():
+        from freipose.calibration.pipeline import (
+            CalibrationOptions,
+            calibrate,
+            detection_cache_dir,
+        )
+        from freipose.calibration.report import write_report
+
+        from freipose.io.calibration import load_calibration, save_calibration
+
+        if not inputs:
+            raise ValueError(
+                "no INPUT given: pass one video file or image folder per camera, e.g. "
+                "freipose calib cams/*.mp4 --board board.toml -o calibration.toml"
+            )
+        for p in inputs:
+            if not p.exists():
+                raise FileNotFoundError(f"input {p} does not exist (expected a video or folder)")
+        board = _resolve_board(board_file, board_type, board_fields)
+        fixed = load_calibration(fix_intrinsics) if fix_intrinsics is not None else None
+        if no_cache:
+            shutil.rmtree(detection_cache_dir(output), ignore_errors=True)
+        opts = CalibrationOptions(
+            origin_frame=origin_frame,
+            intrinsics_only=intrinsics_only,
+            fixed_intrinsics=fixed,
+            dist_model=dist_model,
+            jobs=jobs,
+        )
+        result = calibrate(list(inputs), board, output, opts)
+        save_calibration(result.rig, output)
+        log = logging.getLogger("freipose.calib")
+        for s in result.stats:
+            rms = f"{s.rms:.3f} px" if s.rms == s.rms else "n/a"
+            click.echo(
+                f"{s.name}: {s.frames_detected} frames with the board, {s.points_used} points "
+                f"used, reprojection RMS {rms}"
+            )
+        for w in result.warnings:
+            log.warning(w)
+        click.echo(f"world frame: {result.world}")
+        click.echo(f"wrote {output}")
+        if report_dir is not None:
+            paths = write_report(result, report_dir)
+            click.echo(f"wrote report ({len(paths)} files) to {report_dir}")
+
+
+@click.command("board")
+@click.argument("board_file", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@_board_field_options
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Image file to write (.png, .tif, ...).",
+)
+@click.option(
+    "--dpi",
+    type=float,
+    default=300.0,
+    show_default=True,
+    help="Printer resolution; print at 100 % scale.",
+)
+def board(board_file, board_type, output, dpi, **board_fields) -> None:
+    """Render a printable image of a calibration board (print at 100 %, no scaling).
+
+    \b
+    Example:
+      freipose calib board examples/board.toml -o board.png --dpi 300
+    """
+    with user_errors():
+        import cv2
+
+        from freipose.io.atomic import atomic_path
+
+        b = _resolve_board(board_file, board_type, board_fields)
+        if not dpi > 0:
+            raise ValueError(f"--dpi must be positive, got {dpi}")
+        img = b.texture(dpi / 25.4)
+        with atomic_path(output) as tmp:
+            params = []
+            if output.suffix.lower() == ".png":
+                params = [cv2.IMWRITE_PNG_COMPRESSION, 9]
+            if not cv2.imwrite(str(tmp), img, params):
+                raise ValueError(f"cannot write {output}: use a .png, .tif or .bmp file name")
+        w, h = b.size_mm
+        click.echo(
+            f"wrote {output}: {img.shape[1]}x{img.shape[0]} px = {w:.1f} x {h:.1f} mm at "
+            f"{dpi:g} dpi; print at 100 % and measure a square to check"
+        )
