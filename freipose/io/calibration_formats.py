@@ -19,8 +19,8 @@ M.json, JARVIS and DANNCE files store no image size. FreiPose writes it as an ex
 that those tools ignore (``img_size`` in M.json, ``image_width``/``image_height`` in the
 YAML); when it is absent the size comes from a video of the camera next to the file
 (``<anything>_<camera>.<video suffix>`` or ``<camera>.<suffix>``), else it is estimated as
-``2 * principal point + 1`` with a warning, and the rig's ``metadata.image_size_estimated``
-lists those cameras.
+``2 * principal point + 1`` (logged), and the rig's ``metadata.image_size_estimated`` lists
+those cameras.
 """
 
 from __future__ import annotations
@@ -142,9 +142,9 @@ def _fill_sizes(
         if n in estimated:
             sizes[n] = estimate_size_from_principal_point(K)
     if estimated:
-        log.warning(
-            "%s stores no image size for %s; estimated from the principal point (2*c+1): %s. "
-            "Pass the true size (freipose calib convert --size WxH) if this is wrong.",
+        log.info(
+            "%s stores no image size for %s; estimated from the principal point (2*c+1) as %s "
+            "unless given otherwise (freipose calib convert --size WxH)",
             source,
             estimated,
             {n: sizes[n] for n in estimated},

@@ -129,6 +129,7 @@ def test_mjson_round_trip_is_camera_to_world_metres(tmp_path):
 
 
 def test_mjson_as_freicalib_writes_it(tmp_path, caplog):
+    caplog.set_level("INFO")
     """A FreiCalib-style file: no sizes, nested 1x5 dist, cam10 after cam2, world = cam0."""
     cams = {
         f"cam{i}": Camera.look_at(

@@ -1,0 +1,57 @@
+"""The ``freipose`` entry point: version, help, and an example in every command's help."""
+
+from __future__ import annotations
+
+import click
+import pytest
+from click.testing import CliRunner
+from freipose.cli.main import cli
+
+from freipose import __version__
+
+
+def _all_commands() -> list[tuple[str, ...]]:
+    """Every command path (``("calib", "show")``, ...), found by walking the groups."""
+    out: list[tuple[str, ...]] = []
+
+    def walk(group: click.Group, prefix: tuple[str, ...]) -> None:
+        ctx = click.Context(group, info_name=prefix[-1] if prefix else "freipose")
+        for name in group.list_commands(ctx):
+            out.append(prefix + (name,))
+            try:
+                cmd = group.get_command(ctx, name)
+            except Exception:  # noqa: BLE001 - the help test of this path reports the error
+                continue
+            if isinstance(cmd, click.Group):
+                walk(cmd, prefix + (name,))
+
+    walk(cli, ())
+    return out
+
+
+def test_version_and_help():
+    r = CliRunner().invoke(cli, ["--version"])
+    assert r.exit_code == 0 and __version__ in r.output
+    r = CliRunner().invoke(cli, ["--help"])
+    assert r.exit_code == 0 and "Usage:" in r.output and "calib" in r.output
+    assert "millimetres" in r.output.lower()
+    assert CliRunner().invoke(cli, ["-h"]).exit_code == 0
+
+
+def test_the_calibration_file_commands_exist():
+    paths = _all_commands()
+    assert ("calib",) in paths and ("calib", "convert") in paths and ("calib", "show") in paths
+
+
+@pytest.mark.parametrize("path", _all_commands(), ids=lambda p: " ".join(p))
+def test_every_command_has_help_with_an_example(path):
+    r = CliRunner().invoke(cli, [*path, "--help"])
+    assert r.exit_code == 0, f"{r.output}\n{r.exception!r}"
+    assert "Example" in r.output, f"'freipose {' '.join(path)} --help' shows no Example section"
+    summary = r.output.split("\n\n")[1].strip() if "\n\n" in r.output else ""
+    assert summary, f"'freipose {' '.join(path)}' has no one-line summary"
+
+
+def test_unknown_command_is_a_usage_error():
+    r = CliRunner().invoke(cli, ["no-such-command"])
+    assert r.exit_code == 2 and "No such command" in r.output
