@@ -136,6 +136,10 @@ def skeleton_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Skele
         if key not in data:
             raise ValueError(f"skeleton file {source}: missing required field {key!r}")
     name = str(data["name"])
+    if isinstance(data["keypoints"], str) or not isinstance(data["keypoints"], Sequence):
+        raise ValueError(
+            f"skeleton file {source}: keypoints must be a list of names, got {data['keypoints']!r}"
+        )
     kps = [str(k) for k in data["keypoints"]]
     limbs = []
     for i, limb in enumerate(data.get("limbs", [])):
@@ -144,12 +148,21 @@ def skeleton_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Skele
         limbs.append((_ref(kps, limb[0], f"limb {i}", name), _ref(kps, limb[1], f"limb {i}", name)))
     sym = []
     for pair in data.get("symmetry", []):
+        if isinstance(pair, str) or len(pair) != 2:
+            raise ValueError(
+                f"skeleton file {source}: a symmetry entry must be two names, got {pair!r}"
+            )
         a, b = (_ref(kps, p, "symmetry", name) for p in pair)
         sym.append((a[0], b[0]))
     feet = tuple(_ref(kps, f, "feet", name)[0] for f in data.get("feet", []))
     frame = {k: _ref(kps, v, f"frame.{k}", name) for k, v in dict(data.get("frame", {})).items()}
     angles = {}
-    for aname, (va, vb) in dict(data.get("angles", {})).items():
+    for aname, pair in dict(data.get("angles", {})).items():
+        if isinstance(pair, str) or len(pair) != 2:
+            raise ValueError(
+                f"skeleton file {source}: angle {aname!r} must be two vectors [A, B], got {pair!r}"
+            )
+        va, vb = pair
 
         def vec(v: Any, aname: str = aname) -> Any:
             if list(v) == ["g"]:

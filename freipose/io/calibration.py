@@ -46,7 +46,7 @@ def rig_to_toml_dict(rig: CameraRig) -> dict[str, Any]:
             "rotation": cam.rvec.tolist(),
             "translation": cam.t.tolist(),
         }
-    md = {k: _toml_value(v) for k, v in rig.metadata.items()}
+    md = {k: _toml_value(v) for k, v in rig.metadata.items() if v is not None}
     md["units"] = "mm"
     out["metadata"] = md
     return out
@@ -57,8 +57,10 @@ def _toml_value(v: Any) -> Any:
         return v.tolist()
     if isinstance(v, (np.floating, np.integer)):
         return v.item()
-    if isinstance(v, dict):
-        return {k: _toml_value(x) for k, x in v.items()}
+    if isinstance(v, (np.bool_, Path)):
+        return v.item() if isinstance(v, np.bool_) else str(v)
+    if isinstance(v, dict):  # TOML has no null: None entries are left out
+        return {str(k): _toml_value(x) for k, x in v.items() if x is not None}
     if isinstance(v, (list, tuple)):
         return [_toml_value(x) for x in v]
     return v

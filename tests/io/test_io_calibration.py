@@ -310,3 +310,35 @@ def test_dannce_errors(tmp_path):
         load_calibration(p)
     with pytest.raises(CalibrationFormatError, match="can be read but not written"):
         save_calibration(make_circle_rig(1), tmp_path / "y.mat")
+
+
+def test_metadata_none_and_numpy_values_survive(tmp_path):
+    rig = make_circle_rig(2).with_metadata(
+        note=None,
+        scale=np.float32(2.0),
+        flag=np.bool_(True),
+        origin=np.zeros(3),
+        nested={"a": None, "b": 1},
+    )
+    p = tmp_path / "c.toml"
+    write_calibration_toml(rig, p)
+    md = load_calibration(p).metadata
+    assert "note" not in md and md["scale"] == 2.0 and md["flag"] is True
+    assert md["origin"] == [0.0, 0.0, 0.0] and md["nested"] == {"b": 1}
+
+
+def test_atomic_outputs_get_normal_permissions(tmp_path):
+    import os
+
+    from freipose.io import atomic
+
+    p = tmp_path / "x.txt"
+    atomic.atomic_write_text(p, "hi")
+    assert p.stat().st_mode & 0o777 == 0o666 & ~atomic._UMASK  # not mkstemp's 0600
+    os.chmod(p, 0o640)
+    atomic.atomic_write_text(p, "again")  # an existing file keeps its mode
+    assert p.stat().st_mode & 0o777 == 0o640 and p.read_text() == "again"
+    with pytest.raises(RuntimeError), atomic.atomic_path(p) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("killed")
+    assert p.read_text() == "again" and sorted(q.name for q in tmp_path.iterdir()) == ["x.txt"]

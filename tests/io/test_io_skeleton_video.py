@@ -68,6 +68,12 @@ def test_user_skeleton_file_and_errors(tmp_path):
         skeleton_from_dict({"name": "x", "keypoints": ["a", "b"], "limbs": [["a", "b", "a"]]})
     with pytest.raises(ValueError, match="repeated keypoint names"):
         skeleton_from_dict({"name": "x", "keypoints": ["a", "a"]})
+    with pytest.raises(ValueError, match="keypoints must be a list"):
+        skeleton_from_dict({"name": "x", "keypoints": "abc"})
+    with pytest.raises(ValueError, match="two vectors"):
+        skeleton_from_dict({"name": "x", "keypoints": ["a", "b"], "angles": {"t": [["g"]] * 3}})
+    with pytest.raises(ValueError, match="symmetry entry must be two names"):
+        skeleton_from_dict({"name": "x", "keypoints": ["a", "b"], "symmetry": [["a", "b", "a"]]})
     with pytest.raises(ValueError, match="angle 'bad'"):
         skeleton_from_dict(
             {"name": "x", "keypoints": ["a", "b"], "angles": {"bad": [["g"], ["a"]]}}
