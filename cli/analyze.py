@@ -1,0 +1,315 @@
+"""``freipose analyze``: behavioral variables and attribution of a stimulation effect."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+from freipose.cli._common import user_errors
+from freipose.cli._lazy import DefaultLazyGroup
+
+
+@click.group(cls=DefaultLazyGroup, default="run", lazy_commands={})
+def analyze() -> None:
+    """Behavioral variables from poses, and which body parts a stimulation changes.
+
+    \b
+    Examples:
+      freipose analyze study.toml -o results/
+      freipose analyze variables rat1.poses.h5 -o rat1.vars.h5
+      freipose analyze floor rat1.poses.h5 rat2.poses.h5 -o floor.toml
+    """
+
+
+def _floor_value(value: str) -> str:
+    if value in ("world", "auto"):
+        return value
+    if not Path(value).is_file():
+        raise click.BadParameter(
+            f"expected 'world', 'auto' or an existing floor TOML file, got {value!r}"
+        )
+    return value
+
+
+floor_option = click.option(
+    "--floor",
+    default="world",
+    show_default=True,
+    callback=lambda ctx, param, v: _floor_value(v),
+    help="Floor plane: 'world' = the plane through the world origin perpendicular to the poses' "
+    "up vector (z = 0 after 'freipose calib --origin-frame'); 'auto' = robust fit to the lowest "
+    "paw positions; or a floor TOML file (normal = [x, y, z], offset = mm).",
+)
+skeleton_option = click.option(
+    "--skeleton",
+    default=None,
+    help="Skeleton name (rat, mouse) or TOML file defining the body frame and angles "
+    "[default: the poses file's own skeleton, else rat].",
+)
+gap_option = click.option(
+    "--max-gap",
+    type=click.FloatRange(min=0),
+    default=0.1,
+    show_default=True,
+    help="Fill missing keypoints by linear interpolation over gaps up to this many seconds; "
+    "longer gaps stay missing.",
+)
+window_option = click.option(
+    "--stft-window",
+    type=click.IntRange(min=4),
+    default=64,
+    show_default=True,
+    help="STFT window in frames (even); gives window/2+1 frequencies (64 -> 33).",
+)
+
+
+@analyze.command("run")
+@click.argument("study", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "-o",
+    "--output",
+    "outdir",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Output folder (created).",
+)
+@skeleton_option
+@floor_option
+@gap_option
+@window_option
+@click.option(
+    "--onset-delay",
+    type=click.FloatRange(min=0),
+    default=0.4,
+    show_default=True,
+    help="Seconds after each window start before frames count as stimulated.",
+)
+@click.option(
+    "--margin",
+    type=click.FloatRange(min=0),
+    default=1.5,
+    show_default=True,
+    help="Frames further than this many seconds from every window are "
+    "'not stimulated'; frames closer are ignored.",
+)
+@click.option(
+    "-C",
+    "--svm-c",
+    "C",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.0025,
+    show_default=True,
+    help="Linear SVM regularization C.",
+)
+@click.option(
+    "--alpha",
+    type=click.FloatRange(0, 1, min_open=True, max_open=True),
+    default=0.001,
+    show_default=True,
+    help="Significance level of the Bonferroni-adjusted p-values.",
+)
+@click.option(
+    "--independent-frames",
+    is_flag=True,
+    help="Chi-squared tests count every frame as independent, as in the original "
+    "method (anti-conservative). Default: the effective number of independent "
+    "frames from the autocorrelation of labels and predictions.",
+)
+@click.option(
+    "--train-stride",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Train on every n-th labelled frame (faster on long recordings).",
+)
+@click.option(
+    "--pre",
+    "pre_s",
+    type=click.FloatRange(min=0),
+    default=5.0,
+    show_default=True,
+    help="Dynamics: seconds before onset.",
+)
+@click.option(
+    "--post",
+    "post_s",
+    type=click.FloatRange(min=0),
+    default=5.0,
+    show_default=True,
+    help="Dynamics: seconds after the end of the longest window.",
+)
+@click.option(
+    "--top",
+    type=click.IntRange(min=1),
+    default=6,
+    show_default=True,
+    help="Number of top variables whose time courses are plotted.",
+)
+@click.option(
+    "-j",
+    "--jobs",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Parallel workers for the single-variable SVMs (-1 = all cores).",
+)
+@click.option("--no-figures", is_flag=True, help="Write the tables only.")
+def run(
+    study: Path,
+    outdir: Path,
+    skeleton: str | None,
+    floor: str,
+    max_gap: float,
+    stft_window: int,
+    onset_delay: float,
+    margin: float,
+    C: float,
+    alpha: float,
+    independent_frames: bool,
+    train_stride: int,
+    pre_s: float,
+    post_s: float,
+    top: int,
+    jobs: int,
+    no_figures: bool,
+) -> None:
+    """Attribute a stimulation effect to body parts by classification (SVMs).
+
+    STUDY is a TOML file listing recordings (poses, events, animal, condition, split; see
+    docs/formats.md). For each (animal, condition) a linear SVM on all variables is trained on
+    the train recordings and scored on the test recordings of that animal and of the other
+    animals; one SVM per variable gives its F-score and a Bonferroni-corrected chi-squared
+    test. Writes classification.csv, attribution.csv, dynamics.csv, top_variables.csv and PNG
+    figures to OUTDIR; variables are cached in OUTDIR/variables/ (a rerun reuses them).
+
+    \b
+    Example:
+      freipose analyze study.toml -o results/ --jobs 4
+    """
+    with user_errors():
+        from freipose.analysis.attribution import AttributionConfig
+        from freipose.analysis.report import analyze_study
+        from freipose.analysis.variables import VariableConfig
+
+        vcfg = VariableConfig(max_gap_s=max_gap, stft_window=stft_window)
+        acfg = AttributionConfig(
+            C=C,
+            onset_delay_s=onset_delay,
+            margin_s=margin,
+            alpha=alpha,
+            n_jobs=jobs,
+            train_stride=train_stride,
+            pre_s=pre_s,
+            post_s=post_s,
+            top=top,
+            independent_frames=independent_frames,
+        )
+        result = analyze_study(
+            study,
+            outdir,
+            skeleton,
+            floor,
+            vcfg,
+            acfg,
+            make_figures=not no_figures,
+            say=click.echo,
+        )
+        cls = result.classification
+        click.echo(
+            f"wrote {outdir}/: classification.csv ({len(cls)} rows), attribution.csv, "
+            f"dynamics.csv, top_variables.csv" + ("" if no_figures else ", figures")
+        )
+
+
+@analyze.command("variables")
+@click.argument("poses", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Output VARS.h5.",
+)
+@skeleton_option
+@floor_option
+@gap_option
+@window_option
+def variables(
+    poses: Path, output: Path, skeleton: str | None, floor: str, max_gap: float, stft_window: int
+) -> None:
+    """Compute the behavioral variables of a poses file (912 for the 12-keypoint rat).
+
+    Keypoints in the body frame and their velocities, distances to the body origin and to
+    the floor with their velocities and STFTs, and the skeleton's angles (docs/formats.md,
+    VARS.h5).
+
+    \b
+    Example:
+      freipose analyze variables rat1.poses.h5 -o rat1.vars.h5 --floor auto
+    """
+    with user_errors():
+        from freipose.analysis.io import (
+            variables_from_poses,
+            variables_settings,
+            write_variables_h5,
+        )
+        from freipose.analysis.variables import VariableConfig
+        from freipose.io.poses import read_poses_h5
+
+        cfg = VariableConfig(max_gap_s=max_gap, stft_window=stft_window)
+        data = read_poses_h5(poses, require_up=True)
+        var = variables_from_poses(data, skeleton, floor, cfg, source=str(poses))
+        write_variables_h5(var, output, variables_settings(skeleton, floor, cfg), source=poses)
+        info = var.info
+        click.echo(
+            f"wrote {output}: {var.values.shape[1]} variables x {var.num_frames} frames; "
+            f"{info['keypoints_interpolated']} keypoint positions interpolated, "
+            f"{info['frames_with_nan']} frames with undefined variables"
+        )
+
+
+@analyze.command("floor")
+@click.argument(
+    "poses", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path)
+)
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Output floor TOML.",
+)
+@skeleton_option
+def floor(poses: tuple[Path, ...], output: Path, skeleton: str | None) -> None:
+    """Fit the floor plane to the lowest paw positions of one or more poses files.
+
+    \b
+    Example:
+      freipose analyze floor day1/*.poses.h5 -o floor.toml
+    """
+    with user_errors():
+        import numpy as np
+
+        from freipose.analysis.floor import fit_floor, save_floor
+        from freipose.analysis.io import resolve_skeleton
+        from freipose.analysis.variables import check_keypoints
+        from freipose.io.poses import read_poses_h5
+
+        feet, up = [], None
+        for p in poses:
+            data = read_poses_h5(p, require_up=True)
+            skel = resolve_skeleton(data, skeleton)
+            check_keypoints(data.keypoints, skel, str(p))
+            if not skel.feet:
+                raise ValueError(f"skeleton {skel.name!r} lists no 'feet' to fit the floor to")
+            if up is not None and float(up @ data.up) < 0.999:
+                raise ValueError(f"{p}: up vector {data.up.tolist()} differs from {up.tolist()}")
+            up = data.up
+            feet.append(data.poses[:, list(skel.feet)].reshape(-1, 3))
+        plane = fit_floor(np.concatenate(feet), up)
+        save_floor(plane, output)
+        tilt = np.degrees(np.arccos(np.clip(plane.normal @ up, -1, 1)))
+        click.echo(
+            f"wrote {output}: normal {np.round(plane.normal, 4).tolist()}, "
+            f"offset {plane.offset:.2f} mm (tilt {tilt:.2f} deg from up)"
+        )

@@ -1,0 +1,118 @@
+"""``freipose analyze STUDY.toml -o OUTDIR``: variables, attribution, tables and figures.
+
+Outputs in OUTDIR: ``classification.csv``, ``attribution.csv``, ``dynamics.csv``,
+``top_variables.csv``, ``settings.json``, the PNG figures of :mod:`freipose.analysis.figures`
+and ``variables/<recording>.vars.h5`` (reused when the poses file and the settings are
+unchanged, so an interrupted run resumes without recomputing the variables).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+from freipose.analysis import figures
+from freipose.analysis.attribution import AttributionConfig, AttributionResult, run_attribution
+from freipose.analysis.io import cached_variables
+from freipose.analysis.study import load_study
+from freipose.analysis.variables import VariableConfig
+from freipose.io.atomic import atomic_path, atomic_write_text
+
+log = logging.getLogger(__name__)
+
+
+def write_tables(result: AttributionResult, outdir: Path) -> list[Path]:
+    """Write the CSV tables and settings atomically; returns the paths."""
+    outdir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, df in (
+        ("classification.csv", result.classification),
+        ("attribution.csv", result.attribution),
+        ("dynamics.csv", result.dynamics),
+        ("top_variables.csv", result.timecourses),
+    ):
+        p = outdir / name
+        with atomic_path(p) as tmp:
+            df.to_csv(tmp, index=False, float_format="%.6g")
+        paths.append(p)
+    return paths
+
+
+def write_figures(result: AttributionResult, outdir: Path) -> list[Path]:
+    """Write the PNG figures; returns the paths."""
+    var = result.variables
+    kinds = dict(zip(var.names, var.kinds)) if var is not None else {}
+    paths = []
+    for (animal, cond), att in result.attribution.groupby(["animal", "condition"], sort=False):
+        tag = f"{figures.safe_name(animal)}_{figures.safe_name(cond)}"
+        p = outdir / f"attribution_{tag}.png"
+        figures.attribution_heatmap(att, kinds, p, f"Attribution: trained on {animal}, {cond}")
+        paths.append(p)
+        tc = result.timecourses
+        tc = tc[(tc["animal"] == animal) & (tc["condition"] == cond)]
+        dyn = result.dynamics
+        dyn = dyn[
+            (dyn["animal"] == animal) & (dyn["condition"] == cond) & (dyn["evaluated_on"] == animal)
+        ]
+        if len(tc):
+            p = outdir / f"top_variables_{tag}.png"
+            figures.top_variables(tc, dyn, p, f"Top variables around onset: {animal}, {cond}")
+            paths.append(p)
+    if len(result.dynamics):
+        p = outdir / "classifier_response.png"
+        figures.classifier_response(result.dynamics, p)
+        paths.append(p)
+    return paths
+
+
+def analyze_study(
+    study_path: str | Path,
+    outdir: str | Path,
+    skeleton: str | Path | None = None,
+    floor: str | Path = "world",
+    variable_config: VariableConfig = VariableConfig(),
+    config: AttributionConfig = AttributionConfig(),
+    make_figures: bool = True,
+    say: Callable[[str], None] | None = None,
+) -> AttributionResult:
+    """Run the whole attribution analysis of a study and write its outputs.
+
+    Args:
+        study_path: STUDY.toml.
+        outdir: output folder (created).
+        skeleton: overrides the study's ``skeleton`` and the poses files' own.
+        floor: default floor (``world``, ``auto`` or a file) for recordings without ``floor``.
+    """
+    say = say or log.info
+    study = load_study(study_path)
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    skel = skeleton if skeleton is not None else study.skeleton
+    variables = {}
+    for i, rec in enumerate(study.recordings, start=1):
+        say(f"variables {i}/{len(study.recordings)}: {rec.name}")
+        variables[rec.name] = cached_variables(
+            rec.poses,
+            outdir / "variables" / f"{figures.safe_name(rec.name)}.vars.h5",
+            skel,
+            rec.floor if rec.floor is not None else floor,
+            variable_config,
+        )
+    result = run_attribution(study, variables, config, log_fn=say)
+    write_tables(result, outdir)
+    settings = {
+        "study": str(Path(study_path).resolve()),
+        "skeleton": None if skel is None else str(skel),
+        "floor": str(floor),
+        "variables": {
+            "max_gap_s": variable_config.max_gap_s,
+            "stft_window": variable_config.stft_window,
+        },
+        "attribution": dict(result.settings),
+    }
+    atomic_write_text(outdir / "settings.json", json.dumps(settings, indent=2) + "\n")
+    if make_figures:
+        write_figures(result, outdir)
+    return result
