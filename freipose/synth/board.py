@@ -1,0 +1,348 @@
+"""Synthetic calibration videos: the rig filming a calibration board waved through the arena.
+
+The board (any ``freipose.calibration.boards`` board, or anything with ``size_mm`` and
+``texture(px_per_mm)``) is a plane rendered exactly by inverse mapping: each pixel's
+(distortion-exact) viewing ray is intersected with the board plane, 3 x 3 sub-pixel rays
+are averaged (anti-aliasing; sub-pixel rays from the per-pixel ray field's derivatives) and
+the printed texture is looked up at the hit points. The printed pattern sits on a white
+substrate with a margin; its back side is grey.
+
+Board frame (shared with the calibration code): z = 0 is the board plane, x along the
+texture columns, y along its rows, origin at the texture's top-left pixel edge; the printed
+side faces -z. A pose is the 4 x 4 board->world transform.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from freipose.geometry import CameraRig, project
+from freipose.synth.rig import ArenaConfig
+
+log = logging.getLogger(__name__)
+
+PAPER = 0.86  # reflectance of the white paper
+INK = 0.06  # reflectance of the black print
+BACK = 0.45  # reflectance of the board's back
+
+
+def default_board(arena: ArenaConfig | None = None):
+    """A ChArUco board sized for the arena (5 x 4 squares of ~70 mm, DICT_4X4_50)."""
+    from freipose.calibration.boards import CharucoBoard
+
+    arena = arena or ArenaConfig()
+    sq = float(round(min(arena.size) * 0.115))
+    return CharucoBoard(
+        squares_x=5,
+        squares_y=4,
+        square_size=sq,
+        marker_size=round(0.75 * sq),
+        dictionary="DICT_4X4_50",
+    )
+
+
+def _rotation(normal: np.ndarray, roll: float) -> np.ndarray:
+    """Board rotation (columns x, y, z in world) whose printed side faces ``normal``."""
+    z = -normal / np.linalg.norm(normal)
+    ref = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.95 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(ref, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c, s = math.cos(roll), math.sin(roll)
+    x, y = c * x + s * y, -s * x + c * y
+    return np.stack([x, y, z], axis=1)
+
+
+def board_poses(
+    n_frames: int,
+    arena_size_mm: tuple[float, float] = (600.0, 600.0),
+    rng: np.random.Generator | int | None = 0,
+    board_size_mm: tuple[float, float] = (350.0, 280.0),
+    floor_frames: int | None = None,
+    height_range: tuple[float, float] = (140.0, 320.0),
+) -> np.ndarray:
+    """Board->world transforms (F, 4, 4) of a board waved through the arena.
+
+    The first ``floor_frames`` (default: 5 % of the frames, at least 1) show the board lying
+    flat on the floor, printed side up, centred, its x axis along world x (for
+    ``--origin-frame``); then it rises and moves smoothly, tilting, its printed side turning
+    round to face every camera in turn (azimuth sweeps twice around) at 30-75 degrees
+    elevation.
+    """
+    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    bw, bh = (float(v) for v in board_size_mm)
+    half = np.asarray(arena_size_mm, dtype=np.float64) / 2
+    nf = max(1, n_frames // 20) if floor_frames is None else int(floor_frames)
+    nf = min(nf, n_frames)
+    poses = np.tile(np.eye(4), (n_frames, 1, 1))
+    R_floor = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])
+    t_floor = np.array([0.0, 0, 0.5]) - R_floor @ np.array([bw / 2, bh / 2, 0])
+    poses[:nf, :3, :3] = R_floor
+    poses[:nf, :3, 3] = t_floor
+    n_move = n_frames - nf
+    if n_move <= 0:
+        return poses
+    n_keys = max(4, n_move // 25 + 2)
+    keys_t = np.linspace(0.0, 1.0, n_keys)
+    cx = rng.uniform(-0.3, 0.3, n_keys) * half[0]
+    cy = rng.uniform(-0.3, 0.3, n_keys) * half[1]
+    cz = rng.uniform(*height_range, n_keys)
+    elev = np.deg2rad(rng.uniform(30, 75, n_keys))
+    az0 = rng.uniform(0, 2 * np.pi)
+    az = az0 + 4 * np.pi * keys_t + rng.normal(0, 0.3, n_keys)
+    roll = rng.uniform(-0.6, 0.6, n_keys)
+    tt = (np.arange(n_move) + 0.5) / n_move
+    from scipy.interpolate import CubicSpline
+
+    def smooth(v: np.ndarray) -> np.ndarray:
+        return CubicSpline(keys_t, v, bc_type="clamped")(tt)
+
+    pc = np.stack([smooth(cx), smooth(cy), smooth(cz)], -1)
+    el, a, rl = smooth(elev), smooth(az), smooth(roll)
+    corners = np.array([[0, 0, 0], [bw, 0, 0], [bw, bh, 0], [0, bh, 0.0]])
+    for i in range(n_move):
+        nrm = np.array(
+            [math.cos(el[i]) * math.cos(a[i]), math.cos(el[i]) * math.sin(a[i]), math.sin(el[i])]
+        )
+        R = _rotation(nrm, rl[i])
+        t = pc[i] - R @ np.array([bw / 2, bh / 2, 0])
+        low = (corners @ R.T + t)[:, 2].min()
+        if low < 5.0:
+            t[2] += 5.0 - low
+        poses[nf + i, :3, :3] = R
+        poses[nf + i, :3, 3] = t
+    return poses
+
+
+def _board_box(cam, corners_world: np.ndarray) -> tuple[int, int, int, int]:
+    w, h = cam.size
+    depth = corners_world @ cam.R[2] + cam.t[2]
+    if np.any(depth <= 1.0):
+        return 0, 0, w, h
+    edges = np.concatenate(
+        [
+            corners_world + s * (np.roll(corners_world, -1, 0) - corners_world)
+            for s in np.linspace(0, 1, 9)
+        ]
+    )
+    uv = project(edges, cam)
+    lo = np.floor(uv.min(0) - 4)
+    hi = np.ceil(uv.max(0) + 5)
+    x0, y0 = int(np.clip(lo[0], 0, w)), int(np.clip(lo[1], 0, h))
+    x1, y1 = int(np.clip(hi[0], 0, w)), int(np.clip(hi[1], 0, h))
+    return x0, y0, x1, y1
+
+
+class _BoardTexture:
+    def __init__(self, board: Any, px_per_mm: float, margin_mm: float):
+        import cv2  # noqa: F401  (used by callers through remap)
+
+        tex = np.asarray(board.texture(px_per_mm), dtype=np.float32) / 255.0
+        self.refl = (INK + (PAPER - INK) * tex).astype(np.float32)
+        self.size_mm = tuple(float(v) for v in board.size_mm)
+        self.ppm = float(px_per_mm)
+        self.margin = float(margin_mm)
+
+
+def _render_board_on(
+    renderer, tex: _BoardTexture, pose: np.ndarray, samples: int = 3
+) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+    """Linear BGR of the board region composited over the background, or None if not seen."""
+    import cv2
+
+    from freipose.synth.render import LIGHT
+
+    cam = renderer.camera
+    R, t = pose[:3, :3], pose[:3, 3]
+    bw, bh = tex.size_mm
+    m = tex.margin
+    corners = (
+        np.array([[-m, -m, 0], [bw + m, -m, 0], [bw + m, bh + m, 0], [-m, bh + m, 0.0]]) @ R.T + t
+    )
+    x0, y0, x1, y1 = _board_box(cam, corners)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    rays = renderer.rays_soa[:, y0:y1, x0:x1].astype(np.float64)
+    if renderer._ray_du is None:
+        renderer._ray_du = np.gradient(renderer.rays_soa, axis=2).astype(np.float32)
+        renderer._ray_dv = np.gradient(renderer.rays_soa, axis=1).astype(np.float32)
+    du = renderer._ray_du[:, y0:y1, x0:x1]
+    dv = renderer._ray_dv[:, y0:y1, x0:x1]
+    o_b = R.T @ (renderer.origin - t)
+    front = o_b[2] < 0  # the camera sees the printed side
+    nrm = R[:, 2] * (1.0 if not front else -1.0)  # normal facing the camera
+    lam = 0.45 + 0.55 * abs(float(nrm @ LIGHT))
+    depth_bg = renderer.bg_depth[y0:y1, x0:x1]
+    offs = (np.arange(samples) + 0.5) / samples - 0.5
+    cover = np.zeros((y1 - y0, x1 - x0), np.float32)
+    value = np.zeros((y1 - y0, x1 - x0), np.float32)
+    for oy in offs:
+        for ox in offs:
+            d = rays + ox * du + oy * dv
+            db = np.einsum("ji,jhw->ihw", R, d)  # directions in the board frame
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = -o_b[2] / db[2]
+            bx = o_b[0] + s * db[0]
+            by = o_b[1] + s * db[1]
+            dist = s * np.linalg.norm(d, axis=0)
+            on = (
+                (s > 0)
+                & (bx >= -m)
+                & (bx <= bw + m)
+                & (by >= -m)
+                & (by <= bh + m)
+                & (dist < depth_bg)
+            )
+            if front:
+                mx = (bx * tex.ppm - 0.5).astype(np.float32)
+                my = (by * tex.ppm - 0.5).astype(np.float32)
+                val = cv2.remap(
+                    tex.refl,
+                    mx,
+                    my,
+                    cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=PAPER,
+                )
+            else:
+                val = np.full(on.shape, BACK, np.float32)
+            cover += on
+            value += np.where(on, val, 0)
+    n = samples * samples
+    cover /= n
+    value /= n
+    if not cover.any():
+        return None
+    shade = renderer.shade[y0:y1, x0:x1] * lam
+    out = value[..., None] * shade + (1 - cover)[..., None] * renderer.bg_lin[y0:y1, x0:x1]
+    out = cv2.GaussianBlur(out, (0, 0), 0.45)
+    return (x0, y0, x1, y1), out
+
+
+def render_board_frames(
+    rig: CameraRig,
+    board: Any,
+    poses: np.ndarray,
+    seed: int = 0,
+    noise: bool = True,
+    blur: bool = True,
+    arena: ArenaConfig | None = None,
+    px_per_mm: float | None = None,
+    margin_mm: float | None = None,
+) -> dict[str, list[np.ndarray]]:
+    """Render the board at ``poses`` (F, 4, 4) in every camera: camera name -> F BGR uint8 images.
+
+    Exact inverse-mapping rendering with lens distortion, 3 x 3 anti-aliasing, the arena as
+    background (walls occlude the board), per-camera exposure, optional mild optics blur and
+    sensor noise. Deterministic in ``seed``.
+    """
+    cams = {}
+    for ci, cam in enumerate(rig):
+        frames = []
+        for img in _iter_board_camera(
+            cam, ci, board, poses, seed, noise, blur, arena, px_per_mm, margin_mm
+        ):
+            frames.append(img)
+        cams[cam.name] = frames
+    return cams
+
+
+def _iter_board_camera(cam, ci, board, poses, seed, noise, blur, arena, px_per_mm, margin_mm):
+    from dataclasses import replace
+
+    from freipose.synth.render import CameraLook, CameraRenderer
+
+    arena = arena or ArenaConfig()
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must have shape (F, 4, 4), got {poses.shape}")
+    cam_seed = int(np.random.SeedSequence([int(seed), 7, ci]).generate_state(1)[0])
+    look = CameraLook.random(np.random.default_rng(cam_seed))
+    if not noise:
+        look = replace(look, noise_sigma=0.0)
+    r = CameraRenderer(cam, arena, cam_seed, look)
+    sq = float(min(board.size_mm)) / 4
+    tex = _BoardTexture(
+        board, px_per_mm or _auto_ppm(board), sq * 0.5 if margin_mm is None else margin_mm
+    )
+    rng = np.random.default_rng(cam_seed + 1)
+    for pose in poses:
+        res = _render_board_on(r, tex, pose)
+        if res is None:
+            yield r.finish(None, None, rng)
+        else:
+            box, lin = res
+            yield r.finish(lin, box, rng)
+
+
+def _auto_ppm(board: Any) -> float:
+    w, h = board.size_mm
+    return float(min(6.0, 2400.0 / max(w, h)))
+
+
+def _board_camera_job(args: tuple) -> str:
+    import cv2
+
+    from freipose.io.video import VideoWriter
+
+    cv2.setNumThreads(1)
+    cam, ci, board, poses, seed, fps, path, arena = args
+    with VideoWriter(path, fps, cam.size) as w:
+        for img in _iter_board_camera(cam, ci, board, poses, seed, True, True, arena, None, None):
+            w.write(img)
+    return str(path)
+
+
+def write_board_videos(
+    outdir: str | Path,
+    rig: CameraRig,
+    board: Any,
+    n_frames: int,
+    seed: int = 0,
+    fps: float = 25.0,
+    fmt: str = ".mkv",
+    arena: ArenaConfig | None = None,
+    workers: int = 1,
+    progress: bool | None = None,
+) -> tuple[dict[str, Path], np.ndarray]:
+    """Write a calibration recording: one board video per camera plus the ground truth.
+
+    Writes ``outdir/<camera><fmt>``, ``calibration.toml`` (the true rig), ``board.toml``
+    (the board) and ``board_poses.npy`` ((F, 4, 4) board->world transforms).
+
+    Returns:
+        ``(videos {camera: path}, poses (F, 4, 4))``.
+    """
+    from freipose.calibration.boards import save_board
+    from freipose.io.atomic import atomic_path
+    from freipose.io.calibration import save_calibration
+    from freipose.synth.scene import _run_jobs
+
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    arena = arena or _arena_from(rig)
+    poses = board_poses(n_frames, arena.size, np.random.default_rng(seed), board.size_mm)
+    save_calibration(rig, out / "calibration.toml")
+    save_board(board, out / "board.toml")
+    with atomic_path(out / "board_poses.npy") as tmp, open(tmp, "wb") as fh:
+        np.save(fh, poses)
+    videos = {cam.name: out / f"{cam.name}{fmt}" for cam in rig}
+    jobs = [
+        (cam, ci, board, poses, seed, fps, videos[cam.name], arena) for ci, cam in enumerate(rig)
+    ]
+    _run_jobs(_board_camera_job, jobs, min(workers, len(jobs)), "render board", progress)
+    return videos, poses
+
+
+def _arena_from(rig: CameraRig) -> ArenaConfig:
+    md = rig.metadata
+    if "arena_size" in md:
+        return ArenaConfig(tuple(md["arena_size"]), float(md.get("arena_wall_height", 100.0)))
+    return ArenaConfig()

@@ -1,0 +1,420 @@
+"""Exact inverse-mapping renderer for one camera: arena background plus the ellipsoid animal.
+
+Every pixel's undistorted viewing ray is computed once per camera (``pixel_to_ray``), so
+the rendering is exact for the pinhole-plus-distortion model: a pixel shows what its ray
+hits first. Rays are intersected analytically with the floor plane, the four arena walls
+(rendered once per camera into a static background with its depth) and, per frame, with
+the animal's ellipsoids — only for the pixels inside the projected bounding box of each
+part (bounding-sphere culling). The frame adds Lambert shading with a directional light,
+fur texture (3D value noise), a soft contact shadow, per-camera exposure/white balance and
+vignetting, mild motion blur (directional kernel composited over the static background),
+and sensor noise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from freipose.geometry import Camera, pixel_to_ray, project
+from freipose.synth.body import MAT, PART, BodyGeometry
+from freipose.synth.rig import ArenaConfig
+
+LIGHT = np.array([0.35, -0.25, 1.0]) / np.linalg.norm([0.35, -0.25, 1.0])
+_SHADOW_PARTS = (PART["haunch"], PART["chest"], PART["head"], PART["neck"])
+_CONTACT_PARTS = (PART["paw_front_r"], PART["paw_front_l"], PART["foot_r"], PART["foot_l"])
+
+BG_NONE, BG_FLOOR, BG_WALL = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class CameraLook:
+    """Per-camera photometric settings: exposure gain, white balance, noise, vignetting."""
+
+    gain: float = 1.0
+    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    noise_sigma: float = 2.0
+    vignetting: float = 0.2
+
+    @classmethod
+    def random(cls, rng: np.random.Generator) -> CameraLook:
+        return cls(
+            gain=float(rng.uniform(0.82, 1.15)),
+            white_balance=tuple(float(v) for v in rng.uniform(0.94, 1.06, size=3)),
+            noise_sigma=float(rng.uniform(1.5, 3.5)),
+            vignetting=float(rng.uniform(0.1, 0.3)),
+        )
+
+
+def _value_noise_table(rng: np.random.Generator, n: int = 16) -> np.ndarray:
+    return rng.uniform(-1.0, 1.0, size=(n, n, n)).astype(np.float32)
+
+
+def value_noise3(table: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Smooth periodic 3D value noise in [-1, 1] at points p (..., 3) (lattice spacing 1)."""
+    n = table.shape[0]
+    f = np.floor(p)
+    w = p - f
+    w = w * w * (3 - 2 * w)
+    i = f.astype(np.int64) % n
+    j = (i + 1) % n
+    out = 0.0
+    for dx in (0, 1):
+        ix = j[..., 0] if dx else i[..., 0]
+        wx = w[..., 0] if dx else 1 - w[..., 0]
+        for dy in (0, 1):
+            iy = j[..., 1] if dy else i[..., 1]
+            wy = w[..., 1] if dy else 1 - w[..., 1]
+            for dz in (0, 1):
+                iz = j[..., 2] if dz else i[..., 2]
+                wz = w[..., 2] if dz else 1 - w[..., 2]
+                out = out + table[ix, iy, iz] * (wx * wy * wz)
+    return out
+
+
+def _floor_texture(rng: np.random.Generator, extent: float, ppm: float) -> np.ndarray:
+    """Grayscale multiplier texture (S, S) float32 around 1 for the floor: mottled mat."""
+    size = int(round(2 * extent * ppm))
+    tex = np.ones((size, size), np.float32)
+    for cells, amp in ((6, 0.08), (25, 0.06), (90, 0.05), (size // 3, 0.06)):
+        small = rng.normal(size=(cells, cells)).astype(np.float32)
+        tex += amp * cv2.resize(small, (size, size), interpolation=cv2.INTER_CUBIC)
+    return tex
+
+
+class CameraRenderer:
+    """Renders frames of one camera (see the module docstring).
+
+    Args:
+        camera: the camera.
+        arena: the arena.
+        seed: seed of this camera's textures, look and noise.
+        look: photometric settings (default: random from ``seed``).
+    """
+
+    def __init__(
+        self, camera: Camera, arena: ArenaConfig, seed: int, look: CameraLook | None = None
+    ):
+        self.camera = camera
+        self.arena = arena
+        rng = np.random.default_rng(seed)
+        self.look = look or CameraLook.random(rng)
+        w, h = camera.size
+        uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        origin, dirs = pixel_to_ray(np.stack([uu, vv], -1), camera)
+        self.origin = origin
+        self.rays_soa = np.ascontiguousarray(
+            np.moveaxis(dirs, -1, 0), dtype=np.float32
+        )  # (3, H, W)
+        # photometric maps
+        r2 = ((uu - (w - 1) / 2) ** 2 + (vv - (h - 1) / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+        self.shade = (
+            (1.0 - self.look.vignetting * r2)[..., None]
+            * self.look.gain
+            * np.asarray(self.look.white_balance)
+        ).astype(np.float32)  # (H, W, 3) exposure x white balance x vignetting
+        self.fur_noise = _value_noise_table(np.random.default_rng(seed + 7919))
+        self._background(rng, dirs)
+        pad = 24
+        noise = rng.normal(0, self.look.noise_sigma, size=(h + pad, w + pad, 3))
+        noise = np.clip(np.round(noise), -255, 255)
+        self.noise_pos = np.clip(noise, 0, 255).astype(np.uint8)
+        self.noise_neg = np.clip(-noise, 0, 255).astype(np.uint8)
+        self.pad = pad
+        self._ray_du: np.ndarray | None = None  # ray derivatives (board anti-aliasing)
+        self._ray_dv: np.ndarray | None = None
+
+    # -- static background -------------------------------------------------------------------
+    def _background(self, rng: np.random.Generator, dirs: np.ndarray) -> None:
+        o = self.origin
+        h, w = dirs.shape[:2]
+        hx, hy = self.arena.half
+        wh = self.arena.wall_height
+        t_best = np.full((h, w), np.inf)
+        kind = np.full((h, w), BG_NONE, np.int8)
+        normal = np.zeros((h, w, 3))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -o[2] / dirs[..., 2]
+        hitp = o + t[..., None] * dirs
+        ok = (t > 0) & (np.abs(hitp[..., 0]) < 4000) & (np.abs(hitp[..., 1]) < 4000)
+        t_best[ok] = t[ok]
+        kind[ok] = BG_FLOOR
+        normal[ok] = (0, 0, 1)
+        for axis, val in ((0, hx), (0, -hx), (1, hy), (1, -hy)):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = (val - o[axis]) / dirs[..., axis]
+            p = o + t[..., None] * dirs
+            other = 1 - axis
+            lim = hy if axis == 0 else hx
+            ok = (
+                (t > 0)
+                & (t < t_best)
+                & (np.abs(p[..., other]) <= lim)
+                & (p[..., 2] >= 0)
+                & (p[..., 2] <= wh)
+            )
+            t_best[ok] = t[ok]
+            kind[ok] = BG_WALL
+            n = np.zeros(3)
+            n[axis] = 1.0
+            side = np.where((dirs[..., axis] > 0)[..., None], -n, n)  # normal facing the camera
+            normal[ok] = side[ok]
+        self.bg_depth = np.where(kind != BG_NONE, t_best, np.inf).astype(np.float32)
+        hit = o + np.where(np.isfinite(t_best), t_best, 0)[..., None] * dirs
+        self.floor_xy = np.where((kind == BG_FLOOR)[..., None], hit[..., :2], np.nan).astype(
+            np.float32
+        )
+        self.bg_kind = kind
+        # colours (BGR, linear-ish 0..1)
+        extent = max(hx, hy) + 60.0
+        ppm = 1.0
+        tex = _floor_texture(rng, extent, ppm)
+        mx = ((hit[..., 0] + extent) * ppm - 0.5).astype(np.float32)
+        my = ((hit[..., 1] + extent) * ppm - 0.5).astype(np.float32)
+        floor_t = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        base_floor = np.array([0.40, 0.42, 0.44]) * rng.uniform(0.9, 1.1)
+        table = np.array([0.18, 0.2, 0.24])
+        inside = (np.abs(hit[..., 0]) <= hx) & (np.abs(hit[..., 1]) <= hy)
+        col = np.empty((h, w, 3))
+        col[:] = (0.22, 0.22, 0.22)  # the room beyond
+        lam_floor = 0.45 + 0.55 * LIGHT[2]
+        fl = kind == BG_FLOOR
+        floor_col = np.where(inside[..., None], base_floor, table) * floor_t[..., None] * lam_floor
+        col[fl] = floor_col[fl]
+        wl = kind == BG_WALL
+        wall_base = np.array([0.66, 0.68, 0.68])
+        lam = 0.5 + 0.5 * np.clip(normal @ LIGHT, 0, 1)
+        hz = np.clip(hit[..., 2] / max(wh, 1.0), 0, 1)
+        wall_col = (
+            wall_base * (lam * (0.85 + 0.15 * hz))[..., None] * (0.97 + 0.03 * floor_t[..., None])
+        )
+        col[wl] = wall_col[wl]
+        lin = (col * self.shade).astype(np.float32)
+        self.bg_lin = cv2.GaussianBlur(lin, (0, 0), 0.6)
+        self.bg_u8 = np.clip(self.bg_lin * 255 + 0.5, 0, 255).astype(np.uint8)
+
+    # -- animal ------------------------------------------------------------------------------
+    def _part_boxes(self, centers: np.ndarray, radii_max: np.ndarray) -> np.ndarray:
+        """(N, 4) integer boxes x0, y0, x1, y1 (exclusive) of the parts' bounding spheres."""
+        cam = self.camera
+        R = cam.R
+        n = len(centers)
+        offs = np.concatenate([R[0:1], -R[0:1], R[1:2], -R[1:2]])  # camera x/y axes in world
+        pts = centers[:, None, :] + radii_max[:, None, None] * offs[None]
+        uv = project(np.concatenate([centers[:, None], pts], 1), cam)  # (N, 5, 2)
+        depth = centers @ R[2] + cam.t[2]
+        boxes = np.zeros((n, 4), np.int64)
+        w, h = cam.size
+        bad = ~np.all(np.isfinite(uv), axis=(1, 2)) | (depth <= radii_max * 1.05)
+        lo = np.nanmin(uv, axis=1)
+        hi = np.nanmax(uv, axis=1)
+        m = 0.15 * (hi - lo).max(axis=1, keepdims=True) + 2.0
+        lo = np.floor(lo - m)
+        hi = np.ceil(hi + m) + 1
+        boxes[:, 0] = np.clip(np.nan_to_num(lo[:, 0]), 0, w)
+        boxes[:, 1] = np.clip(np.nan_to_num(lo[:, 1]), 0, h)
+        boxes[:, 2] = np.clip(np.nan_to_num(hi[:, 0]), 0, w)
+        boxes[:, 3] = np.clip(np.nan_to_num(hi[:, 1]), 0, h)
+        boxes[bad] = 0
+        return boxes
+
+    def render_animal(
+        self, geom: BodyGeometry, f: int, palette: np.ndarray, blur_px: np.ndarray | None = None
+    ) -> tuple[tuple[int, int, int, int], np.ndarray, np.ndarray] | None:
+        """Render frame ``f`` of the animal: ``(box, rgb_linear (h, w, 3), part_id (h, w))``.
+
+        ``part_id`` is -1 where the background is seen. Returns None when nothing of the
+        animal (or its shadow) is in the image.
+        """
+        C = geom.centers[f]
+        A = geom.axes[f]
+        Rr = geom.radii[f]
+        rmax = Rr.max(axis=1)
+        # shadow footprints: floor blobs under the big parts, shifted along the light
+        sh_idx = np.array(_SHADOW_PARTS + _CONTACT_PARTS)
+        shift = -LIGHT[:2] / LIGHT[2]
+        sh_c = np.concatenate(
+            [C[sh_idx, :2] + shift * C[sh_idx, 2:3], np.zeros((len(sh_idx), 1))], 1
+        )
+        boxes = self._part_boxes(
+            np.concatenate([C, sh_c]), np.concatenate([rmax, 1.7 * rmax[sh_idx]])
+        )
+        valid = (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+        if not valid[: len(C)].any() and not valid.any():
+            return None
+        x0, y0 = boxes[valid, 0].min(), boxes[valid, 1].min()
+        x1, y1 = boxes[valid, 2].max(), boxes[valid, 3].max()
+        bh, bw = y1 - y0, x1 - x0
+        zbuf = self.bg_depth[y0:y1, x0:x1].copy()
+        pid = np.full((bh, bw), -1, np.int64)
+        loc = np.zeros((3, bh, bw), np.float32)
+        o = self.origin
+        for i in np.flatnonzero(valid[: len(C)]):
+            bx0, by0, bx1, by1 = boxes[i]
+            Dx, Dy, Dz = self.rays_soa[:, by0:by1, bx0:bx1]
+            M = A[i] / Rr[i]  # world direction -> unit-sphere frame: d @ M
+            op = (o - C[i]) @ M
+            dpx = M[0, 0] * Dx + M[1, 0] * Dy + M[2, 0] * Dz
+            dpy = M[0, 1] * Dx + M[1, 1] * Dy + M[2, 1] * Dz
+            dpz = M[0, 2] * Dx + M[1, 2] * Dy + M[2, 2] * Dz
+            a = dpx * dpx + dpy * dpy + dpz * dpz
+            b = dpx * op[0] + dpy * op[1] + dpz * op[2]
+            disc = b * b - a * (float(op @ op) - 1.0)
+            hit = disc > 0
+            if not hit.any():
+                continue
+            s = (-b - np.sqrt(np.maximum(disc, 0))) / a
+            sub = (slice(by0 - y0, by1 - y0), slice(bx0 - x0, bx1 - x0))
+            zb = zbuf[sub]
+            upd = hit & (s > 0) & (s < zb)
+            if not upd.any():
+                continue
+            su = s[upd]
+            zb[upd] = su
+            pid[sub][upd] = i
+            loc[0][sub][upd] = op[0] + su * dpx[upd]
+            loc[1][sub][upd] = op[1] + su * dpy[upd]
+            loc[2][sub][upd] = op[2] + su * dpz[upd]
+        # shading
+        rgb = np.zeros((bh, bw, 3), np.float32)
+        m = pid >= 0
+        if m.any():
+            ids = pid[m]
+            p = loc[:, m].T.astype(np.float64)  # (m, 3) unit-sphere coordinates
+            mats = geom.materials[ids]
+            u = p / Rr[ids]
+            Ag = A[ids]
+            n = (Ag * u[:, None, :]).sum(-1)
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            d = self.rays_soa[:, y0:y1, x0:x1][:, m].T.astype(np.float64)
+            q = (p * Rr[ids]).astype(np.float32)  # local mm: texture moves with the part
+            fur = value_noise3(self.fur_noise, q / 1.7)
+            # fur pattern: secondary colour where the pattern says so (hooded rat)
+            second = np.zeros(len(ids), bool)
+            wob = 0.12 * value_noise3(self.fur_noise, q / 12.0 + 7.1)
+            hm = mats == MAT["haunch"]
+            second[hm] = (p[hm, 2] + wob[hm] > 0.8) & (np.abs(p[hm, 1]) < 0.45)
+            cm = mats == MAT["chest"]
+            second[cm] = ((p[cm, 2] + wob[cm] > 0.78) & (np.abs(p[cm, 1]) < 0.5)) | (
+                (p[cm, 0] + wob[cm] > 0.4) & (p[cm, 2] > -0.4)
+            )
+            alb = palette[mats, second.astype(np.int64)]
+            furry = np.isin(
+                mats, (MAT["haunch"], MAT["chest"], MAT["head"], MAT["snout"], MAT["limb"])
+            )
+            alb = alb * (1.0 + np.where(furry, 0.2, 0.06) * fur)[:, None]
+            ndl = np.clip(n @ LIGHT, 0, 1)
+            ndv = np.clip(-(n * d).sum(1), 0, 1)
+            lum = 0.32 + 0.68 * ndl + 0.12 * ndv
+            col = alb * lum[:, None]
+            shiny = np.isin(mats, (MAT["eye"], MAT["nose"]))
+            if shiny.any():
+                hv = LIGHT - d[shiny]
+                hv /= np.linalg.norm(hv, axis=1, keepdims=True)
+                spec = np.clip((n[shiny] * hv).sum(1), 0, 1) ** 25
+                col[shiny] += 0.7 * spec[:, None]
+            rgb[m] = (col * self.shade[y0:y1, x0:x1][m]).astype(np.float32)
+        # composite over the (shadowed) background with motion blur
+        bg = self.bg_lin[y0:y1, x0:x1]
+        fxy = self.floor_xy[y0:y1, x0:x1]
+        shadow = np.ones((bh, bw), np.float32)
+        fl = np.isfinite(fxy[..., 0])
+        if fl.any():
+            for k, i in enumerate(sh_idx):
+                bx0, by0, bx1, by1 = boxes[len(C) + k]
+                if bx1 <= bx0 or by1 <= by0:
+                    continue
+                sub = (slice(by0 - y0, by1 - y0), slice(bx0 - x0, bx1 - x0))
+                gx, gy = fxy[sub][..., 0], fxy[sub][..., 1]
+                cov = (A[i] * Rr[i] ** 2) @ A[i].T
+                sxx, sxy, syy = cov[0, 0], cov[0, 1], cov[1, 1]
+                sc = (1.15 + 0.004 * C[i, 2]) ** 2
+                det = (sxx * syy - sxy * sxy) * sc * sc
+                ia, ib, ic = syy * sc / det, -sxy * sc / det, sxx * sc / det
+                dx, dy = gx - np.float32(sh_c[k, 0]), gy - np.float32(sh_c[k, 1])
+                qf = (
+                    np.float32(ia) * dx * dx
+                    + np.float32(2 * ib) * dx * dy
+                    + np.float32(ic) * dy * dy
+                )
+                strength = (0.5 if k < len(_SHADOW_PARTS) else 0.4) * math.exp(-C[i, 2] / 150.0)
+                blob = 1.0 - np.float32(strength) * np.exp(np.float32(-2.0) * qf)
+                shadow[sub] *= np.where(np.isfinite(blob), blob, np.float32(1.0))
+        out = bg * shadow[..., None]
+        if m.any():
+            kernel = _blur_kernel(blur_px)
+            r = kernel.shape[0] // 2 + 1
+            rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+            sy = slice(max(0, rows[0] - r), min(bh, rows[-1] + r + 1))
+            sx = slice(max(0, cols[0] - r), min(bw, cols[-1] + r + 1))
+            alpha = m[sy, sx].astype(np.float32)
+            A_ = cv2.filter2D(
+                rgb[sy, sx] * alpha[..., None], -1, kernel, borderType=cv2.BORDER_CONSTANT
+            )
+            a_ = cv2.filter2D(alpha, -1, kernel, borderType=cv2.BORDER_CONSTANT)
+            out[sy, sx] = A_ + (1.0 - a_)[..., None] * out[sy, sx]
+        return (int(x0), int(y0), int(x1), int(y1)), out, pid
+
+    def finish(
+        self,
+        frame_lin: np.ndarray | None,
+        box: tuple[int, int, int, int] | None,
+        rng: np.random.Generator,
+    ) -> np.ndarray:
+        """Compose the final uint8 BGR frame: background, the rendered box, sensor noise."""
+        img = self.bg_u8.copy()
+        if box is not None and frame_lin is not None:
+            x0, y0, x1, y1 = box
+            img[y0:y1, x0:x1] = np.clip(frame_lin * 255 + 0.5, 0, 255).astype(np.uint8)
+        h, w = img.shape[:2]
+        oy, ox = (int(v) for v in rng.integers(0, self.pad, size=2))
+        img = cv2.add(img, self.noise_pos[oy : oy + h, ox : ox + w])
+        oy, ox = (int(v) for v in rng.integers(0, self.pad, size=2))
+        img = cv2.subtract(img, self.noise_neg[oy : oy + h, ox : ox + w])
+        return img
+
+    def render(
+        self,
+        geom: BodyGeometry,
+        f: int,
+        palette: np.ndarray,
+        rng: np.random.Generator,
+        blur_px: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """One uint8 BGR frame (H, W, 3) of the animal in frame ``f``."""
+        res = self.render_animal(geom, f, palette, blur_px)
+        if res is None:
+            return self.finish(None, None, rng)
+        box, lin, _ = res
+        return self.finish(lin, box, rng)
+
+
+def _blur_kernel(blur_px: np.ndarray | None, sigma: float = 0.55) -> np.ndarray:
+    """Normalized kernel: a motion of ``blur_px`` (dx, dy) pixels convolved with optics blur."""
+    dx, dy = (0.0, 0.0) if blur_px is None else (float(v) for v in blur_px)
+    length = math.hypot(dx, dy)
+    if not np.isfinite(length):
+        length = 0.0
+    length = min(length, 12.0)
+    k = 2 * int(math.ceil(length / 2 + 2 * sigma)) + 1
+    ker = np.zeros((k, k), np.float32)
+    c = (k - 1) / 2
+    n = max(1, int(math.ceil(length * 3)))
+    ux, uy = (dx / math.hypot(dx, dy), dy / math.hypot(dx, dy)) if length > 0 else (1.0, 0.0)
+    for s in np.linspace(-length / 2, length / 2, n) if n > 1 else [0.0]:
+        x, y = c + s * ux, c + s * uy
+        xi, yi = int(math.floor(x)), int(math.floor(y))
+        fx, fy = x - xi, y - yi
+        for ddx, ddy, wgt in (
+            (0, 0, (1 - fx) * (1 - fy)),
+            (1, 0, fx * (1 - fy)),
+            (0, 1, (1 - fx) * fy),
+            (1, 1, fx * fy),
+        ):
+            if 0 <= xi + ddx < k and 0 <= yi + ddy < k:
+                ker[yi + ddy, xi + ddx] += wgt
+    ker = cv2.GaussianBlur(ker, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    return ker / ker.sum()

@@ -1,0 +1,341 @@
+"""The synthetic arena and camera rigs: :class:`ArenaConfig`, :func:`default_rig`, rig files.
+
+World frame: millimetres, z up, origin at the centre of the arena floor, floor z = 0; the
+arena is an open box of inner size ``size`` (x, y) with walls of ``wall_height``.
+
+Rig file (TOML), documented in ``docs/formats.md`` (see ``examples/rig.toml``)::
+
+    [arena]                         # optional
+    size = [600.0, 600.0]           # inner width (x) and depth (y), mm
+    wall_height = 100.0             # mm
+
+    [defaults]                      # optional; values every camera inherits
+    size = [640, 512]               # width, height in pixels
+    focal = "auto"                  # px, or "auto": the arena just fits the image
+    distortion = [-0.08, 0.02, 0.0, 0.0, 0.0]
+
+    [[camera]]
+    name = "cam0"
+    position = [700.0, 0.0, 650.0]  # mm
+    look_at = [0.0, 0.0, 30.0]      # mm
+    # size, focal, distortion as in [defaults]; optional: fov_deg (horizontal field of view,
+    # instead of focal), principal_point = [cx, cy], up = [0, 0, 1]
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from freipose._compat import tomllib
+from freipose.geometry import Camera, CameraRig
+
+
+class RigFileError(ValueError):
+    """A rig file is malformed; the message names the file, the entry and the problem."""
+
+
+@dataclass(frozen=True)
+class ArenaConfig:
+    """An open-field box: inner ``size`` (x, y) mm centred on the origin, ``wall_height`` mm."""
+
+    size: tuple[float, float] = (600.0, 600.0)
+    wall_height: float = 100.0
+
+    def __post_init__(self) -> None:
+        try:
+            w, d = (float(v) for v in self.size)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"arena size must be [width, depth] in mm, got {self.size!r}"
+            ) from None
+        if not (w >= 300 and d >= 300):
+            raise ValueError(f"arena size must be at least 300 x 300 mm for a rat, got {w} x {d}")
+        if not (0 <= float(self.wall_height) <= 2000):
+            raise ValueError(f"arena wall_height must be in [0, 2000] mm, got {self.wall_height}")
+        object.__setattr__(self, "size", (w, d))
+        object.__setattr__(self, "wall_height", float(self.wall_height))
+
+    @property
+    def half(self) -> np.ndarray:
+        return np.asarray(self.size) / 2
+
+    def corners(self, z: float = 0.0) -> np.ndarray:
+        """(4, 3) floor corners of the arena at height z."""
+        hx, hy = self.half
+        return np.array([[-hx, -hy, z], [hx, -hy, z], [hx, hy, z], [-hx, hy, z]])
+
+
+def _fit_focal(
+    position: np.ndarray,
+    target: np.ndarray,
+    size: tuple[int, int],
+    up: Any,
+    arena: ArenaConfig,
+    fill: float = 0.92,
+) -> float:
+    """Focal length (px) at which the arena floor and wall tops just fit into the image."""
+    probe = Camera.look_at("probe", position, target, size, 1.0, up=up)
+    pts = np.concatenate([arena.corners(0.0), arena.corners(arena.wall_height)])
+    xc = pts @ probe.R.T + probe.t
+    if np.any(xc[:, 2] <= 1e-6):
+        raise ValueError("the arena is partly behind the camera; move it or aim it at the arena")
+    xy = np.abs(xc[:, :2] / xc[:, 2:3])
+    w, h = size
+    return float(min(fill * (w / 2) / xy[:, 0].max(), fill * (h / 2) / xy[:, 1].max()))
+
+
+def default_rig(
+    n_cameras: int = 7,
+    size: tuple[int, int] = (320, 256),
+    seed: int | None = None,
+    arena: ArenaConfig | None = None,
+    distortion: bool = True,
+) -> CameraRig:
+    """N cameras placed like a lab rig around and above the arena, all looking at its centre.
+
+    With 5 or more cameras one looks down from the ceiling and the others stand on a ring
+    (alternately higher and lower); fewer cameras all stand on the ring. Focal lengths are
+    chosen so that the arena fills the image. ``seed`` jitters positions, aim points, focal
+    lengths, principal points and distortion (None: the nominal rig).
+
+    Args:
+        n_cameras: number of cameras (1..32), named ``cam0``... .
+        size: image size (width, height) of every camera.
+        seed: jitter seed, or None.
+        arena: the arena (default :class:`ArenaConfig`).
+        distortion: give the lenses mild barrel distortion.
+
+    Returns:
+        :class:`CameraRig` with metadata describing the world frame.
+    """
+    if not 1 <= int(n_cameras) <= 32:
+        raise ValueError(f"n_cameras must be in 1..32, got {n_cameras}")
+    arena = arena or ArenaConfig()
+    w, h = (int(v) for v in size)
+    if w < 16 or h < 16:
+        raise ValueError(f"image size must be at least 16 x 16 px, got {w} x {h}")
+    rng = np.random.default_rng(seed) if seed is not None else None
+    n = int(n_cameras)
+    top = n >= 5
+    n_ring = n - 1 if top else n
+    reach = float(max(arena.size)) / 600.0
+    cams = []
+    for i in range(n):
+        jitter = rng.normal(size=3) * 25.0 if rng is not None else np.zeros(3)
+        aim = rng.normal(size=3) * [15.0, 15.0, 5.0] if rng is not None else np.zeros(3)
+        if top and i == n - 1:
+            pos = np.array([0.0, -180.0 * reach, 1250.0 * reach]) + jitter
+            target = np.array([0.0, 0.0, 0.0]) + aim
+            up = (0.0, 1.0, 0.0)
+        else:
+            az = 2 * math.pi * i / n_ring + math.radians(20)
+            radius = (720.0 if i % 2 == 0 else 640.0) * reach
+            height = (620.0 if i % 2 == 0 else 820.0) * reach
+            pos = np.array([radius * math.cos(az), radius * math.sin(az), height]) + jitter
+            target = np.array([0.0, 0.0, 30.0]) + aim
+            up = (0.0, 0.0, 1.0)
+        focal = _fit_focal(pos, target, (w, h), up, arena)
+        pp = None
+        dist = None
+        if rng is not None:
+            focal *= float(rng.uniform(0.97, 1.03))
+            pp = ((w - 1) / 2 + rng.normal() * 0.01 * w, (h - 1) / 2 + rng.normal() * 0.01 * h)
+        if distortion:
+            k1 = -0.08 if rng is None else float(rng.uniform(-0.14, -0.03))
+            k2 = 0.02 if rng is None else float(rng.uniform(0.0, 0.04))
+            p = (0.0, 0.0) if rng is None else tuple(float(v) for v in rng.normal(size=2) * 5e-4)
+            dist = [k1, k2, p[0], p[1], 0.0]
+            focal *= 1.0 - 0.2 * k1  # barrel distortion shrinks the corners: zoom in a bit
+        cams.append(
+            Camera.look_at(
+                f"cam{i}", pos, target, (w, h), focal, up=up, dist=dist, principal_point=pp
+            )
+        )
+    return CameraRig(tuple(cams), _metadata(arena))
+
+
+def _metadata(arena: ArenaConfig) -> dict[str, Any]:
+    return {
+        "units": "mm",
+        "world": "synthetic scene: origin at the arena floor centre, z up, floor z = 0",
+        "arena_size": list(arena.size),
+        "arena_wall_height": arena.wall_height,
+    }
+
+
+_CAMERA_KEYS = {"name", "position", "look_at", "size", "focal", "fov_deg", "distortion",
+                "principal_point", "up"}  # fmt: skip
+_DEFAULT_KEYS = _CAMERA_KEYS - {"name", "position", "look_at"}
+_TOP_KEYS = {"arena", "defaults", "camera"}
+
+
+def _unknown(keys: Any, known: set[str], where: str, src: str) -> None:
+    for k in keys:
+        if k not in known:
+            close = difflib.get_close_matches(k, sorted(known), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else f"; known keys: {sorted(known)}"
+            raise RigFileError(f"{src}: unknown key {k!r} in {where}{hint}")
+
+
+def _vec(value: Any, n: int, what: str, where: str, src: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise RigFileError(f"{src}: {where}: {what} must be a list of {n} numbers, got {value!r}")
+    return arr
+
+
+def rig_from_dict(
+    data: Mapping[str, Any], source: str = "<rig>", default_size: tuple[int, int] | None = None
+) -> tuple[CameraRig, ArenaConfig]:
+    """Build the rig and arena from a parsed rig file (see the module docstring)."""
+    src = source
+    _unknown(data.keys(), _TOP_KEYS, "the top level", src)
+    arena_d = data.get("arena", {})
+    if not isinstance(arena_d, Mapping):
+        raise RigFileError(f"{src}: [arena] must be a table")
+    _unknown(arena_d.keys(), {"size", "wall_height"}, "[arena]", src)
+    try:
+        arena = ArenaConfig(
+            tuple(_vec(arena_d.get("size", (600.0, 600.0)), 2, "size", "[arena]", src)),
+            float(arena_d.get("wall_height", 100.0)),
+        )
+    except (TypeError, ValueError) as exc:
+        raise RigFileError(f"{src}: [arena]: {exc}") from None
+    defaults = data.get("defaults", {})
+    if not isinstance(defaults, Mapping):
+        raise RigFileError(f"{src}: [defaults] must be a table")
+    _unknown(defaults.keys(), _DEFAULT_KEYS, "[defaults]", src)
+    entries = data.get("camera")
+    if not entries or not isinstance(entries, list):
+        raise RigFileError(
+            f"{src}: no cameras; add one [[camera]] table per camera "
+            "with name, position and look_at"
+        )
+    cams = []
+    names: set[str] = set()
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, Mapping):
+            raise RigFileError(f"{src}: camera #{i + 1} must be a table")
+        where = f"camera #{i + 1} ({entry.get('name', 'unnamed')!r})"
+        _unknown(entry.keys(), _CAMERA_KEYS, where, src)
+        e = {**defaults, **entry}
+        for req in ("name", "position", "look_at"):
+            if req not in e:
+                raise RigFileError(
+                    f"{src}: {where} has no {req!r}; every camera needs name, position and look_at"
+                )
+        name = e["name"]
+        if not isinstance(name, str) or not name or any(c in name for c in "/\\ "):
+            raise RigFileError(
+                f"{src}: {where}: name must be a non-empty string without spaces or slashes"
+            )
+        if name in names:
+            raise RigFileError(f"{src}: camera name {name!r} is used twice; names must be unique")
+        names.add(name)
+        pos = _vec(e["position"], 3, "position", where, src)
+        target = _vec(e["look_at"], 3, "look_at", where, src)
+        up = _vec(e.get("up", (0.0, 0.0, 1.0)), 3, "up", where, src)
+        if np.linalg.norm(target - pos) < 1.0:
+            raise RigFileError(f"{src}: {where}: position and look_at coincide")
+        if pos[2] <= 0:
+            raise RigFileError(
+                f"{src}: {where}: position z = {pos[2]} is at or below the floor (z = 0); "
+                "cameras must be above it"
+            )
+        if np.linalg.norm(np.cross(target - pos, up)) < 1e-6 * np.linalg.norm(target - pos):
+            raise RigFileError(
+                f"{src}: {where}: the camera looks straight along 'up'; set up = [0, 1, 0]"
+            )
+        size_v = e.get("size", default_size)
+        if size_v is None:
+            raise RigFileError(
+                f"{src}: {where} has no size; set size = [width, height] (or in [defaults])"
+            )
+        sz = _vec(size_v, 2, "size", where, src)
+        if np.any(sz != np.round(sz)) or np.any(sz < 16):
+            raise RigFileError(f"{src}: {where}: size must be two integers >= 16, got {size_v!r}")
+        size = (int(sz[0]), int(sz[1]))
+        if "focal" in entry and "fov_deg" in entry:
+            raise RigFileError(f"{src}: {where}: give focal or fov_deg, not both")
+        if "fov_deg" in entry or ("fov_deg" in defaults and "focal" not in entry):
+            fov = e["fov_deg"]
+            if not isinstance(fov, (int, float)) or not 1 <= fov <= 170:
+                raise RigFileError(
+                    f"{src}: {where}: fov_deg must be a number in [1, 170], got {fov!r}"
+                )
+            focal = (size[0] / 2) / math.tan(math.radians(fov) / 2)
+        else:
+            focal_v = e.get("focal", "auto")
+            if focal_v == "auto":
+                try:
+                    focal = _fit_focal(pos, target, size, up, arena)
+                except ValueError as exc:
+                    raise RigFileError(f"{src}: {where}: focal = 'auto': {exc}") from None
+            elif (
+                isinstance(focal_v, (int, float)) and not isinstance(focal_v, bool) and focal_v > 0
+            ):
+                focal = float(focal_v)
+            else:
+                raise RigFileError(
+                    f"{src}: {where}: focal must be a positive number of pixels or 'auto', "
+                    f"got {focal_v!r}"
+                )
+        dist = _vec(
+            e.get("distortion", (0, 0, 0, 0, 0)), 5, "distortion (k1, k2, p1, p2, k3)", where, src
+        )
+        if np.any(np.abs(dist) > 2):
+            raise RigFileError(
+                f"{src}: {where}: distortion coefficients beyond +-2 are not plausible: "
+                f"{dist.tolist()}"
+            )
+        pp = None
+        if "principal_point" in e:
+            pp = tuple(_vec(e["principal_point"], 2, "principal_point", where, src))
+        try:
+            cam = Camera.look_at(
+                name, pos, target, size, focal, up=up, dist=dist, principal_point=pp
+            )
+        except ValueError as exc:
+            raise RigFileError(f"{src}: {where}: {exc}") from None
+        xc = cam.R @ np.array([0.0, 0.0, 0.0]) + cam.t
+        if xc[2] <= 0:
+            raise RigFileError(
+                f"{src}: {where}: the arena centre is behind the camera; aim look_at at the arena"
+            )
+        cams.append(cam)
+    return CameraRig(tuple(cams), _metadata(arena)), arena
+
+
+def load_rig_file(
+    path: str | Path, default_size: tuple[int, int] | None = None, with_arena: bool = False
+) -> CameraRig | tuple[CameraRig, ArenaConfig]:
+    """Read a rig TOML file (format in the module docstring) into a :class:`CameraRig`.
+
+    Args:
+        path: the file.
+        default_size: image size for cameras that give none (neither they nor [defaults]).
+        with_arena: also return the file's :class:`ArenaConfig`.
+
+    Raises:
+        FileNotFoundError: no such file.
+        RigFileError: malformed content (the message names the entry and the fix).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"rig file {path} does not exist")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RigFileError(f"{path}: not valid TOML: {exc}") from None
+    rig, arena = rig_from_dict(data, str(path), default_size)
+    return (rig, arena) if with_arena else rig
