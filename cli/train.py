@@ -1,0 +1,81 @@
+"""``freipose train``: train the pose network (or the box detector) from a TOML config."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+from freipose.cli._common import user_errors
+
+
+@click.command()
+@click.argument("config", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--stage",
+    type=click.Choice(["pose", "detector", "baseline"]),
+    default="pose",
+    show_default=True,
+    help="pose: the voxel network; detector: the box detector ([detector] table); "
+    "baseline: the per-view 2D + triangulation reference network.",
+)
+@click.option("--resume", is_flag=True, help="Continue the run in the output folder bit for bit.")
+@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Run folder for checkpoints and logs [default: CONFIG without its suffix].",
+)
+@click.pass_context
+def train(
+    ctx: click.Context, config: Path, stage: str, resume: bool, device: str, out_dir: Path | None
+) -> None:
+    """Train the FreiPose network described by a TOML config.
+
+    The config's [data] table names the labels (and optional eval labels), [model] picks a
+    preset (tiny, small, paper) plus overrides, [schedule] and [augment] tune training;
+    see docs/formats.md. The run folder gets config.toml (every default written out),
+    checkpoint.pt (every schedule.checkpoint_every steps, atomic), model.pt (final),
+    log.csv and log.png. A killed run continues with --resume. Several GPUs or nodes:
+    launch with torchrun.
+
+    \b
+    Example:
+      freipose train examples/train_small.toml --out runs/small
+      freipose train examples/train_small.toml --out runs/small --resume
+      freipose train examples/train_small.toml --stage baseline --out runs/small_baseline
+      torchrun --nproc_per_node 4 -m freipose.cli.main train cfg.toml --device cuda
+    """
+    with user_errors():
+        quiet = bool(ctx.obj and ctx.obj.get("quiet"))
+        if stage == "detector":
+            try:
+                from freipose.detect.train import train_detector
+            except ImportError as exc:
+                raise click.ClickException(
+                    "detector training is not available in this installation "
+                    f"(freipose.detect.train.train_detector could not be imported: {exc})"
+                ) from exc
+            from freipose.nn.config import tomllib
+
+            data = tomllib.loads(config.read_text())
+            out = (
+                out_dir
+                if out_dir is not None
+                else config.with_suffix("").with_name(config.stem + "_detector")
+            )
+            path = train_detector(
+                config=data, config_path=config, out_dir=out, resume=resume, device=device
+            )
+        else:
+            from freipose.nn.train import train_from_config
+
+            path = train_from_config(
+                config,
+                out_dir,
+                resume=resume,
+                device=device,
+                kind="baseline" if stage == "baseline" else None,
+                progress=not quiet,
+            )
+        click.echo(f"wrote {path}")

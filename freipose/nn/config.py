@@ -1,0 +1,365 @@
+"""Configuration of the pose network and its training (``freipose train CONFIG``).
+
+A training config is a TOML file with the tables ``[data]``, ``[model]``, ``[schedule]``,
+``[augment]`` (and ``[detector]``, owned by :mod:`freipose.detect`). ``[model] preset``
+picks one of :data:`PRESETS` (``tiny``, ``small``, ``paper``); every other key of
+``[model]``/``[schedule]``/``[augment]`` overrides a field of the preset. The complete
+resolved config (all defaults filled in) is written next to the checkpoints as
+``config.toml`` and stored inside every checkpoint. The schema is in ``docs/formats.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+class ConfigError(ValueError):
+    """A training config is invalid; the message names the key and the allowed values."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of the voxel network (and of the triangulation baseline).
+
+    Attributes:
+        kind: ``"voxel"`` (FreiPose) or ``"baseline"`` (per-view 2D + robust triangulation).
+        crop_size: side of the square view crops in pixels (224 in the paper).
+        encoder_channels: channels of the VGG-style 2D encoder blocks.
+        encoder_convs: 3x3 convolutions per encoder block.
+        encoder_pools: max-pools after the first ``encoder_pools`` blocks; the feature
+            stride is ``2**encoder_pools`` (8 in the paper: 224 -> 28).
+        feature_channels: channels of the features that are unprojected (128 in the paper).
+        norm: ``"group"``, ``"batch"`` or ``"none"`` (the original had none).
+        grid_size: voxels per cube edge (64 in the paper).
+        cube_size: distance in mm between the outermost voxel centres (400 in the paper).
+        unet_channels: channels of the 3D U-Net encoder levels (each halves the grid).
+        deep_supervision: decode and supervise one volume per U-Net decoder level.
+        refine: use the 2D refinement head (P1); otherwise P1 = P0.
+        refine_channels: channels of the refinement head and the baseline's 2D head.
+        heatmap_sigma: sigma (feature pixels) of the P0 heat maps given to the refinement.
+        pretrained: optional local file with encoder weights (a state dict; loaded
+            non-strictly, the missing and unexpected keys are logged).
+    """
+
+    kind: str = "voxel"
+    crop_size: int = 224
+    encoder_channels: tuple[int, ...] = (64, 128, 256, 512, 512)
+    encoder_convs: tuple[int, ...] = (2, 2, 4, 4, 2)
+    encoder_pools: int = 3
+    feature_channels: int = 128
+    norm: str = "group"
+    grid_size: int = 64
+    cube_size: float = 400.0
+    unet_channels: tuple[int, ...] = (32, 64, 64, 64)
+    deep_supervision: bool = True
+    refine: bool = True
+    refine_channels: int = 128
+    heatmap_sigma: float = 2.0
+    pretrained: str = ""
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("voxel", "baseline"):
+            raise ConfigError(f"model.kind must be 'voxel' or 'baseline', got {self.kind!r}")
+        if self.norm not in ("group", "batch", "none"):
+            raise ConfigError(f"model.norm must be 'group', 'batch' or 'none', got {self.norm!r}")
+        if len(self.encoder_channels) != len(self.encoder_convs) or not self.encoder_channels:
+            raise ConfigError(
+                "model.encoder_channels and model.encoder_convs must be non-empty and of equal "
+                f"length, got {list(self.encoder_channels)} and {list(self.encoder_convs)}"
+            )
+        if not 1 <= self.encoder_pools <= len(self.encoder_channels):
+            raise ConfigError(
+                f"model.encoder_pools must be in 1..{len(self.encoder_channels)}, "
+                f"got {self.encoder_pools}"
+            )
+        if self.crop_size % self.stride:
+            raise ConfigError(
+                f"model.crop_size ({self.crop_size}) must be a multiple of the feature stride "
+                f"{self.stride} (2**encoder_pools)"
+            )
+        levels = len(self.unet_channels)
+        if levels < 1 or self.grid_size % (2**levels):
+            raise ConfigError(
+                f"model.grid_size ({self.grid_size}) must be divisible by 2**len(unet_channels) "
+                f"= {2**levels}"
+            )
+        if self.cube_size <= 0:
+            raise ConfigError(f"model.cube_size must be positive (mm), got {self.cube_size}")
+
+    @property
+    def stride(self) -> int:
+        """Feature stride: crop pixels per feature pixel."""
+        return 2**self.encoder_pools
+
+    @property
+    def feature_size(self) -> int:
+        """Side of the feature maps."""
+        return self.crop_size // self.stride
+
+    @property
+    def voxel_size(self) -> float:
+        """Voxel spacing in mm."""
+        return self.cube_size / (self.grid_size - 1)
+
+
+@dataclass(frozen=True)
+class ScheduleConfig:
+    """Optimisation schedule (Adam with step decay).
+
+    ``steps`` optimizer steps of ``batch_size`` multi-view samples (the global batch; with
+    DDP each of W processes takes ``batch_size / W``). The learning rate is
+    ``lr * lr_decay ** (step // lr_decay_steps)``. The refinement head is frozen (its loss
+    weighted 0) for the first ``refine_start`` fraction of the steps, as in the original.
+    """
+
+    steps: int = 60000
+    batch_size: int = 1
+    lr: float = 1e-4
+    lr_decay: float = 0.1
+    lr_decay_steps: int = 30000
+    refine_start: float = 0.5
+    weight_p0: float = 1.0
+    weight_aux: float = 0.5
+    weight_2d: float = 1.0
+    weight_conf: float = 0.1
+    weight_p1: float = 0.1
+    checkpoint_every: int = 1000
+    eval_every: int = 1000
+    eval_samples: int = 64
+    log_every: int = 10
+    seed: int = 0
+    num_workers: int = 0
+    amp: bool = True
+
+    def __post_init__(self) -> None:
+        for name in (
+            "steps",
+            "batch_size",
+            "lr_decay_steps",
+            "checkpoint_every",
+            "eval_every",
+            "log_every",
+        ):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"schedule.{name} must be >= 1, got {getattr(self, name)}")
+        if self.lr <= 0:
+            raise ConfigError(f"schedule.lr must be positive, got {self.lr}")
+        if not 0 <= self.refine_start <= 1:
+            raise ConfigError(f"schedule.refine_start must be in [0, 1], got {self.refine_start}")
+
+    def lr_at(self, step: int) -> float:
+        """Learning rate used for optimizer step ``step`` (0-based)."""
+        return self.lr * self.lr_decay ** (step // self.lr_decay_steps)
+
+    def refine_active(self, step: int) -> bool:
+        """Whether the refinement head trains at ``step``."""
+        return step >= int(round(self.refine_start * self.steps))
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Training augmentation. Geometric changes are compensated in the crop cameras."""
+
+    enabled: bool = True
+    center_jitter: float = 10.0
+    rotation: float = 7.5
+    zoom: tuple[float, float] = (0.9, 1.1)
+    shift: float = 5.0
+    hue: float = 10.0
+    brightness: float = 0.15
+    contrast: float = 0.15
+    blur_sigma: float = 0.7
+    noise: float = 0.02
+    salt_pepper: float = 0.001
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Where the training data is. Relative paths are relative to the config file."""
+
+    labels: str = ""
+    eval_labels: str = ""
+    root: str = ""
+    cameras: tuple[str, ...] = ()
+    skeleton: str = ""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A complete training config (see the module docstring)."""
+
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    preset: str = "paper"
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+# Presets: (model overrides, schedule overrides).
+PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
+    "tiny": (
+        dict(
+            crop_size=32,
+            encoder_channels=(8, 8, 16),
+            encoder_convs=(1, 1, 1),
+            encoder_pools=2,
+            feature_channels=8,
+            grid_size=8,
+            unet_channels=(8,),
+            refine_channels=8,
+            heatmap_sigma=1.0,
+        ),
+        dict(
+            steps=20,
+            batch_size=2,
+            lr=2e-3,
+            lr_decay_steps=1000,
+            checkpoint_every=10,
+            eval_every=10,
+            eval_samples=4,
+            log_every=1,
+            amp=False,
+        ),
+    ),
+    "small": (
+        dict(
+            crop_size=128,
+            encoder_channels=(16, 32, 48, 64),
+            encoder_convs=(1, 1, 2, 1),
+            encoder_pools=3,
+            feature_channels=32,
+            grid_size=32,
+            unet_channels=(16, 32, 32),
+            refine_channels=32,
+            heatmap_sigma=1.5,
+        ),
+        dict(
+            steps=3000,
+            batch_size=2,
+            lr=1e-3,
+            lr_decay_steps=2000,
+            checkpoint_every=250,
+            eval_every=250,
+            eval_samples=24,
+            log_every=10,
+        ),
+    ),
+    "paper": ({}, {}),
+}
+
+
+def _fields(cls: type) -> dict[str, dataclasses.Field]:
+    return {f.name: f for f in dataclasses.fields(cls)}
+
+
+def _coerce(cls: type, values: Mapping[str, Any], table: str) -> dict[str, Any]:
+    known = _fields(cls)
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if key not in known:
+            raise ConfigError(
+                f"unknown key {table}.{key}; allowed keys: {sorted(known)} (see docs/formats.md)"
+            )
+        default = known[key].default
+        if default is dataclasses.MISSING and known[key].default_factory is not dataclasses.MISSING:
+            default = known[key].default_factory()
+        if isinstance(default, tuple):
+            if not isinstance(value, (list, tuple)):
+                raise ConfigError(f"{table}.{key} must be a list, got {value!r}")
+            value = tuple(value)
+        elif isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ConfigError(f"{table}.{key} must be true or false, got {value!r}")
+        elif isinstance(default, int):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ConfigError(f"{table}.{key} must be an integer, got {value!r}")
+        elif isinstance(default, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{table}.{key} must be a number, got {value!r}")
+            value = float(value)
+        elif isinstance(default, str) and not isinstance(value, str):
+            raise ConfigError(f"{table}.{key} must be a string, got {value!r}")
+        out[key] = value
+    return out
+
+
+def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
+    """Build a :class:`TrainConfig` from the TOML structure (presets applied, validated)."""
+    known_tables = {"data", "model", "schedule", "augment", "detector", "predict"}
+    unknown = sorted(set(data) - known_tables)
+    if unknown:
+        raise ConfigError(
+            f"unknown config tables {unknown}; allowed: {sorted(known_tables)} "
+            "(see docs/formats.md)"
+        )
+    model_tbl = dict(data.get("model", {}))
+    preset = str(model_tbl.pop("preset", "paper"))
+    if preset not in PRESETS:
+        raise ConfigError(f"model.preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    p_model, p_sched = PRESETS[preset]
+    model = ModelConfig(**{**p_model, **_coerce(ModelConfig, model_tbl, "model")})
+    sched = ScheduleConfig(
+        **{**p_sched, **_coerce(ScheduleConfig, dict(data.get("schedule", {})), "schedule")}
+    )
+    aug = AugmentConfig(**_coerce(AugmentConfig, dict(data.get("augment", {})), "augment"))
+    dat = DataConfig(**_coerce(DataConfig, dict(data.get("data", {})), "data"))
+    extra = {k: v for k, v in data.items() if k not in ("data", "model", "schedule", "augment")}
+    return TrainConfig(dat, model, sched, aug, preset, extra)
+
+
+def config_to_dict(config: TrainConfig) -> dict[str, Any]:
+    """The complete config as TOML-ready nested dicts (every default written out)."""
+
+    def plain(obj: Any) -> dict[str, Any]:
+        return {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(obj).items()
+        }
+
+    out: dict[str, Any] = {
+        "data": plain(config.data),
+        "model": {"preset": config.preset, **plain(config.model)},
+        "schedule": plain(config.schedule),
+        "augment": plain(config.augment),
+    }
+    for k, v in config.extra.items():
+        out[k] = dict(v) if isinstance(v, Mapping) else v
+    return out
+
+
+def load_config(path: str | Path) -> TrainConfig:
+    """Read a training config TOML file.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ConfigError: invalid TOML or invalid values (the message names the key).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"training config not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+    try:
+        return config_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+    except TypeError as exc:  # pragma: no cover - dataclass signature mismatch
+        raise ConfigError(f"{path}: {exc}") from exc
+
+
+def model_config_from_dict(data: Mapping[str, Any]) -> ModelConfig:
+    """A :class:`ModelConfig` from a plain dict (e.g. stored in a checkpoint)."""
+    d = {k: v for k, v in data.items() if k != "preset"}
+    return ModelConfig(**_coerce(ModelConfig, d, "model"))

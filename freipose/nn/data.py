@@ -1,0 +1,355 @@
+"""From multi-view samples (``freipose.labels.dataset.MultiViewDataset``) to network input.
+
+For every view the voxel cube around the sample's centre is projected into the full
+frame (:func:`freipose.geometry.crops.cube_crop_boxes`), that square is cut out and resized
+to the crop size, and the crop camera is derived exactly (:func:`crop_camera`). During
+training the centre is the mean of the labeled 3D points plus Gaussian jitter, and each
+crop gets a random in-plane rotation, zoom and shift that are folded into the crop
+camera (a general affine intrinsic matrix, see :mod:`freipose.nn.geometry`), plus colour,
+blur and noise augmentation. Batches pad the view axis; ``view_mask`` tells real views.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from freipose.geometry.camera import CameraRig
+from freipose.geometry.crops import crop_affine, crop_camera, cube_crop_boxes
+from freipose.nn.config import AugmentConfig, ModelConfig
+
+BORDER = 128
+
+
+class SampleError(ValueError):
+    """A sample cannot be turned into network input (the message says why)."""
+
+
+def label_center(points3d: np.ndarray, mask3d: np.ndarray | None = None) -> np.ndarray:
+    """Mean (3,) of the labeled 3D points (NaN when there is none)."""
+    p = np.asarray(points3d, dtype=np.float64)
+    m = (
+        np.isfinite(p).all(-1)
+        if mask3d is None
+        else np.asarray(mask3d, bool) & np.isfinite(p).all(-1)
+    )
+    if not m.any():
+        return np.full(3, np.nan)
+    return p[m].mean(0)
+
+
+def _aug_affine(rng: np.random.Generator, aug: AugmentConfig, size: int) -> np.ndarray:
+    """Random rotation/zoom about the crop centre plus a shift (3x3, crop px -> crop px)."""
+    c = (size - 1) / 2.0
+    theta = math.radians(rng.uniform(-aug.rotation, aug.rotation))
+    zoom = rng.uniform(aug.zoom[0], aug.zoom[1])
+    dx, dy = rng.uniform(-aug.shift, aug.shift, size=2)
+    cs, sn = math.cos(theta) * zoom, math.sin(theta) * zoom
+    return np.array(
+        [[cs, -sn, c - cs * c + sn * c + dx], [sn, cs, c - sn * c - cs * c + dy], [0, 0, 1]]
+    )
+
+
+def _color_augment(img: np.ndarray, rng: np.random.Generator, aug: AugmentConfig) -> np.ndarray:
+    """Hue shift, brightness/contrast, Gaussian blur, noise and salt-and-pepper (BGR uint8)."""
+    out = img
+    if aug.hue > 0:
+        hsv = cv2.cvtColor(out, cv2.COLOR_BGR2HSV)
+        shift = int(round(rng.uniform(-aug.hue, aug.hue) / 2.0))  # OpenCV hue is 0..179
+        hsv[..., 0] = ((hsv[..., 0].astype(np.int16) + shift) % 180).astype(np.uint8)
+        out = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
+    f = out.astype(np.float32)
+    if aug.brightness > 0 or aug.contrast > 0:
+        gain = 1.0 + rng.uniform(-aug.contrast, aug.contrast)
+        bias = 255.0 * rng.uniform(-aug.brightness, aug.brightness)
+        f = (f - 128.0) * gain + 128.0 + bias
+    if aug.blur_sigma > 0:
+        sigma = rng.uniform(0.0, aug.blur_sigma)
+        if sigma > 0.05:
+            f = cv2.GaussianBlur(f, (7, 7), sigma)
+    if aug.noise > 0:
+        f = f + rng.normal(0.0, 255.0 * aug.noise * rng.uniform(), size=f.shape).astype(np.float32)
+    if aug.salt_pepper > 0:
+        u = rng.uniform(size=f.shape[:2])
+        f[u < aug.salt_pepper] = 0.0
+        f[u > 1 - aug.salt_pepper] = 255.0
+    return np.clip(f, 0, 255).astype(np.uint8)
+
+
+def prepare_sample(
+    sample: dict[str, Any],
+    model: ModelConfig,
+    augment: AugmentConfig | None = None,
+    rng: np.random.Generator | None = None,
+    center: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """Crop one multi-view sample around its centre.
+
+    Args:
+        sample: a ``MultiViewDataset`` sample (``rig``, ``images``, optional labels).
+        model: gives the crop size and the cube size.
+        augment: training augmentation (None or ``enabled=False``: none).
+        rng: random generator for the augmentation (required with augmentation).
+        center: (3,) cube centre in mm; default the mean of the labeled 3D points
+            (plus jitter when augmenting).
+
+    Returns:
+        A dict of numpy arrays: ``images`` (V, 3, S, S) float32 (BGR / 255 - 0.5), ``K``
+        (V, 3, 3) affine crop intrinsics, ``R`` (V, 3, 3), ``t`` (V, 3), ``dist`` (V, 5),
+        ``affine`` (V, 3, 3) full-image -> crop pixels, ``view_valid`` (V,) bool, ``center``
+        (3,), ``points3d`` (K, 3) (NaN unknown), ``mask3d`` (K,), ``points2d`` (V, K, 2) crop
+        px, ``visible2d`` (V, K); plus ``rig`` (the original cameras) and ``index``.
+
+    Raises:
+        SampleError: no rig, no centre, or images that do not match the cameras.
+    """
+    rig: CameraRig | None = sample.get("rig")
+    if rig is None:
+        raise SampleError(
+            f"sample {sample.get('index')} (session {sample.get('session')!r}) has no calibration; "
+            "the pose network needs calibrated cameras"
+        )
+    S = model.crop_size
+    aug = augment if augment is not None and augment.enabled else None
+    if aug is not None and rng is None:
+        raise ValueError("prepare_sample: augmentation needs an rng")
+    V = len(rig)
+    p3 = sample.get("points3d")
+    nk = None if p3 is None else np.asarray(p3).shape[0]
+    if center is None:
+        if p3 is None:
+            raise SampleError("prepare_sample needs a centre or 3D labels")
+        center = label_center(p3, sample.get("mask3d"))
+        if not np.all(np.isfinite(center)):
+            raise SampleError(
+                f"sample {sample.get('index')} (session {sample.get('session')!r}, frame "
+                f"{sample.get('frame_index')}) has no 3D label to centre the voxel cube on"
+            )
+        if aug is not None and aug.center_jitter > 0:
+            center = center + rng.normal(0.0, aug.center_jitter, size=3)
+    center = np.asarray(center, dtype=np.float64).reshape(3)
+    images = sample.get("images") or []
+    if images and len(images) != V:
+        raise SampleError(f"sample has {len(images)} images for {V} cameras")
+    boxes = cube_crop_boxes(rig, center, model.cube_size)  # (V, 4)
+    out_img = np.zeros((V, 3, S, S), np.float32)
+    Ks = np.tile(np.eye(3), (V, 1, 1))
+    affines = np.tile(np.eye(3), (V, 1, 1))
+    valid = np.zeros(V, bool)
+    for v, cam in enumerate(rig):
+        box = boxes[v]
+        if not np.all(np.isfinite(box)) or box[2] - box[0] <= 0:
+            continue  # centre behind this camera
+        valid[v] = True
+        T = _aug_affine(rng, aug, S) if aug is not None else np.eye(3)
+        A = T @ crop_affine(box, S)
+        Ks[v] = T @ crop_camera(cam, box, S).K
+        affines[v] = A
+        if images:
+            img = images[v]
+            if img.shape[1] != cam.width or img.shape[0] != cam.height:
+                raise SampleError(
+                    f"camera {cam.name!r}: image is {img.shape[1]}x{img.shape[0]} but the "
+                    f"calibration says {cam.width}x{cam.height}"
+                )
+            crop = cv2.warpAffine(
+                img,
+                A[:2],
+                (S, S),
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=(BORDER, BORDER, BORDER),
+            )
+            if crop.ndim == 2:
+                crop = np.repeat(crop[..., None], 3, axis=-1)
+            if aug is not None:
+                crop = _color_augment(crop, rng, aug)
+            out_img[v] = crop.transpose(2, 0, 1).astype(np.float32) / 255.0 - 0.5
+    res: dict[str, Any] = {
+        "images": out_img,
+        "K": Ks,
+        "R": np.asarray(rig.R, np.float64),
+        "t": np.asarray(rig.t, np.float64),
+        "dist": np.asarray(rig.dist, np.float64),
+        "affine": affines,
+        "view_valid": valid,
+        "center": center,
+        "rig": rig,
+        "index": int(sample.get("index", -1)),
+    }
+    if nk is not None:
+        p3 = np.asarray(p3, np.float64)
+        m3 = np.isfinite(p3).all(-1)
+        if sample.get("mask3d") is not None:
+            m3 &= np.asarray(sample["mask3d"], bool)
+        p2 = np.asarray(sample.get("points2d", np.full((V, nk, 2), np.nan)), np.float64)
+        vis = sample.get("visible2d")
+        vis = (
+            np.isfinite(p2).all(-1)
+            if vis is None
+            else np.asarray(vis, bool) & np.isfinite(p2).all(-1)
+        )
+        hom = np.concatenate([p2, np.ones(p2.shape[:-1] + (1,))], -1)
+        p2c = np.einsum("vij,vkj->vki", affines, hom)[..., :2]
+        inside = (p2c >= -0.5).all(-1) & (p2c <= S - 0.5).all(-1)
+        res.update(points3d=p3, mask3d=m3, points2d=p2c, visible2d=vis & inside & valid[:, None])
+    return res
+
+
+def collate_prepared(items: list[dict[str, Any]]) -> dict[str, Any]:
+    """Stack prepared samples into tensors, padding the view axis.
+
+    Padding views get identity intrinsics, a camera 1 m in front of the cube and
+    ``view_mask`` False. Returns float32 tensors ``images`` (B, V, 3, S, S), ``K``, ``R``,
+    ``t``, ``dist``, ``affine``, ``center`` (B, 3), ``view_mask`` (B, V) and, when labeled,
+    ``points3d`` (B, K, 3) (0 where unknown), ``mask3d`` (B, K), ``points2d`` (B, V, K, 2),
+    ``visible2d`` (B, V, K); plus the lists ``rigs`` and ``index``.
+    """
+    B = len(items)
+    V = max(len(it["view_valid"]) for it in items)
+    S = items[0]["images"].shape[-1]
+    out: dict[str, Any] = {
+        "images": torch.zeros(B, V, 3, S, S),
+        "K": torch.eye(3).repeat(B, V, 1, 1),
+        "R": torch.eye(3).repeat(B, V, 1, 1),
+        "t": torch.zeros(B, V, 3),
+        "dist": torch.zeros(B, V, 5),
+        "affine": torch.eye(3).repeat(B, V, 1, 1),
+        "center": torch.zeros(B, 3),
+        "view_mask": torch.zeros(B, V, dtype=torch.bool),
+        "rigs": [it["rig"] for it in items],
+        "index": [it["index"] for it in items],
+    }
+    out["t"][..., 2] = 1000.0
+    labeled = all("points3d" in it for it in items)
+    if labeled:
+        nk = items[0]["points3d"].shape[0]
+        out.update(
+            points3d=torch.zeros(B, nk, 3),
+            mask3d=torch.zeros(B, nk, dtype=torch.bool),
+            points2d=torch.zeros(B, V, nk, 2),
+            visible2d=torch.zeros(B, V, nk, dtype=torch.bool),
+        )
+    for b, it in enumerate(items):
+        n = len(it["view_valid"])
+        out["images"][b, :n] = torch.from_numpy(it["images"])
+        for key in ("K", "R", "t", "dist", "affine"):
+            out[key][b, :n] = torch.from_numpy(np.asarray(it[key], np.float32))
+        out["center"][b] = torch.from_numpy(np.asarray(it["center"], np.float32))
+        out["view_mask"][b, :n] = torch.from_numpy(it["view_valid"])
+        if labeled:
+            out["points3d"][b] = torch.from_numpy(np.nan_to_num(it["points3d"]).astype(np.float32))
+            out["mask3d"][b] = torch.from_numpy(it["mask3d"])
+            out["points2d"][b, :n] = torch.from_numpy(
+                np.nan_to_num(it["points2d"]).astype(np.float32)
+            )
+            out["visible2d"][b, :n] = torch.from_numpy(it["visible2d"])
+    return out
+
+
+TENSOR_KEYS = (
+    "images",
+    "K",
+    "R",
+    "t",
+    "dist",
+    "affine",
+    "center",
+    "view_mask",
+    "points3d",
+    "mask3d",
+    "points2d",
+    "visible2d",
+)
+
+
+def to_device(batch: dict[str, Any], device: torch.device | str) -> dict[str, Any]:
+    """Move the tensors of a collated batch to ``device``."""
+    return {
+        k: (v.to(device, non_blocking=True) if k in TENSOR_KEYS else v) for k, v in batch.items()
+    }
+
+
+class TrainSamples(torch.utils.data.Dataset):
+    """Prepared training samples addressed by ``(index, step)``.
+
+    The augmentation randomness comes from ``numpy.random.default_rng([seed, step, index])``,
+    so a sample is the same whichever process or worker makes it, and a resumed run sees
+    exactly the data the uninterrupted run would have seen.
+    """
+
+    def __init__(
+        self,
+        source: Sequence[dict[str, Any]],
+        model: ModelConfig,
+        augment: AugmentConfig | None,
+        seed: int,
+    ):
+        self.source = source
+        self.model = model
+        self.augment = augment
+        self.seed = int(seed)
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def __getitem__(self, key: tuple[int, int]) -> dict[str, Any]:
+        index, step = key
+        rng = np.random.default_rng([self.seed, int(step), int(index)])
+        return prepare_sample(self.source[int(index)], self.model, self.augment, rng)
+
+
+class StepBatchSampler(torch.utils.data.Sampler):
+    """Batches of ``(index, step)`` keys for steps ``start .. steps-1``.
+
+    The global batch of step ``s`` is the next ``batch_size`` entries of a sequence of
+    per-epoch permutations of ``indices`` (seeded by ``seed`` and the epoch); process
+    ``rank`` of ``world`` takes its contiguous share. Deterministic in (seed, step).
+    """
+
+    def __init__(
+        self,
+        indices: Sequence[int],
+        batch_size: int,
+        steps: int,
+        seed: int,
+        start: int = 0,
+        rank: int = 0,
+        world: int = 1,
+    ):
+        if not len(indices):
+            raise ValueError("no training samples (no labeled time instant with 3D labels)")
+        if batch_size % world:
+            raise ValueError(
+                f"schedule.batch_size ({batch_size}) must be divisible by the number of "
+                f"processes ({world})"
+            )
+        self.indices = np.asarray(indices, dtype=np.int64)
+        self.batch_size, self.steps, self.seed = batch_size, steps, seed
+        self.start, self.rank, self.world = start, rank, world
+
+    def __len__(self) -> int:
+        return max(self.steps - self.start, 0)
+
+    def global_batch(self, step: int) -> np.ndarray:
+        """The dataset indices of the global batch of ``step``."""
+        n = len(self.indices)
+        pos = np.arange(step * self.batch_size, (step + 1) * self.batch_size)
+        epochs = pos // n
+        out = np.empty(len(pos), np.int64)
+        for e in np.unique(epochs):
+            perm = np.random.default_rng([self.seed, 7919, int(e)]).permutation(n)
+            sel = epochs == e
+            out[sel] = self.indices[perm[pos[sel] % n]]
+        return out
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        local = self.batch_size // self.world
+        for step in range(self.start, self.steps):
+            g = self.global_batch(step)[self.rank * local : (self.rank + 1) * local]
+            yield [(int(i), step) for i in g]

@@ -1,0 +1,205 @@
+"""Accuracy of trained networks on labeled data: joint position error (JPE) and PCK.
+
+JPE (eq. 5.5 of the method) is the Euclidean distance in mm between a predicted keypoint and
+its 3D label, over every labeled keypoint of every evaluated time instant. The cube centre
+of each sample is the mean of its labeled 3D points (the detector is evaluated separately),
+optionally displaced by Gaussian noise to mimic detector error.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from freipose.io.atomic import atomic_path, atomic_write_text
+
+log = logging.getLogger(__name__)
+
+PCK_THRESHOLDS = np.linspace(0.0, 20.0, 41)
+
+
+def usable_indices(source: Sequence[dict[str, Any]]) -> np.ndarray:
+    """Indices of samples with at least one 3D label (from a MultiViewDataset's labels if it
+    has them, else by reading the samples)."""
+    labels = getattr(source, "labels", None)
+    if labels is not None:
+        p3 = labels.points3d
+        ok = np.isfinite(p3).all(-1).any(-1)
+        if getattr(source, "_views", None) is not None:
+            ok &= np.array([source._views[str(s)][2] is not None for s in labels.session], bool)
+        return np.flatnonzero(ok)
+    return np.array(
+        [
+            i
+            for i in range(len(source))
+            if np.isfinite(np.asarray(source[i]["points3d"])).all(-1).any()
+        ],
+        dtype=np.int64,
+    )
+
+
+def predict_dataset(
+    model: Any,
+    source: Sequence[dict[str, Any]],
+    indices: Sequence[int] | None = None,
+    batch_size: int = 4,
+    center_noise: float = 0.0,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict[str, np.ndarray]:
+    """Predict every (usable) sample of ``source`` with the cube on its label centre.
+
+    Returns:
+        ``P0``, ``P1`` (N, K, 3), ``confidence`` (N, K), ``gt`` (N, K, 3) (NaN unknown) and
+        ``index`` (N,).
+    """
+    from freipose.nn.data import collate_prepared, label_center, prepare_sample
+    from freipose.nn.model import predict_prepared
+
+    cfg = model.cfg
+    idx = usable_indices(source) if indices is None else np.asarray(indices, dtype=np.int64)
+    rng = np.random.default_rng(seed)
+    outs: dict[str, list[np.ndarray]] = {"P0": [], "P1": [], "confidence": [], "gt": []}
+    model.eval()
+    for start in tqdm(
+        range(0, len(idx), batch_size), desc="evaluate", disable=not progress or None
+    ):
+        items = []
+        for i in idx[start : start + batch_size]:
+            s = source[int(i)]
+            c = label_center(s["points3d"], s.get("mask3d"))
+            if center_noise > 0:
+                c = c + rng.normal(0, center_noise, size=3)
+            items.append(prepare_sample(s, cfg, center=c))
+            gt = np.asarray(s["points3d"], np.float64).copy()
+            if s.get("mask3d") is not None:
+                gt[~np.asarray(s["mask3d"], bool)] = np.nan
+            outs["gt"].append(gt[None])
+        pred = predict_prepared(model, collate_prepared(items))
+        for k in ("P0", "P1", "confidence"):
+            outs[k].append(pred[k])
+    res = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in outs.items()}
+    res["index"] = idx
+    return res
+
+
+def jpe(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Joint position errors (N, K) in mm; NaN where the label is unknown.
+
+    A missing prediction (NaN) where a label exists counts as an infinite error (it fails
+    every PCK threshold and pushes medians up), so methods that give up are not flattered.
+    """
+    e = np.linalg.norm(pred - gt, axis=-1)
+    labeled = np.isfinite(gt).all(-1)
+    e = np.where(labeled & ~np.isfinite(e), np.inf, e)
+    return np.where(labeled, e, np.nan)
+
+
+def jpe_summary(errors: np.ndarray, keypoints: Sequence[str]) -> dict[str, Any]:
+    """Median and 30/70 % percentiles overall and per keypoint, and the PCK curve 0-20 mm."""
+
+    def stats(e: np.ndarray) -> dict[str, float]:
+        e = e[~np.isnan(e)]
+        if e.size == 0:
+            return {"median": float("nan"), "p30": float("nan"), "p70": float("nan"), "n": 0}
+        q = np.percentile(np.minimum(e, 1e12), [50, 30, 70])  # inf = missing prediction
+        q = np.where(q >= 1e12, np.inf, q)
+        return {
+            "median": float(q[0]),
+            "p30": float(q[1]),
+            "p70": float(q[2]),
+            "n": int(e.size),
+            "missing": int(np.isinf(e).sum()),
+        }
+
+    flat = errors[~np.isnan(errors)]
+    pck = [float((flat <= t).mean()) if flat.size else float("nan") for t in PCK_THRESHOLDS]
+    return {
+        "overall": stats(errors.reshape(-1)),
+        "per_keypoint": {k: stats(errors[:, i]) for i, k in enumerate(keypoints)},
+        "pck": {"thresholds_mm": PCK_THRESHOLDS.tolist(), "fraction": pck},
+    }
+
+
+def write_report(
+    out_dir: str | Path,
+    results: Mapping[str, np.ndarray],
+    keypoints: Sequence[str],
+) -> dict[str, Any]:
+    """Write the evaluation outputs for one or more methods.
+
+    Args:
+        results: method name -> JPE array (N, K) in mm.
+
+    Writes ``metrics.json`` (summaries), ``jpe_per_keypoint.csv`` (median/p30/p70 per method
+    and keypoint), ``pck.csv`` and ``pck.png`` (PCK 0-20 mm), ``jpe_boxplot.png`` (box plots
+    per keypoint, whiskers 1.5 IQR). Returns the summaries.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {name: jpe_summary(e, keypoints) for name, e in results.items()}
+    atomic_write_text(out / "metrics.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
+    rows = ["method,keypoint,median_mm,p30_mm,p70_mm,n"]
+    for name, s in summary.items():
+        for k in [*keypoints, "ALL"]:
+            st = s["overall"] if k == "ALL" else s["per_keypoint"][k]
+            rows.append(f"{name},{k},{st['median']:.4f},{st['p30']:.4f},{st['p70']:.4f},{st['n']}")
+    atomic_write_text(out / "jpe_per_keypoint.csv", "\n".join(rows) + "\n")
+    names = list(summary)
+    lines = ["threshold_mm," + ",".join(names)]
+    for i, t in enumerate(PCK_THRESHOLDS):
+        lines.append(
+            f"{t:.2f}," + ",".join(f"{summary[n]['pck']['fraction'][i]:.5f}" for n in names)
+        )
+    atomic_write_text(out / "pck.csv", "\n".join(lines) + "\n")
+
+    fig, ax = plt.subplots(figsize=(5, 4))
+    for n in names:
+        ax.plot(PCK_THRESHOLDS, summary[n]["pck"]["fraction"], label=n)
+    ax.set_xlabel("error threshold (mm)")
+    ax.set_ylabel("fraction of keypoints (PCK)")
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(out / "pck.png") as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(max(6, 0.9 * len(keypoints) * len(names)), 4))
+    width = 0.8 / len(names)
+    for j, n in enumerate(names):
+        e = results[n]
+        data = []
+        for i in range(len(keypoints)):
+            col = e[:, i]
+            col = col[np.isfinite(col)]
+            data.append(col if col.size else np.array([np.nan]))
+        pos = np.arange(len(keypoints)) + (j - (len(names) - 1) / 2) * width
+        bp = ax.boxplot(
+            data, positions=pos, widths=width * 0.9, whis=1.5, showfliers=False, patch_artist=True
+        )
+        for patch in bp["boxes"]:
+            patch.set_facecolor(f"C{j}")
+            patch.set_alpha(0.6)
+        ax.plot([], [], color=f"C{j}", lw=6, alpha=0.6, label=n)
+    ax.set_xticks(np.arange(len(keypoints)))
+    ax.set_xticklabels(keypoints, rotation=45, ha="right", fontsize=8)
+    ax.set_ylabel("joint position error (mm)")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(out / "jpe_boxplot.png") as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+    return summary

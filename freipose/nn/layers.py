@@ -1,0 +1,344 @@
+"""Building blocks of the voxel network: 2D encoder, unprojection, 3D U-Net, soft-argmax,
+2D heads (refinement and baseline), heat maps and confidence-weighted triangulation.
+
+Shapes: B samples, V views, K keypoints, C channels, G voxels per cube edge, S crop size,
+h = w = S / stride feature size. Crop pixel coordinates use the project convention (pixel
+centres at integers); a feature pixel ``j`` covers crop pixels ``[j*s, (j+1)*s)``, so its
+centre is at ``(j + 0.5) * s - 0.5``, which is ``grid_sample``'s ``align_corners=False``.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from freipose.nn.geometry import pixels_to_normalized, project_affine, voxel_offsets
+
+
+def norm_layer(kind: str, channels: int, dims: int = 2) -> nn.Module:
+    """A normalization layer: ``group`` (GroupNorm, up to 8 groups), ``batch`` or ``none``."""
+    if kind == "group":
+        groups = next(g for g in (8, 4, 2, 1) if channels % g == 0)
+        return nn.GroupNorm(groups, channels)
+    if kind == "batch":
+        return nn.BatchNorm2d(channels) if dims == 2 else nn.BatchNorm3d(channels)
+    return nn.Identity()
+
+
+def conv2d(cin: int, cout: int, k: int, norm: str, act: str = "relu") -> nn.Sequential:
+    """Conv (same padding) + norm + activation."""
+    layers: list[nn.Module] = [nn.Conv2d(cin, cout, k, padding=k // 2, bias=norm == "none")]
+    layers.append(norm_layer(norm, cout, 2))
+    layers.append(nn.ReLU(inplace=True) if act == "relu" else nn.LeakyReLU(0.1, inplace=True))
+    return nn.Sequential(*layers)
+
+
+def conv3d(cin: int, cout: int, k: int, norm: str, stride: int = 1) -> nn.Sequential:
+    """3D conv (same padding) + norm + ReLU."""
+    return nn.Sequential(
+        nn.Conv3d(cin, cout, k, stride=stride, padding=k // 2, bias=norm == "none"),
+        norm_layer(norm, cout, 3),
+        nn.ReLU(inplace=True),
+    )
+
+
+class Encoder2D(nn.Module):
+    """VGG-style 2D encoder shared by all views.
+
+    Input (N, 3, S, S) (BGR / 255 - 0.5). Returns the features (N, feature_channels, S/s,
+    S/s) and a skip map (N, encoder_channels[pools-1], 2S/s, 2S/s) at half the stride.
+    """
+
+    def __init__(
+        self,
+        channels: tuple[int, ...],
+        convs: tuple[int, ...],
+        pools: int,
+        out_channels: int,
+        norm: str,
+    ):
+        super().__init__()
+        self.pools = pools
+        blocks = []
+        cin = 3
+        for c, n in zip(channels, convs):
+            layers = []
+            for _ in range(n):
+                layers.append(conv2d(cin, c, 3, norm))
+                cin = c
+            blocks.append(nn.Sequential(*layers))
+        self.blocks = nn.ModuleList(blocks)
+        self.out = conv2d(cin, out_channels, 3, norm)
+        self.skip_channels = channels[pools - 1]
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        skip = x
+        for i, block in enumerate(self.blocks):
+            x = block(x)
+            if i < self.pools:
+                if i == self.pools - 1:
+                    skip = x
+                x = F.max_pool2d(x, 2)
+        return self.out(x), skip
+
+
+def unproject(
+    features: torch.Tensor,
+    K: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    dist: torch.Tensor | None,
+    view_mask: torch.Tensor,
+    points: torch.Tensor,
+    crop_size: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Differentiable inverse projection: sample every view's features at every 3D point.
+
+    Each point is projected with each view's crop camera (distortion included) and the
+    view's feature map is sampled bilinearly there. Views whose image does not contain the
+    projection (or that are padding, ``view_mask`` False, or see the point from behind)
+    do not count; the result is the mean over the views that see the point (0 if none).
+
+    Args:
+        features: (B, V, C, h, w) per-view feature maps covering the S x S crops.
+        K: (B, V, 3, 3) affine crop intrinsics; R (B, V, 3, 3); t (B, V, 3); dist (B, V, 5).
+        view_mask: (B, V) bool, real views.
+        points: (B, P, 3) world mm (voxel centres).
+        crop_size: S, crop side in pixels.
+
+    Returns:
+        ``(volume, count)``: (B, C, P) mean features and (B, P) number of views seeing it.
+    """
+    B, V, C, h, w = features.shape
+    P = points.shape[1]
+    uv, in_front = project_affine(points, K, R, t, dist)  # (B, V, P, 2)
+    g = (2.0 * (uv + 0.5) / crop_size - 1.0).to(features.dtype)
+    valid = in_front & (g.abs() <= 1).all(-1) & view_mask[:, :, None]
+    sampled = F.grid_sample(
+        features.reshape(B * V, C, h, w),
+        g.reshape(B * V, 1, P, 2),
+        mode="bilinear",
+        padding_mode="border",
+        align_corners=False,
+    ).reshape(B, V, C, P)
+    valid_f = valid.to(sampled.dtype)
+    count = valid_f.sum(1)  # (B, P)
+    volume = (sampled * valid_f[:, :, None, :]).sum(1) / count.clamp_min(1.0)[:, None, :]
+    return volume, count
+
+
+class UNet3D(nn.Module):
+    """Encoder-decoder 3D CNN on the fused feature volume, one score volume per keypoint.
+
+    Each encoder level is a 1x1x1 conv then a stride-2 3x3x3 conv; each decoder level a
+    stride-2 transposed conv, concatenation with the (1x1x1-reduced) skip and a 3x3x3 conv.
+    The full-resolution output adds a 1x1x1 projection of the input volume. Returns the list
+    of score volumes (B, K, G, G, G): the deep-supervision ones (coarse levels, upsampled
+    trilinearly) first, the final one last.
+    """
+
+    def __init__(self, cin: int, channels: tuple[int, ...], out: int, norm: str, deep: bool):
+        super().__init__()
+        self.deep = deep
+        downs = []
+        c_prev = cin
+        for c in channels:
+            downs.append(nn.Sequential(conv3d(c_prev, c, 1, norm), conv3d(c, c, 3, norm, stride=2)))
+            c_prev = c
+        self.downs = nn.ModuleList(downs)
+        self.bottleneck = conv3d(c_prev, c_prev, 1, norm)
+        ups, skips, fuses, heads = [], [], [], []
+        for lvl in range(len(channels) - 2, -1, -1):
+            c = channels[lvl]
+            ups.append(nn.ConvTranspose3d(c_prev, c, 4, stride=2, padding=1))
+            skips.append(conv3d(channels[lvl], c, 1, norm))
+            fuses.append(conv3d(2 * c, c, 3, norm))
+            heads.append(nn.Conv3d(c, out, 1, bias=False))  # softmax ignores a bias
+            c_prev = c
+        self.ups, self.skips, self.fuses = (
+            nn.ModuleList(ups),
+            nn.ModuleList(skips),
+            nn.ModuleList(fuses),
+        )
+        self.heads = nn.ModuleList(heads)
+        self.bottleneck_head = nn.Conv3d(channels[-1], out, 1, bias=False)
+        c0 = channels[0]
+        self.final_up = nn.ConvTranspose3d(c_prev, c0, 4, stride=2, padding=1)
+        self.final_in = nn.Conv3d(cin, c0, 1)
+        self.final = nn.Conv3d(c0, out, 1, bias=False)
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        size = x.shape[-3:]
+        inp = x
+        acts = []
+        for down in self.downs:
+            x = down(x)
+            acts.append(x)
+        x = self.bottleneck(x)
+        outs = []
+        if self.deep:
+            outs.append(self.bottleneck_head(x))
+        for i, (up, skip, fuse) in enumerate(zip(self.ups, self.skips, self.fuses)):
+            lvl = len(self.downs) - 2 - i
+            x = fuse(torch.cat([F.relu(up(x)), skip(acts[lvl])], dim=1))
+            if self.deep:
+                outs.append(self.heads[i](x))
+        x = F.relu(self.final_up(x) + self.final_in(inp))
+        outs = [F.interpolate(o, size=size, mode="trilinear", align_corners=False) for o in outs]
+        outs.append(self.final(x))
+        return outs
+
+
+def softargmax3d(
+    logits: torch.Tensor, center: torch.Tensor, cube_size: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Decode score volumes to world points by soft-argmax.
+
+    Args:
+        logits: (B, K, G, G, G) scores; axes are the x, y, z voxel indices.
+        center: (B, 3) cube centres in mm.
+        cube_size: distance between the outermost voxel centres (mm).
+
+    Returns:
+        ``(points, probs)``: (B, K, 3) expected world positions (float32) and the
+        (B, K, G**3) softmax distributions.
+    """
+    B, K = logits.shape[:2]
+    G = logits.shape[-1]
+    probs = torch.softmax(logits.float().reshape(B, K, -1), dim=-1)
+    offs = voxel_offsets(G, cube_size, device=logits.device)  # (G^3, 3)
+    return center.float()[:, None, :] + probs @ offs, probs
+
+
+def volume_confidence(probs: torch.Tensor, grid_size: int) -> torch.Tensor:
+    """Peak mass of soft-argmax distributions: the largest probability in any 3x3x3 block.
+
+    Args:
+        probs: (B, K, G**3) distributions.
+
+    Returns:
+        (B, K) in [0, 1]; near 1 for a sharp, unimodal score volume.
+    """
+    B, K = probs.shape[:2]
+    vol = probs.reshape(B * K, 1, grid_size, grid_size, grid_size)
+    mass = F.avg_pool3d(vol, 3, stride=1, padding=1, count_include_pad=True) * 27.0
+    return mass.reshape(B, K, -1).amax(-1).clamp(0.0, 1.0)
+
+
+def softargmax2d(logits: torch.Tensor, stride: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Soft-argmax of 2D maps at ``stride`` crop pixels per map pixel.
+
+    Args:
+        logits: (N, K, h, w).
+
+    Returns:
+        ``(uv, probs)``: (N, K, 2) crop pixels (x, y) and (N, K, h*w) distributions.
+    """
+    N, K, h, w = logits.shape
+    probs = torch.softmax(logits.float().reshape(N, K, -1), dim=-1)
+    ys = (torch.arange(h, device=logits.device, dtype=torch.float32) + 0.5) * stride - 0.5
+    xs = (torch.arange(w, device=logits.device, dtype=torch.float32) + 0.5) * stride - 0.5
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    coords = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=-1)  # (h*w, 2)
+    return probs @ coords, probs
+
+
+def gaussian_heatmaps(uv: torch.Tensor, size: int, stride: float, sigma: float) -> torch.Tensor:
+    """Gaussian heat maps at feature resolution around crop-pixel points.
+
+    Args:
+        uv: (N, K, 2) crop pixels.
+        size: h = w of the maps; ``stride`` crop pixels per map pixel; ``sigma`` in map px.
+
+    Returns:
+        (N, K, size, size) in [0, 1].
+    """
+    f = (uv.float() + 0.5) / stride - 0.5
+    ax = torch.arange(size, device=uv.device, dtype=torch.float32)
+    dx = (ax[None, None, :] - f[..., 0:1]) ** 2  # (N, K, w)
+    dy = (ax[None, None, :] - f[..., 1:2]) ** 2  # (N, K, h)
+    return torch.exp(-(dy[..., :, None] + dx[..., None, :]) / (2 * sigma**2))
+
+
+class Head2D(nn.Module):
+    """Per-view 2D keypoint head: maps at half the feature stride and confidences.
+
+    Used as the refinement head (input: features + P0 heat maps) and as the baseline's 2D
+    detector (features only). Outputs map logits (N, K, 2h, 2w) and confidence logits of the
+    same shape (the per-keypoint confidence is their expectation under the map's softmax).
+    """
+
+    def __init__(self, feat_ch: int, skip_ch: int, k: int, ch: int, norm: str, heat_in: int):
+        super().__init__()
+        half = max(ch // 2, 1)
+        self.base = nn.Sequential(
+            conv2d(feat_ch + heat_in, ch, 1, norm, "lrelu"),
+            conv2d(ch, ch, 3, norm, "lrelu"),
+            conv2d(ch, ch, 3, norm, "lrelu"),
+        )
+        self.up = nn.ConvTranspose2d(ch, half, 4, stride=2, padding=1)
+        self.skip = conv2d(skip_ch, half, 1, norm, "lrelu")
+        self.fuse = conv2d(2 * half, half, 3, norm, "lrelu")
+        self.maps = nn.Conv2d(half, k, 1, bias=False)
+        self.conf = nn.Conv2d(half, k, 1)
+
+    def forward(
+        self, feat: torch.Tensor, skip: torch.Tensor, heat: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        x = feat if heat is None else torch.cat([feat, heat.to(feat.dtype)], dim=1)
+        x = self.base(x)
+        x = self.fuse(torch.cat([F.leaky_relu(self.up(x), 0.1), self.skip(skip)], dim=1))
+        return self.maps(x), self.conf(x)
+
+
+def decode_head(
+    maps: torch.Tensor, conf_logits: torch.Tensor, stride: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """2D points (N, K, 2) crop px and confidences (N, K) in (0, 1) from :class:`Head2D`."""
+    uv, probs = softargmax2d(maps, stride)
+    c = (probs * conf_logits.float().flatten(2)).sum(-1)
+    return uv, torch.sigmoid(c)
+
+
+def triangulate_with_prior(
+    uv: torch.Tensor,
+    weights: torch.Tensor,
+    K: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    dist: torch.Tensor | None,
+    prior: torch.Tensor,
+    prior_weight: float = 1e-3,
+) -> torch.Tensor:
+    """Confidence-weighted linear triangulation of crop pixels, anchored to a prior point.
+
+    Minimises ``sum_v w_v |r_v(X)|^2 + prior_weight |X - prior|^2`` where ``r_v`` is the
+    DLT residual (the lateral distance in mm from view v's ray, at the point's depth). With
+    two or more confident views the prior is negligible; with one view the result is the
+    point of that view's ray nearest the prior (the depth-preserving fusion of the method,
+    eq. 5.3); with none it is the prior.
+
+    Args:
+        uv: (B, V, K, 2) distorted crop pixels; K affine crop intrinsics (B, V, 3, 3);
+            R, t, dist the views' extrinsics and distortion.
+        weights: (B, V, K) non-negative confidences (0 for padding views).
+        prior: (B, K, 3) world mm.
+
+    Returns:
+        (B, K, 3) world mm.
+    """
+    xy = pixels_to_normalized(uv.float(), K.float(), None if dist is None else dist.float())
+    x, y = xy[..., 0], xy[..., 1]  # (B, V, K)
+    Rt = torch.cat([R, t[..., None]], dim=-1).float()  # (B, V, 3, 4)
+    r1 = x[..., None] * Rt[:, :, None, 2] - Rt[:, :, None, 0]  # (B, V, K, 4)
+    r2 = y[..., None] * Rt[:, :, None, 2] - Rt[:, :, None, 1]
+    rows = torch.stack([r1, r2], dim=1)  # (B, 2, V, K, 4)
+    w = weights.float().clamp_min(0)[:, None, :, :, None]
+    A, b = rows[..., :3], -rows[..., 3:]
+    AtA = (A[..., :, None] * A[..., None, :] * w[..., None]).sum(dim=(1, 2))  # (B, K, 3, 3)
+    Atb = (A * b * w).sum(dim=(1, 2))  # (B, K, 3)
+    eye = torch.eye(3, dtype=AtA.dtype, device=AtA.device)
+    AtA = AtA + prior_weight * eye
+    Atb = Atb + prior_weight * prior.float()
+    return torch.linalg.solve(AtA, Atb[..., None])[..., 0]

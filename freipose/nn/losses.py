@@ -1,0 +1,94 @@
+"""Training losses, every term masked by label visibility (the original did not mask).
+
+Each term is normalised per sample (sum of masked errors over the number of valid
+entries of that sample) and then averaged over the batch, so that DDP's gradient averaging
+over equally sized per-process batches equals one process with the whole batch.
+3D errors are Euclidean distances in voxel units (mm / voxel size), 2D errors Euclidean
+distances in feature pixels (crop px / stride).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from freipose.nn.config import ModelConfig, ScheduleConfig
+
+
+def _masked_mean(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-sample mean of ``err`` over ``mask`` (both (B, ...)), then mean over samples."""
+    m = mask.to(err.dtype)
+    dims = tuple(range(1, err.ndim))
+    per = (err * m).sum(dims) / m.sum(dims).clamp_min(1.0)
+    return per.mean()
+
+
+def point_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Euclidean distance with a smooth minimum (differentiable at 0). (..., D) -> (...)."""
+    return torch.sqrt(((pred.float() - gt.float()) ** 2).sum(-1) + 1e-6)
+
+
+def voxel_losses(
+    out: Mapping[str, Any],
+    batch: Mapping[str, Any],
+    model: ModelConfig,
+    sched: ScheduleConfig,
+    refine_on: bool,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total loss and its parts for :class:`freipose.nn.model.VoxelPoseNet`.
+
+    Terms: ``p0`` (final P0 vs 3D labels), ``aux`` (mean over deep-supervision
+    decodings), ``2d`` (refined 2D points vs visible 2D labels), ``conf`` (per-view
+    confidence, binary cross-entropy against ``visible * exp(-e^2 / 2)`` with ``e`` the
+    refined 2D error in feature pixels), ``p1`` (P1 vs 3D labels). The refinement terms are
+    weighted 0 until ``refine_on``.
+    """
+    gt3, m3 = batch["points3d"], batch["mask3d"]
+    vs = model.voxel_size
+    parts: dict[str, torch.Tensor] = {}
+    parts["p0"] = _masked_mean(point_error(out["P0"], gt3) / vs, m3)
+    aux = out.get("P0_aux") or []
+    parts["aux"] = (
+        torch.stack([_masked_mean(point_error(p, gt3) / vs, m3) for p in aux]).mean()
+        if aux
+        else torch.zeros((), device=gt3.device)
+    )
+    total = sched.weight_p0 * parts["p0"] + sched.weight_aux * parts["aux"]
+    if model.refine:
+        w = 1.0 if refine_on else 0.0
+        vis = batch["visible2d"] & batch["view_mask"][:, :, None]
+        e2 = point_error(out["points2d"], batch["points2d"]) / model.stride
+        parts["2d"] = _masked_mean(e2, vis)
+        target = (vis.float() * torch.exp(-0.5 * e2.detach() ** 2)).clamp(0, 1)
+        cmask = batch["view_mask"][:, :, None] & m3[:, None, :]
+        bce = F.binary_cross_entropy(
+            out["confidence2d"].float().clamp(1e-6, 1 - 1e-6), target, reduction="none"
+        )
+        parts["conf"] = _masked_mean(bce, cmask)
+        parts["p1"] = _masked_mean(point_error(out["P1"], gt3) / vs, m3)
+        total = total + w * (
+            sched.weight_2d * parts["2d"]
+            + sched.weight_conf * parts["conf"]
+            + sched.weight_p1 * parts["p1"]
+        )
+    return total, {k: float(v.detach()) for k, v in parts.items()}
+
+
+def baseline_losses(
+    out: Mapping[str, Any], batch: Mapping[str, Any], model: ModelConfig, sched: ScheduleConfig
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Loss of :class:`freipose.nn.model.BaselineNet`: 2D error and confidence (as above)."""
+    vis = batch["visible2d"] & batch["view_mask"][:, :, None]
+    e2 = point_error(out["points2d"], batch["points2d"]) / model.stride
+    l2d = _masked_mean(e2, vis)
+    target = (vis.float() * torch.exp(-0.5 * e2.detach() ** 2)).clamp(0, 1)
+    cmask = batch["view_mask"][:, :, None] & batch["mask3d"][:, None, :]
+    bce = F.binary_cross_entropy(
+        out["confidence2d"].float().clamp(1e-6, 1 - 1e-6), target, reduction="none"
+    )
+    lconf = _masked_mean(bce, cmask)
+    total = sched.weight_2d * l2d + sched.weight_conf * lconf
+    return total, {"2d": float(l2d.detach()), "conf": float(lconf.detach())}

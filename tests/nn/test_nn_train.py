@@ -1,0 +1,194 @@
+"""Training, resume, DDP, checkpoints, prediction and the train/eval commands (tiny preset)."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from nn_toydata import toy_samples, toy_skeleton, write_toy_labels
+
+from freipose.nn.config import ConfigError, config_from_dict, load_config
+from freipose.nn.evaluate import jpe, predict_dataset
+from freipose.nn.model import (
+    CheckpointError,
+    build_model,
+    load_checkpoint,
+    predict_batch,
+    read_checkpoint,
+)
+from freipose.nn.train import train_pose
+
+
+def _cfg(**sched):
+    return config_from_dict(
+        {
+            "model": {"preset": "tiny", "cube_size": 300.0},
+            "schedule": {"steps": 8, "checkpoint_every": 4, "eval_every": 4, **sched},
+        }
+    )
+
+
+def _weights(path):
+    return read_checkpoint(path)["model"]
+
+
+def _assert_same(a, b, atol):
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k].float(), b[k].float(), atol=atol, rtol=0, msg=k)
+
+
+def test_training_lowers_error(tmp_path):
+    src = toy_samples(4)
+    cfg = config_from_dict(
+        {
+            "model": {"preset": "tiny", "cube_size": 300.0},
+            "schedule": {"steps": 40, "lr": 3e-3, "checkpoint_every": 40, "eval_every": 40},
+            "augment": {"enabled": False},
+        }
+    )
+    torch.manual_seed(cfg.schedule.seed)
+    init = build_model(cfg.model, 5)
+    before = np.nanmedian(jpe(*(lambda p: (p["P0"], p["gt"]))(predict_dataset(init, src))))
+    path = train_pose(cfg, tmp_path, src, toy_skeleton(), src, progress=False)
+    model, _, _ = load_checkpoint(path)
+    after = np.nanmedian(jpe(*(lambda p: (p["P0"], p["gt"]))(predict_dataset(model, src))))
+    assert after < 0.5 * before, (before, after)
+    rows = (tmp_path / "log.csv").read_text().splitlines()
+    assert rows[0].startswith("step,lr,loss") and len(rows) == 41
+    assert (tmp_path / "log.png").stat().st_size > 0
+    assert "[model]" in (tmp_path / "config.toml").read_text()
+
+
+def test_resume_is_exact(tmp_path):
+    src = toy_samples(5)
+    cfg = _cfg()
+    full = train_pose(cfg, tmp_path / "a", src, toy_skeleton(), progress=False)
+    part = train_pose(cfg, tmp_path / "b", src, toy_skeleton(), progress=False, stop_after=4)
+    assert part.name == "checkpoint.pt" and read_checkpoint(part)["step"] == 4
+    with pytest.raises(ValueError, match="--resume"):
+        train_pose(cfg, tmp_path / "b", src, toy_skeleton(), progress=False)
+    resumed = train_pose(cfg, tmp_path / "b", src, toy_skeleton(), progress=False, resume=True)
+    _assert_same(_weights(full), _weights(resumed), atol=1e-6)
+    steps = [int(r.split(",")[0]) for r in (tmp_path / "b" / "log.csv").read_text().split()[1:]]
+    assert steps == list(range(1, 9))
+
+
+def _ddp_worker(rank, world, port, out, batch):
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world)
+    )
+    torch.set_num_threads(1)
+    try:
+        train_pose(
+            _cfg(batch_size=batch, steps=3), out, toy_samples(4), toy_skeleton(), progress=False
+        )
+    finally:
+        torch.distributed.destroy_process_group()
+
+
+def test_ddp_gloo_matches_single_process(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    torch.multiprocessing.spawn(_ddp_worker, args=(2, port, str(tmp_path / "ddp"), 4), nprocs=2)
+    single = train_pose(
+        _cfg(batch_size=4, steps=3),
+        tmp_path / "one",
+        toy_samples(4),
+        toy_skeleton(),
+        progress=False,
+    )
+    _assert_same(_weights(tmp_path / "ddp" / "model.pt"), _weights(single), atol=2e-5)
+
+
+def test_checkpoint_hash_and_predict_batch(tmp_path):
+    src = toy_samples(3)
+    path = train_pose(_cfg(steps=2), tmp_path, src, toy_skeleton(), progress=False)
+    model, config, skel = load_checkpoint(path)
+    assert config.model.grid_size == 8 and skel.keypoints == toy_skeleton().keypoints
+    centers = np.stack([s["points3d"].mean(0) for s in src])
+    centers[1] = np.nan
+    out = predict_batch(model, [s["images"] for s in src], [s["rig"] for s in src], centers)
+    assert out["P1"].shape == (3, 5, 3) and out["points2d"].shape == (3, 3, 5, 2)
+    assert np.isnan(out["P0"][1]).all() and np.isfinite(out["P0"][[0, 2]]).all()
+    assert ((out["confidence"] >= 0) & (out["confidence"] <= 1)).all()
+    # a single view works too (P1 then keeps P0's depth)
+    one = predict_batch(model, [src[0]["images"][:1]], [src[0]["rig"].subset([0])], centers[:1])
+    assert np.isfinite(one["P1"]).all()
+    ck = torch.load(path, weights_only=False)
+    k = next(iter(ck["model"]))
+    ck["model"][k] = ck["model"][k] + 1
+    torch.save(ck, tmp_path / "bad.pt")
+    with pytest.raises(CheckpointError, match="hash"):
+        read_checkpoint(tmp_path / "bad.pt")
+    (tmp_path / "trunc.pt").write_bytes(path.read_bytes()[:100])
+    with pytest.raises(CheckpointError, match="truncated"):
+        read_checkpoint(tmp_path / "trunc.pt")
+
+
+def test_config_validation(tmp_path):
+    with pytest.raises(ConfigError, match="model.preset"):
+        config_from_dict({"model": {"preset": "huge"}})
+    with pytest.raises(ConfigError, match="unknown key schedule.stepz"):
+        config_from_dict({"schedule": {"stepz": 3}})
+    with pytest.raises(ConfigError, match="grid_size"):
+        config_from_dict({"model": {"preset": "tiny", "grid_size": 9}})
+    p = tmp_path / "c.toml"
+    p.write_text('[model]\npreset = "small"\ngrid_size = 16\n[schedule]\nlr = "fast"\n')
+    with pytest.raises(ConfigError, match="schedule.lr must be a number"):
+        load_config(p)
+    p.write_text('[model]\npreset = "small"\ngrid_size = 16\n')
+    cfg = load_config(p)
+    assert cfg.model.grid_size == 16 and cfg.model.crop_size == 128
+
+
+def test_train_and_eval_commands(tmp_path):
+    from freipose.cli.main import cli
+
+    write_toy_labels(tmp_path / "train", toy_samples(4))
+    write_toy_labels(tmp_path / "eval", toy_samples(3, seed=5))
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(
+        '[data]\nlabels = "train/labels.h5"\neval_labels = "eval/labels.h5"\n'
+        '[model]\npreset = "tiny"\n[schedule]\nsteps = 2\n'
+    )
+    runner = CliRunner()
+    r = runner.invoke(cli, ["-q", "train", str(cfg), "--out", str(tmp_path / "run")])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(
+        cli, ["-q", "train", str(cfg), "--stage", "baseline", "--out", str(tmp_path / "base")]
+    )
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(
+        cli,
+        [
+            "-q",
+            "eval",
+            str(tmp_path / "run" / "model.pt"),
+            str(tmp_path / "eval" / "labels.h5"),
+            "-o",
+            str(tmp_path / "ev"),
+            "--baseline",
+            str(tmp_path / "base" / "model.pt"),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert "voxel_P1: median JPE" in r.output and "baseline: median JPE" in r.output
+    m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert set(m) == {"voxel_P0", "voxel_P1", "baseline"}
+    assert m["voxel_P0"]["overall"]["n"] == 15
+    for f in ("pck.csv", "pck.png", "jpe_boxplot.png", "jpe_per_keypoint.csv"):
+        assert (tmp_path / "ev" / f).stat().st_size > 0
+    # errors are user errors, not tracebacks
+    r = runner.invoke(cli, ["train", str(cfg), "--out", str(tmp_path / "run")])
+    assert r.exit_code != 0 and "--resume" in r.output
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[model]\npreset = "nope"\n')
+    r = runner.invoke(cli, ["train", str(bad)])
+    assert r.exit_code != 0 and "model.preset" in r.output
