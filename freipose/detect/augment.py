@@ -29,6 +29,8 @@ class AugmentConfig:
         blur: probability of a Gaussian blur (sigma up to 1.5 px).
         noise: standard deviation of additive pixel noise (grey levels), drawn uniformly
             from 0 to this per image.
+        random_fill: probability that areas outside the frame are a random colour (else
+            the letterbox grey).
     """
 
     scale: tuple[float, float] = (0.7, 1.5)
@@ -38,6 +40,7 @@ class AugmentConfig:
     hue: float = 8.0
     blur: float = 0.3
     noise: float = 6.0
+    random_fill: float = 0.5
 
     def __post_init__(self) -> None:
         lo, hi = self.scale
@@ -45,7 +48,7 @@ class AugmentConfig:
             raise ValueError(
                 f"augmentation scale must be (min, max) with 0 < min <= max, got {self.scale}"
             )
-        for name in ("hflip", "vflip", "blur"):
+        for name in ("hflip", "vflip", "blur", "random_fill"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} is a probability in [0, 1], got {getattr(self, name)}")
 
@@ -92,7 +95,11 @@ def augment(
         A = np.array([[-1.0, 0, input_size - 1], [0, 1, 0], [0, 0, 1]]) @ A
     if rng.random() < cfg.vflip:
         A = np.array([[1.0, 0, 0], [0, -1, input_size - 1], [0, 0, 1]]) @ A
-    fill = tuple(int(v) for v in rng.integers(0, 256, 3)) if rng.random() < 0.5 else (114,) * 3
+    fill = (
+        tuple(int(v) for v in rng.integers(0, 256, 3))
+        if rng.random() < cfg.random_fill
+        else (114,) * 3
+    )
     out = cv2.warpAffine(
         image,
         A[:2],

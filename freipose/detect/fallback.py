@@ -46,7 +46,7 @@ class BackgroundSubtractor:
         backgrounds: Mapping[str, np.ndarray],
         threshold: float | None = None,
         min_area: float = 2e-4,
-        margin: float = 0.05,
+        margin: float = 0.0,
         work_size: int = 480,
         top_k: int = 3,
     ):
@@ -103,7 +103,7 @@ class BackgroundSubtractor:
             img = cv2.resize(img, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
             if img.ndim == 2:
                 img = img[..., None]
-        return cv2.GaussianBlur(img, (5, 5), 0).reshape(img.shape), s
+        return img, s
 
     def foreground(self, image: np.ndarray, camera: str) -> tuple[np.ndarray, float]:
         """The foreground mask (uint8 0/255, work size) of ``image`` and its scale factor."""
@@ -117,6 +117,8 @@ class BackgroundSubtractor:
                 f"background's size {self._full_size[camera]}"
             )
         diff = np.abs(img - bg).max(-1)
+        # A median filter removes pixel noise without growing the foreground's outline.
+        diff = cv2.medianBlur(np.clip(diff, 0, 255).astype(np.uint8), 5).astype(np.float32)
         thr = self.threshold
         if thr is None:
             med = float(np.median(diff))
@@ -125,7 +127,7 @@ class BackgroundSubtractor:
         mask = (diff > thr).astype(np.uint8) * 255
         k = np.ones((3, 3), np.uint8)
         mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, k)
-        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((7, 7), np.uint8))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
         return mask, s
 
     def propose(self, images: Sequence[np.ndarray], cameras: Sequence[str]) -> list[Candidates]:

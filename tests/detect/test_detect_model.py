@@ -1,0 +1,149 @@
+"""The network, its targets and decoding, augmentation, checkpoints and a short training run."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from freipose.detect import Detector
+from freipose.detect.augment import AugmentConfig, augment, make_targets
+from freipose.detect.boxes import box_iou
+from freipose.detect.detector import (
+    DetectorCheckpointError,
+    letterbox,
+    load_backbone_weights,
+    load_checkpoint,
+)
+from freipose.detect.model import DetectorConfig, DetectorNet, decode, letterbox_affine
+from freipose.detect.train import DetectorTrainConfig, ViewImages, fit
+
+TINY = DetectorConfig(input_size=64, width=0.25, neck_channels=16)
+
+
+def test_forward_shapes():
+    net = DetectorNet(TINY).eval()
+    heat, size, off = net(torch.zeros(2, 3, 64, 64))
+    assert (
+        heat.shape == (2, 1, 16, 16)
+        and size.shape == (2, 2, 16, 16)
+        and off.shape == (2, 2, 16, 16)
+    )
+    with pytest.raises(ValueError, match="multiple of 32"):
+        DetectorConfig(input_size=100)
+
+
+def test_targets_decode_round_trip():
+    boxes = np.array([[10.3, 20.7, 40.1, 35.2], [np.nan] * 4, [0.0, 50.0, 12.0, 63.5]])
+    heat, index, size, offset, mask = make_targets(boxes, 64)
+    assert heat.shape == (3, 1, 16, 16) and list(mask) == [1, 0, 1]
+    assert heat[1].max() == 0 and heat[0].max() == pytest.approx(1.0)
+    # Network outputs equal to the targets everywhere decode to the boxes.
+    logits = torch.logit(torch.from_numpy(heat).clamp(1e-4, 1 - 1e-4))
+    sz = torch.from_numpy(np.broadcast_to(size[:, :, None, None], (3, 2, 16, 16)).copy())
+    of = torch.from_numpy(np.broadcast_to(offset[:, :, None, None], (3, 2, 16, 16)).copy())
+    out = decode(logits, sz, of, top_k=3, min_score=0.5)
+    np.testing.assert_allclose(out[0][0][0], boxes[0], atol=1e-4)
+    np.testing.assert_allclose(out[2][0][0], boxes[2], atol=1e-4)
+    assert len(out[1][0]) == 0
+
+
+def test_letterbox_matches_its_affine():
+    img = np.zeros((120, 200, 3), np.uint8)
+    img[60:76, 140:156] = 255  # a square centred at (147.5, 67.5)
+    lb = letterbox(img, 64)
+    A = letterbox_affine((200, 120), 64)
+    ys, xs = np.nonzero(lb[:38, :, 0] > 20)  # the image part (the padding is grey 114)
+    w = lb[ys, xs, 0].astype(float)
+    centroid = [np.average(xs, weights=w), np.average(ys, weights=w)]
+    np.testing.assert_allclose(centroid, (A @ [147.5, 67.5, 1])[:2], atol=0.3)
+    assert (lb[40:, :, 0] == 114).all()  # padding below the 200x120 -> 64x38 image
+
+
+def test_augment_moves_the_box_with_the_image():
+    rng = np.random.default_rng(0)
+    img = np.full((48, 64, 3), 30, np.uint8)
+    img[10:30, 20:50] = (250, 0, 250)
+    box = np.array([19.5, 9.5, 49.5, 29.5])  # pixel edges of the bright rectangle
+    cfg = AugmentConfig(color=0.0, blur=0.0, noise=0.0, hue=0.0, random_fill=0.0)
+    for _ in range(20):
+        out, b = augment(img, box, 64, cfg, rng)
+        assert out.shape == (64, 64, 3)
+        ys, xs = np.nonzero((out[..., 0] > 140) & (out[..., 1] < 60) & (out[..., 2] > 140))
+        found = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+        assert box_iou(found, b) > 0.85
+    out, b = augment(img, np.full(4, np.nan), 64, AugmentConfig(), rng)
+    assert np.isnan(b).all() and out.dtype == np.uint8
+    with pytest.raises(ValueError, match="scale"):
+        AugmentConfig(scale=(1.5, 0.5))
+
+
+def _ellipse_views(n: int, rng: np.random.Generator) -> ViewImages:
+    imgs, boxes = [], []
+    for _ in range(n):
+        img = rng.integers(0, 100, (48, 64, 3)).astype(np.uint8)
+        cx, cy = rng.uniform(12, 52), rng.uniform(10, 38)
+        ax, ay = rng.uniform(5, 10), rng.uniform(3, 7)
+        cv2.ellipse(
+            img, (round(cx), round(cy)), (round(ax), round(ay)), 0, 0, 360, (230, 240, 250), -1
+        )
+        imgs.append(img)
+        boxes.append([round(cx) - round(ax) - 0.5, round(cy) - round(ay) - 0.5,
+                      round(cx) + round(ax) + 0.5, round(cy) + round(ay) + 0.5])  # fmt: skip
+    return ViewImages(imgs, np.array(boxes))
+
+
+def test_short_training_reduces_loss_and_checkpoints_round_trip(tmp_path):
+    torch.set_num_threads(1)
+    views = _ellipse_views(24, np.random.default_rng(1))
+    cfg = DetectorTrainConfig(
+        input_size=64, width=0.25, neck_channels=16, steps=60, batch_size=8, lr=3e-3,
+        warmup_steps=5, checkpoint_every=30, log_every=30,
+    )  # fmt: skip
+    net, losses = fit(views, cfg, "cpu", out_dir=tmp_path, progress=False)
+    assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:5])
+    ckpt = load_checkpoint(tmp_path / "detector_last.pt")
+    assert ckpt["step"] == 60 and "optimizer" in ckpt
+
+    # Resuming at the last step trains nothing more and keeps the weights.
+    net2, more = fit(views, cfg, "cpu", out_dir=tmp_path, resume=True, progress=False)
+    assert more == []
+    det = Detector(net, "cpu")
+    det.save(tmp_path / "d.pt")
+    again = Detector.load(tmp_path / "d.pt", "cpu")
+    imgs = [cv2.resize(v, (128, 96)) for v in views.images[:3]]
+    a, b = det.propose(imgs), again.propose(imgs)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x.boxes, y.boxes)
+        np.testing.assert_allclose(x.scores, y.scores)
+    for x, y in zip(b, Detector(net2, "cpu").propose(imgs)):
+        np.testing.assert_allclose(x.boxes, y.boxes)
+    # A config with another architecture cannot resume this run.
+    with pytest.raises(ValueError, match="trained with"):
+        fit(views, DetectorTrainConfig(input_size=96, width=0.25, neck_channels=16, steps=61),
+            "cpu", out_dir=tmp_path, resume=True, progress=False)  # fmt: skip
+
+
+def test_checkpoint_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        Detector.load(tmp_path / "none.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(DetectorCheckpointError, match="not a readable"):
+        Detector.load(tmp_path / "junk.pt")
+    torch.save({"format": "something.else"}, tmp_path / "other.pt")
+    with pytest.raises(DetectorCheckpointError, match="found 'something.else'"):
+        Detector.load(tmp_path / "other.pt")
+
+
+def test_backbone_weights_from_a_local_file(tmp_path):
+    src = DetectorNet(TINY)
+    torch.save(
+        {f"backbone.{k}": v for k, v in src.backbone.state_dict().items()}, tmp_path / "bb.pt"
+    )
+    dst = DetectorNet(TINY)
+    loaded, skipped = load_backbone_weights(dst, tmp_path / "bb.pt")
+    assert loaded == len(src.backbone.state_dict()) and skipped == 0
+    for k, v in src.backbone.state_dict().items():
+        torch.testing.assert_close(dst.backbone.state_dict()[k], v)
+    torch.save({"x": torch.zeros(3)}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="none of its"):
+        load_backbone_weights(dst, tmp_path / "bad.pt")

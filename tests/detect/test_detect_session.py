@@ -1,0 +1,133 @@
+"""End to end: train_detector from a training TOML, `freipose detect`, and boxes.h5."""
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from freipose.cli.main import cli
+from freipose.detect.detector import load_checkpoint
+from freipose.detect.pipeline import parse_frames
+from freipose.detect.train import DetectorTrainConfig, train_detector
+from freipose.io.boxes import BoxesData, BoxesFormatError, read_boxes_h5, write_boxes_h5
+
+TINY = {"input_size": 64, "width": 0.25, "neck_channels": 16, "batch_size": 8, "warmup_steps": 5}
+
+
+def test_train_detector_from_config(session_dir, tmp_path, capsys):
+    config = {
+        "data": {"labels": "labels.h5"},
+        "detector": {**TINY, "steps": 12, "eval_fraction": 0.25},
+    }
+    out = train_detector(config, session_dir / "train.toml", tmp_path / "run", False, "cpu")
+    assert (
+        out == tmp_path / "run" / "detector.pt"
+        and (tmp_path / "run" / "detector_last.pt").is_file()
+    )
+    ckpt = load_checkpoint(out)
+    m = ckpt["metrics"]
+    for key in ("recall", "median_center_error", "cpu_fps", "n_instants"):
+        assert key in m
+    assert m["n_instants"] == 4  # a quarter of 16 frames held out
+    assert m["n_views"] > 0 and m["cpu_fps"] > 0
+    printed = capsys.readouterr().out
+    assert (
+        "recall@IoU0.5" in printed and "median 3D centre error" in printed and "frames/s" in printed
+    )
+
+
+def test_train_config_errors(session_dir, tmp_path):
+    with pytest.raises(ValueError, match="unknown keys"):
+        DetectorTrainConfig.from_dict({"stepz": 3})
+    with pytest.raises(ValueError, match=r"\[data\] table"):
+        train_detector({"detector": TINY}, session_dir / "t.toml", tmp_path, False, "cpu")
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        train_detector(
+            {"data": {"labels": "nope.h5"}}, session_dir / "t.toml", tmp_path, False, "cpu"
+        )
+
+
+def test_cli_detect_bgsub_and_fixed(session_dir, tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "boxes.h5"
+    res = runner.invoke(cli, ["detect", str(session_dir), "--method", "bgsub", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    data = read_boxes_h5(out)
+    assert len(data) == 16 and data.cameras == ("cam0", "cam1", "cam2", "cam3")
+    assert data.method == "bgsub" and data.cube_size == 400.0
+    assert (data.n_agree == 4).all() and data.agree.all()
+    from freipose.io.labels import read_labels_h5
+
+    truth = read_labels_h5(session_dir / "labels.h5").points3d.mean(1)  # the body centre
+    assert np.median(np.linalg.norm(data.center - truth, axis=1)) < 15.0
+    assert data.calibration is not None and data.calibration.names == list(data.cameras)
+
+    # Fixed boxes around the image centres, a frame range.
+    (tmp_path / "fixed.toml").write_text(
+        "[boxes]\n" + "".join(f"cam{i} = [39.5, 29.5, 119.5, 89.5]\n" for i in range(4))
+    )
+    fixed = str(tmp_path / "fixed.toml")
+    res = runner.invoke(
+        cli, ["detect", str(session_dir), "--fixed-boxes", fixed, "--frames", "2:6", "-o", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    data = read_boxes_h5(out)
+    assert list(data.frame_index) == [2, 3, 4, 5] and data.method == "fixed"
+    # Boxes centred on the principal points: their rays meet at the look-at point, the origin.
+    assert np.allclose(data.center, 0.0, atol=1.0)
+
+
+def test_cli_detect_model_and_errors(session_dir, tmp_path):
+    config = {
+        "data": {"labels": "labels.h5"},
+        "detector": {**TINY, "steps": 2, "eval_fraction": 0.0},
+    }
+    ckpt = train_detector(config, session_dir / "train.toml", tmp_path / "run", False, "cpu")
+    runner = CliRunner()
+    out = tmp_path / "b.h5"
+    res = runner.invoke(cli, ["detect", str(session_dir), "--model", str(ckpt), "--device", "cpu",
+                              "--frames", ":3", "-o", str(out)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    data = read_boxes_h5(out)
+    assert data.boxes.shape == (3, 4, 4) and data.method == "detector"
+    res = runner.invoke(cli, ["detect", str(session_dir), "-o", str(out)])
+    assert res.exit_code != 0 and "--method bgsub" in res.output
+    res = runner.invoke(cli, ["detect", str(session_dir), "--method", "bgsub", "--frames", "9:2",
+                              "-o", str(out)])  # fmt: skip
+    assert res.exit_code != 0 and "selects no frame" in res.output
+    res = runner.invoke(cli, ["detect", str(tmp_path), "--method", "bgsub", "-o", str(out)])
+    assert res.exit_code != 0 and "calibration not found" in res.output
+
+
+def test_parse_frames():
+    assert parse_frames(None, 5) == range(5)
+    assert parse_frames("1:3", 10) == range(1, 3)
+    assert parse_frames("-2:", 10) == range(8, 10)
+    with pytest.raises(ValueError, match="START:STOP"):
+        parse_frames("5", 10)
+
+
+def test_boxes_h5_round_trip_and_errors(tmp_path, circle_rig):
+    t, c = 3, len(circle_rig)
+    data = BoxesData(
+        frame_index=np.arange(t) + 10, cameras=tuple(circle_rig.names),
+        boxes=np.random.default_rng(0).uniform(0, 100, (t, c, 4)), scores=np.full((t, c), 0.5),
+        agree=np.ones((t, c), bool), n_agree=np.full(t, c), center=np.zeros((t, 3)),
+        crop_boxes=np.full((t, c, 4), np.nan), cube_size=300, method="detector",
+        calibration=circle_rig, attrs={"source": "x.pt"},
+    )  # fmt: skip
+    write_boxes_h5(data, tmp_path / "b.h5")
+    back = read_boxes_h5(tmp_path / "b.h5")
+    np.testing.assert_allclose(back.boxes, data.boxes)
+    assert back.calibration.allclose(circle_rig) and back.attrs["source"] == "x.pt"
+    assert back.cube_size == 300.0 and list(back.frame_index) == [10, 11, 12]
+    with pytest.raises(ValueError, match="shape"):
+        BoxesData(np.arange(2), ("a",), np.zeros((2, 1, 3)), np.zeros((2, 1)),
+                  np.ones((2, 1), bool), np.ones(2), np.zeros((2, 3)), np.zeros((2, 1, 4)), 1.0,
+                  "x")  # fmt: skip
+    with h5py.File(tmp_path / "x.h5", "w") as f:
+        f.attrs["schema"] = "freipose.poses"
+    with pytest.raises(BoxesFormatError, match="expected a FreiPose boxes file"):
+        read_boxes_h5(tmp_path / "x.h5")
+    with pytest.raises(FileNotFoundError):
+        read_boxes_h5(tmp_path / "missing.h5")
