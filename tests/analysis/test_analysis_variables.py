@@ -202,3 +202,12 @@ def test_skeleton_without_body_frame_is_rejected():
     poses = np.zeros((100, paw.num_keypoints, 3))
     with pytest.raises(VariablesError, match=r"no body frame.*\[frame\]"):
         compute_variables(poses, np.arange(100), 100.0, paw, FloorPlane.world([0, 0, 1]))
+
+
+def test_raised_nose_has_positive_head_elevation():
+    poses = level_rat()
+    poses[:, RAT.index("Nose"), 2] = 50 + 42 * np.tan(np.radians(30))
+    var = compute(poses)
+    assert np.allclose(var.column("angle[head_elevation]"), 30, atol=1e-3)
+    assert np.allclose(var.column("angle[head_pitch]"), 30, atol=1e-3)
+    assert np.allclose(var.column("angle[body_elevation]"), 0, atol=1e-4)
