@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from freipose.calibration.boards import (
     AprilGridBoard,
     Board,
@@ -374,10 +375,36 @@ def detect_cameras(
 # diagnosis: what board does the user probably have?
 
 
-def _all_dictionary_names() -> list[str]:
+def _probe_dictionaries() -> list[tuple[str, int]]:
+    """One dictionary per marker family (the largest), plus 2-bit borders for AprilTags."""
     import cv2
 
-    return sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+    names = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+    out = []
+    for n in names:
+        parts = n.split("_")
+        if len(parts) == 3 and parts[2].isdigit() and parts[2] != "1000":
+            continue  # DICT_4X4_50/100/250 are prefixes of DICT_4X4_1000
+        out.append((n, 1))
+        if n.startswith("DICT_APRILTAG"):
+            out.append((n, 2))
+    return out
+
+
+def _dict_len(name: str) -> int:
+    return int(get_dictionary(name).bytesList.shape[0])
+
+
+def _smallest_family_member(name: str, max_id: int) -> str:
+    import cv2
+
+    parts = name.split("_")
+    if len(parts) == 3 and parts[2] == "1000":
+        for size in (50, 100, 250, 1000):
+            cand = f"{parts[0]}_{parts[1]}_{size}"
+            if hasattr(cv2.aruco, cand) and max_id < size:
+                return cand
+    return name
 
 
 def diagnose_board(images: Sequence[np.ndarray], board: Board) -> str:
@@ -390,17 +417,18 @@ def diagnose_board(images: Sequence[np.ndarray], board: Board) -> str:
     hints: list[str] = []
     # 1. markers of which dictionary?
     found: dict[tuple[str, int], tuple[int, int]] = {}  # (dict, border) -> (count, max id)
-    for dname in _all_dictionary_names():
-        for border in (1, 2):
-            det = _aruco_detector(dname, border)
-            count, max_id = 0, -1
-            for g in grays:
-                _c, ids, _ = det.detectMarkers(g)
-                if ids is not None and len(ids):
-                    count += len(ids)
-                    max_id = max(max_id, int(np.max(ids)))
-            if count:
-                found[(dname, border)] = (count, max_id)
+    for dname, border in _probe_dictionaries():
+        det = _aruco_detector(dname, border)
+        count, max_id = 0, -1
+        for g in grays:
+            _c, ids, _ = det.detectMarkers(g)
+            if ids is not None and len(ids):
+                count += len(ids)
+                max_id = max(max_id, int(np.max(ids)))
+        if count:
+            # nested dictionaries (4X4_50 is a prefix of 4X4_1000): name the smallest that fits
+            dname = _smallest_family_member(dname, max_id)
+            found[(dname, border)] = (count, max_id)
     own_dict = getattr(board, "dictionary", None)
     own_border = board.border if isinstance(board, AprilGridBoard) else 1
     if not found:
@@ -413,11 +441,13 @@ def diagnose_board(images: Sequence[np.ndarray], board: Board) -> str:
         return "no markers of any OpenCV dictionary were found in the sampled frames"
     top = max(c for c, _ in found.values())
     ties = [k for k, (c, _) in found.items() if c == top]
-    if (own_dict, own_border) in ties:  # nested dictionaries (6X6_50 in 6X6_250) tie
-        dname, border = own_dict, own_border
+    own_fam = own_dict.rsplit("_", 1)[0] if own_dict else None
+    same = [k for k in ties if k[1] == own_border and k[0].rsplit("_", 1)[0] == own_fam]
+    if same and own_dict is not None and found[same[0]][1] < _dict_len(own_dict):
+        dname, border = own_dict, own_border  # the configured dictionary holds every seen id
     else:  # the smallest dictionary holding every id seen
-        dname, border = min(ties, key=lambda k: get_dictionary(k[0]).bytesList.shape[0])
-    count, max_id = found[(dname, border)]
+        dname, border = min(ties, key=lambda k: _dict_len(k[0]))
+    count, max_id = found.get((dname, border)) or found[same[0]]
     if isinstance(board, ChessboardBoard):
         return (
             f"the images show {dname} markers ({count} found), not a plain chessboard; "
@@ -473,18 +503,23 @@ def diagnose_board(images: Sequence[np.ndarray], board: Board) -> str:
 
 
 def _charuco_candidates(board: CharucoBoard, max_id: int) -> list[tuple[int, int, bool]]:
-    out = []
+    """Plausible ChArUco layouts for the marker ids seen: the transposed board, the other
+    legacy setting, and sizes whose marker count just covers the largest id."""
     need = max_id + 1
-    for sx in range(3, 16):
-        for sy in range(3, 16):
-            if (sx * sy) // 2 < need:
-                continue
-            for legacy in (False, True):
-                if (sx, sy, legacy) == (board.squares_x, board.squares_y, board.legacy_pattern):
-                    continue
-                if legacy and sy % 2 == 1:
-                    continue
-                if (sx * sy) // 2 > need + max(sx, sy):  # keep sizes that fit the seen ids
-                    continue
-                out.append((sx, sy, legacy))
-    return out
+    out = [(board.squares_y, board.squares_x, board.legacy_pattern)]
+    if board.squares_y % 2 == 0:
+        out.append((board.squares_x, board.squares_y, not board.legacy_pattern))
+    for sx in range(3, 13):
+        for sy in range(3, 13):
+            n = (sx * sy) // 2
+            if need <= n <= need + min(sx, sy) // 2:
+                out.append((sx, sy, False))
+                if sy % 2 == 0:
+                    out.append((sx, sy, True))
+    own = (board.squares_x, board.squares_y, board.legacy_pattern)
+    seen, uniq = set(), []
+    for c in out:
+        if c != own and c not in seen:
+            seen.add(c)
+            uniq.append(c)
+    return uniq

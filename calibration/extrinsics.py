@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from freipose.calibration.intrinsics import CalibrationError, usable_frames
 
 logger = logging.getLogger(__name__)

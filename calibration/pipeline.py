@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from freipose.calibration.boards import Board
 from freipose.calibration.bundle import (
     BundleResult,
@@ -34,7 +35,6 @@ from freipose.calibration.intrinsics import (
     calibrate_intrinsics,
     dist_free_mask,
 )
-
 from freipose.geometry import Camera, CameraRig
 
 logger = logging.getLogger(__name__)

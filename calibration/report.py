@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+
 from freipose.calibration.pipeline import CalibrationResult
 
 logger = logging.getLogger(__name__)
