@@ -379,16 +379,21 @@ def _probe_dictionaries() -> list[tuple[str, int]]:
     """One dictionary per marker family (the largest), plus 2-bit borders for AprilTags."""
     import cv2
 
-    names = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
-    out = []
+    # reversed: the lower-case alias (DICT_APRILTAG_36h11, our canonical name) comes first
+    names = sorted((n for n in dir(cv2.aruco) if n.startswith("DICT_")), reverse=True)
+    out, seen_ids = [], set()
     for n in names:
+        value = getattr(cv2.aruco, n)
+        if value in seen_ids:  # upper/lower-case aliases (DICT_APRILTAG_36H11 = _36h11)
+            continue
+        seen_ids.add(value)
         parts = n.split("_")
         if len(parts) == 3 and parts[2].isdigit() and parts[2] != "1000":
             continue  # DICT_4X4_50/100/250 are prefixes of DICT_4X4_1000
         out.append((n, 1))
-        if n.startswith("DICT_APRILTAG"):
-            out.append((n, 2))
-    return out
+        if n.startswith("DICT_APRILTAG") and "36h10" not in n.lower():
+            out.append((n, 2))  # FreiCalib / Kalibr print 2-bit borders
+    return sorted(out)
 
 
 def _dict_len(name: str) -> int:
