@@ -150,3 +150,87 @@ def h5_equal(a: Path, b: Path, ignore_attrs: tuple[str, ...] = ()) -> list[str]:
                 elif not np.array_equal(x, y):
                     diffs.append(f"{n}: values differ")
     return diffs
+
+
+# -- a toy animal for the network end-to-end test ------------------------------------------
+
+TOY_TEMPLATE = np.array([[60.0, 0, 30], [0, 40, 20], [0, -40, 20], [-60, 0, 30], [0, 0, 70]])
+TOY_COLORS = [(255, 40, 40), (40, 255, 40), (40, 40, 255), (255, 255, 40), (255, 40, 255)]
+TOY_KEYPOINTS = tuple(f"kp{i}" for i in range(len(TOY_TEMPLATE)))
+
+
+def toy_rig(n: int = 3, size=(160, 120), focal: float = 220.0) -> CameraRig:
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        pos = (700 * np.cos(a), 700 * np.sin(a), 400.0)
+        cams.append(Camera.look_at(f"cam{i}", pos, (0, 0, 0), size, focal))
+    return CameraRig(tuple(cams), {"world": "toy arena"})
+
+
+def toy_pose(angle: float, shift: np.ndarray) -> np.ndarray:
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    return TOY_TEMPLATE @ R.T + np.array([shift[0], shift[1], 0.0])
+
+
+def toy_render(pts: np.ndarray, rig: CameraRig, rng: np.random.Generator) -> list[np.ndarray]:
+    from freipose.geometry import project
+
+    images = []
+    for cam in rig:
+        w, h = cam.size
+        img = np.clip(rng.normal(110, 6, (h, w, 3)), 0, 255).astype(np.uint8)
+        uv = project(pts, cam)
+        depth = (pts @ cam.R.T + cam.t)[:, 2]
+        px = [(int(round(u)), int(round(v))) for u, v in uv]
+        body = max(2, int(round(cam.K[0, 0] * 10 / depth.mean())))
+        for k in range(len(pts) - 1):  # a dark body joins the discs into one blob
+            cv2.line(img, px[k], px[-1], (40, 40, 40), body)
+        for k in np.argsort(-depth):
+            r = max(2, int(round(cam.K[0, 0] * 12 / depth[k])))
+            cv2.circle(img, px[k], r, TOY_COLORS[k], -1)
+        images.append(img)
+    return images
+
+
+def toy_training_samples(n: int, rig: CameraRig, seed: int = 0) -> list[dict]:
+    """Labeled samples (``MultiViewDataset`` format) of the toy animal at random poses."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        pts = toy_pose(rng.uniform(0, 2 * np.pi), rng.uniform(-50, 50, 2))
+        pts = pts + rng.normal(0, 3, pts.shape)
+        images = toy_render(pts, rig, rng)
+        p2 = rig.project(pts)
+        out.append(
+            {
+                "session": "train",
+                "frame_index": i,
+                "index": i,
+                "rig": rig,
+                "camera_names": tuple(rig.names),
+                "images": images,
+                "points2d": p2,
+                "visible2d": np.isfinite(p2).all(-1),
+                "points3d": pts,
+                "mask3d": np.ones(len(pts), bool),
+            }
+        )
+    return out
+
+
+def toy_session(folder: Path, rig: CameraRig, n_frames: int, seed: int = 1, fps: float = 30.0):
+    """Videos (lossless .mkv) of the toy animal walking; returns the true poses (T, 5, 3)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    t = np.arange(n_frames) / fps
+    truth = np.stack(
+        [toy_pose(1.3 * ti, np.array([40 * np.cos(0.8 * ti), 40 * np.sin(1.1 * ti)])) for ti in t]
+    )
+    frames = [toy_render(p, rig, rng) for p in truth]
+    for c, cam in enumerate(rig):
+        with VideoWriter(folder / f"{cam.name}.mkv", fps, cam.size) as w:
+            for f in frames:
+                w.write(f[c])
+    save_calibration(rig, folder / "calibration.toml")
+    return truth

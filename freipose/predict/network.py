@@ -1,0 +1,214 @@
+"""The real :class:`~freipose.predict.estimator.PoseEstimator`: box source + voxel network.
+
+Per time step, the box source (trained detector, background subtraction or fixed boxes)
+proposes boxes in every view; :func:`freipose.detect.detect_multiview_batch` turns them
+into a consistent 3D centre; the voxel network (:func:`freipose.nn.model.predict_batch`,
+inference mode, bfloat16 autocast on CUDA) predicts the pose in a cube around it. A time
+step without a centre gives NaN poses with confidence 0.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from freipose.geometry.camera import CameraRig
+from freipose.geometry.crops import cube_crop_boxes
+from freipose.predict.estimator import Estimate
+from freipose.predict.session import Session
+from freipose.skeleton import Skeleton
+
+log = logging.getLogger(__name__)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def resolve_device(device: str) -> str:
+    """``auto`` -> ``cuda`` when available, else ``cpu``; other values are checked."""
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"--device {device}: CUDA is not available on this machine; use cpu")
+    if device != "cpu" and not device.startswith("cuda"):
+        raise ValueError(f"--device must be cpu, cuda, cuda:N or auto, got {device!r}")
+    return device
+
+
+@dataclass(frozen=True)
+class DetectorSpec:
+    """How to find the animal: ``method`` detector (``checkpoint``), bgsub or fixed
+    (``fixed_boxes`` TOML), plus the consistency settings."""
+
+    method: str = "detector"
+    checkpoint: Path | None = None
+    fixed_boxes: Path | None = None
+    bg_samples: int = 40
+    min_views: int = 2
+
+    def __post_init__(self) -> None:
+        if self.method not in ("detector", "bgsub", "fixed"):
+            raise ValueError(
+                f"unknown detection method {self.method!r}; use detector, bgsub or fixed"
+            )
+        if self.method == "detector" and self.checkpoint is None:
+            raise ValueError(
+                "say how to find the animal: --detector CKPT (from `freipose train CONFIG "
+                "--stage detector`), --method bgsub (static cameras, one animal) or "
+                "--fixed-boxes FILE"
+            )
+        if self.method == "fixed" and self.fixed_boxes is None:
+            raise ValueError("--method fixed needs --fixed-boxes FILE")
+
+    def describe(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"detection": self.method, "min_views": self.min_views}
+        if self.method == "detector" and self.checkpoint is not None:
+            out["detector_sha256"] = file_sha256(self.checkpoint)
+            out["detector_file"] = Path(self.checkpoint).name
+        if self.method == "fixed" and self.fixed_boxes is not None:
+            out["fixed_boxes"] = Path(self.fixed_boxes).read_text()
+        if self.method == "bgsub":
+            out["bg_samples"] = self.bg_samples
+        return out
+
+
+class NetworkEstimator:
+    """Detector + voxel network for one session (see the module docstring).
+
+    Args:
+        model, config, skeleton: from :func:`freipose.nn.model.load_checkpoint`.
+        source: a box source (``propose(images, cameras) -> list[Candidates]``).
+        refine: report the refined pose P1 (default) or the 3D network's P0.
+        provenance: facts stored in the output (model hash, detection settings).
+        min_views: fewest agreeing views for a 3D centre.
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        config: Any,
+        skeleton: Skeleton,
+        source: Any,
+        refine: bool = True,
+        provenance: Mapping[str, Any] | None = None,
+        min_views: int = 2,
+    ):
+        from freipose.detect.multiview import ConsistencyConfig
+
+        self.model = model
+        self.config = config
+        self.skeleton = skeleton
+        self.source = source
+        self.refine = refine
+        self.cube_size = float(config.model.cube_size)
+        self.consistency = ConsistencyConfig(cube_size=self.cube_size, min_views=min_views)
+        self.keypoints = tuple(skeleton.keypoints)
+        self.provenance = dict(provenance or {})
+
+    def __call__(self, images: Sequence[np.ndarray], rig: CameraRig) -> Estimate:
+        import torch
+
+        from freipose.detect.multiview import detect_multiview_batch
+        from freipose.nn.model import predict_batch
+
+        C = len(rig)
+        if len(images) != C:
+            raise ValueError(f"got {len(images)} image batches for {C} cameras")
+        B = images[0].shape[0]
+        frames = [[images[c][b] for c in range(C)] for b in range(B)]
+        with torch.inference_mode():
+            dets = detect_multiview_batch(frames, rig, self.source, self.consistency)
+            centers = np.stack([d.center for d in dets]).astype(np.float64)
+            out = predict_batch(self.model, frames, [rig] * B, centers)
+        poses = out["P1"] if self.refine else out["P0"]
+        boxes = cube_crop_boxes(rig, centers, self.cube_size)  # (B, C, 4), NaN without centre
+        return Estimate(
+            poses=poses,
+            confidence=out["confidence"],
+            points2d=out["points2d"][:, :C],
+            confidence2d=out["confidence2d"][:, :C],
+            boxes=boxes,
+            center=centers,
+        )
+
+
+def load_model(model_path: str | Path, device: str = "cpu") -> tuple[Any, Any, Skeleton, str]:
+    """Load a pose checkpoint for prediction: (model, config, skeleton, file sha256).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a FreiPose pose checkpoint (e.g. a detector checkpoint), corrupt.
+    """
+    from freipose.nn.model import load_checkpoint
+
+    path = Path(model_path)
+    try:
+        model, config, skeleton = load_checkpoint(path, device)
+    except (FileNotFoundError, ValueError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - e.g. state-dict mismatches in a hand-edited file
+        raise ValueError(f"{path}: cannot load the pose network ({exc})") from exc
+    return model, config, skeleton, file_sha256(path)
+
+
+def check_keypoints(skeleton: Skeleton, expected: Skeleton | None, model_path: str | Path) -> None:
+    """Raise if the model predicts other keypoints than the expected skeleton."""
+    if expected is None:
+        return
+    if tuple(expected.keypoints) != tuple(skeleton.keypoints):
+        raise ValueError(
+            f"{model_path} was trained for keypoints {list(skeleton.keypoints)} (skeleton "
+            f"{skeleton.name!r}) but {list(expected.keypoints)} (skeleton {expected.name!r}) "
+            "were asked for; use a model trained for that skeleton or drop --skeleton"
+        )
+
+
+def make_box_source(
+    spec: DetectorSpec, session: Session, frames: tuple[int, int], device: str
+) -> Any:
+    """The box source for one session (bgsub is fitted on the run's frames)."""
+    if spec.method == "detector":
+        from freipose.detect.detector import Detector
+
+        assert spec.checkpoint is not None
+        try:
+            return Detector.load(spec.checkpoint, device)
+        except FileNotFoundError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - wrong checkpoint kind, state-dict mismatch
+            raise ValueError(
+                f"--detector {spec.checkpoint} is not a usable detector checkpoint (pass the file "
+                f"written by `freipose train CONFIG --stage detector`): {exc}"
+            ) from exc
+    if spec.method == "fixed":
+        from freipose.detect.fallback import FixedBoxes
+
+        assert spec.fixed_boxes is not None
+        fb = FixedBoxes.from_toml(spec.fixed_boxes)
+        fb.check_cameras(session.cameras)
+        return fb
+    from freipose.detect.fallback import BackgroundSubtractor
+    from freipose.io.video import FrameSource
+
+    sources = {c: FrameSource(p) for c, p in session.videos.items()}
+    try:
+        return BackgroundSubtractor.fit(
+            sources, n_samples=spec.bg_samples, frames=range(frames[0], frames[1])
+        )
+    finally:
+        for s in sources.values():
+            s.close()
