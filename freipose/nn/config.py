@@ -240,6 +240,7 @@ PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
             encoder_pools=3,
             feature_channels=32,
             grid_size=32,
+            cube_size=320.0,
             unet_channels=(16, 32, 32),
             refine_channels=32,
             heatmap_sigma=1.5,

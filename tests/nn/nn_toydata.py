@@ -61,7 +61,7 @@ def toy_samples(n: int, seed: int = 0, cams: int = 3, size=(160, 120), focal=220
     return out
 
 
-def write_toy_labels(folder, samples: list[dict]) -> "Path":  # noqa: UP037
+def write_toy_labels(folder, samples: list[dict]):
     """Write samples as image folders + labels.h5 (one session); returns the labels path."""
     from pathlib import Path
 

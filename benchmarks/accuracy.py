@@ -1,0 +1,313 @@
+"""Accuracy of the voxel network against the triangulation baseline on synthetic sessions.
+
+Reproduces the experiments of Section 5.4.3 of the method on synthetic data: training
+sessions and a held-out evaluation session with another seed (other animal motion and, as
+the default rig is jittered from the seed, another camera layout). Both networks are
+trained on the same samples for the same number of steps, then evaluated by the joint
+position error (JPE, mm) with the cube centred on the mean labeled 3D point.
+
+Experiments (``--experiments``, comma separated):
+
+* ``main``: all 7 cameras, all training instants; voxel P0 and P1 against the baseline.
+* ``cameras``: the camera subsets of Table 5.1 (paper camera i = ``cam{i-1}``), 1 to 6
+  cameras, ``--trials`` subsets each (the baseline cannot triangulate from one camera).
+* ``fraction``: 10, 20, 30, 60, 80, 100 % of the training instants, ``--trials`` draws each.
+
+Prints the tables and writes ``results.json``, ``jpe_cameras.png``, ``jpe_fraction.png`` and
+the per-keypoint report of the main experiment (``main/``) into ``--out``.
+
+Example (CPU, the ``small`` preset; about an hour on one core)::
+
+    python benchmarks/accuracy.py --out bench/accuracy --preset small --steps 1500
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+CAMERA_SETS = {
+    1: [[1], [5], [7]],
+    2: [[1, 5], [1, 7], [1, 3]],
+    3: [[1, 5, 7], [1, 3, 5], [4, 5, 7]],
+    4: [[1, 3, 4, 5], [1, 3, 4, 7], [1, 4, 5, 7]],
+    5: [[1, 3, 4, 5, 7], [2, 6, 4, 5, 7], [1, 3, 4, 5, 6]],
+    6: [[1, 2, 3, 4, 5, 7], [1, 2, 3, 4, 5, 6], [1, 2, 4, 5, 6, 7]],
+}
+FRACTIONS = [0.1, 0.2, 0.3, 0.6, 0.8, 1.0]
+
+
+def make_sessions(root: Path, n_train: int, frames: int, eval_frames: int, size: tuple[int, int]):
+    from freipose.synth import SceneConfig, generate_session
+
+    train = []
+    for i in range(n_train):
+        cfg = SceneConfig(frames=frames, seed=101 + i, size=size)
+        train.append(generate_session(root / f"train{i}", cfg, progress=False).labels)
+    cfg = SceneConfig(frames=eval_frames, seed=9001, size=size)
+    ev = generate_session(root / "eval", cfg, progress=False).labels
+    return train, ev
+
+
+def merged_labels(paths: list[Path]):
+    """Concatenate labels of several sessions (video paths made absolute)."""
+    from freipose.io.labels import LabelSet, SessionInfo, read_labels_h5
+
+    parts = [read_labels_h5(p) for p in paths]
+    sessions = {}
+    for p, lab in zip(paths, parts):
+        for name, info in lab.sessions.items():
+            vids = {c: str((p.parent / v).resolve()) for c, v in info.videos.items()}
+            sessions[f"{p.parent.name}"] = SessionInfo(info.calibration, vids, info.fps)
+    return LabelSet(
+        session=np.concatenate([[p.parent.name] * len(lab) for p, lab in zip(paths, parts)]),
+        frame_index=np.concatenate([lab.frame_index for lab in parts]),
+        points2d=np.concatenate([lab.points2d for lab in parts]),
+        points3d=np.concatenate([lab.points3d for lab in parts]),
+        cameras=parts[0].cameras,
+        keypoints=parts[0].keypoints,
+        sessions=sessions,
+        visible2d=np.concatenate([lab.visible2d for lab in parts]),
+    )
+
+
+def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, log):
+    """Train voxel + baseline on the same data/steps; evaluate both. Returns JPE arrays."""
+    from freipose.labels.dataset import MultiViewDataset
+    from freipose.nn.evaluate import jpe, predict_dataset
+    from freipose.nn.model import load_checkpoint
+    from freipose.nn.train import train_pose
+    from freipose.skeleton import load_skeleton
+
+    skel = load_skeleton("rat")
+    tr = MultiViewDataset(train_lab, root=Path("/"), cameras=cameras)
+    ev = MultiViewDataset(eval_lab, root=Path("/"), cameras=cameras)
+    res = {}
+    for kind in ("voxel", "baseline"):
+        if kind == "baseline" and cameras is not None and len(cameras) < 2:
+            continue
+        cfg = dataclasses.replace(base_cfg, model=dataclasses.replace(base_cfg.model, kind=kind))
+        run_dir = out / tag / kind
+        t0 = time.perf_counter()
+        resume = (run_dir / "checkpoint.pt").exists()
+        path = run_dir / "model.pt"
+        if not path.exists():
+            path = train_pose(
+                cfg,
+                run_dir,
+                tr,
+                skel,
+                None,
+                train_indices=indices,
+                resume=resume,
+                device=device,
+                progress=sys.stderr.isatty(),
+            )
+        model, _, _ = load_checkpoint(path, device)
+        pred = predict_dataset(model, ev, batch_size=4)
+        if kind == "voxel":
+            res["voxel_P0"] = jpe(pred["P0"], pred["gt"])
+            res["voxel_P1"] = jpe(pred["P1"], pred["gt"])
+        else:
+            res["baseline"] = jpe(pred["P1"], pred["gt"])
+        log(
+            f"  [{tag}] {kind}: trained+evaluated in {time.perf_counter() - t0:.0f} s; "
+            + ", ".join(f"{k} median {np.nanmedian(v):.2f} mm" for k, v in res.items())
+        )
+    return res
+
+
+def stats(e: np.ndarray) -> tuple[float, float, float]:
+    e = e[~np.isnan(e)]
+    e = np.minimum(e, 1e12)
+    q = np.percentile(e, [50, 30, 70])
+    return tuple(float(v) if v < 1e12 else float("inf") for v in q)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("bench/accuracy"))
+    ap.add_argument("--preset", default="small")
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--batch-size", type=int, default=2)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--experiments", default="main")
+    ap.add_argument("--trials", type=int, default=1, help="subsets/draws per setting (paper: 3)")
+    ap.add_argument("--train-sessions", type=int, default=3)
+    ap.add_argument("--frames", type=int, default=100, help="frames per training session")
+    ap.add_argument("--eval-frames", type=int, default=60)
+    ap.add_argument("--size", type=int, nargs=2, default=(320, 256), help="image width height")
+    ap.add_argument("--cube-size", type=float, default=None, help="override model.cube_size (mm)")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    torch_threads = int(os.environ.get("OMP_NUM_THREADS", "1"))
+
+    import torch
+
+    from freipose.io.labels import read_labels_h5
+    from freipose.nn.config import config_from_dict
+    from freipose.nn.evaluate import write_report
+
+    torch.set_num_threads(torch_threads)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    logf = (out / "log.txt").open("a")
+
+    def log(msg: str) -> None:
+        print(msg, flush=True)
+        logf.write(msg + "\n")
+        logf.flush()
+
+    model_over = {"preset": args.preset}
+    if args.cube_size:
+        model_over["cube_size"] = args.cube_size
+    sched = {
+        "steps": args.steps,
+        "batch_size": args.batch_size,
+        "lr": args.lr,
+        "lr_decay_steps": max(1, int(args.steps * 2 / 3)),
+        "checkpoint_every": 100,
+        "log_every": 10,
+    }
+    base_cfg = config_from_dict({"model": model_over, "schedule": sched})
+    log(
+        f"preset {args.preset}, {args.steps} steps x batch {args.batch_size}, device {args.device}, "
+        f"{torch.get_num_threads()} thread(s); model {base_cfg.model}"
+    )
+    t0 = time.perf_counter()
+    train_paths, eval_path = make_sessions(
+        out / "data", args.train_sessions, args.frames, args.eval_frames, tuple(args.size)
+    )
+    train_lab = merged_labels(train_paths)
+    eval_lab = merged_labels([eval_path])
+    log(
+        f"data: {len(train_lab)} training instants ({args.train_sessions} sessions), "
+        f"{len(eval_lab)} held-out instants; generated in {time.perf_counter() - t0:.0f} s"
+    )
+    results: dict = {"config": vars(args) | {"out": str(out)}, "experiments": {}}
+    exps = [e.strip() for e in args.experiments.split(",") if e.strip()]
+    all_idx = np.arange(len(train_lab))
+    if "main" in exps:
+        res = run_pair("main", base_cfg, train_lab, eval_lab, None, all_idx, out, args.device, log)
+        write_report(out / "main", res, read_labels_h5(eval_path).keypoints)
+        results["experiments"]["main"] = {k: stats(v) for k, v in res.items()}
+        v, b = (
+            results["experiments"]["main"]["voxel_P1"],
+            results["experiments"]["main"]["baseline"],
+        )
+        p0 = results["experiments"]["main"]["voxel_P0"]
+        log("\nMAIN (7 cameras, all instants): median JPE mm [30 %, 70 %]")
+        log(f"  voxel P0   {p0[0]:7.2f}  [{p0[1]:.2f}, {p0[2]:.2f}]")
+        log(f"  voxel P1   {v[0]:7.2f}  [{v[1]:.2f}, {v[2]:.2f}]")
+        log(f"  baseline   {b[0]:7.2f}  [{b[1]:.2f}, {b[2]:.2f}]")
+        log(
+            f"  ratio voxel P1 / baseline = {v[0] / b[0]:.3f} (target <= 0.6); "
+            f"P1 / P0 = {v[0] / p0[0]:.3f} (target < 1)"
+        )
+    if "cameras" in exps:
+        table = {}
+        for n, sets in CAMERA_SETS.items():
+            accs: dict[str, list] = {}
+            for s in sets[: args.trials]:
+                cams = [f"cam{i - 1}" for i in s]
+                res = run_pair(
+                    f"cams{n}_{'-'.join(map(str, s))}",
+                    base_cfg,
+                    train_lab,
+                    eval_lab,
+                    cams,
+                    all_idx,
+                    out,
+                    args.device,
+                    log,
+                )
+                for k, e in res.items():
+                    accs.setdefault(k, []).append(e.reshape(-1))
+            table[n] = {k: stats(np.concatenate(v)) for k, v in accs.items()}
+        results["experiments"]["cameras"] = table
+        log("\nCAMERAS: median JPE mm (voxel P1 / baseline)")
+        for n, row in table.items():
+            b = row.get("baseline", (float("nan"),) * 3)
+            log(f"  {n} cams: voxel {row['voxel_P1'][0]:7.2f}   baseline {b[0]:7.2f}")
+    if "fraction" in exps:
+        table = {}
+        rng = np.random.default_rng(0)
+        for f in FRACTIONS:
+            accs = {}
+            for trial in range(args.trials if f < 1 else 1):
+                idx = np.sort(
+                    rng.choice(all_idx, max(2, int(round(f * len(all_idx)))), replace=False)
+                )
+                res = run_pair(
+                    f"frac{int(f * 100)}_{trial}",
+                    base_cfg,
+                    train_lab,
+                    eval_lab,
+                    None,
+                    idx,
+                    out,
+                    args.device,
+                    log,
+                )
+                for k, e in res.items():
+                    accs.setdefault(k, []).append(e.reshape(-1))
+            table[f] = {k: stats(np.concatenate(v)) for k, v in accs.items()}
+        results["experiments"]["fraction"] = {str(k): v for k, v in table.items()}
+        log("\nLABEL FRACTION: median JPE mm (voxel P1 / baseline)")
+        for f, row in table.items():
+            log(
+                f"  {int(f * 100):3d} %: voxel {row['voxel_P1'][0]:7.2f}   baseline {row['baseline'][0]:7.2f}"
+            )
+    _plots(out, results)
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
+    log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / 'results.json'}")
+    return 0
+
+
+def _plots(out: Path, results: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    for name, xlabel in (
+        ("cameras", "number of cameras"),
+        ("fraction", "fraction of labeled instants"),
+    ):
+        table = results["experiments"].get(name)
+        if not table:
+            continue
+        xs = sorted(table, key=float)
+        fig, ax = plt.subplots(figsize=(5, 4))
+        for key, label in (
+            ("voxel_P1", "FreiPose (voxel, P1)"),
+            ("baseline", "2D + triangulation"),
+        ):
+            pts = [(float(x), table[x][key]) for x in xs if key in table[x]]
+            if not pts:
+                continue
+            x = np.array([p[0] for p in pts])
+            q = np.array([p[1] for p in pts], dtype=float)
+            q[~np.isfinite(q)] = np.nan
+            ax.plot(x, q[:, 0], "o-", label=label)
+            ax.fill_between(x, q[:, 1], q[:, 2], alpha=0.2)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("median JPE (mm), 30-70 %")
+        ax.legend()
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / f"jpe_{name}.png", dpi=120)
+        plt.close(fig)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
