@@ -1,0 +1,118 @@
+"""Detector benchmark: train on one synthetic session, evaluate on another.
+
+The evaluation session has a different seed *and* a different camera layout (another
+number of cameras, so other positions, focal lengths and distortions). Prints, for the
+trained detector and for the background-subtraction baseline measured in the same run:
+recall at IoU 0.5 over the views that show the animal, the median 3D centre error (mm)
+against the triangulated ground-truth box centres, the rate of time instants with a 3D
+centre, and CPU images per second.
+
+Usage (CPU, about 20-30 minutes on one core with the defaults)::
+
+    python benchmarks/detector.py --workdir /tmp/fp_bench_detector
+    python benchmarks/detector.py --steps 300 --train-frames 60 --eval-frames 30   # quick look
+
+Targets (issue 6): recall >= 0.95 and median 3D centre error < 10 mm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--workdir", type=Path, default=None, help="keeps sessions and the run")
+    ap.add_argument("--train-frames", type=int, default=200)
+    ap.add_argument("--eval-frames", type=int, default=100)
+    ap.add_argument("--train-cameras", type=int, default=7)
+    ap.add_argument("--eval-cameras", type=int, default=6)
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--batch-size", type=int, default=8)
+    ap.add_argument("--input-size", type=int, default=192)
+    ap.add_argument("--width", type=float, default=0.5)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--resume", action="store_true", help="continue an interrupted run")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    torch.set_num_threads(1)
+
+    from freipose.detect import BackgroundSubtractor, ConsistencyConfig, Detector
+    from freipose.detect.evaluate import evaluate_source, measure_fps
+    from freipose.detect.train import train_detector
+    from freipose.labels.dataset import MultiViewDataset
+    from freipose.synth import SceneConfig, generate_session
+
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="fp_bench_detector_"))
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    train_cfg = SceneConfig(frames=args.train_frames, seed=11, n_cameras=args.train_cameras)
+    eval_cfg = SceneConfig(frames=args.eval_frames, seed=23, n_cameras=args.eval_cameras)
+    generate_session(work / "train_session", train_cfg, progress=False)
+    generate_session(work / "eval_session", eval_cfg, progress=False)
+    print(f"sessions rendered in {time.perf_counter() - t0:.0f} s: train seed 11 with "
+          f"{args.train_cameras} cameras, eval seed 23 with {args.eval_cameras} cameras")  # fmt: skip
+
+    config = {
+        "data": {
+            "labels": str(work / "train_session" / "labels.h5"),
+            "eval_labels": str(work / "eval_session" / "labels.h5"),
+        },
+        "detector": {
+            "input_size": args.input_size,
+            "width": args.width,
+            "steps": args.steps,
+            "batch_size": args.batch_size,
+            "max_eval_instants": args.eval_frames,
+        },
+    }
+    ckpt = train_detector(config, work / "train.toml", work / "run", args.resume, args.device)
+
+    # The same evaluation for the trained detector and the no-training baseline.
+    ds = MultiViewDataset(work / "eval_session" / "labels.h5")
+    samples = [ds[i] for i in range(len(ds))]
+    consistency = ConsistencyConfig(cube_size=400.0)
+    det = Detector.load(ckpt, "cpu")
+    m_det = evaluate_source(det, samples, consistency=consistency)
+    names = list(samples[0]["camera_names"])
+    frames = {n: [s["images"][i] for s in samples] for i, n in enumerate(names)}
+    bg = BackgroundSubtractor.fit(frames, n_samples=40)
+    m_bg = evaluate_source(bg, samples, consistency=consistency)
+    fps_det = measure_fps(det, tuple(samples[0]["rig"][0].size), n_images=64)
+    fps_bg = _fps_bg(bg, frames, names)
+
+    print("\n=== detector benchmark (eval session: other seed, other camera layout) ===")
+    print(f"{'':22s}{'detector':>12s}{'bgsub':>12s}{'ratio':>10s}")
+    rows = [
+        ("recall@IoU0.5", m_det.recall, m_bg.recall),
+        ("recall (top box)", m_det.recall_top1, m_bg.recall_top1),
+        ("median centre err mm", m_det.median_center_error, m_bg.median_center_error),
+        ("centre found rate", m_det.center_rate, m_bg.center_rate),
+        ("mean agreeing views", m_det.mean_agree, m_bg.mean_agree),
+        ("CPU images/s", fps_det, fps_bg),
+    ]
+    for name, a, b in rows:
+        print(f"{name:22s}{a:12.3f}{b:12.3f}{a / b if b else float('nan'):10.2f}")
+    print(f"views showing the animal: {m_det.n_views}, time instants: {m_det.n_instants}")
+    ok = m_det.recall >= 0.95 and m_det.median_center_error < 10.0
+    print(f"targets (recall >= 0.95, median centre error < 10 mm): {'met' if ok else 'NOT met'}")
+
+
+def _fps_bg(bg, frames: dict, names: list[str], n: int = 64) -> float:
+    imgs = [frames[names[i % len(names)]][i % len(frames[names[0]])] for i in range(n)]
+    cams = [names[i % len(names)] for i in range(n)]
+    t = time.perf_counter()
+    bg.propose(imgs, cams)
+    return n / (time.perf_counter() - t)
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=3, suppress=True)
+    main()
