@@ -1,0 +1,99 @@
+"""``freipose render``: overlay video of predicted poses on the session's videos."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from freipose.cli._common import user_errors
+
+
+@click.command()
+@click.argument("session", type=click.Path(exists=True, path_type=Path))
+@click.argument("poses", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Overlay video (.mp4, .avi or lossless .mkv).",
+)
+@click.option(
+    "--cameras",
+    help="Comma-separated cameras to show, in this order [default: all with a video].",
+)
+@click.option("--frames", help="Frame range START:STOP (video frame numbers) [default: all].")
+@click.option(
+    "--tile-width", type=int, default=480, show_default=True, help="Width of each view in pixels."
+)
+@click.option("--no-3d", is_flag=True, help="Leave out the 3D skeleton panel.")
+@click.pass_context
+def render(
+    ctx: click.Context,
+    session: Path,
+    poses: Path,
+    output: Path,
+    cameras: str | None,
+    frames: str | None,
+    tile_width: int,
+    no_3d: bool,
+) -> None:
+    """Draw predicted poses onto the videos: one tile per camera plus a 3D panel.
+
+    Keypoints and limbs are coloured by confidence (red 0, yellow 0.5, green 1). The
+    cameras come from the calibration stored in POSES (or SESSION/calibration.toml).
+
+    \b
+    Examples:
+      freipose render rec1/ poses/rec1.poses.h5 -o rec1_overlay.mp4 --frames 0:300
+      freipose render rec1/ poses/rec1.poses.h5 -o clip.mkv --cameras cam0,cam3 --no-3d
+    """
+    with user_errors():
+        from freipose.io.calibration import load_calibration
+        from freipose.io.poses import read_poses_h5
+        from freipose.io.video import find_camera_videos
+        from freipose.predict.render import render_overlay
+        from freipose.predict.session import parse_frames
+
+        quiet = bool(ctx.obj and ctx.obj.get("quiet"))
+        if tile_width < 32:
+            raise ValueError(f"--tile-width must be at least 32 pixels, got {tile_width}")
+        data = read_poses_h5(poses)
+        rig = data.calibration
+        if rig is None:
+            calib = session / "calibration.toml" if session.is_dir() else None
+            if calib is None or not calib.is_file():
+                raise ValueError(
+                    f"{poses} stores no calibration and {session} has no calibration.toml"
+                )
+            rig = load_calibration(calib)
+        videos = find_camera_videos(session)
+        names = (
+            [c.strip() for c in cameras.split(",")]
+            if cameras
+            else [n for n in rig.names if n in videos]
+        )
+        bad = [n for n in names if n not in rig.names or n not in videos]
+        if bad:
+            raise ValueError(
+                f"cameras {bad} are not both in the calibration {rig.names} and among the "
+                f"videos {sorted(videos)}"
+            )
+        if not names:
+            raise ValueError(f"no video in {session} matches the calibration's cameras {rig.names}")
+        rng = None
+        if frames:
+            stop = int(data.frame_index.max()) + 1
+            rng = parse_frames(frames, stop)
+        out = render_overlay(
+            [videos[n] for n in names],
+            rig.subset(names),
+            data,
+            output,
+            frames=rng,
+            tile_width=tile_width,
+            show_3d=not no_3d,
+            progress=not quiet,
+        )
+        click.echo(f"wrote {out}")

@@ -1,0 +1,239 @@
+"""Overlay videos of predicted poses: every camera view with the projected skeleton, plus a
+3D skeleton panel, tiled in a grid.
+
+Keypoints and limbs are coloured by confidence (red = 0, yellow = 0.5, green = 1); a time
+step without a pose says "not found"; a frame that could not be decoded is a grey tile. The
+3D panel looks at the poses from a fixed virtual camera (above and to the side of their
+median position) over a floor grid in the plane through the lowest keypoints.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from freipose.geometry.camera import Camera, CameraRig
+from freipose.geometry.projection import project
+from freipose.io.poses import PoseData
+from freipose.io.video import VideoWriter
+from freipose.predict.reader import SyncReader
+from freipose.skeleton import Skeleton
+
+log = logging.getLogger(__name__)
+
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def confidence_color(conf: float) -> tuple[int, int, int]:
+    """BGR colour for a confidence in [0, 1]: red -> yellow -> green."""
+    c = float(np.clip(conf if np.isfinite(conf) else 0.0, 0.0, 1.0))
+    r = 255 if c < 0.5 else int(round(255 * (1 - c) * 2))
+    g = int(round(255 * min(1.0, 2 * c)))
+    return (0, g, r)
+
+
+def _limbs(skeleton: Skeleton | None, k: int) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
+    if skeleton is None:
+        return []
+    return [(tuple(a), tuple(b)) for a, b in skeleton.limbs if max(*a, *b) < k]
+
+
+def draw_skeleton_2d(
+    img: np.ndarray,
+    uv: np.ndarray,
+    conf: np.ndarray,
+    limbs: Sequence[tuple[tuple[int, ...], tuple[int, ...]]],
+    radius: int = 3,
+    thickness: int = 2,
+) -> None:
+    """Draw keypoints (K, 2) pixels with confidences (K,) and limbs onto ``img`` in place."""
+    h, w = img.shape[:2]
+    lim = 4 * max(h, w)
+
+    def pt(p: np.ndarray) -> tuple[int, int] | None:
+        if not np.isfinite(p).all() or np.abs(p).max() > lim:
+            return None
+        return int(round(p[0])), int(round(p[1]))
+
+    for a, b in limbs:
+        pa, pb = pt(uv[list(a)].mean(0)), pt(uv[list(b)].mean(0))
+        if pa is None or pb is None:
+            continue
+        c = min(conf[list(a)].min(), conf[list(b)].min())
+        cv2.line(img, pa, pb, confidence_color(c), thickness, cv2.LINE_AA)
+    for k in range(len(uv)):
+        p = pt(uv[k])
+        if p is not None:
+            cv2.circle(img, p, radius, confidence_color(conf[k]), -1, cv2.LINE_AA)
+            cv2.circle(img, p, radius, (0, 0, 0), 1, cv2.LINE_AA)
+
+
+class Panel3D:
+    """A fixed virtual camera that draws 3D poses over a floor grid.
+
+    Args:
+        poses: (T, K, 3) all poses to be shown (used to place the camera), mm.
+        size: panel (width, height) in pixels.
+        up: world up vector.
+    """
+
+    def __init__(self, poses: np.ndarray, size: tuple[int, int], up: np.ndarray):
+        self.size = (int(size[0]), int(size[1]))
+        up = np.asarray(up, np.float64)
+        self.up = up / np.linalg.norm(up)
+        pts = poses.reshape(-1, 3)
+        pts = pts[np.isfinite(pts).all(-1)]
+        if len(pts) == 0:
+            pts = np.zeros((1, 3))
+        self.target = np.median(pts, axis=0)
+        spread = (
+            np.percentile(np.linalg.norm(pts - self.target, axis=-1), 95) if len(pts) > 1 else 0
+        )
+        extent = max(float(spread), 100.0)
+        heights = pts @ self.up
+        self.floor = float(np.percentile(heights, 2)) if len(pts) > 1 else float(heights[0])
+        a = self._side_axis()
+        direction = 0.8 * a + 0.6 * self.up
+        focal = 0.9 * min(self.size)
+        dist = 1.8 * extent * focal / min(self.size) + 1.0
+        self.camera = Camera.look_at(
+            "panel3d",
+            self.target + dist * direction,
+            self.target,
+            self.size,
+            focal,
+            up=tuple(self.up),
+        )
+        self.extent = extent
+
+    def _side_axis(self) -> np.ndarray:
+        ref = np.array([1.0, 0.0, 0.0]) if abs(self.up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        side = ref - (ref @ self.up) * self.up
+        rot = np.cross(self.up, side)
+        v = side + rot
+        return v / np.linalg.norm(v)
+
+    def draw(
+        self,
+        pose: np.ndarray,
+        conf: np.ndarray,
+        limbs: Sequence[tuple[tuple[int, ...], tuple[int, ...]]],
+        label: str = "3D",
+    ) -> np.ndarray:
+        w, h = self.size
+        img = np.full((h, w, 3), 30, np.uint8)
+        # floor grid in the plane through the lowest keypoints
+        e1 = self._side_axis()
+        e2 = np.cross(self.up, e1)
+        o = self.target - ((self.target @ self.up) - self.floor) * self.up
+        step = 10 ** np.floor(np.log10(self.extent / 2))
+        n = int(np.ceil(1.2 * self.extent / step))
+        for i in range(-n, n + 1):
+            for ea, eb in ((e1, e2), (e2, e1)):
+                p0 = o + i * step * ea - n * step * eb
+                p1 = o + i * step * ea + n * step * eb
+                uv = project(np.stack([p0, p1]), self.camera)
+                if np.isfinite(uv).all() and np.abs(uv).max() < 1e5:
+                    q0, q1 = (tuple(int(v) for v in np.round(q)) for q in uv)
+                    cv2.line(img, q0, q1, (70, 70, 70), 1, cv2.LINE_AA)
+        if np.isfinite(pose).any():
+            uv = project(pose.astype(np.float64), self.camera)
+            draw_skeleton_2d(img, uv, conf, limbs, radius=4, thickness=2)
+        cv2.putText(img, label, (8, 22), FONT, 0.6, (230, 230, 230), 1, cv2.LINE_AA)
+        return img
+
+
+def _fit(img: np.ndarray, width: int) -> tuple[np.ndarray, float]:
+    s = width / img.shape[1]
+    return cv2.resize(img, (width, int(round(img.shape[0] * s))), interpolation=cv2.INTER_AREA), s
+
+
+def render_overlay(
+    videos: Sequence[str | Path],
+    rig: CameraRig,
+    data: PoseData,
+    output: str | Path,
+    frames: tuple[int, int] | None = None,
+    tile_width: int = 480,
+    show_3d: bool = True,
+    progress: bool = True,
+) -> Path:
+    """Write an overlay video.
+
+    Args:
+        videos: one video per camera of ``rig`` (the cameras to show, in order).
+        rig: those cameras.
+        data: the poses (``frame_index`` says which video frame each row belongs to).
+        output: the video to write (.mp4, .avi or .mkv).
+        frames: video frame range [start, stop) to render; default all rows of ``data``.
+        tile_width: width in pixels of each view tile.
+        show_3d: add the 3D panel.
+
+    Raises:
+        ValueError: the frame range holds no predicted frame.
+    """
+    fi = data.frame_index
+    a, b = (int(fi.min()), int(fi.max()) + 1) if frames is None else frames
+    rows = np.flatnonzero((fi >= a) & (fi < b))
+    if len(rows) == 0:
+        raise ValueError(
+            f"frames {a}:{b} hold no predictions; the poses cover frames {fi.min()}..{fi.max()}"
+        )
+    a, b = int(fi[rows].min()), int(fi[rows].max()) + 1
+    row_of = {int(fi[r]): int(r) for r in rows}
+    K = len(data.keypoints)
+    limbs = _limbs(data.skeleton, K)
+    C = len(rig)
+    tiles_h = [int(round(cam.height * tile_width / cam.width)) for cam in rig]
+    tile_h = max(tiles_h)
+    n_tiles = C + (1 if show_3d else 0)
+    cols = int(np.ceil(np.sqrt(n_tiles)))
+    nrows = int(np.ceil(n_tiles / cols))
+    W, H = cols * tile_width, nrows * tile_h
+    W += W % 2
+    H += H % 2
+    panel = Panel3D(data.poses[rows], (tile_width, tile_h), data.up) if show_3d else None
+    shapes = [(cam.height, cam.width) for cam in rig]
+    bar = tqdm(total=b - a, unit="frame", desc="render", disable=not progress or None, leave=False)
+    with (
+        bar,
+        VideoWriter(output, data.fps, (W, H)) as writer,
+        SyncReader(list(videos), a, b, 1, shapes) as reader,
+    ):
+        for fb in reader:
+            i = int(fb.frame_index[0])
+            r = row_of.get(i)
+            pose = data.poses[r] if r is not None else np.full((K, 3), np.nan)
+            conf = data.confidence[r] if r is not None else np.zeros(K)
+            canvas = np.zeros((H, W, 3), np.uint8)
+            uv_all = rig.project(pose.astype(np.float64))  # (C, K, 2)
+            for c, cam in enumerate(rig):
+                if fb.valid[0, c]:
+                    img = fb.images[c][0].copy()
+                    tile, s = _fit(img, tile_width)
+                    draw_skeleton_2d(tile, uv_all[c] * s + (s - 1) / 2, conf, limbs)
+                else:
+                    tile = np.full((tiles_h[c], tile_width, 3), 90, np.uint8)
+                    msg_at = (8, tiles_h[c] // 2)
+                    cv2.putText(tile, "frame missing", msg_at, FONT, 0.6, (230, 230, 230), 1)
+                label = f"{cam.name}  frame {i}"
+                cv2.putText(tile, label, (8, 20), FONT, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+                cv2.putText(tile, label, (8, 20), FONT, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+                if not np.isfinite(pose).any():
+                    cv2.putText(tile, "not found", (8, 44), FONT, 0.6, (0, 0, 255), 2, cv2.LINE_AA)
+                y, x = divmod(c, cols)
+                y0, x0 = y * tile_h, x * tile_width
+                canvas[y0 : y0 + tile.shape[0], x0 : x0 + tile_width] = tile
+            if panel is not None:
+                y, x = divmod(C, cols)
+                mean_c = float(np.mean(conf)) if K else 0.0
+                view = panel.draw(pose, conf, limbs, f"3D  mean confidence {mean_c:.2f}")
+                canvas[y * tile_h : (y + 1) * tile_h, x * tile_width : (x + 1) * tile_width] = view
+            writer.write(canvas)
+            bar.update(1)
+    return Path(output)
