@@ -64,7 +64,7 @@ def merged_labels(paths: list[Path]):
     parts = [read_labels_h5(p) for p in paths]
     sessions = {}
     for p, lab in zip(paths, parts):
-        for name, info in lab.sessions.items():
+        for info in lab.sessions.values():
             vids = {c: str((p.parent / v).resolve()) for c, v in info.videos.items()}
             sessions[f"{p.parent.name}"] = SessionInfo(info.calibration, vids, info.fps)
     return LabelSet(
@@ -180,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     base_cfg = config_from_dict({"model": model_over, "schedule": sched})
     log(
-        f"preset {args.preset}, {args.steps} steps x batch {args.batch_size}, device {args.device}, "
+        f"preset {args.preset}, {args.steps} steps x batch {args.batch_size}, "
+        f"device {args.device}, "
         f"{torch.get_num_threads()} thread(s); model {base_cfg.model}"
     )
     t0 = time.perf_counter()
@@ -265,7 +266,8 @@ def main(argv: list[str] | None = None) -> int:
         log("\nLABEL FRACTION: median JPE mm (voxel P1 / baseline)")
         for f, row in table.items():
             log(
-                f"  {int(f * 100):3d} %: voxel {row['voxel_P1'][0]:7.2f}   baseline {row['baseline'][0]:7.2f}"
+                f"  {int(f * 100):3d} %: voxel {row['voxel_P1'][0]:7.2f}   "
+                f"baseline {row['baseline'][0]:7.2f}"
             )
     _plots(out, results)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
