@@ -136,7 +136,7 @@ def classifier_response(dyn: pd.DataFrame, path: str | Path) -> None:
         t = first["time_s"].to_numpy()
         stim = first["stimulated_fraction"].to_numpy()
         ax.fill_between(
-            t, 0, 1, where=stim > 0.5, color="tab:orange", alpha=0.15, lw=0, label="stimulation"
+            t, 0, 1, where=stim > 0.5, color="0.75", alpha=0.5, lw=0, label="stimulation"
         )
         for target, d in g.groupby("evaluated_on", sort=False):
             m = d["mean_prediction"].to_numpy(dtype=float)
@@ -178,8 +178,8 @@ def top_variables(tc: pd.DataFrame, dyn: pd.DataFrame, path: str | Path, title: 
         ax.axvspan(
             float(t[stim > 0.5].min()) if (stim > 0.5).any() else 0.0,
             float(t[stim > 0.5].max()) if (stim > 0.5).any() else 0.0,
-            color="tab:orange",
-            alpha=0.15,
+            color="0.75",
+            alpha=0.5,
             lw=0,
             label="stimulation",
         )
