@@ -3,10 +3,78 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
 from freipose.cli._common import user_errors
+
+
+def detection_options(f: Any) -> Any:
+    """The options that say how to find the animal (shared with ``labels select``)."""
+    opts = [
+        click.option(
+            "--detector",
+            type=click.Path(exists=True, dir_okay=False, path_type=Path),
+            help="Box detector checkpoint (from `freipose train CONFIG --stage detector`).",
+        ),
+        click.option(
+            "--method",
+            type=click.Choice(["detector", "bgsub", "fixed"]),
+            help="How to find the animal [default: detector with --detector, fixed with "
+            "--fixed-boxes]; bgsub = background subtraction (static cameras, one animal).",
+        ),
+        click.option(
+            "--fixed-boxes",
+            type=click.Path(exists=True, dir_okay=False, path_type=Path),
+            help="TOML with a [boxes] table: camera = [x0, y0, x1, y1] (for --method fixed).",
+        ),
+        click.option(
+            "--min-views", type=int, default=2, show_default=True, help="Fewest agreeing views."
+        ),
+        click.option(
+            "--bg-samples",
+            type=int,
+            default=40,
+            show_default=True,
+            help="Frames for the bgsub background.",
+        ),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def detector_spec(
+    detector: Path | None,
+    method: str | None,
+    fixed_boxes: Path | None,
+    bg_samples: int,
+    min_views: int,
+) -> Any:
+    from freipose.predict.network import DetectorSpec
+
+    if method is None:
+        if detector is not None and fixed_boxes is not None:
+            raise ValueError("give either --detector or --fixed-boxes, not both")
+        method = "fixed" if fixed_boxes is not None else "detector"
+    return DetectorSpec(method, detector, fixed_boxes, bg_samples, min_views)
+
+
+def echo_result(res: Any) -> None:
+    if res.skipped:
+        click.echo(f"{res.path}: complete, skipped (use --overwrite to redo it)")
+        return
+    fps = res.frames / res.seconds if res.seconds > 0 else float("nan")
+    counts = ", ".join(f"{v} {k}" for k, v in res.status_counts.items() if v)
+    click.echo(
+        f"{res.path}: {counts} ({res.frames} frames in {res.seconds:.1f} s, {fps:.1f} frames/s)"
+    )
+    for cam, i in res.missing.items():
+        click.echo(
+            f"  warning: camera {cam}: frames from {i} on could not be decoded (truncated video?)",
+            err=True,
+        )
 
 
 @click.command()
@@ -29,25 +97,9 @@ from freipose.cli._common import user_errors
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     help="Calibration for every session [default: calibration.toml in each session folder].",
 )
-@click.option(
-    "--detector",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="Box detector checkpoint (from `freipose train CONFIG --stage detector`).",
-)
-@click.option(
-    "--method",
-    type=click.Choice(["detector", "bgsub", "fixed"]),
-    help="How to find the animal [default: detector with --detector, fixed with --fixed-boxes].",
-)
-@click.option(
-    "--fixed-boxes",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="TOML with a [boxes] table: camera = [x0, y0, x1, y1] (for --method fixed).",
-)
+@detection_options
 @click.option("--frames", help="Frame range START:STOP (Python slice, e.g. 0:1000) [default: all].")
-@click.option(
-    "--batch", type=int, default=8, show_default=True, help="Time steps per network batch."
-)
+@click.option("--batch", type=int, default=8, show_default=True, help="Time steps per batch.")
 @click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N or auto.")
 @click.option(
     "--refine/--no-refine",
@@ -65,10 +117,6 @@ from freipose.cli._common import user_errors
     help="Expected skeleton (name or TOML); fail early if the model predicts other keypoints.",
 )
 @click.option("--overwrite", is_flag=True, help="Redo outputs that exist and are complete.")
-@click.option("--min-views", type=int, default=2, show_default=True, help="Fewest agreeing views.")
-@click.option(
-    "--bg-samples", type=int, default=40, show_default=True, help="Frames for bgsub's background."
-)
 @click.pass_context
 def predict(
     ctx: click.Context,
@@ -79,6 +127,8 @@ def predict(
     detector: Path | None,
     method: str | None,
     fixed_boxes: Path | None,
+    min_views: int,
+    bg_samples: int,
     frames: str | None,
     batch: int,
     device: str,
@@ -86,8 +136,6 @@ def predict(
     shard: str | None,
     skeleton: str | None,
     overwrite: bool,
-    min_views: int,
-    bg_samples: int,
 ) -> None:
     """Predict 3D poses from synchronized videos of one or more sessions.
 
@@ -108,73 +156,29 @@ def predict(
       freipose merge poses/
     """
     with user_errors():
-        from freipose.predict.network import (
-            DetectorSpec,
-            NetworkEstimator,
-            check_keypoints,
-            load_model,
-            make_box_source,
-            resolve_device,
-        )
-        from freipose.predict.run import output_path, parse_shard, predict_session
-        from freipose.predict.session import discover_sessions, parse_frames
-        from freipose.predict.writer import is_complete
+        from freipose.predict.network import predict_sessions
+        from freipose.predict.run import parse_shard
+        from freipose.predict.session import discover_sessions
         from freipose.skeleton import load_skeleton
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         if batch < 1:
             raise ValueError(f"--batch must be at least 1, got {batch}")
         shard_t = parse_shard(shard)
-        if method is None:
-            if detector is not None and fixed_boxes is not None:
-                raise ValueError("give either --detector or --fixed-boxes, not both")
-            method = "fixed" if fixed_boxes is not None else "detector"
-        spec = DetectorSpec(method, detector, fixed_boxes, bg_samples, min_views)
-        dev = resolve_device(device)
-        # -- everything is checked before any work starts --
+        spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
         found = discover_sessions(sessions, calibration)
-        ranges = {s.name: parse_frames(frames, s.num_frames) for s in found}
-        net, config, skel, sha = load_model(model, dev)
-        check_keypoints(skel, load_skeleton(skeleton) if skeleton else None, model)
-        shared_source = None
-        if spec.method == "detector":
-            shared_source = make_box_source(spec, found[0], ranges[found[0].name], dev)
-        elif spec.method == "fixed":
-            for s in found:  # every camera of every session must have a box
-                shared_source = make_box_source(spec, s, ranges[s.name], dev)
-        provenance = {
-            "model_sha256": sha,
-            "model_file": model.name,
-            "refine": refine,
-            **spec.describe(),
-        }
-        for s in found:
-            out = output_path(outdir, s.name, shard_t)
-            if out.exists() and is_complete(out) and not overwrite:
-                click.echo(f"{out}: complete, skipped (use --overwrite to redo it)")
-                continue
-            source = shared_source or make_box_source(spec, s, ranges[s.name], dev)
-            est = NetworkEstimator(net, config, skel, source, refine, provenance, min_views)
-            res = predict_session(
-                s,
-                est,
-                outdir,
-                frames=ranges[s.name],
-                batch_size=batch,
-                shard=shard_t,
-                overwrite=overwrite,
-                skeleton=skel,
-                progress=not quiet,
-            )
-            fps = res.frames / res.seconds if res.seconds > 0 else float("nan")
-            counts = ", ".join(f"{v} {k}" for k, v in res.status_counts.items() if v)
-            click.echo(
-                f"{res.path}: {counts} ({res.frames} frames in {res.seconds:.1f} s, "
-                f"{fps:.1f} frames/s)"
-            )
-            for cam, i in res.missing.items():
-                click.echo(
-                    f"  warning: camera {cam}: frames from {i} on could not be decoded "
-                    f"(truncated video?)",
-                    err=True,
-                )
+        predict_sessions(
+            found,
+            model,
+            spec,
+            outdir,
+            frames=frames,
+            batch_size=batch,
+            device=device,
+            refine=refine,
+            shard=shard_t,
+            overwrite=overwrite,
+            expected_skeleton=load_skeleton(skeleton) if skeleton else None,
+            progress=not quiet,
+            report=echo_result,
+        )

@@ -212,3 +212,67 @@ def make_box_source(
     finally:
         for s in sources.values():
             s.close()
+
+
+def predict_sessions(
+    sessions: Sequence[Session],
+    model_path: str | Path,
+    spec: DetectorSpec,
+    outdir: str | Path,
+    *,
+    frames: str | None = None,
+    batch_size: int = 8,
+    device: str = "auto",
+    refine: bool = True,
+    shard: tuple[int, int] | None = None,
+    overwrite: bool = False,
+    expected_skeleton: Skeleton | None = None,
+    progress: bool = True,
+    report: Any = None,
+) -> list[Any]:
+    """Predict validated sessions with a checkpoint (what ``freipose predict`` runs).
+
+    Everything that can fail early is checked before the first frame: frame ranges, the
+    model and its keypoints, the detector checkpoint or fixed boxes. Complete outputs are
+    skipped unless ``overwrite``. ``report(result)`` is called after each session.
+
+    Returns:
+        One :class:`~freipose.predict.run.PredictResult` per session.
+    """
+    from freipose.predict.run import PredictResult, output_path, predict_session
+    from freipose.predict.session import parse_frames
+    from freipose.predict.writer import is_complete
+
+    dev = resolve_device(device)
+    ranges = {s.name: parse_frames(frames, s.num_frames) for s in sessions}
+    net, config, skel, sha = load_model(model_path, dev)
+    check_keypoints(skel, expected_skeleton, model_path)
+    shared = None
+    if spec.method == "detector":
+        shared = make_box_source(spec, sessions[0], ranges[sessions[0].name], dev)
+    elif spec.method == "fixed":
+        for s in sessions:  # every camera of every session must have a box
+            shared = make_box_source(spec, s, ranges[s.name], dev)
+    provenance = {
+        "model_sha256": sha,
+        "model_file": Path(model_path).name,
+        "refine": refine,
+        **spec.describe(),
+    }
+    results = []
+    for s in sessions:
+        out = output_path(outdir, s.name, shard)
+        if out.exists() and is_complete(out) and not overwrite:
+            log.info("%s exists and is complete; skipping (use --overwrite to redo it)", out)
+            res = PredictResult(path=out, skipped=True)
+        else:
+            source = shared or make_box_source(spec, s, ranges[s.name], dev)
+            est = NetworkEstimator(net, config, skel, source, refine, provenance, spec.min_views)
+            res = predict_session(
+                s, est, outdir, frames=ranges[s.name], batch_size=batch_size, shard=shard,
+                overwrite=overwrite, skeleton=skel, progress=progress,
+            )  # fmt: skip
+        if report is not None:
+            report(res)
+        results.append(res)
+    return results
