@@ -192,3 +192,25 @@ def test_train_and_eval_commands(tmp_path):
     bad.write_text('[model]\npreset = "nope"\n')
     r = runner.invoke(cli, ["train", str(bad)])
     assert r.exit_code != 0 and "model.preset" in r.output
+
+
+def test_detector_stage_without_detector_module(tmp_path, monkeypatch):
+    import sys
+
+    from freipose.cli.main import cli
+
+    monkeypatch.setitem(sys.modules, "freipose.detect.train", None)  # import fails
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text('[model]\npreset = "tiny"\n')
+    r = CliRunner().invoke(cli, ["train", str(cfg), "--stage", "detector"])
+    assert r.exit_code != 0 and "detector training is not available" in r.output
+
+
+@pytest.mark.gpu
+def test_tiny_training_on_gpu_with_autocast(tmp_path):
+    src = toy_samples(4)
+    cfg = _cfg(steps=4, amp=True)
+    path = train_pose(cfg, tmp_path, src, toy_skeleton(), src, device="cuda", progress=False)
+    model, _, _ = load_checkpoint(path, "cuda")
+    pred = predict_dataset(model, src)
+    assert np.isfinite(pred["P1"]).all()
