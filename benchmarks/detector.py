@@ -38,6 +38,7 @@ def main() -> None:
     ap.add_argument("--batch-size", type=int, default=8)
     ap.add_argument("--input-size", type=int, default=192)
     ap.add_argument("--width", type=float, default=0.5)
+    ap.add_argument("--train-crop", type=int, default=128)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--resume", action="store_true", help="continue an interrupted run")
     args = ap.parse_args()
@@ -57,8 +58,10 @@ def main() -> None:
     eval_cfg = SceneConfig(frames=args.eval_frames, seed=23, n_cameras=args.eval_cameras)
     generate_session(work / "train_session", train_cfg, progress=False)
     generate_session(work / "eval_session", eval_cfg, progress=False)
-    print(f"sessions rendered in {time.perf_counter() - t0:.0f} s: train seed 11 with "
-          f"{args.train_cameras} cameras, eval seed 23 with {args.eval_cameras} cameras")  # fmt: skip
+    print(
+        f"sessions rendered in {time.perf_counter() - t0:.0f} s: train seed 11 with "
+        f"{args.train_cameras} cameras, eval seed 23 with {args.eval_cameras} cameras"
+    )
 
     config = {
         "data": {
@@ -71,6 +74,7 @@ def main() -> None:
             "steps": args.steps,
             "batch_size": args.batch_size,
             "max_eval_instants": args.eval_frames,
+            "train_crop": args.train_crop,
         },
     }
     ckpt = train_detector(config, work / "train.toml", work / "run", args.resume, args.device)

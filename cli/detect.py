@@ -79,7 +79,9 @@ def detect(
     Every camera's candidate boxes are combined into a robust 3D centre; each view gets
     the box that agrees with it (or a replacement box where the detector missed), and a
     crop box from a cube of --cube-size mm around the centre. Writes per frame and camera
-    the boxes, scores, crop boxes, the 3D centre and how many views agreed.
+    the boxes, scores, crop boxes, the 3D centre and how many views agreed. An
+    interrupted run leaves .OUTPUT.progress.npz next to the output; running the same
+    command again continues from there.
 
     \b
     Example:
@@ -100,8 +102,13 @@ def detect(
         source, method_name, desc = make_source(
             rig, sources, rng, model, method, fixed_boxes, device, bg_samples
         )
-        data = detect_session(rig, sources, rng, source, cfg, batch_size, method_name, desc)
+        # Partial results survive an interruption; rerunning the command continues.
+        progress = output.with_name(f".{output.name}.progress.npz")
+        data = detect_session(
+            rig, sources, rng, source, cfg, batch_size, method_name, desc, progress_file=progress
+        )
         write_boxes_h5(data, output)
+        progress.unlink(missing_ok=True)
         n = len(data)
         found = int((data.n_agree > 0).sum())
         click.echo(

@@ -59,42 +59,46 @@ def augment(
     input_size: int,
     cfg: AugmentConfig,
     rng: np.random.Generator,
+    out_size: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A random view of ``image`` (h, w, 3) as a square (S, S, 3) input and its box.
+    """A random view of ``image`` (h, w, 3) as a square (O, O, 3) input and its box.
 
     Args:
         image: BGR uint8, at roughly the network scale (longest side about ``input_size``).
         box: (4,) the animal's box in ``image`` pixels, or NaN (no animal in the image).
-        input_size: S.
+        input_size: S, the side the whole frame is letterboxed into at zoom 1.
         cfg: augmentation strengths.
         rng: random generator.
+        out_size: O, the side of the output (default S); a smaller O gives random crops at
+            the network's scale (cheaper training of the fully convolutional network).
 
     Returns:
-        ``(input_image (S, S, 3) uint8, box (4,))`` with the box clipped to the input, NaN
+        ``(input_image (O, O, 3) uint8, box (4,))`` with the box clipped to the output, NaN
         when there is no animal.
     """
     h, w = image.shape[:2]
     base = input_size / max(w, h)
+    size = int(out_size or input_size)
     z = float(np.exp(rng.uniform(np.log(cfg.scale[0]), np.log(cfg.scale[1]))))
     s = base * z
     # Translation: random, but keep the box centre inside the input (random crops).
-    tx = rng.uniform(min(0.0, input_size - w * s), max(0.0, input_size - w * s))
-    ty = rng.uniform(min(0.0, input_size - h * s), max(0.0, input_size - h * s))
+    tx = rng.uniform(min(0.0, size - w * s), max(0.0, size - w * s))
+    ty = rng.uniform(min(0.0, size - h * s), max(0.0, size - h * s))
     has_box = bool(np.isfinite(box).all())
     if has_box:
         cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
-        m = 0.05 * input_size
-        lo_x, hi_x = m - (cx + 0.5) * s, input_size - m - (cx + 0.5) * s
-        lo_y, hi_y = m - (cy + 0.5) * s, input_size - m - (cy + 0.5) * s
+        m = 0.15 * size
+        lo_x, hi_x = m - (cx + 0.5) * s, size - m - (cx + 0.5) * s
+        lo_y, hi_y = m - (cy + 0.5) * s, size - m - (cy + 0.5) * s
         if not lo_x <= tx <= hi_x:
             tx = rng.uniform(lo_x, hi_x)
         if not lo_y <= ty <= hi_y:
             ty = rng.uniform(lo_y, hi_y)
     A = np.array([[s, 0.0, 0.5 * s - 0.5 + tx], [0.0, s, 0.5 * s - 0.5 + ty], [0.0, 0.0, 1.0]])
     if rng.random() < cfg.hflip:
-        A = np.array([[-1.0, 0, input_size - 1], [0, 1, 0], [0, 0, 1]]) @ A
+        A = np.array([[-1.0, 0, size - 1], [0, 1, 0], [0, 0, 1]]) @ A
     if rng.random() < cfg.vflip:
-        A = np.array([[1.0, 0, 0], [0, -1, input_size - 1], [0, 0, 1]]) @ A
+        A = np.array([[1.0, 0, 0], [0, -1, size - 1], [0, 0, 1]]) @ A
     fill = (
         tuple(int(v) for v in rng.integers(0, 256, 3))
         if rng.random() < cfg.random_fill
@@ -103,14 +107,14 @@ def augment(
     out = cv2.warpAffine(
         image,
         A[:2],
-        (input_size, input_size),
+        (size, size),
         flags=cv2.INTER_LINEAR if z > 0.8 else cv2.INTER_AREA,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=fill,
     )
     out = _photometric(out, cfg, rng)
     if has_box:
-        b = clip_boxes(transform_boxes(box, A), (input_size, input_size))
+        b = clip_boxes(transform_boxes(box, A), (size, size))
     else:
         b = np.full(4, np.nan)
     return out, b

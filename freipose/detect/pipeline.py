@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -12,6 +14,7 @@ from tqdm import tqdm
 from freipose.detect.base import BoxSource
 from freipose.detect.multiview import ConsistencyConfig, detect_multiview_batch
 from freipose.geometry import CameraRig
+from freipose.io.atomic import atomic_path
 from freipose.io.boxes import BoxesData
 from freipose.io.calibration import load_calibration
 from freipose.io.video import FrameSource, find_camera_videos
@@ -130,35 +133,59 @@ def detect_session(
     batch_size: int = 8,
     method: str = "",
     source_desc: str = "",
+    progress_file: Path | None = None,
+    save_every: int = 500,
 ) -> BoxesData:
-    """Consistent boxes for ``frames`` of a session (frames are read in order)."""
+    """Consistent boxes for ``frames`` of a session (frames are read in order).
+
+    With ``progress_file``, the results so far are saved there (atomically, every
+    ``save_every`` frames); a later call with the same session, frames and settings
+    continues from it. The caller removes it once the output is written.
+    """
     cfg = config or ConsistencyConfig()
     t, c = len(frames), len(rig)
-    boxes = np.full((t, c, 4), np.nan)
-    scores = np.full((t, c), np.nan, np.float32)
-    agree = np.zeros((t, c), bool)
-    n_agree = np.zeros(t, np.int16)
-    center = np.full((t, 3), np.nan)
-    crops = np.full((t, c, 4), np.nan)
-    bar = tqdm(total=t, desc="detect", unit="frame", disable=None)
-    for b0 in range(0, t, batch_size):
+    arrays = {
+        "boxes": np.full((t, c, 4), np.nan),
+        "scores": np.full((t, c), np.nan, np.float32),
+        "agree": np.zeros((t, c), bool),
+        "n_agree": np.zeros(t, np.int16),
+        "center": np.full((t, 3), np.nan),
+        "crop_boxes": np.full((t, c, 4), np.nan),
+    }
+    signature = json.dumps(
+        {
+            "cameras": list(rig.names),
+            "frames": [frames.start, frames.stop, frames.step],
+            "method": method,
+            "source": source_desc,
+            "config": dataclasses.asdict(cfg),
+        },
+        sort_keys=True,
+    )
+    done = 0
+    if progress_file is not None and Path(progress_file).is_file():
+        done = _load_progress(Path(progress_file), signature, arrays)
+        if done:
+            log.info("resuming from %s: %d of %d frames done", progress_file, done, t)
+    bar = tqdm(total=t, initial=done, desc="detect", unit="frame", disable=None)
+    last_save = done
+    for b0 in range(done, t, batch_size):
         idx = list(frames[b0 : b0 + batch_size])
         batch = [[sources[n].read(i) for n in rig.names] for i in idx]
         for k, det in enumerate(detect_multiview_batch(batch, rig, source, cfg)):
             j = b0 + k
-            boxes[j], scores[j], agree[j] = det.boxes, det.scores, det.agree
-            n_agree[j], center[j], crops[j] = det.n_agree, det.center, det.crop_boxes
+            arrays["boxes"][j], arrays["scores"][j] = det.boxes, det.scores
+            arrays["agree"][j], arrays["n_agree"][j] = det.agree, det.n_agree
+            arrays["center"][j], arrays["crop_boxes"][j] = det.center, det.crop_boxes
         bar.update(len(idx))
+        n_done = b0 + len(idx)
+        if progress_file is not None and n_done - last_save >= save_every and n_done < t:
+            _save_progress(Path(progress_file), signature, arrays, n_done)
+            last_save = n_done
     bar.close()
     return BoxesData(
         frame_index=np.asarray(frames, dtype=np.int64),
         cameras=tuple(rig.names),
-        boxes=boxes,
-        scores=scores,
-        agree=agree,
-        n_agree=n_agree,
-        center=center,
-        crop_boxes=crops,
         cube_size=cfg.cube_size,
         method=method,
         calibration=rig,
@@ -167,4 +194,27 @@ def detect_session(
             "min_views": cfg.min_views,
             "image_size": np.array([cam.size for cam in rig], dtype=np.int64),
         },
+        **arrays,
     )
+
+
+def _save_progress(path: Path, signature: str, arrays: dict, done: int) -> None:
+    with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, signature=np.array(signature), done=np.array(done), **arrays)
+
+
+def _load_progress(path: Path, signature: str, arrays: dict) -> int:
+    """Fill ``arrays`` from a progress file made with the same settings; frames done (or 0)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["signature"]) != signature:
+                log.warning("%s was made with other settings; starting over", path)
+                return 0
+            for k, a in arrays.items():
+                if z[k].shape != a.shape:
+                    return 0
+                a[...] = z[k]
+            return int(z["done"])
+    except (OSError, KeyError, ValueError) as exc:
+        log.warning("cannot read %s (%s); starting over", path, exc)
+        return 0

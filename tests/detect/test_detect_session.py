@@ -131,3 +131,39 @@ def test_boxes_h5_round_trip_and_errors(tmp_path, circle_rig):
         read_boxes_h5(tmp_path / "x.h5")
     with pytest.raises(FileNotFoundError):
         read_boxes_h5(tmp_path / "missing.h5")
+
+
+def test_detect_session_resumes_after_interruption(session_dir, tmp_path):
+    from freipose.detect import FixedBoxes
+    from freipose.detect.pipeline import detect_session, open_session
+
+    rig, sources, n = open_session(session_dir)
+    boxes = {c: [39.5 + i, 29.5, 119.5 + i, 89.5] for i, c in enumerate(rig.names)}
+
+    class Flaky(FixedBoxes):
+        calls = 0
+
+        def propose(self, images, cameras):
+            Flaky.calls += 1
+            if Flaky.calls == 4:
+                raise RuntimeError("interrupted")
+            return super().propose(images, cameras)
+
+    progress = tmp_path / "p.npz"
+    with pytest.raises(RuntimeError, match="interrupted"):
+        detect_session(rig, sources, range(n), Flaky(boxes), batch_size=2, method="fixed",
+                       progress_file=progress, save_every=4)  # fmt: skip
+    assert progress.is_file()
+    with np.load(progress) as z:
+        assert int(z["done"]) == 4  # saved after 4 frames; the 4th batch (frames 6, 7) failed
+    calls_before = Flaky.calls
+    resumed = detect_session(rig, sources, range(n), Flaky(boxes), batch_size=2, method="fixed",
+                             progress_file=progress, save_every=4)  # fmt: skip
+    assert Flaky.calls - calls_before == (n - 4) // 2  # only the remaining batches ran
+    full = detect_session(rig, sources, range(n), FixedBoxes(boxes), batch_size=2, method="fixed")
+    np.testing.assert_allclose(resumed.center, full.center)
+    np.testing.assert_array_equal(resumed.n_agree, full.n_agree)
+    # Other settings do not reuse the progress file.
+    other = detect_session(rig, sources, range(n), FixedBoxes(boxes), batch_size=2,
+                           method="other", progress_file=progress)  # fmt: skip
+    np.testing.assert_allclose(other.center, full.center)
