@@ -1,0 +1,134 @@
+"""FreiPose calibration vs aniposelib on the same rendered ChArUco rig videos.
+
+Renders board videos with ``freipose.synth.board`` (known cameras with lens distortion and
+sensor noise), calibrates them with ``freipose calib``'s pipeline and with aniposelib's
+``CameraGroup.calibrate_videos``, and prints camera-centre, rotation and focal-length errors
+(after a similarity alignment of the camera centres) and wall time, with ratios.
+
+    pip install -e .[bench]     # aniposelib
+    python benchmarks/calibration.py --cameras 4 --frames 150 --width 640
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def align_similarity(A: np.ndarray, B: np.ndarray):
+    ma, mb = A.mean(0), B.mean(0)
+    H = (A - ma).T @ (B - mb)
+    U, S, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    s = float((S * np.diag(D)).sum() / ((A - ma) ** 2).sum())
+    return s, R, mb - s * R @ ma
+
+
+def errors(centers, rotations, focals, truth):
+    """Max centre error (mm), max rotation error (deg), max |focal error| (%)."""
+    s, R, t = align_similarity(centers, truth.centers)
+    c = s * centers @ R.T + t
+    dc = np.linalg.norm(c - truth.centers, axis=1)
+    rot = []
+    for Re, g in zip(rotations, truth):
+        M = Re @ R.T @ g.R.T
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(M) - 1) / 2, -1, 1))))
+    fe = [100 * abs(f / g.K[0, 0] - 1) for f, g in zip(focals, truth)]
+    return float(dc.max()), float(np.max(rot)), float(np.max(fe))
+
+
+def run_freipose(videos, board, out: Path, jobs: int):
+    from freipose.calibration.pipeline import CalibrationOptions, calibrate
+
+    t0 = time.perf_counter()
+    res = calibrate(
+        videos, board, out / "freipose.toml", CalibrationOptions(jobs=jobs, progress=False)
+    )
+    wall = time.perf_counter() - t0
+    rig = res.rig
+    focals = [0.5 * (c.K[0, 0] + c.K[1, 1]) for c in rig]
+    return rig.centers, [c.R for c in rig], focals, wall
+
+
+def run_aniposelib(videos, board):
+    from aniposelib.boards import CharucoBoard
+    from aniposelib.cameras import CameraGroup
+
+    bits = int(board.dictionary.split("_")[1][0])
+    size = int(board.dictionary.split("_")[2])
+    ab = CharucoBoard(
+        board.squares_x,
+        board.squares_y,
+        square_length=board.square_size,
+        marker_length=board.marker_size,
+        marker_bits=bits,
+        dict_size=size,
+    )
+    names = [Path(v).stem for v in videos]
+    cg = CameraGroup.from_names(names, fisheye=False)
+    t0 = time.perf_counter()
+    cg.calibrate_videos([[str(v)] for v in videos], ab, verbose=False)
+    wall = time.perf_counter() - t0
+    centers, rots, focals = [], [], []
+    for cam in cg.cameras:
+        R = cam.get_rotation()
+        R = R if np.shape(R) == (3, 3) else __import__("cv2").Rodrigues(np.asarray(R))[0]
+        t = np.asarray(cam.get_translation()).reshape(3)
+        centers.append(-R.T @ t)
+        rots.append(R)
+        K = cam.get_camera_matrix()
+        focals.append(0.5 * (K[0, 0] + K[1, 1]))
+    return np.array(centers), rots, focals, wall
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cameras", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--jobs", type=int, default=1, help="FreiPose detection processes")
+    ap.add_argument("--workdir", type=Path, default=None, help="keep the videos here")
+    args = ap.parse_args()
+
+    from freipose.synth.board import default_board, write_board_videos
+    from freipose.synth.rig import default_rig
+
+    tmp = tempfile.TemporaryDirectory()
+    work = args.workdir or Path(tmp.name)
+    rig = default_rig(args.cameras, size=(args.width, args.width * 3 // 4))
+    board = default_board()
+    t0 = time.perf_counter()
+    vids, _ = write_board_videos(work, rig, board, args.frames, seed=1, progress=False)
+    print(
+        f"rendered {args.cameras} x {args.frames} frames {args.width}x{args.width * 3 // 4} "
+        f"in {time.perf_counter() - t0:.1f} s; board {board}"
+    )
+    videos = [vids[n] for n in rig.names]
+    rows = {}
+    c, r, f, w = run_freipose(videos, board, work, args.jobs)
+    rows["freipose"] = (*errors(np.asarray(c), r, f, rig), w)
+    try:
+        c, r, f, w = run_aniposelib(videos, board)
+        rows["aniposelib"] = (*errors(c, r, f, rig), w)
+    except ImportError:
+        print("aniposelib is not installed (pip install -e .[bench]); FreiPose only")
+    hdr = f"{'method':<12}{'centre err mm':>15}{'rot err deg':>13}{'focal err %':>13}{'wall s':>9}"
+    print(hdr)
+    for k, v in rows.items():
+        print(f"{k:<12}{v[0]:>15.3f}{v[1]:>13.3f}{v[2]:>13.3f}{v[3]:>9.1f}")
+    if "aniposelib" in rows:
+        a, b = rows["aniposelib"], rows["freipose"]
+        print(
+            f"{'ratio a/f':<12}{a[0] / b[0]:>15.2f}{a[1] / b[1]:>13.2f}{a[2] / b[2]:>13.2f}"
+            f"{a[3] / b[3]:>9.2f}   (aniposelib / FreiPose; > 1 means FreiPose is better)"
+        )
+    print("errors are the maximum over cameras after a similarity alignment of the centres")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,46 @@
+"""End to end on rendered board videos (the project's one board renderer, freipose.synth)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from calib_helpers import rig_errors
+
+
+@pytest.mark.slow
+def test_rendered_charuco_rig(tmp_path):
+    synth_board = pytest.importorskip("freipose.synth.board")
+    from freipose.calibration.boards import load_board
+    from freipose.calibration.pipeline import CalibrationOptions, calibrate
+    from freipose.io.calibration import load_calibration
+    from freipose.synth.rig import default_rig
+
+    # small and short to stay fast: 4 distorted 320x240 cameras, 60 frames, sensor noise.
+    # (At 640x480 and 150 frames the errors are < 0.5 mm, < 0.22 deg, < 0.1 %; see
+    # benchmarks/calibration.py.)
+    rig = default_rig(4, size=(320, 240))
+    board = synth_board.default_board()
+    vids, _ = synth_board.write_board_videos(tmp_path, rig, board, 60, seed=1, progress=False)
+    truth = load_calibration(tmp_path / "calibration.toml")
+    assert load_board(tmp_path / "board.toml") == board
+    res = calibrate(
+        [vids[n] for n in rig.names],
+        board,
+        tmp_path / "out.toml",
+        CalibrationOptions(jobs=1, progress=False),
+    )
+    dc, rot, fe = rig_errors(res.rig, truth)
+    assert dc.max() < 8.0, dc
+    assert rot.max() < 2.0, rot
+    assert np.abs(fe).max() < 2.0, fe
+    assert all(s.rms < 0.5 for s in res.stats)
+    # with the board on the floor in frame 0 the floor is z = 0 and the cameras are above it
+    res0 = calibrate(
+        [vids[n] for n in rig.names],
+        board,
+        tmp_path / "out.toml",
+        CalibrationOptions(jobs=1, progress=False, origin_frame=0),
+    )
+    assert (res0.rig.centers[:, 2] > 100).all()
+    z_true = truth.centers[:, 2]
+    assert np.abs(res0.rig.centers[:, 2] - z_true).max() < 15.0
