@@ -131,3 +131,69 @@ def test_board_files_roundtrip(tmp_path, name):
     b = load_board("examples/board.toml")
     save_board(b, tmp_path / name)
     assert load_board(tmp_path / name) == b
+
+
+def test_stereo_cli_with_report(tmp_path, shared_data):
+    import json
+
+    from freipose.io.calibration import load_calibration
+
+    src = shared_data / "opencv-bouguet-stereo" / "images"
+    dirs = []
+    for side in ("left", "right"):
+        d = tmp_path / side
+        d.mkdir()
+        for f in sorted(src.glob(f"{side}0[1-8].jpg")):
+            (d / f.name).symlink_to(f)
+        dirs.append(str(d))
+    out = tmp_path / "stereo.toml"
+    code, text = _run(
+        [
+            "calib",
+            *dirs,
+            "--board-type",
+            "chessboard",
+            "--inner-corners-x",
+            "9",
+            "--inner-corners-y",
+            "6",
+            "--square-size",
+            "30",
+            "-o",
+            str(out),
+            "--report",
+            str(tmp_path / "rep"),
+            "-j",
+            "1",
+        ]
+    )
+    assert code == 0, text
+    rig = load_calibration(out)
+    assert rig.names == ["left", "right"] and "camera left" in rig.metadata["world"]
+    assert abs(np.linalg.norm(rig["right"].center) - 99.8) < 1.5
+    summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
+    assert summary["cameras"]["left"]["frames_with_detections"] == 8
+    assert summary["cameras"]["right"]["reprojection_rms_px"] < 0.5
+    assert summary["camera_graph"]["shared_frames"] == {"left-right": 8}
+    for name in ("errors_left.png", "coverage_right.png", "rig_3d.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 1000
+    # intrinsics only, reusing the cached detections
+    code, text = _run(
+        [
+            "calib",
+            *dirs,
+            "--board-type",
+            "chessboard",
+            "--inner-corners-x",
+            "9",
+            "--inner-corners-y",
+            "6",
+            "--square-size",
+            "30",
+            "-o",
+            str(out),
+            "--intrinsics-only",
+        ]
+    )
+    assert code == 0, text
+    assert "intrinsics only" in load_calibration(out).metadata["world"]
