@@ -71,7 +71,7 @@ def board_poses(
     The first ``floor_frames`` (default: 5 % of the frames, at least 1) show the board lying
     flat on the floor, printed side up, centred, its x axis along world x (for
     ``--origin-frame``); then it rises and moves smoothly, tilting, its printed side turning
-    round to face every camera in turn (azimuth sweeps twice around) at 30-75 degrees
+    round to face every camera in turn (one turn per 150 frames) at 30-75 degrees
     elevation.
     """
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
@@ -96,7 +96,8 @@ def board_poses(
     cz = rng.uniform(*height_range, n_keys)
     elev = np.deg2rad(rng.uniform(30, 75, n_keys))
     az0 = rng.uniform(0, 2 * np.pi)
-    az = az0 + 4 * np.pi * keys_t + rng.normal(0, 0.3, n_keys)
+    turns = max(0.5, n_move / 150.0)  # about 2.4 degrees of azimuth per frame
+    az = az0 + 2 * np.pi * turns * keys_t + rng.normal(0, 0.3, n_keys)
     roll = rng.uniform(-0.6, 0.6, n_keys)
     tt = (np.arange(n_move) + 0.5) / n_move
     from scipy.interpolate import CubicSpline
@@ -107,18 +108,31 @@ def board_poses(
     pc = np.stack([smooth(cx), smooth(cy), smooth(cz)], -1)
     el, a, rl = smooth(elev), smooth(az), smooth(roll)
     corners = np.array([[0, 0, 0], [bw, 0, 0], [bw, bh, 0], [0, bh, 0.0]])
+    centre = np.array([bw / 2, bh / 2, 0.0])
+    n_lift = min(n_move // 3, 25)  # pick the board up from the floor smoothly
+    from scipy.spatial.transform import Rotation, Slerp
+
     for i in range(n_move):
-        nrm = np.array(
-            [math.cos(el[i]) * math.cos(a[i]), math.cos(el[i]) * math.sin(a[i]), math.sin(el[i])]
-        )
+        nrm = np.array([math.cos(el[i]) * math.cos(a[i]), math.cos(el[i]) * math.sin(a[i]),
+                        math.sin(el[i])])  # fmt: skip
         R = _rotation(nrm, rl[i])
-        t = pc[i] - R @ np.array([bw / 2, bh / 2, 0])
+        c = pc[i]
+        if i < n_lift:
+            w = float(_smooth01((i + 1) / (n_lift + 1)))
+            R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([R_floor, R])))([w]).as_matrix()[0]
+            c = (1 - w) * np.array([0.0, 0.0, 0.5]) + w * c
+        t = c - R @ centre
         low = (corners @ R.T + t)[:, 2].min()
-        if low < 5.0:
-            t[2] += 5.0 - low
+        if low < 0.5:
+            t[2] += 0.5 - low
         poses[nf + i, :3, :3] = R
         poses[nf + i, :3, 3] = t
     return poses
+
+
+def _smooth01(x: float) -> float:
+    x = min(max(x, 0.0), 1.0)
+    return x * x * (3 - 2 * x)
 
 
 def _board_box(cam, corners_world: np.ndarray) -> tuple[int, int, int, int]:
@@ -141,18 +155,19 @@ def _board_box(cam, corners_world: np.ndarray) -> tuple[int, int, int, int]:
 
 
 class _BoardTexture:
-    def __init__(self, board: Any, px_per_mm: float, margin_mm: float):
-        import cv2  # noqa: F401  (used by callers through remap)
+    """The board's reflectance texture (computed once; shared by all cameras)."""
 
+    def __init__(self, board: Any, px_per_mm: float, margin_mm: float | None):
         tex = np.asarray(board.texture(px_per_mm), dtype=np.float32) / 255.0
         self.refl = (INK + (PAPER - INK) * tex).astype(np.float32)
         self.size_mm = tuple(float(v) for v in board.size_mm)
         self.ppm = float(px_per_mm)
-        self.margin = float(margin_mm)
+        sq = float(min(self.size_mm)) / 4
+        self.margin = float(0.5 * sq if margin_mm is None else margin_mm)
 
 
 def _render_board_on(
-    renderer, tex: _BoardTexture, pose: np.ndarray, samples: int = 3
+    renderer, tex: _BoardTexture, pose: np.ndarray, samples: int = 3, blur_sigma: float = 0.45
 ) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
     """Linear BGR of the board region composited over the background, or None if not seen."""
     import cv2
@@ -169,12 +184,16 @@ def _render_board_on(
     x0, y0, x1, y1 = _board_box(cam, corners)
     if x1 <= x0 or y1 <= y0:
         return None
-    rays = renderer.rays_soa[:, y0:y1, x0:x1].astype(np.float64)
     if renderer._ray_du is None:
         renderer._ray_du = np.gradient(renderer.rays_soa, axis=2).astype(np.float32)
         renderer._ray_dv = np.gradient(renderer.rays_soa, axis=1).astype(np.float32)
-    du = renderer._ray_du[:, y0:y1, x0:x1]
-    dv = renderer._ray_dv[:, y0:y1, x0:x1]
+    Rt = R.T.astype(np.float32)
+
+    def to_board(field: np.ndarray) -> list[np.ndarray]:
+        f = field[:, y0:y1, x0:x1]
+        return [Rt[i, 0] * f[0] + Rt[i, 1] * f[1] + Rt[i, 2] * f[2] for i in range(3)]
+
+    d0, du, dv = (to_board(f) for f in (renderer.rays_soa, renderer._ray_du, renderer._ray_dv))
     o_b = R.T @ (renderer.origin - t)
     front = o_b[2] < 0  # the camera sees the printed side
     nrm = R[:, 2] * (1.0 if not front else -1.0)  # normal facing the camera
@@ -183,38 +202,28 @@ def _render_board_on(
     offs = (np.arange(samples) + 0.5) / samples - 0.5
     cover = np.zeros((y1 - y0, x1 - x0), np.float32)
     value = np.zeros((y1 - y0, x1 - x0), np.float32)
+    ox_, oy_, oz_ = (np.float32(v) for v in o_b)
     for oy in offs:
         for ox in offs:
-            d = rays + ox * du + oy * dv
-            db = np.einsum("ji,jhw->ihw", R, d)  # directions in the board frame
+            fx, fy = np.float32(ox), np.float32(oy)
+            dz = d0[2] + fx * du[2] + fy * dv[2]
             with np.errstate(divide="ignore", invalid="ignore"):
-                s = -o_b[2] / db[2]
-            bx = o_b[0] + s * db[0]
-            by = o_b[1] + s * db[1]
-            dist = s * np.linalg.norm(d, axis=0)
-            on = (
-                (s > 0)
-                & (bx >= -m)
-                & (bx <= bw + m)
-                & (by >= -m)
-                & (by <= bh + m)
-                & (dist < depth_bg)
-            )
+                s = -oz_ / dz
+            bx = ox_ + s * (d0[0] + fx * du[0] + fy * dv[0])
+            by = oy_ + s * (d0[1] + fx * du[1] + fy * dv[1])
+            on = (s > 0) & (s < depth_bg) & (bx >= -m) & (bx <= bw + m)
+            on &= (by >= -m) & (by <= bh + m)
             if front:
-                mx = (bx * tex.ppm - 0.5).astype(np.float32)
-                my = (by * tex.ppm - 0.5).astype(np.float32)
+                mx = bx * np.float32(tex.ppm) - np.float32(0.5)
+                my = by * np.float32(tex.ppm) - np.float32(0.5)
                 val = cv2.remap(
-                    tex.refl,
-                    mx,
-                    my,
-                    cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=PAPER,
-                )
+                    tex.refl, mx, my, cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=PAPER,
+                )  # fmt: skip
             else:
-                val = np.full(on.shape, BACK, np.float32)
+                val = np.float32(BACK)
             cover += on
-            value += np.where(on, val, 0)
+            value += np.where(on, val, np.float32(0))
     n = samples * samples
     cover /= n
     value /= n
@@ -222,7 +231,8 @@ def _render_board_on(
         return None
     shade = renderer.shade[y0:y1, x0:x1] * lam
     out = value[..., None] * shade + (1 - cover)[..., None] * renderer.bg_lin[y0:y1, x0:x1]
-    out = cv2.GaussianBlur(out, (0, 0), 0.45)
+    if blur_sigma > 0:
+        out = cv2.GaussianBlur(out, (0, 0), blur_sigma)
     return (x0, y0, x1, y1), out
 
 
@@ -243,18 +253,14 @@ def render_board_frames(
     background (walls occlude the board), per-camera exposure, optional mild optics blur and
     sensor noise. Deterministic in ``seed``.
     """
-    cams = {}
-    for ci, cam in enumerate(rig):
-        frames = []
-        for img in _iter_board_camera(
-            cam, ci, board, poses, seed, noise, blur, arena, px_per_mm, margin_mm
-        ):
-            frames.append(img)
-        cams[cam.name] = frames
-    return cams
+    tex = _BoardTexture(board, px_per_mm or _auto_ppm(rig), margin_mm)
+    return {
+        cam.name: list(_iter_board_camera(cam, ci, tex, poses, seed, noise, blur, arena))
+        for ci, cam in enumerate(rig)
+    }
 
 
-def _iter_board_camera(cam, ci, board, poses, seed, noise, blur, arena, px_per_mm, margin_mm):
+def _iter_board_camera(cam, ci, tex, poses, seed, noise, blur, arena):
     from dataclasses import replace
 
     from freipose.synth.render import CameraLook, CameraRenderer
@@ -268,13 +274,9 @@ def _iter_board_camera(cam, ci, board, poses, seed, noise, blur, arena, px_per_m
     if not noise:
         look = replace(look, noise_sigma=0.0)
     r = CameraRenderer(cam, arena, cam_seed, look)
-    sq = float(min(board.size_mm)) / 4
-    tex = _BoardTexture(
-        board, px_per_mm or _auto_ppm(board), sq * 0.5 if margin_mm is None else margin_mm
-    )
     rng = np.random.default_rng(cam_seed + 1)
     for pose in poses:
-        res = _render_board_on(r, tex, pose)
+        res = _render_board_on(r, tex, pose, blur_sigma=0.45 if blur else 0.0)
         if res is None:
             yield r.finish(None, None, rng)
         else:
@@ -282,9 +284,10 @@ def _iter_board_camera(cam, ci, board, poses, seed, noise, blur, arena, px_per_m
             yield r.finish(lin, box, rng)
 
 
-def _auto_ppm(board: Any) -> float:
-    w, h = board.size_mm
-    return float(min(6.0, 2400.0 / max(w, h)))
+def _auto_ppm(rig: CameraRig) -> float:
+    """Texture resolution: about 3 texels per image pixel for a board 60 cm from a camera."""
+    f = float(max(max(c.K[0, 0], c.K[1, 1]) for c in rig))
+    return float(np.clip(3.0 * f / 600.0, 1.0, 8.0))
 
 
 def _board_camera_job(args: tuple) -> str:
@@ -293,9 +296,9 @@ def _board_camera_job(args: tuple) -> str:
     from freipose.io.video import VideoWriter
 
     cv2.setNumThreads(1)
-    cam, ci, board, poses, seed, fps, path, arena = args
+    cam, ci, tex, poses, seed, fps, path, arena = args
     with VideoWriter(path, fps, cam.size) as w:
-        for img in _iter_board_camera(cam, ci, board, poses, seed, True, True, arena, None, None):
+        for img in _iter_board_camera(cam, ci, tex, poses, seed, True, True, arena):
             w.write(img)
     return str(path)
 
@@ -334,9 +337,8 @@ def write_board_videos(
     with atomic_path(out / "board_poses.npy") as tmp, open(tmp, "wb") as fh:
         np.save(fh, poses)
     videos = {cam.name: out / f"{cam.name}{fmt}" for cam in rig}
-    jobs = [
-        (cam, ci, board, poses, seed, fps, videos[cam.name], arena) for ci, cam in enumerate(rig)
-    ]
+    tex = _BoardTexture(board, _auto_ppm(rig), None)
+    jobs = [(cam, ci, tex, poses, seed, fps, videos[cam.name], arena) for ci, cam in enumerate(rig)]
     _run_jobs(_board_camera_job, jobs, min(workers, len(jobs)), "render board", progress)
     return videos, poses
 

@@ -430,6 +430,8 @@ def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) 
         pts.append(nxt)
     for i in range(N_TAIL):
         c, ax, r = segment_ellipsoid(pts[i], pts[i + 1], D.tail_radius[i], overlap=0.9)
+        low = c[:, 2] - np.sqrt(np.sum((ax[:, 2, :] * r) ** 2, axis=-1))
+        c[:, 2] += np.maximum(0.0, 0.2 - low)  # a sloping segment's rounded end stays up
         put(f"tail_{i}", c, ax, r)
 
     kp = np.stack(

@@ -7,7 +7,8 @@ Session folder written by :func:`generate_session` (formats in ``docs/formats.md
     OUTDIR/labels.h5           exact 3D keypoints, projections and visibility, every frame
     OUTDIR/events.csv          stimulation windows ``start_s,end_s`` (only when stimulated)
     OUTDIR/scene.toml          every parameter and the seed (reproduces the scene bit for bit)
-    OUTDIR/calibration/        with ``calibration_video``: board videos, board.toml, calibration.toml
+    OUTDIR/calibration/        with ``calibration_video``: board videos, board.toml,
+                               calibration.toml (true rig), board_poses.npy
 
 The same config (same seed) gives the same frames and labels; a run that was interrupted
 resumes (videos already written completely are kept) when started again with the same config.
@@ -145,7 +146,7 @@ class SceneConfig:
         if unknown:
             raise ValueError(f"{source}: unknown scene settings {unknown}; known: {sorted(known)}")
         kw = dict(d)
-        if "stimulation" in kw:
+        if isinstance(kw.get("stimulation"), Mapping):
             kw["stimulation"] = StimulationConfig.from_dict(dict(kw["stimulation"]))
         for k in ("size", "arena_size"):
             if k in kw:
@@ -365,7 +366,10 @@ def generate_session(
         jobs.append((cam, scene.arena, scene.geometry, palette, videos[cam.name], config.fps,
                      _seed(config.seed, 100 + i), _seed(config.seed, 200 + i),
                      config.motion_blur, config.noise))  # fmt: skip
-    n_workers = min(len(jobs), workers if workers is not None else min(2, os.cpu_count() or 1))
+    if workers is None:  # processes only pay off for big jobs (each one starts Python anew)
+        pixels = config.frames * len(rig) * config.size[0] * config.size[1]
+        workers = min(2, os.cpu_count() or 1) if pixels > 2e7 else 1
+    n_workers = min(len(jobs), workers)
     _run_jobs(_render_camera, jobs, n_workers, "render cameras", progress)
 
     cal_videos: dict[str, Path] = {}
