@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from click.testing import CliRunner
 from predict_helpers import small_rig
 
+from freipose.cli.main import cli
 from freipose.io.poses import PoseData, read_poses_h5, write_poses_h5
 from freipose.predict import export
 from freipose.skeleton import load_skeleton
@@ -120,6 +122,25 @@ def test_nwb_round_trip(poses_file, tmp_path):
         assert pe.source_software == "FreiPose"
         assert nwb.identifier == "rec7"
         assert len(pe.skeleton.edges[:]) > 0
+
+
+def test_export_command_writes_into_a_folder(poses_file, tmp_path):
+    args = [
+        "export",
+        str(poses_file),
+        str(poses_file),
+        "--format",
+        "dlc3d",
+        "-o",
+        str(tmp_path / "o"),
+    ]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "o" / "rec7.dlc3d.csv").is_file()
+    res = CliRunner().invoke(
+        cli, ["export", str(poses_file), "--format", "nwb", "--start-time", "x"]
+    )
+    assert res.exit_code != 0 and "ISO time" in res.output
 
 
 def test_default_names_and_unknown_format(poses_file):

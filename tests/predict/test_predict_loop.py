@@ -10,8 +10,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from predict_helpers import KEYPOINTS, BlobEstimator, h5_equal, make_session
 
+from freipose.cli.main import cli
 from freipose.io.calibration import load_calibration, save_calibration
 from freipose.io.poses import read_poses_h5
 from freipose.io.video import MediaError
@@ -155,6 +157,15 @@ def test_shard_and_merge_equals_single_run(session_dir, reference, tmp_path):
     (merged,) = merge_outputs([tmp_path], tmp_path / "merged")
     assert merged.name == "rec1.poses.h5"
     assert h5_equal(merged, reference) == []
+    # the command: merge the folder's shards and remove them
+    res = CliRunner().invoke(
+        cli, ["merge", str(tmp_path), "-o", str(tmp_path / "m2"), "--remove-shards"]
+    )
+    assert res.exit_code == 0, res.output
+    assert h5_equal(tmp_path / "m2" / "rec1.poses.h5", reference) == []
+    assert not any(p.exists() for p in parts)
+    res = CliRunner().invoke(cli, ["merge", str(tmp_path)])
+    assert res.exit_code != 0 and "no shard files" in res.output
 
 
 def test_shards_from_different_runs_refuse_to_merge(session_dir, tmp_path):
