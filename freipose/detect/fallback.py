@@ -36,9 +36,12 @@ class BackgroundSubtractor:
         threshold: grey-level difference that counts as foreground; None picks it per
             image from the difference statistics (median + 6 x MAD, at least 20).
         min_area: smallest blob, as a fraction of the image area.
-        margin: added on every side of a blob's box, as a fraction of its longer side.
+        margin: added on every side of a blob's box, as a fraction of its longer side
+            (0.1, like the ground-truth boxes the detector is trained on).
         work_size: longest side of the images the subtraction runs on (speed).
         top_k: most candidates per image.
+        merge_gap: blobs closer than this fraction of a group's longer side are merged
+            (an animal whose colours partly match the background falls apart otherwise).
     """
 
     def __init__(
@@ -46,9 +49,10 @@ class BackgroundSubtractor:
         backgrounds: Mapping[str, np.ndarray],
         threshold: float | None = None,
         min_area: float = 2e-4,
-        margin: float = 0.0,
+        margin: float = 0.1,
         work_size: int = 480,
         top_k: int = 3,
+        merge_gap: float = 0.25,
     ):
         if not backgrounds:
             raise ValueError("BackgroundSubtractor needs at least one camera's background")
@@ -57,6 +61,7 @@ class BackgroundSubtractor:
         self.margin = margin
         self.work_size = work_size
         self.top_k = top_k
+        self.merge_gap = merge_gap
         self._bg = {name: self._prep(np.asarray(b))[0] for name, b in backgrounds.items()}
         self._full_size = {name: (b.shape[1], b.shape[0]) for name, b in backgrounds.items()}
 
@@ -137,21 +142,57 @@ class BackgroundSubtractor:
         out = []
         for img, cam in zip(images, cameras):
             mask, s = self.foreground(img, cam)
-            n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-            area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
-            keep = np.flatnonzero(area >= self.min_area * mask.size)
-            keep = keep[np.argsort(-area[keep])][: self.top_k]
-            if len(keep) == 0:
+            _, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            boxes, areas = _merged_blobs(stats[1:], self.min_area * mask.size, self.merge_gap)
+            boxes, areas = boxes[: self.top_k], areas[: self.top_k]
+            if len(boxes) == 0:
                 out.append(Candidates.empty())
                 continue
-            st = stats[1:][keep].astype(np.float64)
-            x0, y0 = st[:, 0] - 0.5, st[:, 1] - 0.5  # pixel edges at work scale
-            x1, y1 = x0 + st[:, 2], y0 + st[:, 3]
-            pad = self.margin * np.maximum(st[:, 2], st[:, 3])
-            b = np.stack([x0 - pad, y0 - pad, x1 + pad, y1 + pad], -1)
+            side = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+            b = boxes + (self.margin * side)[:, None] * np.array([-1, -1, 1, 1])
             b = (b + 0.5) / s - 0.5  # back to full-image pixels
-            out.append(Candidates(b, area[keep] / area[keep].max()))
+            out.append(Candidates(b, areas / areas.max()))
         return out
+
+
+def _merged_blobs(stats: np.ndarray, min_area: float, gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Group connected components into animals, largest first.
+
+    An animal whose colours partly match the background falls apart into several blobs;
+    starting from the largest blob, every blob (of at least a quarter of ``min_area``)
+    whose box comes within ``gap`` x the group's longer side is merged in. Groups smaller
+    than ``min_area`` are dropped. Returns boxes (n, 4) (pixel edges) and areas (n,).
+    """
+    st = np.asarray(stats, dtype=np.float64).reshape(-1, 5)
+    area = st[:, cv2.CC_STAT_AREA]
+    ok = area >= min_area / 4
+    st, area = st[ok], area[ok]
+    box = np.stack([st[:, 0] - 0.5, st[:, 1] - 0.5, st[:, 0] + st[:, 2] - 0.5,
+                    st[:, 1] + st[:, 3] - 0.5], -1)  # fmt: skip
+    free = np.ones(len(st), bool)
+    groups, g_area = [], []
+    for i in np.argsort(-area):
+        if not free[i]:
+            continue
+        free[i] = False
+        gb, ga = box[i].copy(), area[i]
+        grew = True
+        while grew:
+            grew = False
+            pad = gap * max(gb[2] - gb[0], gb[3] - gb[1])
+            near = free & (box[:, 0] <= gb[2] + pad) & (box[:, 2] >= gb[0] - pad)
+            near &= (box[:, 1] <= gb[3] + pad) & (box[:, 3] >= gb[1] - pad)
+            if near.any():
+                gb = np.concatenate([np.minimum(gb[:2], box[near, :2].min(0)),
+                                     np.maximum(gb[2:], box[near, 2:].max(0))])  # fmt: skip
+                ga += area[near].sum()
+                free &= ~near
+                grew = True
+        if ga >= min_area:
+            groups.append(gb)
+            g_area.append(ga)
+    order = np.argsort(-np.asarray(g_area)) if g_area else np.zeros(0, int)
+    return np.asarray(groups).reshape(-1, 4)[order], np.asarray(g_area, dtype=np.float64)[order]
 
 
 class FixedBoxes:

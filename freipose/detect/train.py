@@ -242,9 +242,9 @@ class AugmentedBatches(torch.utils.data.Dataset):
     def __getitem__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         rng = np.random.default_rng((self.cfg.seed, int(k)))
         i = int(rng.integers(len(self.views.images)))
-        return augment(
-            self.views.images[i], self.views.boxes[i], self.cfg.input_size, self.aug, rng
-        )
+        v = self.views
+        crop = self.cfg.train_crop or self.cfg.input_size
+        return augment(v.images[i], v.boxes[i], self.cfg.input_size, self.aug, rng, crop)
 
 
 def _collate(batch: list[tuple[np.ndarray, np.ndarray]]) -> tuple[torch.Tensor, np.ndarray]:

@@ -147,3 +147,18 @@ def test_backbone_weights_from_a_local_file(tmp_path):
     torch.save({"x": torch.zeros(3)}, tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="none of its"):
         load_backbone_weights(dst, tmp_path / "bad.pt")
+
+
+def test_train_crop_gives_smaller_training_inputs_at_the_same_scale():
+    from freipose.detect.train import AugmentedBatches
+
+    views = _ellipse_views(4, np.random.default_rng(2))
+    cfg = DetectorTrainConfig(input_size=96, train_crop=64, scale=(1.0, 1.0))
+    img, box = AugmentedBatches(views, cfg, 8)[3]
+    assert img.shape == (64, 64, 3) and np.isfinite(box).all()
+    i = int(np.random.default_rng((cfg.seed, 3)).integers(4))
+    # Zoom 1 at input_size 96: the 64-px-wide cached image is scaled by 1.5.
+    w0 = views.boxes[i, 2] - views.boxes[i, 0]
+    assert box[2] - box[0] == pytest.approx(1.5 * w0, abs=0.6) or box[0] <= 0 or box[2] >= 63
+    with pytest.raises(ValueError, match="train_crop"):
+        DetectorTrainConfig(input_size=96, train_crop=128)
