@@ -6,6 +6,7 @@ import datetime
 from pathlib import Path
 
 import click
+
 from freipose.cli._common import user_errors
 
 
