@@ -261,6 +261,22 @@ def gaussian_heatmaps(uv: torch.Tensor, size: int, stride: float, sigma: float) 
     return torch.exp(-(dy[..., :, None] + dx[..., None, :]) / (2 * sigma**2))
 
 
+def gaussian_log_prior(uv: torch.Tensor, size: int, stride: float, sigma: float) -> torch.Tensor:
+    """Log of an unnormalised Gaussian, ``-d^2 / (2 sigma^2)`` (map px), around crop points.
+
+    Args:
+        uv: (N, K, 2) crop pixels; ``size`` map side, ``stride`` crop px per map px.
+
+    Returns:
+        (N, K, size, size) float32.
+    """
+    f = (uv.float() + 0.5) / stride - 0.5
+    ax = torch.arange(size, device=uv.device, dtype=torch.float32)
+    dx = (ax[None, None, :] - f[..., 0:1]) ** 2
+    dy = (ax[None, None, :] - f[..., 1:2]) ** 2
+    return -(dy[..., :, None] + dx[..., None, :]) / (2 * sigma**2)
+
+
 class Head2D(nn.Module):
     """Per-view 2D keypoint head: maps at half the feature stride and confidences.
 

@@ -36,6 +36,7 @@ from freipose.nn.layers import (
     UNet3D,
     decode_head,
     gaussian_heatmaps,
+    gaussian_log_prior,
     softargmax3d,
     triangulate_with_prior,
     unproject,
@@ -147,7 +148,13 @@ class VoxelPoseNet(nn.Module):
         uv0, _ = project_affine(P0d, K, R, t, dist)  # (B, V, K, 2)
         heat = gaussian_heatmaps(uv0.reshape(B * V, -1, 2), h, cfg.stride, cfg.heatmap_sigma)
         maps, conf_logits = self.refine(feats, skip, heat)
-        uv, conf = decode_head(maps, conf_logits, cfg.stride / 2)
+        # Residual formulation: the map logits are added to a Gaussian log-prior around the
+        # projected P0, so an untrained head returns P0's projection (P1 = P0) and training
+        # learns corrections.
+        prior = gaussian_log_prior(
+            uv0.reshape(B * V, -1, 2), maps.shape[-1], cfg.stride / 2, 2.0 * cfg.heatmap_sigma
+        )
+        uv, conf = decode_head(maps.float() + prior, conf_logits, cfg.stride / 2)
         uv = uv.reshape(B, V, -1, 2)
         conf = conf.reshape(B, V, -1) * mask[:, :, None]
         P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0d)
