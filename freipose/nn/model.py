@@ -5,7 +5,9 @@ unprojection of the features into a voxel cube around the animal (mean over the 
 see each voxel), a 3D U-Net giving one score volume per keypoint, soft-argmax to the
 initial pose P0 (world mm), then a 2D refinement head per view (features + Gaussian heat
 maps of the projected P0) whose refined 2D points and per-view confidences are fused into
-P1 by confidence-weighted triangulation.
+P1 by confidence-weighted triangulation. The refinement is residual: its map logits are
+added to a Gaussian log-prior around the projected P0, so an untrained head reproduces P0
+and training learns corrections; with a single view the fusion keeps P0's depth (eq. 5.3).
 
 :class:`BaselineNet`: the comparison the paper makes (DeepLabCut + triangulation): the same
 encoder and 2D head predict every view's keypoints independently; 3D comes from robust
