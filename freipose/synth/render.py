@@ -272,36 +272,42 @@ class CameraRenderer:
         x0, y0 = boxes[valid, 0].min(), boxes[valid, 1].min()
         x1, y1 = boxes[valid, 2].max(), boxes[valid, 3].max()
         bh, bw = y1 - y0, x1 - x0
-        zbuf = self.bg_depth[y0:y1, x0:x1].copy()
-        pid = np.full((bh, bw), -1, np.int64)
-        loc = np.zeros((3, bh, bw), np.float32)
-        o = self.origin
-        for i in np.flatnonzero(valid[: len(C)]):
-            bx0, by0, bx1, by1 = boxes[i]
-            Dx, Dy, Dz = self.rays_soa[:, by0:by1, bx0:bx1]
-            M = A[i] / Rr[i]  # world direction -> unit-sphere frame: d @ M
-            op = (o - C[i]) @ M
-            dpx = M[0, 0] * Dx + M[1, 0] * Dy + M[2, 0] * Dz
-            dpy = M[0, 1] * Dx + M[1, 1] * Dy + M[2, 1] * Dz
-            dpz = M[0, 2] * Dx + M[1, 2] * Dy + M[2, 2] * Dz
-            a = dpx * dpx + dpy * dpy + dpz * dpz
-            b = dpx * op[0] + dpy * op[1] + dpz * op[2]
-            disc = b * b - a * (float(op @ op) - 1.0)
-            hit = disc > 0
-            if not hit.any():
-                continue
-            s = (-b - np.sqrt(np.maximum(disc, 0))) / a
-            sub = (slice(by0 - y0, by1 - y0), slice(bx0 - x0, bx1 - x0))
-            zb = zbuf[sub]
-            upd = hit & (s > 0) & (s < zb)
-            if not upd.any():
-                continue
-            su = s[upd]
-            zb[upd] = su
-            pid[sub][upd] = i
-            loc[0][sub][upd] = op[0] + su * dpx[upd]
-            loc[1][sub][upd] = op[1] + su * dpy[upd]
-            loc[2][sub][upd] = op[2] + su * dpz[upd]
+        # all (pixel, part) candidate pairs at once: pixels inside each part's box
+        parts = np.flatnonzero(valid[: len(C)])
+        pb = boxes[parts]
+        counts = (pb[:, 2] - pb[:, 0]) * (pb[:, 3] - pb[:, 1])
+        pix = np.concatenate([
+            ((np.arange(b[1], b[3]) - y0)[:, None] * bw + (np.arange(b[0], b[2]) - x0)[None, :]).ravel()
+            for b in pb
+        ])  # fmt: skip
+        M = (A[parts] / Rr[parts][:, None, :]).astype(np.float32)  # d @ M: unit-sphere frame
+        op = np.einsum("ni,nij->nj", self.origin - C[parts], A[parts] / Rr[parts][:, None, :])
+        cc = (np.sum(op * op, axis=1) - 1.0).astype(np.float32)
+        Mr = np.repeat(M.reshape(-1, 9), counts, axis=0)
+        opr = np.repeat(op.astype(np.float32), counts, axis=0)
+        ray = self.rays_soa[:, y0:y1, x0:x1].reshape(3, -1)
+        Dx, Dy, Dz = ray[0][pix], ray[1][pix], ray[2][pix]
+        dpx = Mr[:, 0] * Dx + Mr[:, 3] * Dy + Mr[:, 6] * Dz
+        dpy = Mr[:, 1] * Dx + Mr[:, 4] * Dy + Mr[:, 7] * Dz
+        dpz = Mr[:, 2] * Dx + Mr[:, 5] * Dy + Mr[:, 8] * Dz
+        a = dpx * dpx + dpy * dpy + dpz * dpz
+        b = dpx * opr[:, 0] + dpy * opr[:, 1] + dpz * opr[:, 2]
+        disc = b * b - a * np.repeat(cc, counts)
+        hit = disc > 0
+        sdist = (-b - np.sqrt(np.maximum(disc, 0))) / a
+        sdist = np.where(hit & (sdist > 0), sdist, np.float32(np.inf))
+        zflat = self.bg_depth[y0:y1, x0:x1].ravel().copy()
+        np.minimum.at(zflat, pix, sdist)
+        win = np.flatnonzero(np.isfinite(sdist) & (sdist <= zflat[pix]))
+        pid_flat = np.full(bh * bw, -1, np.int64)
+        pid_flat[pix[win]] = np.repeat(parts, counts)[win]
+        loc = np.zeros((3, bh * bw), np.float32)
+        sw = sdist[win]
+        loc[0, pix[win]] = opr[win, 0] + sw * dpx[win]
+        loc[1, pix[win]] = opr[win, 1] + sw * dpy[win]
+        loc[2, pix[win]] = opr[win, 2] + sw * dpz[win]
+        pid = pid_flat.reshape(bh, bw)
+        loc = loc.reshape(3, bh, bw)
         # shading
         rgb = np.zeros((bh, bw, 3), np.float32)
         m = pid >= 0
@@ -329,7 +335,7 @@ class CameraRenderer:
             furry = np.isin(
                 mats, (MAT["haunch"], MAT["chest"], MAT["head"], MAT["snout"], MAT["limb"])
             )
-            alb = alb * (1.0 + np.where(furry, 0.2, 0.06) * fur)[:, None]
+            alb = alb * (1.0 + np.where(furry, 0.13, 0.05) * fur)[:, None]
             ndl = np.clip(n @ LIGHT, 0, 1)
             ndv = np.clip(-(n * d).sum(1), 0, 1)
             lum = 0.32 + 0.68 * ndl + 0.12 * ndv
