@@ -31,6 +31,7 @@ and its ``[detector]`` table the training (every key optional; defaults below)::
     max_images = 4000       # most training views kept in memory (evenly subsampled)
     max_eval_instants = 200 # most time instants evaluated
     backbone_weights = ""   # optional local file with backbone weights to start from
+                            # (a state dict or a detector checkpoint; relative to the TOML)
     checkpoint_every = 500
     log_every = 100
     seed = 0
@@ -395,6 +396,9 @@ def train_detector(
     """
     cfg = DetectorTrainConfig.from_dict(config.get("detector"))
     train_paths, eval_paths, root = _data_paths(config, Path(config_path))
+    if cfg.backbone_weights and not Path(cfg.backbone_weights).is_absolute():
+        bw = Path(config_path).resolve().parent / cfg.backbone_weights
+        cfg = dataclasses.replace(cfg, backbone_weights=str(bw))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     dev = resolve_device(device)

@@ -162,3 +162,18 @@ def test_train_crop_gives_smaller_training_inputs_at_the_same_scale():
     assert box[2] - box[0] == pytest.approx(1.5 * w0, abs=0.6) or box[0] <= 0 or box[2] >= 63
     with pytest.raises(ValueError, match="train_crop"):
         DetectorTrainConfig(input_size=96, train_crop=128)
+
+
+@pytest.mark.gpu
+def test_training_and_inference_on_gpu(tmp_path):
+    views = _ellipse_views(8, np.random.default_rng(3))
+    cfg = DetectorTrainConfig(input_size=64, width=0.25, neck_channels=16, steps=5, batch_size=4,
+                              warmup_steps=1)  # fmt: skip
+    net, losses = fit(views, cfg, "cuda", progress=False)
+    assert len(losses) == 5 and np.isfinite(losses).all()
+    imgs = [cv2.resize(v, (128, 96)) for v in views.images[:4]]
+    gpu = Detector(net, "cuda").propose(imgs)
+    cpu = Detector(net.to("cpu"), "cpu").propose(imgs)
+    for a, b in zip(gpu, cpu):
+        assert len(a) == len(b)
+        np.testing.assert_allclose(a.boxes, b.boxes, atol=1e-2)
