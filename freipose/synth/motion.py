@@ -311,15 +311,13 @@ def simulate_motion(
 
         # -- wall avoidance: steer to the centre when the look-ahead point leaves the safe zone
         fx, fy = math.cos(yaw), math.sin(yaw)
-        look = 110.0 * s + 0.6 * v
+        look = 80.0 * s + 0.5 * v
         lx, ly = x + fx * look, y + fy * look
-        w_goal = w_noise
+        vt, wt = v_target, w_noise
         if abs(lx) > half[0] - margin or abs(ly) > half[1] - margin:
             to_c = math.atan2(-y, -x)
-            w_goal = 3.5 * _wrap(to_c - yaw)
-            if behaviour == "walk":
-                v_target = min(v_target, 90.0 * s)
-        vt, wt = v_target, w_goal
+            wt = 3.5 * _wrap(to_c - yaw)
+            vt = min(vt, 110.0 * s)
         if freeze and env[step] > 0:
             vt, wt = vt * (1 - env[step]), wt * (1 - env[step])
         if rear > 0.05 or rear_target > 0:

@@ -276,10 +276,9 @@ class CameraRenderer:
         parts = np.flatnonzero(valid[: len(C)])
         pb = boxes[parts]
         counts = (pb[:, 2] - pb[:, 0]) * (pb[:, 3] - pb[:, 1])
-        pix = np.concatenate([
-            ((np.arange(b[1], b[3]) - y0)[:, None] * bw + (np.arange(b[0], b[2]) - x0)[None, :]).ravel()
-            for b in pb
-        ])  # fmt: skip
+        rows = [(np.arange(b[1], b[3]) - y0)[:, None] * bw for b in pb]
+        cols = [(np.arange(b[0], b[2]) - x0)[None, :] for b in pb]
+        pix = np.concatenate([(r + c).ravel() for r, c in zip(rows, cols)] + [np.zeros(0, int)])
         M = (A[parts] / Rr[parts][:, None, :]).astype(np.float32)  # d @ M: unit-sphere frame
         op = np.einsum("ni,nij->nj", self.origin - C[parts], A[parts] / Rr[parts][:, None, :])
         cc = (np.sum(op * op, axis=1) - 1.0).astype(np.float32)

@@ -156,3 +156,16 @@ def test_rendered_animal_is_where_the_labels_are(session):
         x, y = int(np.clip(c[0], 8, 151)), int(np.clip(c[1], 8, 119))
         patch = frame[y - 8 : y + 8, x - 8 : x + 8]
         assert patch.std() > 8.0
+
+
+def test_animal_out_of_view_renders_the_arena():
+    body = RatBody()
+    geom = build_body(
+        body, simulate_motion(1, 50.0, np.random.default_rng(0), body, start=(0, 0, 0))
+    )
+    cam = Camera.look_at("c", (0, 0, 900), (280, 280, 0), (64, 48), 200.0, up=(0, 1, 0))
+    r = CameraRenderer(cam, ArenaConfig(), seed=0)
+    img = r.render(geom, 0, body.palette, np.random.default_rng(0))
+    assert img.shape == (48, 64, 3) and img.dtype == np.uint8
+    _, vis = keypoint_visibility(geom, CameraRig((cam,)), ArenaConfig())
+    assert not vis.any()
