@@ -169,3 +169,21 @@ def test_animal_out_of_view_renders_the_arena():
     assert img.shape == (48, 64, 3) and img.dtype == np.uint8
     _, vis = keypoint_visibility(geom, CameraRig((cam,)), ArenaConfig())
     assert not vis.any()
+
+
+def test_appearances_and_config_validation():
+    hooded, albino = RatBody(appearance="hooded").palette, RatBody(appearance="albino").palette
+    head, eye = 2, 5  # material indices of MATERIALS
+    assert hooded[head].max() < 0.2 and albino[head].min() > 0.7  # black hood vs white head
+    assert albino[eye, 0, 2] > 0.5 > albino[eye, 0, 0]  # red (BGR) albino eyes
+    rng = np.random.default_rng(0)
+    sizes = [RatBody.random(rng).scale for _ in range(50)]
+    assert 0.85 < min(sizes) < 0.95 and 1.05 < max(sizes) < 1.15
+    with pytest.raises(ValueError, match="appearance"):
+        RatBody(appearance="agouti")
+    for bad in (dict(size=(8, 8)), dict(frames=0), dict(fps=0), dict(video_format=".gif"),
+                dict(appearance="blue"), dict(n_cameras=0)):  # fmt: skip
+        with pytest.raises(ValueError):
+            SceneConfig(**bad)
+    with pytest.raises(ValueError, match="unknown scene settings"):
+        SceneConfig.from_dict({"frame": 3})
