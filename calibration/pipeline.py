@@ -226,6 +226,13 @@ def calibrate_detections(
             d.points, obj, d.size, opt.dist_model, camera=d.name, max_views=opt.max_views
         )
         intr[d.name] = res
+        if res.max_tilt_difference_deg < 10.0 or res.coverage < 0.1:
+            warnings.append(
+                f"camera {d.name}: intrinsics rest on {len(res.frames)} board views covering "
+                f"{100 * res.coverage:.0f} % of the image with tilts differing by at most "
+                f"{res.max_tilt_difference_deg:.0f} degrees; record more frames with the board "
+                f"tilted and moved over the whole image, or pass --fix-intrinsics"
+            )
         Ks.append(res.K)
         dists.append(res.dist)
         logger.info(

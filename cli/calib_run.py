@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+
 from freipose.cli._common import user_errors
 
 BOARD_OPTIONS = [
@@ -162,7 +163,6 @@ def run(
             detection_cache_dir,
         )
         from freipose.calibration.report import write_report
-
         from freipose.io.calibration import load_calibration, save_calibration
 
         if not inputs:
