@@ -47,11 +47,14 @@ def default_board(arena: ArenaConfig | None = None):
 
 
 def _rotation(normal: np.ndarray, roll: float) -> np.ndarray:
-    """Board rotation (columns x, y, z in world) whose printed side faces ``normal``."""
+    """Board rotation (columns x, y, z in world) whose printed side faces ``normal``.
+
+    Without roll, the board's x axis is horizontal (continuous in the normal's azimuth, so a
+    smoothly moving normal gives a smoothly moving board).
+    """
     z = -normal / np.linalg.norm(normal)
-    ref = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.95 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(ref, z)
-    x /= np.linalg.norm(x)
+    az = math.atan2(normal[1], normal[0])
+    x = np.array([-math.sin(az), math.cos(az), 0.0])
     y = np.cross(z, x)
     c, s = math.cos(roll), math.sin(roll)
     x, y = c * x + s * y, -s * x + c * y
@@ -71,7 +74,7 @@ def board_poses(
     The first ``floor_frames`` (default: 5 % of the frames, at least 1) show the board lying
     flat on the floor, printed side up, centred, its x axis along world x (for
     ``--origin-frame``); then it rises and moves smoothly, tilting, its printed side turning
-    round to face every camera in turn (one turn per 150 frames) at 30-75 degrees
+    round to face every camera in turn (at least 1.5 turns; one per 150 frames in long videos) at 30-75 degrees
     elevation.
     """
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
@@ -89,17 +92,19 @@ def board_poses(
     n_move = n_frames - nf
     if n_move <= 0:
         return poses
-    n_keys = max(4, n_move // 25 + 2)
+    n_lift = min(n_move // 3, 25)  # first pick the board up from the floor smoothly
+    n_wave = n_move - n_lift
+    n_keys = max(4, n_wave // 25 + 2)
     keys_t = np.linspace(0.0, 1.0, n_keys)
     cx = rng.uniform(-0.3, 0.3, n_keys) * half[0]
     cy = rng.uniform(-0.3, 0.3, n_keys) * half[1]
     cz = rng.uniform(*height_range, n_keys)
     elev = np.deg2rad(rng.uniform(30, 75, n_keys))
     az0 = rng.uniform(0, 2 * np.pi)
-    turns = max(0.5, n_move / 150.0)  # about 2.4 degrees of azimuth per frame
+    turns = max(1.5, n_wave / 150.0)  # every camera sees the front; >= 2.4 deg per frame
     az = az0 + 2 * np.pi * turns * keys_t + rng.normal(0, 0.3, n_keys)
     roll = rng.uniform(-0.6, 0.6, n_keys)
-    tt = (np.arange(n_move) + 0.5) / n_move
+    tt = np.concatenate([np.zeros(n_lift), (np.arange(n_wave) + 0.5) / n_wave])
     from scipy.interpolate import CubicSpline
 
     def smooth(v: np.ndarray) -> np.ndarray:
@@ -109,7 +114,6 @@ def board_poses(
     el, a, rl = smooth(elev), smooth(az), smooth(roll)
     corners = np.array([[0, 0, 0], [bw, 0, 0], [bw, bh, 0], [0, bh, 0.0]])
     centre = np.array([bw / 2, bh / 2, 0.0])
-    n_lift = min(n_move // 3, 25)  # pick the board up from the floor smoothly
     from scipy.spatial.transform import Rotation, Slerp
 
     for i in range(n_move):
@@ -119,7 +123,8 @@ def board_poses(
         c = pc[i]
         if i < n_lift:
             w = float(_smooth01((i + 1) / (n_lift + 1)))
-            R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([R_floor, R])))([w]).as_matrix()[0]
+            slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([R_floor, R])))
+            R = slerp([w]).as_matrix()[0]
             c = (1 - w) * np.array([0.0, 0.0, 0.5]) + w * c
         t = c - R @ centre
         low = (corners @ R.T + t)[:, 2].min()

@@ -11,7 +11,7 @@ from freipose.synth import board_poses, default_board, render_board_frames, writ
 
 
 def test_board_poses_are_rigid_and_start_on_the_floor():
-    poses = board_poses(60, (600, 600), 1, (350, 280))
+    poses = board_poses(150, (600, 600), 1, (350, 280))
     R = poses[:, :3, :3]
     np.testing.assert_allclose(
         R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-12
