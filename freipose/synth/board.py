@@ -74,8 +74,8 @@ def board_poses(
     The first ``floor_frames`` (default: 5 % of the frames, at least 1) show the board lying
     flat on the floor, printed side up, centred, its x axis along world x (for
     ``--origin-frame``); then it rises and moves smoothly, tilting, its printed side turning
-    round to face every camera in turn (at least 1.5 turns; one per 150 frames in long videos) at 30-75 degrees
-    elevation.
+    round to face every camera in turn (at least 1.5 turns; one per 150 frames in long
+    videos) at 30-75 degrees elevation.
     """
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     if n_frames < 1:
