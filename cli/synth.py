@@ -46,9 +46,10 @@ def _parse_size(text: str) -> tuple[int, int]:
     "stim",
     type=str,
     default=None,
-    help="Stimulation protocol as key=value pairs, e.g. 'body_part=Paw Front Right,"
-    "effect=oscillate,frequency_hz=10,duration_s=1,spacing_s=2,onset_s=1' "
-    "(effects: oscillate, lift, freeze); '' for the defaults. Writes events.csv.",
+    help="Stimulation protocol: comma-separated key=value pairs (body_part, effect, "
+    "frequency_hz, amplitude_mm, duration_s, spacing_s, onset_s, count), e.g. "
+    "'effect=lift,duration_s=2'; '' for the defaults (right front paw oscillating at "
+    "10 Hz, 1 s windows 2 s apart). Effects: oscillate, lift, freeze. Writes events.csv.",
 )
 @click.option(
     "--calibration-video",
