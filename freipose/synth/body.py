@@ -264,8 +264,8 @@ class _Dims:
         self.pivot = np.array([-50 * L, 0, 16 * G])
         self.haunch_c = np.array([-32 * L, 0, 40 * G])
         self.haunch_r = np.array([60 * L, 35 * G, 31 * G])
-        self.chest_c = np.array([28 * L, 0, 43 * G])
-        self.chest_r = np.array([46 * L, 28 * G, 27 * G])
+        self.chest_c = np.array([20 * L, 0, 43 * G])
+        self.chest_r = np.array([54 * L, 28 * G, 27 * G])
         self.bend = np.array([0.0, 0, 40 * G])
         self.neck = np.array([70 * L, 0, 50 * G])
         self.neck_r = np.array([17, 18, 17]) * G
