@@ -1,0 +1,52 @@
+"""``freipose demo``: the whole workflow on built-in synthetic data, with an HTML report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from freipose.cli._common import user_errors
+
+
+@click.command()
+@click.argument("outdir", required=False, default="freipose_demo", type=click.Path(path_type=Path))
+@click.option(
+    "--preset",
+    type=click.Choice(["small", "tiny"]),
+    default="small",
+    show_default=True,
+    help="small: the real workflow in under 15 minutes on a 2-core CPU; tiny: a few "
+    "minutes, meaningless numbers (a smoke test).",
+)
+@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@click.pass_context
+def demo(ctx: click.Context, outdir: Path, preset: str, device: str) -> None:
+    """Run the whole FreiPose workflow on synthetic data and write OUTDIR/report.html.
+
+    Renders a calibration recording and stimulated sessions of a rat filmed by 7 cameras,
+    calibrates the cameras and compares them with the true rig, imports labels, trains the
+    detector, the voxel network and the triangulation baseline, predicts every session,
+    evaluates against the truth, analyzes the stimulation effect and writes a report with
+    every step's figures. Each step runs the library code of the matching command
+    (examples/workflow.sh runs the commands themselves). Finished steps are recorded in
+    OUTDIR/.demo/; running the command again skips them and continues an interrupted step.
+
+    \b
+    Example:
+      freipose demo                      # -> freipose_demo/report.html
+      freipose demo demo_tiny --preset tiny
+    """
+    with user_errors():
+        from freipose.demo import run_demo
+
+        quiet = bool(ctx.obj and ctx.obj.get("quiet"))
+        report = run_demo(
+            outdir,
+            preset,
+            device=device,
+            say=(lambda m: None) if quiet else click.echo,
+            progress=None if not quiet else False,
+        )
+        if quiet:
+            click.echo(f"wrote {report}")

@@ -1,0 +1,134 @@
+"""``freipose demo --preset tiny`` end to end: every output exists and is valid; rerun skips."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from freipose.cli.main import cli
+from freipose.demo import PRESETS, STEPS, align_similarity, study_toml
+
+
+@pytest.fixture(scope="module")
+def tiny_demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "demo_out"
+    res = CliRunner().invoke(cli, ["demo", str(out), "--preset", "tiny"])
+    assert res.exit_code == 0, res.output + repr(res.exception)
+    return out, res.output
+
+
+@pytest.mark.slow
+def test_tiny_demo_outputs(tiny_demo):
+    from freipose.analysis.study import load_study
+    from freipose.io.calibration import load_calibration
+    from freipose.io.labels import read_labels_h5
+    from freipose.io.poses import read_poses_h5
+
+    out, output = tiny_demo
+    p = PRESETS["tiny"]
+    for i, step in enumerate(STEPS, start=1):
+        assert f"[{i}/{len(STEPS)}]" in output
+        marker = json.loads((out / ".demo" / f"{step}.done").read_text())
+        assert marker["preset"]["name"] == "tiny"
+    # 1 synth: sessions with 7 cameras, events, board videos
+    for s in p.sessions:
+        folder = out / "recordings" / s.name
+        assert len(list(folder.glob("cam*.mp4"))) == 7
+        assert (folder / "events.csv").read_text().startswith("start_s,end_s")
+    # 2 calibration: a valid file, finite and plausible errors against the truth
+    rig = load_calibration(out / "calibration" / "calibration.toml")
+    assert len(rig) == 7
+    comp = json.loads((out / "calibration" / "comparison.json").read_text())
+    for key in ("center_mm", "rotation_deg"):
+        v = np.asarray(comp[key])
+        assert v.shape == (7,) and np.isfinite(v).all()
+    assert max(comp["center_mm"]) < 30.0
+    assert max(comp["rotation_deg"]) < 5.0
+    assert np.abs(comp["focal_percent"]).max() < 5.0
+    assert "centre error" in output
+    # 3 labels
+    lab = read_labels_h5(out / "labels" / "train.h5")
+    assert len(lab) == p.label_instants
+    assert np.isfinite(lab.points3d).all(-1).mean() > 0.7
+    assert lab.rig_for(p.sessions[0].name).allclose(rig)
+    ev = read_labels_h5(out / "labels" / "eval.h5")
+    assert len(ev) == p.eval_instants and np.isfinite(ev.points3d).all()
+    # 4 training: detector, voxel network, baseline
+    for f in ("detector/detector.pt", "pose/model.pt", "baseline/model.pt", "pose/log.png"):
+        assert (out / "train" / f).is_file(), f
+    # 5 predict: readable poses for every session, covering every frame
+    for s in p.sessions:
+        data = read_poses_h5(out / "poses" / f"{s.name}.poses.h5")
+        assert data.poses.shape == (p.session_frames, 12, 3)
+        assert np.isfinite(data.poses).all(-1).any(-1).mean() > 0.5
+        assert data.calibration is not None and data.calibration.allclose(rig)
+    assert list((out / "overlay").glob("*.png"))
+    # 6 evaluation: voxel and baseline JPE, finite
+    metrics = json.loads((out / "evaluation" / "labels" / "metrics.json").read_text())
+    assert set(metrics) == {"voxel_P0", "voxel_P1", "baseline"}
+    assert all(np.isfinite(m["overall"]["median"]) for m in metrics.values())
+    assert (out / "evaluation" / "pipeline" / "jpe_boxplot.png").is_file()
+    # 7 analysis: a valid study and its tables and figures
+    study = load_study(out / "analysis" / "study.toml")
+    assert {r.split for r in study.recordings} == {"train", "test"}
+    res = out / "analysis" / "results"
+    for f in ("classification.csv", "attribution.csv", "classifier_response.png"):
+        assert (res / f).is_file(), f
+    assert list(res.glob("attribution_*.png"))
+    # 8 report: every referenced figure and link exists
+    html = (out / "report.html").read_text()
+    refs = re.findall(r'(?:src|href)="([^"]+)"', html) + re.findall(r"href='([^']+)'", html)
+    assert len(refs) >= 12
+    for ref in refs:
+        assert (out / ref).is_file(), ref
+    assert "missing figure" not in html
+    for fig in ("comparison.png", "log.png", "jpe_boxplot.png", "attribution_", "classifier"):
+        assert fig in html
+
+
+@pytest.mark.slow
+def test_tiny_demo_rerun_skips_and_refuses_other_preset(tiny_demo):
+    out, _ = tiny_demo
+    res = CliRunner().invoke(cli, ["demo", str(out), "--preset", "tiny"])
+    assert res.exit_code == 0, res.output
+    assert res.output.count("skipped") == len(STEPS) - 1  # the report is always rewritten
+    res = CliRunner().invoke(cli, ["demo", str(out)])  # default preset: small
+    assert res.exit_code != 0
+    assert "other settings" in res.output and "another output folder" in res.output
+
+
+def test_align_similarity_recovers_transform(rng):
+    from freipose.geometry.camera import rodrigues_to_matrix
+
+    A = rng.normal(size=(7, 3)) * 500
+    R = rodrigues_to_matrix(np.array([0.3, -0.2, 1.1]))
+    B = 1.01 * A @ R.T + np.array([10.0, -20.0, 5.0])
+    s, R2, t = align_similarity(A, B)
+    assert s == pytest.approx(1.01)
+    np.testing.assert_allclose(R2, R, atol=1e-9)
+    np.testing.assert_allclose(t, [10.0, -20.0, 5.0], atol=1e-6)
+
+
+def test_study_manifest_is_valid(tmp_path):
+    from freipose.analysis.study import load_study
+    from freipose.demo import DemoContext
+
+    ctx = DemoContext(tmp_path, PRESETS["small"])
+    path = tmp_path / "analysis" / "study.toml"
+    path.parent.mkdir()
+    path.write_text(study_toml(ctx, path.parent))
+    study = load_study(path, check_files=False)
+    assert [r.name for r in study.recordings] == [s.name for s in PRESETS["small"].sessions]
+    poses = study.recordings[0].poses.resolve()
+    assert poses == (tmp_path / "poses" / "rat1_day1.poses.h5").resolve()
+
+
+def test_unknown_preset_is_a_clear_error(tmp_path):
+    from freipose.demo import run_demo
+
+    with pytest.raises(ValueError, match="unknown demo preset"):
+        run_demo(tmp_path / "x", "huge")
