@@ -115,6 +115,7 @@ def read_dannce(
                 _videos_in(path.parent / "videos", cams),
                 None,
                 [f"frame {f}" for f in frames[0]],
+                positional=kps[0] == "joint1",
             )
         )
     return out
@@ -224,6 +225,7 @@ def read_freipose_json(
                 {},
                 None,
                 keys,
+                positional=True,
             )
         )
     return out

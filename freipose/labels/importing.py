@@ -47,6 +47,8 @@ class SourceLabels:
         fps: frame rate, if known.
         row_names: (N,) how the source calls each row (image file, frame key), for errors.
         individual: (N,) animal of each row (multi-animal sources), or None.
+        positional: the source has no keypoint names (``kp0..``); a skeleton with the same
+            number of keypoints names them in order.
     """
 
     source: str
@@ -62,6 +64,7 @@ class SourceLabels:
     fps: float | None = None
     row_names: list[str] | None = None
     individual: list[str] | None = None
+    positional: bool = False  # keypoints are unnamed: a skeleton of K names names them
 
 
 @dataclass(frozen=True)
@@ -152,6 +155,7 @@ def _check_rows(src: SourceLabels, skip_empty: bool) -> SourceLabels:
         src.fps,
         None if src.row_names is None else [src.row_names[i] for i in keep],
         None if src.individual is None else [src.individual[i] for i in keep],
+        src.positional,
     )
 
 
@@ -218,6 +222,18 @@ def build_labelset(
     keypoints: tuple[str, ...] | None = options.skeleton_keypoints
     for src in sources:
         src = _check_rows(src, options.skip_empty)
+        sk = options.skeleton_keypoints
+        if (
+            src.positional
+            and sk is not None
+            and not any(k in mapping.keypoints for k in src.keypoints)
+        ):
+            if len(sk) != len(src.keypoints):
+                raise LabelImportError(
+                    f"{src.source}: the file has {len(src.keypoints)} unnamed keypoints but the "
+                    f'skeleton has {len(sk)}; name them with a mapping file (kp0 = "NAME", ...)'
+                )
+            src.keypoints = list(sk)
         target, kidx = resolve_keypoints(
             src.keypoints, mapping, keypoints, src.source, options.ignore_unknown
         )
@@ -403,7 +419,7 @@ def combine_views(
     row_names = [names[keys[key]] for key in order]
     has_ind = any(vt.individual is not None for vt in views)
     return SourceLabels(
-        source=", ".join(vt.source for vt in views),
+        source=", ".join(dict.fromkeys(vt.source for vt in views)),
         session=session,
         cameras=cams,
         keypoints=kps,

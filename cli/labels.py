@@ -1,0 +1,330 @@
+"""``freipose labels``: import labels from other tools, check, merge, split and export them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from freipose.cli._common import user_errors
+from freipose.cli._lazy import LazyGroup
+
+SUBCOMMANDS = {
+    "import": "freipose.cli.labels:import_labels",
+    "check": "freipose.cli.labels:check",
+    "merge": "freipose.cli.labels:merge",
+    "split": "freipose.cli.labels:split",
+    "export": "freipose.cli.labels:export",
+    "select": "freipose.cli.labels_select:select",
+}
+
+FORMATS = ("dlc", "sleap", "anipose", "dannce", "jarvis", "freipose")
+
+
+@click.group(cls=LazyGroup, lazy_commands=SUBCOMMANDS)
+def labels() -> None:
+    """Labels: import from other tools, find mislabels, merge, split and export.
+
+    \b
+    Examples:
+      freipose labels import --format dlc project/ --calibration calibration.toml -o labels.h5
+      freipose labels check labels.h5 --report check/
+      freipose labels split labels.h5 --eval 0.3 -o train.h5 eval.h5
+    """
+
+
+def _load_skeleton(spec: str | None):  # noqa: ANN202
+    if spec is None:
+        return None
+    from freipose.skeleton import load_skeleton
+
+    return load_skeleton(spec)
+
+
+@click.command("import")
+@click.argument("sources", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@click.option("--format", "fmt", type=click.Choice(FORMATS), required=True, help="Source tool.")
+@click.option(
+    "--calibration",
+    type=click.Path(exists=True, path_type=Path),
+    help="Cameras (any calibration format; see `freipose calib convert`). Without it, "
+    "the source's own cameras (DANNCE, SLEAP sessions, Anipose, JARVIS, M.json) or none "
+    "(2D-only import, no triangulation).",
+)
+@click.option(
+    "--calibration-format", default=None, help="Format of --calibration (default: by suffix)."
+)
+@click.option(
+    "--skeleton",
+    default=None,
+    help="Skeleton name (rat, mouse, paw) or TOML file; defines keypoint names and order. "
+    "Default: the source's keypoint names.",
+)
+@click.option("--map", "maps", multiple=True, metavar="OLD=NEW", help="Rename a keypoint.")
+@click.option(
+    "--camera-map", "camera_maps", multiple=True, metavar="OLD=NEW", help="Rename a camera."
+)
+@click.option(
+    "--mapping",
+    "mapping_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Mapping file ([keypoints] and [cameras] tables; docs/formats.md).",
+)
+@click.option("--session", default=None, help="Session name for all imported labels.")
+@click.option(
+    "--threshold",
+    type=float,
+    default=20.0,
+    show_default=True,
+    help="RANSAC inlier threshold (px) for triangulating 2D labels.",
+)
+@click.option("--ignore-unknown", is_flag=True, help="Drop source keypoints the skeleton lacks.")
+@click.option("--skip-empty", is_flag=True, help="Drop rows without any label (else: error).")
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="labels.h5 to write.",
+)
+def import_labels(
+    sources: tuple[Path, ...],
+    fmt: str,
+    calibration: Path | None,
+    calibration_format: str | None,
+    skeleton: str | None,
+    maps: tuple[str, ...],
+    camera_maps: tuple[str, ...],
+    mapping_file: Path | None,
+    session: str | None,
+    threshold: float,
+    ignore_unknown: bool,
+    skip_empty: bool,
+    output: Path,
+) -> None:
+    """Import labels from DeepLabCut, SLEAP, Anipose, DANNCE, JARVIS or original FreiPose.
+
+    2D labels seen in at least two calibrated views are triangulated robustly (RANSAC over
+    views, then refinement); single-view labels stay 2D only. Nothing is written on error.
+
+    \b
+    Examples:
+      freipose labels import --format dlc labeled-data/run1_cam0 labeled-data/run1_cam1 \\
+          --calibration calibration.toml --skeleton rat --map snout=Nose -o labels.h5
+      freipose labels import --format dannce label3d_dannce.mat -o labels.h5
+      freipose labels import --format sleap session.slp -o labels.h5
+    """
+    with user_errors():
+        from freipose.io.calibration import load_calibration
+        from freipose.io.labels import write_labels_h5
+        from freipose.labels.formats import IMPORTERS
+        from freipose.labels.importing import ImportOptions, build_labelset
+        from freipose.labels.mapping import NameMapping, load_mapping_file, parse_map_options
+
+        mapping = load_mapping_file(mapping_file) if mapping_file else NameMapping()
+        mapping = mapping.merged(
+            NameMapping(
+                parse_map_options(maps, "--map"), parse_map_options(camera_maps, "--camera-map")
+            )
+        )
+        rig = load_calibration(calibration, calibration_format) if calibration else None
+        skel = _load_skeleton(skeleton)
+        srcs = IMPORTERS[fmt](list(sources), rig, mapping, session)
+        opts = ImportOptions(
+            skeleton_keypoints=tuple(skel.keypoints) if skel is not None else None,
+            mapping=mapping,
+            calibration=rig,
+            calibration_source=str(calibration),
+            ignore_unknown=ignore_unknown,
+            skip_empty=skip_empty,
+            threshold=threshold,
+        )
+        result = build_labelset(srcs, opts, output)
+        write_labels_h5(result, output)
+        import numpy as np
+
+        n3 = int(np.isfinite(result.points3d).all(-1).sum())
+        n2 = int(np.isfinite(result.points2d).all(-1).sum())
+        click.echo(
+            f"wrote {output}: {len(result)} labeled instants, {len(result.sessions)} sessions, "
+            f"cameras {list(result.cameras)}, {len(result.keypoints)} keypoints, "
+            f"{n2} 2D labels, {n3} 3D points"
+        )
+
+
+@click.command()
+@click.argument("labels_file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--report",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Folder for suspicious.csv, reprojection_errors.csv, figures and crops.",
+)
+@click.option("--skeleton", default=None, help="Skeleton for limbs and left/right pairs.")
+@click.option(
+    "--max-error",
+    type=float,
+    default=10.0,
+    show_default=True,
+    help="Reprojection error (px) above which a label is suspicious.",
+)
+@click.option(
+    "--limb-tolerance",
+    type=float,
+    default=0.3,
+    show_default=True,
+    help="Relative limb-length deviation from the dataset median that is suspicious.",
+)
+@click.option("--top", type=int, default=20, show_default=True, help="How many to print/crop.")
+def check(
+    labels_file: Path,
+    report: Path | None,
+    skeleton: str | None,
+    max_error: float,
+    limb_tolerance: float,
+    top: int,
+) -> None:
+    """Find mislabeled points: reprojection errors, swapped left/right, odd limb lengths.
+
+    Prints the suspicious labels worst first; with --report also writes them as CSV with
+    every label's reprojection error, error figures per keypoint and camera, and crops of
+    the worst labels (red circle: label, green cross: reprojection) when videos exist.
+
+    \b
+    Example:
+      freipose labels check labels.h5 --skeleton rat --report check/
+    """
+    with user_errors():
+        import numpy as np
+
+        from freipose.io.labels import read_labels_h5
+        from freipose.labels.check import check_labels, write_report
+
+        lab = read_labels_h5(labels_file)
+        res = check_labels(lab, _load_skeleton(skeleton), max_error, limb_tolerance)
+        e = res.errors[np.isfinite(res.errors)]
+        if len(e):
+            click.echo(
+                f"{len(e)} labels with a 3D point: reprojection error median "
+                f"{np.median(e):.2f} px, 95% {np.percentile(e, 95):.2f} px, max {e.max():.2f} px"
+            )
+        else:
+            click.echo("no label has a 3D point (2D-only labels): no reprojection errors")
+        click.echo(f"{len(res.suspicious)} suspicious labels")
+        for r, s in enumerate(res.suspicious[:top], start=1):
+            where = f"{s.session} frame {s.frame_index}" + (f" {s.camera}" if s.camera else "")
+            click.echo(f"{r:4d}. [{s.kind}] {where} {s.keypoint}: {s.detail}")
+        if report is not None:
+            files = write_report(lab, res, report, labels_file.resolve().parent, top)
+            click.echo(f"wrote {len(files)} files to {report}")
+
+
+@click.command()
+@click.argument(
+    "inputs", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path)
+)
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True)
+def merge(inputs: tuple[Path, ...], output: Path) -> None:
+    """Merge labels files (union of sessions, cameras and keypoints).
+
+    \b
+    Example:
+      freipose labels merge a.h5 b.h5 -o all.h5
+    """
+    with user_errors():
+        from freipose.io.labels import read_labels_h5, write_labels_h5
+        from freipose.labels.ops import merge_labels, rebase_videos
+
+        parts = [rebase_videos(read_labels_h5(p), p.parent, output.parent) for p in inputs]
+        res = merge_labels(parts, [str(p) for p in inputs])
+        write_labels_h5(res, output)
+        click.echo(f"wrote {output}: {len(res)} labeled instants, {len(res.sessions)} sessions")
+
+
+@click.command()
+@click.argument("labels_file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--by",
+    type=click.Choice(["session", "group"]),
+    default="session",
+    show_default=True,
+    help="Keep whole sessions (or groups of sessions, see --group-pattern) together.",
+)
+@click.option(
+    "--group-pattern", default=None, help="Regex: its match in a session name is the group."
+)
+@click.option("--eval", "eval_fraction", type=float, default=0.3, show_default=True)
+@click.option("--eval-sessions", default=None, help="Comma-separated eval sessions/groups.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option(
+    "-o",
+    "--output",
+    nargs=2,
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    metavar="TRAIN EVAL",
+)
+def split(
+    labels_file: Path,
+    by: str,
+    group_pattern: str | None,
+    eval_fraction: float,
+    eval_sessions: str | None,
+    seed: int,
+    output: tuple[Path, Path],
+) -> None:
+    """Split into training and evaluation sets that never share a recording.
+
+    \b
+    Example:
+      freipose labels split labels.h5 --by session --eval 0.3 -o train.h5 eval.h5
+    """
+    with user_errors():
+        from freipose.io.labels import read_labels_h5, write_labels_h5
+        from freipose.labels.ops import rebase_videos, split_labels
+
+        if by == "group" and not group_pattern:
+            raise click.BadParameter("--by group needs --group-pattern", param_hint="--by")
+        lab = read_labels_h5(labels_file)
+        chosen = [s.strip() for s in eval_sessions.split(",")] if eval_sessions else None
+        tr, ev, groups = split_labels(
+            lab, eval_fraction, group_pattern if by == "group" else None, chosen, seed
+        )
+        tr = rebase_videos(tr, labels_file.parent, output[0].parent)
+        ev = rebase_videos(ev, labels_file.parent, output[1].parent)
+        write_labels_h5(tr, output[0])
+        try:
+            write_labels_h5(ev, output[1])
+        except BaseException:
+            output[0].unlink(missing_ok=True)
+            raise
+        click.echo(
+            f"train {output[0]}: {len(tr)} labels; eval {output[1]}: {len(ev)} labels "
+            f"({len(ev) / len(lab):.0%}) from {groups}"
+        )
+
+
+@click.command()
+@click.argument("labels_file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--format", "fmt", type=click.Choice(["dlc", "anipose", "freipose"]), required=True)
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="New or empty folder.",
+)
+@click.option("--scorer", default="freipose", show_default=True, help="DLC scorer name.")
+def export(labels_file: Path, fmt: str, output: Path, scorer: str) -> None:
+    """Export labels for DeepLabCut, Anipose or the original FreiPose (round trip back).
+
+    \b
+    Example:
+      freipose labels export labels.h5 --format dlc -o dlc_labels/
+    """
+    with user_errors():
+        from freipose.io.labels import read_labels_h5
+        from freipose.labels.ops import export_labels
+
+        lab = read_labels_h5(labels_file)
+        files = export_labels(lab, output, fmt, labels_file.resolve().parent, scorer)
+        click.echo(f"wrote {len(files)} files to {output}")
