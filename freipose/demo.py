@@ -453,64 +453,59 @@ def _pick(n_total: int, n: int) -> np.ndarray:
 
 
 def _labels_file(ctx: DemoContext, names: list[str], per_session: int, mode: str, path: Path):
-    """Write a labels.h5 over ``names`` with the calibrated rig.
+    """Import labels of ``names`` into ``path`` with the labels library (``freipose labels``).
 
-    ``mode`` ``"triangulate"``: 2D labels of the visible keypoints (plus 1 px noise)
-    triangulated with the calibrated rig (training labels); ``"truth"``: the true 3D
-    keypoints mapped into the calibrated world frame (evaluation labels).
+    ``mode`` ``"triangulate"``: the 2D labels of the visible keypoints (plus 1 px labelling
+    noise, as from a 2D labelling tool) are triangulated with the calibrated rig (training
+    labels); ``"truth"``: the true 3D keypoints mapped into the calibrated world frame
+    (evaluation labels).
     """
-    from freipose.geometry import reprojection_errors, triangulate_robust
+    from freipose.geometry import reprojection_errors
     from freipose.io.calibration import load_calibration
-    from freipose.io.labels import LabelSet, SessionInfo, write_labels_h5
+    from freipose.io.labels import write_labels_h5
+    from freipose.labels.importing import ImportOptions, SourceLabels, build_labelset
 
     rig = load_calibration(ctx.calibration)
     align = _read_marker(ctx.out, "calibrate")["results"]["alignment"]
     rng = np.random.default_rng(0)
-    parts, sessions, stats = [], {}, {"reproj_px": [], "vs_truth_mm": []}
+    sources, truths = [], []
     for name in names:
         lab = _session_labels(ctx, name)
-        if tuple(lab.cameras) != tuple(rig.names):
-            lab_rig = rig.subset(lab.cameras)
-        else:
-            lab_rig = rig
         sub = lab.select(_pick(len(lab), per_session))
         vis = sub.visible2d if sub.visible2d is not None else np.isfinite(sub.points2d).all(-1)
         p2 = np.where(vis[..., None], sub.points2d, np.nan)
         truth3d = truth_to_calibrated(sub.points3d, align)
         if mode == "triangulate":
             p2 = p2 + rng.normal(0.0, 1.0, p2.shape)
-            pts = np.moveaxis(p2, 1, 2)  # (N, K, V, 2)
-            p3, _ = triangulate_robust(pts, lab_rig, threshold=8.0)
-            err = reprojection_errors(p3, pts, lab_rig)
-            stats["reproj_px"].append(err[np.isfinite(err)])
-            d = np.linalg.norm(p3 - truth3d, axis=-1)
-            stats["vs_truth_mm"].append(d[np.isfinite(d)])
-        else:
-            p3 = truth3d
-        videos = {}
-        for cam, rel in sub.sessions[name].videos.items():
-            videos[cam] = os.path.relpath(ctx.session_dir(name) / rel, path.parent)
-        sessions[name] = SessionInfo(lab_rig, videos, sub.sessions[name].fps)
-        parts.append((sub, p2, p3, vis))
-    labels = LabelSet(
-        session=np.concatenate([np.asarray(s.session, dtype=object) for s, *_ in parts]),
-        frame_index=np.concatenate([s.frame_index for s, *_ in parts]),
-        points2d=np.concatenate([p2 for _, p2, _, _ in parts]),
-        points3d=np.concatenate([p3 for _, _, p3, _ in parts]),
-        cameras=tuple(parts[0][0].cameras),
-        keypoints=tuple(parts[0][0].keypoints),
-        sessions=sessions,
-        visible2d=np.concatenate([v for *_, v in parts]),
-    )
+        info = sub.sessions[name]
+        sources.append(
+            SourceLabels(
+                source=str(ctx.session_dir(name) / "labels.h5"),
+                session=name,
+                cameras=list(sub.cameras),
+                keypoints=list(sub.keypoints),
+                frame_index=np.asarray(sub.frame_index),
+                points2d=p2,
+                visible2d=vis,
+                points3d=None if mode == "triangulate" else truth3d,
+                videos={c: (ctx.session_dir(name) / v).resolve() for c, v in info.videos.items()},
+                fps=info.fps,
+            )
+        )
+        truths.append(truth3d)
+    opts = ImportOptions(calibration=rig, calibration_source=str(ctx.calibration), threshold=8.0)
+    labels = build_labelset(sources, opts, path)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_labels_h5(labels, path)
     out = {"path": str(path), "instants": len(labels)}
-    if stats["reproj_px"]:
-        rp = np.concatenate(stats["reproj_px"])
-        vt = np.concatenate(stats["vs_truth_mm"])
-        out["median_reprojection_px"] = float(np.median(rp)) if rp.size else float("nan")
-        out["median_3d_vs_truth_mm"] = float(np.median(vt)) if vt.size else float("nan")
-        out["labeled_fraction"] = float(np.isfinite(labels.points3d).all(-1).mean())
+    if mode == "triangulate":
+        p3 = labels.points3d
+        pts = np.moveaxis(labels.points2d, 1, 2)  # (N, K, V, 2)
+        err = reprojection_errors(p3, pts, labels.rig_for(names[0]).subset(labels.cameras))
+        d = np.linalg.norm(p3 - np.concatenate(truths), axis=-1)
+        out["median_reprojection_px"] = float(np.nanmedian(err))
+        out["median_3d_vs_truth_mm"] = float(np.nanmedian(d))
+        out["labeled_fraction"] = float(np.isfinite(p3).all(-1).mean())
     return out
 
 
