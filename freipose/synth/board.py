@@ -323,28 +323,45 @@ def write_board_videos(
     """Write a calibration recording: one board video per camera plus the ground truth.
 
     Writes ``outdir/<camera><fmt>``, ``calibration.toml`` (the true rig), ``board.toml``
-    (the board) and ``board_poses.npy`` ((F, 4, 4) board->world transforms).
+    (the board) and ``board_poses.npy`` ((F, 4, 4) board->world transforms). Running it
+    again with the same arguments keeps the videos already written (resume).
 
     Returns:
         ``(videos {camera: path}, poses (F, 4, 4))``.
     """
+    import hashlib
+    import json
+
     from freipose.calibration.boards import save_board
-    from freipose.io.atomic import atomic_path
-    from freipose.io.calibration import save_calibration
+    from freipose.io.atomic import atomic_path, atomic_write_text
+    from freipose.io.calibration import rig_to_toml_text, save_calibration
     from freipose.synth.scene import _run_jobs
 
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     arena = arena or _arena_from(rig)
     poses = board_poses(n_frames, arena.size, np.random.default_rng(seed), board.size_mm)
+    # what the videos depend on; complete videos of the same recording are kept (resume)
+    stamp = hashlib.sha256(json.dumps([
+        rig_to_toml_text(rig), repr(board), n_frames, int(seed), float(fps), fmt,
+        list(arena.size), arena.wall_height,
+    ]).encode()).hexdigest()  # fmt: skip
+    stamp_path = out / ".synth_board_stamp"
+    same = stamp_path.is_file() and stamp_path.read_text(encoding="utf-8") == stamp
+    stamp_path.unlink(missing_ok=True)
     save_calibration(rig, out / "calibration.toml")
     save_board(board, out / "board.toml")
     with atomic_path(out / "board_poses.npy") as tmp, open(tmp, "wb") as fh:
         np.save(fh, poses)
     videos = {cam.name: out / f"{cam.name}{fmt}" for cam in rig}
     tex = _BoardTexture(board, _auto_ppm(rig), None)
-    jobs = [(cam, ci, tex, poses, seed, fps, videos[cam.name], arena) for ci, cam in enumerate(rig)]
-    _run_jobs(_board_camera_job, jobs, min(workers, len(jobs)), "render board", progress)
+    jobs = [
+        (cam, ci, tex, poses, seed, fps, videos[cam.name], arena)
+        for ci, cam in enumerate(rig)
+        if not (same and videos[cam.name].is_file())
+    ]
+    atomic_write_text(stamp_path, stamp)
+    _run_jobs(_board_camera_job, jobs, max(1, min(workers, len(jobs))), "render board", progress)
     return videos, poses
 
 

@@ -76,3 +76,14 @@ def test_write_board_videos(tmp_path):
     assert load_board(tmp_path / "board.toml") == board
     np.testing.assert_array_equal(np.load(tmp_path / "board_poses.npy"), poses)
     assert (tmp_path / "calibration.toml").is_file() and all(p.is_file() for p in videos.values())
+
+
+def test_write_board_videos_resumes(tmp_path):
+    board = default_board()
+    rig = CameraRig((Camera.look_at("c0", (600, 0, 700), (0, 0, 50), (64, 48), 60.0),))
+    videos, _ = write_board_videos(tmp_path, rig, board, 2, seed=2, fmt=".mkv")
+    before = videos["c0"].stat().st_mtime_ns
+    write_board_videos(tmp_path, rig, board, 2, seed=2, fmt=".mkv")
+    assert videos["c0"].stat().st_mtime_ns == before  # kept
+    write_board_videos(tmp_path, rig, board, 2, seed=3, fmt=".mkv")
+    assert videos["c0"].stat().st_mtime_ns != before  # another recording: rendered again
