@@ -31,6 +31,7 @@ class AugmentConfig:
             from 0 to this per image.
         random_fill: probability that areas outside the frame are a random colour (else
             the letterbox grey).
+        gray: probability of turning the image grey.
     """
 
     scale: tuple[float, float] = (0.7, 1.5)
@@ -41,6 +42,7 @@ class AugmentConfig:
     blur: float = 0.3
     noise: float = 6.0
     random_fill: float = 0.5
+    gray: float = 0.1
 
     def __post_init__(self) -> None:
         lo, hi = self.scale
@@ -48,7 +50,7 @@ class AugmentConfig:
             raise ValueError(
                 f"augmentation scale must be (min, max) with 0 < min <= max, got {self.scale}"
             )
-        for name in ("hflip", "vflip", "blur", "random_fill"):
+        for name in ("hflip", "vflip", "blur", "random_fill", "gray"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} is a probability in [0, 1], got {getattr(self, name)}")
 
@@ -134,6 +136,9 @@ def _photometric(img: np.ndarray, cfg: AugmentConfig, rng: np.random.Generator) 
         mean = x.mean()
         x = (x - mean) * rng.uniform(1 - c, 1 + c) + mean * rng.uniform(1 - c, 1 + c)
         x *= rng.uniform(1 - c / 3, 1 + c / 3, size=3).astype(np.float32)  # white balance
+    if cfg.gray > 0 and rng.random() < cfg.gray:
+        g = x.mean(-1, keepdims=True)
+        x = np.repeat(g, 3, axis=-1)
     if cfg.blur > 0 and rng.random() < cfg.blur:
         x = cv2.GaussianBlur(x, (0, 0), rng.uniform(0.3, 1.5))
     if cfg.noise > 0:

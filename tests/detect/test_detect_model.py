@@ -64,7 +64,7 @@ def test_augment_moves_the_box_with_the_image():
     img = np.full((48, 64, 3), 30, np.uint8)
     img[10:30, 20:50] = (250, 0, 250)
     box = np.array([19.5, 9.5, 49.5, 29.5])  # pixel edges of the bright rectangle
-    cfg = AugmentConfig(color=0.0, blur=0.0, noise=0.0, hue=0.0, random_fill=0.0)
+    cfg = AugmentConfig(color=0.0, blur=0.0, noise=0.0, hue=0.0, random_fill=0.0, gray=0.0)
     for _ in range(20):
         out, b = augment(img, box, 64, cfg, rng)
         assert out.shape == (64, 64, 3)
