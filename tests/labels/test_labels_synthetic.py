@@ -420,3 +420,23 @@ def test_freipose_json_metres_and_visibility(tmp_path, rng):
             ImportOptions(skeleton_keypoints=tuple(f"k{i}" for i in range(12))),
             tmp_path / "l.h5",
         )
+
+
+def test_dlc_multi_animal_rows_per_individual(tmp_path):
+    d = tmp_path / "labeled-data" / "r_cam0"
+    d.mkdir(parents=True)
+    (d / "CollectedData_T.csv").write_text(
+        "scorer,T,T,T,T,T,T,T,T\n"
+        "individuals,m1,m1,m1,m1,m2,m2,m2,m2\n"
+        "bodyparts,nose,nose,tail,tail,nose,nose,tail,tail\n"
+        "coords,x,y,x,y,x,y,x,y\n"
+        "labeled-data/r_cam0/img007.png,1.5,2.5,3,4,,,,\n"
+        "labeled-data/r_cam0/img009.png,5,6,7,8,9.25,10,11,12\n"
+    )
+    srcs = IMPORTERS["dlc"]([d], None, NameMapping(), None)
+    lab = build_labelset(srcs, ImportOptions(), tmp_path / "l.h5")
+    assert lab.keypoints == ("nose", "tail") and len(lab) == 3
+    np.testing.assert_array_equal(lab.frame_index, [7, 9, 9])
+    np.testing.assert_array_equal(
+        lab.points2d[:, 0], [[[1.5, 2.5], [3, 4]], [[5, 6], [7, 8]], [[9.25, 10], [11, 12]]]
+    )
