@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from freipose._compat import tomllib
+from freipose._frozen import PicklableFrozen
 
 # A limb end or an analysis point: one keypoint index, or a tuple of indices (their mean).
 PointRef = tuple[int, ...]
@@ -24,7 +25,7 @@ BUILTIN_SKELETONS = ("rat", "mouse", "paw")
 
 
 @dataclass(frozen=True, eq=False)
-class Skeleton:
+class Skeleton(PicklableFrozen):
     """Keypoints of an animal model and how they connect.
 
     Attributes:

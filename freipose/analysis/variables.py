@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from freipose._frozen import PicklableFrozen
 from freipose.analysis.floor import FloorPlane
 from freipose.skeleton import PointRef, Skeleton
 
@@ -84,7 +85,7 @@ class VariablesError(ValueError):
 
 
 @dataclass(frozen=True)
-class VariableConfig:
+class VariableConfig(PicklableFrozen):
     """Settings of :func:`compute_variables`.
 
     Attributes:
@@ -108,7 +109,7 @@ class VariableConfig:
 
 
 @dataclass(frozen=True, eq=False)
-class Variables:
+class Variables(PicklableFrozen):
     """Behavioral variables of one recording.
 
     Attributes:
@@ -389,7 +390,7 @@ def _involved_refs(skeleton: Skeleton, vecs: tuple[Any, Any]) -> set[int]:
 
 
 @dataclass(frozen=True)
-class VariableLayout:
+class VariableLayout(PicklableFrozen):
     """Names and metadata of the variables a skeleton gives (order of ``Variables.values``)."""
 
     names: tuple[str, ...]

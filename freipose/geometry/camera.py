@@ -10,6 +10,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from freipose._frozen import PicklableFrozen
+
 
 def _frozen_array(value: Any, shape: tuple[int, ...], what: str, owner: str) -> np.ndarray:
     """Return ``value`` as a read-only float64 array of ``shape`` or raise ``ValueError``."""
@@ -199,7 +201,7 @@ class Camera:
 
 
 @dataclass(frozen=True, eq=False)
-class CameraRig:
+class CameraRig(PicklableFrozen):
     """An ordered set of cameras with unique names sharing one world frame.
 
     Attributes:

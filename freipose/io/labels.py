@@ -28,6 +28,7 @@ import h5py
 import numpy as np
 
 from freipose import __version__
+from freipose._frozen import PicklableFrozen
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
@@ -41,7 +42,7 @@ class LabelsFormatError(ValueError):
 
 
 @dataclass(frozen=True, eq=False)
-class SessionInfo:
+class SessionInfo(PicklableFrozen):
     """Per-session facts: its cameras, its videos (camera name -> path) and frame rate."""
 
     calibration: CameraRig | None = None
@@ -53,7 +54,7 @@ class SessionInfo:
 
 
 @dataclass(frozen=True, eq=False)
-class LabelSet:
+class LabelSet(PicklableFrozen):
     """A labeled dataset (see the module docstring for shapes)."""
 
     session: np.ndarray

@@ -24,6 +24,7 @@ import tomli_w
 
 from freipose import __version__
 from freipose._compat import tomllib
+from freipose._frozen import PicklableFrozen
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
@@ -38,7 +39,7 @@ class PosesFormatError(ValueError):
 
 
 @dataclass(frozen=True, eq=False)
-class PoseData:
+class PoseData(PicklableFrozen):
     """3D poses of one recording.
 
     Attributes:

@@ -29,7 +29,6 @@ end raises :class:`LabelsDataError` naming the file.
 
 from __future__ import annotations
 
-import copyreg
 import logging
 import os
 from collections.abc import Sequence
@@ -40,39 +39,12 @@ import numpy as np
 import torch.utils.data
 
 from freipose.geometry.camera import CameraRig
-from freipose.io.labels import LabelSet, SessionInfo, read_labels_h5
+from freipose.io.labels import LabelSet, read_labels_h5
 from freipose.io.video import FrameSource, MediaError
 
 log = logging.getLogger(__name__)
 
 
-# CameraRig, SessionInfo and LabelSet hold read-only MappingProxyType fields, which pickle
-# cannot copy; DataLoader workers pickle samples (and, with "spawn", the dataset). These
-# reducers rebuild the objects from plain dicts.
-def _reduce_rig(rig: CameraRig) -> tuple:
-    return CameraRig, (tuple(rig.cameras), dict(rig.metadata))
-
-
-def _reduce_session(info: SessionInfo) -> tuple:
-    return SessionInfo, (info.calibration, dict(info.videos), info.fps)
-
-
-def _reduce_labels(lab: LabelSet) -> tuple:
-    return LabelSet, (
-        lab.session,
-        lab.frame_index,
-        lab.points2d,
-        lab.points3d,
-        lab.cameras,
-        lab.keypoints,
-        dict(lab.sessions),
-        lab.visible2d,
-    )
-
-
-copyreg.pickle(CameraRig, _reduce_rig)
-copyreg.pickle(SessionInfo, _reduce_session)
-copyreg.pickle(LabelSet, _reduce_labels)
 
 
 class LabelsDataError(ValueError):

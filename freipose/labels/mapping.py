@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
+from freipose._frozen import PicklableFrozen
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
@@ -33,7 +35,7 @@ class MappingError(ValueError):
 
 
 @dataclass(frozen=True, eq=False)
-class NameMapping:
+class NameMapping(PicklableFrozen):
     """Renames applied to source keypoint and camera names ("" as a target drops the name)."""
 
     keypoints: Mapping[str, str] = field(default_factory=dict)

@@ -18,6 +18,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from freipose._frozen import PicklableFrozen
 from freipose.geometry.camera import CameraRig
 from freipose.io.calibration import load_calibration
 from freipose.io.video import VIDEO_SUFFIXES, FrameSource, MediaError, find_camera_videos
@@ -32,7 +33,7 @@ class SessionError(ValueError):
 
 
 @dataclass(frozen=True, eq=False)
-class Session:
+class Session(PicklableFrozen):
     """One synchronized multi-camera recording, validated.
 
     Attributes:
