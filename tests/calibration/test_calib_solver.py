@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from calib_helpers import board_detections, rig_errors
-from conftest import make_circle_rig
 
 from freipose.calibration.boards import CharucoBoard
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.extrinsics import connected_groups
 from freipose.calibration.intrinsics import CalibrationError, calibrate_intrinsics, select_views
 from freipose.calibration.pipeline import CalibrationOptions, calibrate_detections
+from freipose.testing import make_circle_rig
 
 BOARD = CharucoBoard(8, 6, 40.0, 30.0, "DICT_4X4_50")
 

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 from click.testing import CliRunner
-from conftest import make_circle_rig
-from freipose.cli.main import cli
 
 from freipose._compat import tomllib
+from freipose.cli.main import cli
 from freipose.io.calibration import load_calibration, write_calibration_toml
+from freipose.testing import make_circle_rig
 
 
 def _run(*args: str):

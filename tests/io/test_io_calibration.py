@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-from conftest import make_circle_rig
 
 from freipose._compat import tomllib
 from freipose.geometry import Camera, CameraRig, project
@@ -21,6 +20,7 @@ from freipose.io.calibration import (
     save_calibration,
     write_calibration_toml,
 )
+from freipose.testing import make_circle_rig
 
 
 def _rel_close(a: CameraRig, b: CameraRig, rtol: float = 1e-6) -> None:

@@ -9,11 +9,11 @@ import h5py
 import numpy as np
 import pytest
 import scipy.io
-from conftest import make_circle_rig
 
 from freipose.geometry import CameraRig
 from freipose.io.calibration import load_calibration
 from freipose.io.matlab import MatFileError, load_mat
+from freipose.testing import make_circle_rig
 
 
 # -- a minimal MATLAB v7.3 writer (the HDF5 layout MATLAB's save -v7.3 produces) --------

@@ -5,7 +5,6 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
-from conftest import make_circle_rig
 
 from freipose.io.labels import (
     LabelSet,
@@ -16,6 +15,7 @@ from freipose.io.labels import (
 )
 from freipose.io.poses import PoseData, PosesFormatError, read_poses_h5, write_poses_h5
 from freipose.skeleton import load_skeleton
+from freipose.testing import make_circle_rig
 
 
 def _pose_data(rng: np.random.Generator, t: int = 20) -> PoseData:

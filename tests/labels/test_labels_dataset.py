@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch.utils.data
-from conftest import make_circle_rig
 
 from freipose.io.labels import LabelSet, SessionInfo, write_labels_h5
 from freipose.io.video import VideoWriter
 from freipose.labels.dataset import LabelsDataError, MultiViewDataset, list_collate
+from freipose.testing import make_circle_rig
 
 W, H = 64, 48
 

@@ -8,7 +8,6 @@ import numpy as np
 import pandas as pd
 import pytest
 from click.testing import CliRunner
-from conftest import make_circle_rig
 
 from freipose.cli.main import cli
 from freipose.geometry import reprojection_errors
@@ -18,6 +17,7 @@ from freipose.labels.dlc import read_dlc_table
 from freipose.labels.formats import IMPORTERS
 from freipose.labels.importing import ImportOptions, build_labelset
 from freipose.labels.mapping import NameMapping
+from freipose.testing import make_circle_rig
 
 
 def test_dlc_project_exact(shared_data, tmp_path):

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import make_circle_rig
 
 from freipose.cli.main import cli
 from freipose.io.calibration import write_calibration_toml
@@ -26,6 +25,7 @@ from freipose.labels.importing import (
 )
 from freipose.labels.mapping import MappingError, NameMapping, load_mapping_file
 from freipose.labels.ops import LabelsOpError, export_labels, merge_labels, split_labels
+from freipose.testing import make_circle_rig
 
 KPS = ["nose", "ear_left", "ear_right", "paw_left", "paw_right", "tail"]
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from conftest import make_circle_rig
 
 from freipose.geometry import project
 from freipose.skeleton import Skeleton
+from freipose.testing import make_circle_rig
 
 TEMPLATE = np.array([[60.0, 0, 30], [0, 40, 20], [0, -40, 20], [-60, 0, 30], [0, 0, 70]])
 COLORS = [(255, 40, 40), (40, 255, 40), (40, 40, 255), (255, 255, 40), (255, 40, 255)]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from conftest import make_circle_rig
 
 from freipose.geometry import project
 from freipose.geometry.crops import crop_camera, cube_crop_boxes
@@ -17,6 +16,7 @@ from freipose.nn.layers import (
     unproject,
     volume_confidence,
 )
+from freipose.testing import make_circle_rig
 
 
 def _bilinear_border(fmap: np.ndarray, fx: float, fy: float) -> np.ndarray:
