@@ -10,7 +10,7 @@ import hashlib
 import logging
 import os
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +37,7 @@ __all__ = [
 ]
 
 CACHE_VERSION = 1
-CHUNK_FRAMES = 40
+PROGRESS_EVERY = 10  # frames between progress messages of a worker
 
 
 class DetectionError(ValueError):
@@ -242,15 +242,60 @@ class _Detector:
 # videos, in parallel, cached
 
 
-def _detect_chunk(path: str, board: Board, start: int, stop: int) -> tuple[int, np.ndarray]:
+def _init_worker() -> None:
+    """Detection worker: one OpenCV thread (the parallelism is across processes)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _detect_chunk(
+    path: str, board: Board, start: int, stop: int, progress=None
+) -> tuple[int, np.ndarray]:
+    """Detect the board in frames ``start..stop-1`` of one source, decoding each frame once.
+
+    Frames are read sequentially (one seek at ``start`` at most); ``progress`` (a queue, or
+    None) receives the number of frames done every few frames.
+    """
     from freipose.io.video import FrameSource
 
     det = _Detector(board)
     out = np.full((stop - start, det.P, 2), np.nan)
-    with FrameSource(path) as src:
+    done = 0
+    # cache_size=1 keeps frame 0, which opening the source decodes, so a chunk starting at 0
+    # does not seek back to it
+    with FrameSource(path, cache_size=1) as src:
         for i in range(start, stop):
             out[i - start] = det(src.read(i))
+            done += 1
+            if progress is not None and done == PROGRESS_EVERY:
+                progress.put(done)
+                done = 0
+    if progress is not None and done:
+        progress.put(done)
     return start, out
+
+
+def plan_chunks(frames: Sequence[int], jobs: int) -> list[tuple[int, int, int]]:
+    """Split cameras with ``frames[c]`` frames into contiguous ``(camera, start, stop)`` chunks.
+
+    Each chunk is decoded sequentially (a seek costs OpenCV about 16 decoded frames), so there
+    are as few chunks as keep ``jobs`` processes busy: about ``total / jobs`` frames each, cut
+    at camera boundaries and split evenly within a camera.
+    """
+    total = int(sum(frames))
+    if total == 0:
+        return []
+    target = max(1, -(-total // max(1, int(jobs))))
+    out = []
+    for ci, n in enumerate(frames):
+        if n <= 0:
+            continue
+        pieces = max(1, round(n / target))
+        edges = np.linspace(0, n, pieces + 1).round().astype(int)
+        out.extend((ci, int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a)
+    # longest first, so that the last chunks to finish are short
+    return sorted(out, key=lambda c: c[1] - c[2])
 
 
 def _source_signature(path: Path) -> str:
@@ -302,9 +347,10 @@ def detect_cameras(
 ) -> list[CameraDetections]:
     """Detect the board in every frame of every camera (video files or image folders).
 
-    Frames are split into chunks that run in ``jobs`` worker processes (default: the CPU
-    count; ``1`` runs in this process). Results are cached in ``cache_dir`` keyed by video and
-    board hash, so a second call with the same inputs does not re-detect.
+    Frames are split into a few contiguous chunks (see :func:`plan_chunks`; every frame is
+    decoded once) that run in ``jobs`` worker processes with one OpenCV thread each (default:
+    the CPU count; ``1`` runs in this process). Results are cached in ``cache_dir`` keyed by
+    video and board hash, so a second call with the same inputs does not re-detect.
 
     Returns:
         one :class:`CameraDetections` per source, in order.
@@ -320,7 +366,7 @@ def detect_cameras(
             infos.append((src.name, src.size, src.num_frames))
     P = len(board.object_points)
     results: dict[int, np.ndarray] = {}
-    todo: list[tuple[int, int, int]] = []
+    todo_frames = [0] * len(sources)
     cache_paths: dict[int, Path] = {}
     for ci, (s, (_name, _size, n)) in enumerate(zip(sources, infos)):
         if cache_dir is not None:
@@ -333,32 +379,23 @@ def detect_cameras(
                     results[ci] = pts
                     continue
         results[ci] = np.full((n, P, 2), np.nan)
-        for a in range(0, n, CHUNK_FRAMES):
-            todo.append((ci, a, min(n, a + CHUNK_FRAMES)))
-    total = sum(b - a for _, a, b in todo)
+        todo_frames[ci] = n
     if jobs is None:
         jobs = os.cpu_count() or 1
+    todo = plan_chunks(todo_frames, max(1, int(jobs)))
+    total = sum(b - a for _, a, b in todo)
     jobs = max(1, min(int(jobs), len(todo) or 1))
     bar = tqdm(
         total=total, desc="detecting board", unit="frame", disable=None if progress else True
     )
     try:
         if jobs == 1:
+            ticks = None if bar.disable else _BarTicks(bar)
             for ci, a, b in todo:
-                _, pts = _detect_chunk(str(sources[ci]), board, a, b)
+                _, pts = _detect_chunk(str(sources[ci]), board, a, b, ticks)
                 results[ci][a:b] = pts
-                bar.update(b - a)
         elif todo:
-            with ProcessPoolExecutor(max_workers=jobs) as ex:
-                futs = {
-                    ex.submit(_detect_chunk, str(sources[ci]), board, a, b): (ci, a, b)
-                    for ci, a, b in todo
-                }
-                for fut in as_completed(futs):
-                    ci, a, b = futs[fut]
-                    _, pts = fut.result()
-                    results[ci][a:b] = pts
-                    bar.update(b - a)
+            _detect_parallel(sources, board, todo, jobs, results, bar)
     finally:
         bar.close()
     done = {ci for ci, _, _ in todo}
@@ -369,6 +406,60 @@ def detect_cameras(
         CameraDetections(name, size, results[ci], str(sources[ci]))
         for ci, (name, size, _n) in enumerate(infos)
     ]
+
+
+class _BarTicks:
+    """Progress sink for in-process detection: ``put(n)`` advances the bar."""
+
+    def __init__(self, bar):
+        self.bar = bar
+
+    def put(self, n: int) -> None:
+        self.bar.update(n)
+
+
+def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
+    """Run ``todo`` chunks in ``jobs`` processes, filling ``results`` and advancing ``bar``."""
+    import multiprocessing as mp
+    import queue as queue_mod
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    manager = mp.get_context("spawn").Manager() if not bar.disable else None
+    ticks = manager.Queue() if manager is not None else None
+
+    def drain() -> None:
+        while ticks is not None:
+            try:
+                bar.update(ticks.get_nowait())
+            except queue_mod.Empty:
+                return
+
+    try:
+        # forkserver: workers start from a clean process (forking a process whose OpenCV or
+        # FFmpeg thread pools are running can deadlock the child)
+        # (the server imports this module once; workers fork from it ready to run)
+        if "forkserver" in mp.get_all_start_methods():
+            ctx = mp.get_context("forkserver")
+            ctx.set_forkserver_preload([__name__])
+        else:
+            ctx = mp.get_context("spawn")
+        with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_init_worker) as ex:
+            futs = {
+                ex.submit(_detect_chunk, str(sources[ci]), board, a, b, ticks): (ci, a, b)
+                for ci, a, b in todo
+            }
+            pending = set(futs)
+            while pending:
+                finished, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
+                drain()
+                for fut in finished:
+                    ci, a, b = futs[fut]
+                    _, pts = fut.result()
+                    results[ci][a:b] = pts
+            drain()
+    finally:
+        if manager is not None:
+            manager.shutdown()
 
 
 # --------------------------------------------------------------------------------------------
