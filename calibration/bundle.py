@@ -17,7 +17,15 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BundleResult", "Observations", "bundle_adjust", "rodrigues", "project_observations"]
+__all__ = [
+    "BundleResult",
+    "Observations",
+    "bundle_adjust",
+    "camera_covariance",
+    "noise_sigma",
+    "project_observations",
+    "rodrigues",
+]
 
 N_CAM = 15  # fx fy cx cy k1 k2 p1 p2 k3 r1 r2 r3 t1 t2 t3
 
@@ -42,6 +50,22 @@ def rodrigues(r: np.ndarray) -> np.ndarray:
     Kr[..., 1, 0], Kr[..., 1, 2] = r[..., 2], -r[..., 0]
     Kr[..., 2, 0], Kr[..., 2, 1] = -r[..., 1], r[..., 0]
     return np.where(small, eye + Kr, R)
+
+
+MIN_F_SCALE = 0.05  # px: floor of the estimated robust-loss scale
+
+
+def noise_sigma(errors: np.ndarray) -> float:
+    """Per-axis detection noise σ (px) from reprojection error norms (N,), robustly.
+
+    For isotropic 2D Gaussian noise the error norm is Rayleigh distributed with median
+    ``σ √(2 ln 2) ≈ 1.1774 σ``; the median ignores the outliers.
+    """
+    e = np.asarray(errors, np.float64)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        return float("nan")
+    return float(np.median(e) / np.sqrt(2 * np.log(2)))
 
 
 def matrix_to_rvec(R: np.ndarray) -> np.ndarray:
@@ -110,6 +134,7 @@ class BundleResult:
         inliers: (N,) bool, kept after outlier rejection.
         errors: (N,) final reprojection error (px) of every observation.
         rounds, nfev, seconds: solver statistics.
+        loss, f_scale: the robust loss and the scale (px) of the last round.
     """
 
     cam_params: np.ndarray
@@ -122,6 +147,8 @@ class BundleResult:
     rounds: int
     nfev: int
     seconds: float
+    loss: str = "huber"
+    f_scale: float = 1.0
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -240,6 +267,56 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
     return rodrigues(w)
 
 
+def _normal_equations(prob: _Problem, Rc, Rf, cache, r, w, free):
+    """Weighted Gauss-Newton blocks: Hcc (C,15,15), Hff (F,6,6), Hcf (C,F,15,6), gc (C,15),
+    gf (F,6); fixed camera parameters get identity rows (and zero gradient)."""
+    C, F = prob.C, prob.F
+    starts, pc, pf = prob.starts, prob.pair_cam, prob.pair_frame
+    Jc, Jf = prob.jacobians(Rc, Rf, cache)
+    w = w[:, None, None]
+    Jc = Jc * free.astype(float)[prob.obs.cam][:, None, :]
+    WJc, WJf = w * Jc, w * Jf
+    Hcc_o = np.einsum("nki,nkj->nij", WJc, Jc)
+    Hff_o = np.einsum("nki,nkj->nij", WJf, Jf)
+    Hcf_o = np.einsum("nki,nkj->nij", WJc, Jf)
+    gc_o = np.einsum("nki,nk->ni", WJc, r)
+    gf_o = np.einsum("nki,nk->ni", WJf, r)
+    Hcc = np.zeros((C, 15, 15))
+    np.add.at(Hcc, pc, np.add.reduceat(Hcc_o, starts, axis=0))
+    Hff = np.zeros((F, 6, 6))
+    np.add.at(Hff, pf, np.add.reduceat(Hff_o, starts, axis=0))
+    gc = np.zeros((C, 15))
+    np.add.at(gc, pc, np.add.reduceat(gc_o, starts, axis=0))
+    gf = np.zeros((F, 6))
+    np.add.at(gf, pf, np.add.reduceat(gf_o, starts, axis=0))
+    Hcf = np.zeros((C, F, 15, 6))
+    Hcf[pc, pf] = np.add.reduceat(Hcf_o, starts, axis=0)
+    fixed = ~free
+    for c in range(C):
+        idx = np.flatnonzero(fixed[c])
+        Hcc[c, idx, :] = 0
+        Hcc[c, :, idx] = 0
+        Hcc[c, idx, idx] = 1.0
+    gc[fixed] = 0.0
+    return Hcc, Hff, Hcf, gc, gf
+
+
+def _schur(Hcc, Hff, Hcf, gc, gf):
+    """Reduced camera system ``S dcam = rhs`` and ``Hff⁻¹`` (F, 6, 6)."""
+    C, F = Hcf.shape[:2]
+    P = C * 15
+    Hff_inv = np.linalg.inv(Hff)
+    Hcf_flat = Hcf.transpose(0, 2, 1, 3).reshape(P, F * 6)
+    Y = np.einsum("cfij,fjk->cfik", Hcf, Hff_inv)
+    Y_flat = Y.transpose(0, 2, 1, 3).reshape(P, F * 6)
+    S = np.zeros((P, P))
+    for c in range(C):
+        S[c * 15 : (c + 1) * 15, c * 15 : (c + 1) * 15] = Hcc[c]
+    S -= Y_flat @ Hcf_flat.T
+    rhs = -gc.reshape(P) + Y_flat @ gf.reshape(F * 6)
+    return S, rhs, Hff_inv
+
+
 def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter):
     """Levenberg-Marquardt with the Schur complement over the board poses."""
     C, F = cam0.shape[0], frame0.shape[0]
@@ -260,40 +337,9 @@ def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter):
     lam = 1e-3
     it = 0
     nfev = 1
-    starts, pc, pf = prob.starts, prob.pair_cam, prob.pair_frame
     for it in range(1, max_iter + 1):  # noqa: B007
-        Jc, Jf = prob.jacobians(Rc, Rf, cache)
-        w = _robust_weights(e, loss, f_scale)[:, None, None]
-        Jc = Jc * freef[prob.obs.cam][:, None, :]
-        WJc, WJf = w * Jc, w * Jf
-        Hcc_o = np.einsum("nki,nkj->nij", WJc, Jc)
-        Hff_o = np.einsum("nki,nkj->nij", WJf, Jf)
-        Hcf_o = np.einsum("nki,nkj->nij", WJc, Jf)
-        gc_o = np.einsum("nki,nk->ni", WJc, r)
-        gf_o = np.einsum("nki,nk->ni", WJf, r)
-        Hcc_p = np.add.reduceat(Hcc_o, starts, axis=0)
-        Hff_p = np.add.reduceat(Hff_o, starts, axis=0)
-        Hcf_p = np.add.reduceat(Hcf_o, starts, axis=0)
-        gc_p = np.add.reduceat(gc_o, starts, axis=0)
-        gf_p = np.add.reduceat(gf_o, starts, axis=0)
-        Hcc = np.zeros((C, 15, 15))
-        np.add.at(Hcc, pc, Hcc_p)
-        Hff = np.zeros((F, 6, 6))
-        np.add.at(Hff, pf, Hff_p)
-        gc = np.zeros((C, 15))
-        np.add.at(gc, pc, gc_p)
-        gf = np.zeros((F, 6))
-        np.add.at(gf, pf, gf_p)
-        Hcf = np.zeros((C, F, 15, 6))
-        Hcf[pc, pf] = Hcf_p
-        # fixed parameters: identity rows
-        fixed = ~free
-        for c in range(C):
-            idx = np.flatnonzero(fixed[c])
-            Hcc[c, idx, :] = 0
-            Hcc[c, :, idx] = 0
-            Hcc[c, idx, idx] = 1.0
-        gc[fixed] = 0.0
+        w = _robust_weights(e, loss, f_scale)
+        Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free)
         improved = False
         for _ in range(12):
             # damped system
@@ -303,16 +349,7 @@ def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter):
             Hff_d = Hff.copy()
             df = np.einsum("fii->fi", Hff_d)
             df += lam * np.maximum(df, 1e-9) + 1e-12
-            Hff_inv = np.linalg.inv(Hff_d)  # (F, 6, 6)
-            P = C * 15
-            Hcf_flat = Hcf.transpose(0, 2, 1, 3).reshape(P, F * 6)
-            Y = np.einsum("cfij,fjk->cfik", Hcf, Hff_inv)  # (C, F, 15, 6)
-            Y_flat = Y.transpose(0, 2, 1, 3).reshape(P, F * 6)
-            S = np.zeros((P, P))
-            for c in range(C):
-                S[c * 15 : (c + 1) * 15, c * 15 : (c + 1) * 15] = Hcc_d[c]
-            S -= Y_flat @ Hcf_flat.T
-            rhs = -gc.reshape(P) + Y_flat @ gf.reshape(F * 6)
+            S, rhs, Hff_inv = _schur(Hcc_d, Hff_d, Hcf, gc, gf)
             try:
                 dcam = np.linalg.solve(S, rhs)
             except np.linalg.LinAlgError:
@@ -415,11 +452,13 @@ def bundle_adjust(
     frames: np.ndarray,
     obs: Observations,
     loss: str = "huber",
-    f_scale: float = 1.0,
+    f_scale: float | None = None,
     max_rounds: int = 4,
-    outlier_px: float = 2.0,
+    outlier_px: float = 0.5,
     max_iter: int = 100,
     method: str = "lm",
+    outlier_sigmas: float = 5.0,
+    start_f_scale: float = 1.0,
 ) -> BundleResult:
     """Jointly refine cameras and board poses.
 
@@ -430,12 +469,16 @@ def bundle_adjust(
         frame_params: (F, 6) initial board→world rvec t.
         frames: (F,) video frame indices (bookkeeping only).
         obs: observations whose ``frame`` indexes ``frame_params``.
-        loss, f_scale: robust loss of ``least_squares`` (px).
+        loss: robust loss (``huber``, ``soft_l1``, ``cauchy`` or ``linear``).
+        f_scale: scale of the robust loss (px); ``None`` estimates it from the data: the first
+            round uses ``start_f_scale`` (px), later rounds ``2 σ`` (at least 0.05 px), where
+            ``σ`` is the detection noise per axis estimated from the inliers' median error (for
+            2D Gaussian noise the error norm's median is ``1.1774 σ``).
         max_rounds: solve / reject rounds.
         method: ``"lm"`` (Levenberg-Marquardt with Schur complement, analytic Jacobian) or
             ``"scipy"`` (``least_squares`` with a sparse finite-difference Jacobian).
-        outlier_px: a detection is rejected when its error exceeds
-            ``max(outlier_px, 5 * median error)`` after a round.
+        outlier_px, outlier_sigmas: a detection is rejected when its error exceeds
+            ``max(outlier_px, outlier_sigmas * σ)`` after a round.
     """
     if method not in ("lm", "scipy"):
         raise ValueError(f"unknown bundle-adjustment method {method!r}; expected lm or scipy")
@@ -452,24 +495,30 @@ def bundle_adjust(
         keep &= e0 < max(50.0, 20 * np.median(e0))
     nfev = 0
     rounds = 0
+    scale = float(start_f_scale) if f_scale is None else float(f_scale)
     for rounds in range(1, max_rounds + 1):  # noqa: B007
-        cam, fr, n = solver(cam, free, fr, obs.subset(keep), loss, f_scale, max_iter)
+        cam, fr, n = solver(cam, free, fr, obs.subset(keep), loss, scale, max_iter)
         nfev += n
         uv, _ = project_observations(cam, fr, obs)
         err = np.linalg.norm(uv - obs.uv, axis=1)
-        thr = max(outlier_px, 5.0 * float(np.median(err[keep])))
+        sigma = noise_sigma(err[keep])
+        thr = max(outlier_px, outlier_sigmas * sigma)
         new_keep = err < thr
+        new_scale = scale if f_scale is not None else max(MIN_F_SCALE, 2.0 * sigma)
         logger.info(
-            "bundle round %d: RMS %.3f px over %d detections, %d rejected (> %.2f px)",
+            "bundle round %d: RMS %.3f px over %d detections (noise σ %.3f px, loss scale "
+            "%.3f px), %d rejected (> %.2f px)",
             rounds,
             float(np.sqrt(np.mean(err[keep] ** 2))),
             int(keep.sum()),
+            sigma,
+            scale,
             int((~new_keep).sum()),
             thr,
         )
-        if np.array_equal(new_keep, keep):
+        if np.array_equal(new_keep, keep) and abs(new_scale - scale) <= 0.2 * scale:
             break
-        keep = new_keep
+        keep, scale = new_keep, new_scale
     uv, _ = project_observations(cam, fr, obs)
     err = np.linalg.norm(uv - obs.uv, axis=1)
     return BundleResult(
@@ -483,4 +532,39 @@ def bundle_adjust(
         rounds=rounds,
         nfev=nfev,
         seconds=time.perf_counter() - t0,
+        loss=loss,
+        f_scale=scale,
     )
+
+
+def camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
+    """Marginal covariance (C, 15, 15) of every camera's parameters at the solution.
+
+    Gauss-Newton approximation ``σ² S⁻¹`` from the reduced camera system (board poses
+    eliminated) over the inlier detections, with the robust loss's weights; ``σ²`` is the
+    weighted residual variance per degree of freedom. Local parameters: fx fy cx cy k1 k2 p1 p2
+    k3 (absolute), rotation and translation (increments). Rows and columns of fixed
+    parameters are zero.
+
+    Args:
+        result: a bundle-adjustment result.
+        free: (C, 15) bool, the parameters that were optimised.
+    """
+    cam, fr, obs = result.cam_params, result.frame_params, result.obs.subset(result.inliers)
+    C, F = cam.shape[0], fr.shape[0]
+    prob = _Problem(obs, C, F)
+    Rc, Rf = rodrigues(cam[:, 9:12]), rodrigues(fr[:, :3])
+    r, cache = prob.residuals(cam[:, :9], Rc, cam[:, 12:15], Rf, fr[:, 3:])
+    e = np.linalg.norm(r, axis=1)
+    w = _robust_weights(e, result.loss, result.f_scale)
+    Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free)
+    S, _rhs, _ = _schur(Hcc, Hff + 1e-12 * np.eye(6), Hcf, gc, gf)
+    dof = max(1, 2 * len(obs) - int(free.sum()) - 6 * F)
+    s2 = float(np.sum(w * e**2) / dof)
+    cov = s2 * np.linalg.pinv(S, hermitian=True)
+    out = np.zeros((C, 15, 15))
+    for c in range(C):
+        blk = cov[c * 15 : (c + 1) * 15, c * 15 : (c + 1) * 15]
+        m = free[c]
+        out[c][np.ix_(m, m)] = blk[np.ix_(m, m)]
+    return out

@@ -19,8 +19,11 @@ __all__ = [
     "usable_frames",
 ]
 
-# distortion model name -> which of (k1, k2, p1, p2, k3) are estimated
+# distortion model name -> which of (k1, k2, p1, p2, k3) are estimated. "auto" estimates
+# k1 k2 p1 p2 and the bundle adjustment then drops the tangential terms of a camera where they
+# are not significant (see freipose.calibration.pipeline).
 DIST_MODELS: dict[str, tuple[bool, bool, bool, bool, bool]] = {
+    "auto": (True, True, True, True, False),
     "none": (False, False, False, False, False),
     "k1": (True, False, False, False, False),
     "k1k2": (True, True, False, False, False),
@@ -168,6 +171,7 @@ def calibrate_intrinsics(
     dist_model: str = "k1k2p",
     camera: str = "camera",
     max_views: int = 40,
+    fix_principal_point: bool = False,
 ) -> IntrinsicsResult:
     """Intrinsics of one camera with ``cv2.calibrateCamera`` on a selection of views.
 
@@ -177,6 +181,8 @@ def calibrate_intrinsics(
         size: (width, height).
         dist_model: one of :data:`DIST_MODELS`.
         camera: name for messages.
+        fix_principal_point: keep the principal point at the image centre
+            ``((w - 1) / 2, (h - 1) / 2)``.
 
     Raises:
         CalibrationError: fewer than 4 usable views.
@@ -208,6 +214,9 @@ def calibrate_intrinsics(
     if not np.all(np.isfinite(K0)) or K0[0, 0] <= 0:
         K0 = np.array([[0.86 * w, 0, (w - 1) / 2], [0, 0.86 * w, (h - 1) / 2], [0, 0, 1.0]])
     flags = cv2.CALIB_USE_INTRINSIC_GUESS
+    if fix_principal_point:
+        K0[0, 2], K0[1, 2] = (w - 1) / 2, (h - 1) / 2
+        flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
     for i, fl in zip((0, 1, 4), (cv2.CALIB_FIX_K1, cv2.CALIB_FIX_K2, cv2.CALIB_FIX_K3)):
         if not free[i]:
             flags |= fl

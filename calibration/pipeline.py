@@ -19,6 +19,7 @@ from freipose.calibration.bundle import (
     BundleResult,
     Observations,
     bundle_adjust,
+    camera_covariance,
     matrix_to_rvec,
     rodrigues,
 )
@@ -50,6 +51,11 @@ __all__ = [
 ]
 
 HIGH_ERROR_PX = 1.0
+# model selection: a camera keeps a principal-point offset or tangential distortion only when
+# the bundle adjustment's estimate differs from zero by more than this Wald chi-square
+# (2 degrees of freedom, 1 % significance)
+CHI2_2DOF_1PCT = 9.21
+PRINCIPAL_POINT_MODES = ("auto", "free", "centre")
 # board frame (x right, y down the print, z into the board) -> floor frame (z up out of it)
 BOARD_TO_FLOOR = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -65,23 +71,32 @@ class CalibrationOptions:
         intrinsics_only: stop after per-camera intrinsics (extrinsics are identity).
         fixed_intrinsics: a rig whose K and distortion are used (and kept fixed) for every
             camera of the same name.
-        dist_model: ``none``, ``k1``, ``k1k2``, ``k1k2p`` (k1 k2 p1 p2; default) or ``full``.
+        dist_model: ``auto`` (default: k1 k2, plus p1 p2 for a camera where the tangential
+            terms are significant), ``none``, ``k1``, ``k1k2``, ``k1k2p`` (k1 k2 p1 p2) or
+            ``full`` (k1 k2 p1 p2 k3).
+        principal_point: ``auto`` (default: the image centre unless the bundle adjustment
+            finds a significant offset), ``free`` or ``centre`` (fixed at
+            ``((w - 1) / 2, (h - 1) / 2)``).
         jobs: detection processes (default: CPU count).
         max_views: views per camera for the intrinsics initialisation.
-        loss, f_scale: robust loss of the bundle adjustment (px).
-        outlier_px: minimum rejection threshold (px).
+        loss, f_scale: robust loss of the bundle adjustment and its scale (px); ``None``
+            estimates the scale from the detection noise (see
+            :func:`freipose.calibration.bundle.bundle_adjust`).
+        outlier_px: minimum rejection threshold (px); detections further than
+            ``max(outlier_px, 5 σ)`` from their projection are rejected.
         solver: ``lm`` (Schur-complement Levenberg-Marquardt) or ``scipy`` (least_squares).
     """
 
     origin_frame: int | None = None
     intrinsics_only: bool = False
     fixed_intrinsics: CameraRig | None = None
-    dist_model: str = "k1k2p"
+    dist_model: str = "auto"
+    principal_point: str = "auto"
     jobs: int | None = None
     max_views: int = 40
     loss: str = "huber"
-    f_scale: float = 1.0
-    outlier_px: float = 2.0
+    f_scale: float | None = None
+    outlier_px: float = 0.5
     solver: str = "lm"
     progress: bool = True
 
@@ -201,6 +216,11 @@ def calibrate_detections(
     F = dets[0].num_frames
     C = len(dets)
     free_dist = dist_free_mask(opt.dist_model)
+    if opt.principal_point not in PRINCIPAL_POINT_MODES:
+        raise CalibrationError(
+            f"unknown principal_point mode {opt.principal_point!r}; expected one of "
+            f"{', '.join(PRINCIPAL_POINT_MODES)}"
+        )
 
     # ---- intrinsics
     Ks, dists, intr = [], [], {}
@@ -223,7 +243,13 @@ def calibrate_detections(
             fixed_names.add(d.name)
             continue
         res = calibrate_intrinsics(
-            d.points, obj, d.size, opt.dist_model, camera=d.name, max_views=opt.max_views
+            d.points,
+            obj,
+            d.size,
+            opt.dist_model,
+            camera=d.name,
+            max_views=opt.max_views,
+            fix_principal_point=opt.principal_point == "centre",
         )
         intr[d.name] = res
         if res.max_tilt_difference_deg < 10.0 or res.coverage < 0.1:
@@ -314,23 +340,17 @@ def calibrate_detections(
         if d.name not in fixed_names:
             free[i, :4] = True
             free[i, 4:9] = free_dist
+            if opt.principal_point == "centre":
+                cam0[i, 2:4] = ((d.size[0] - 1) / 2, (d.size[1] - 1) / 2)
+                free[i, 2:4] = False
         if i != graph.root:
             free[i, 9:] = True
     fr0 = np.zeros((len(frames), 6))
     for k, f in enumerate(frames):
         fr0[k, :3] = matrix_to_rvec(B0[f, :3, :3])
         fr0[k, 3:] = B0[f, :3, 3]
-    ba = bundle_adjust(
-        cam0,
-        free,
-        fr0,
-        frames,
-        obs,
-        loss=opt.loss,
-        f_scale=opt.f_scale,
-        outlier_px=opt.outlier_px,
-        method=opt.solver,
-    )
+    ba = _bundle(cam0, free, fr0, frames, obs, opt)
+    ba, models = _select_models(ba, free, dets, fixed_names, opt, frames, obs)
     logger.info(
         "bundle adjustment: RMS %.3f -> %.3f px in %.2f s (%d evaluations)",
         ba.initial_rms,
@@ -399,11 +419,97 @@ def calibrate_detections(
         "board": board.to_dict(),
         "reprojection_rms_px": round(rms_all, 4),
         "distortion_model": opt.dist_model,
+        "intrinsics_model": models,
     }
     if opt.origin_frame is not None:
         metadata["origin_frame"] = int(opt.origin_frame)
     rig = CameraRig(tuple(cams), metadata)
     return CalibrationResult(rig, board, dets, stats, Bw, world, graph, ba, warnings, intr)
+
+
+def _bundle(cam, free, fr, frames, obs, opt: CalibrationOptions, start_scale=1.0) -> BundleResult:
+    return bundle_adjust(
+        cam,
+        free,
+        fr,
+        frames,
+        obs,
+        loss=opt.loss,
+        f_scale=opt.f_scale,
+        outlier_px=opt.outlier_px,
+        method=opt.solver,
+        start_f_scale=start_scale,
+    )
+
+
+def _describe_model(free_row: np.ndarray, fixed: bool) -> dict:
+    if fixed:
+        return {"principal_point": "given", "distortion": "given"}
+    names = [n for n, f in zip(("k1", "k2", "p1", "p2", "k3"), free_row[4:9]) if f]
+    return {
+        "principal_point": "estimated" if free_row[2] else "image centre",
+        "distortion": " ".join(names) if names else "none",
+    }
+
+
+def _wald(value: np.ndarray, cov: np.ndarray) -> float:
+    """Chi-square of ``value`` against zero under covariance ``cov`` (inf if singular)."""
+    try:
+        return float(value @ np.linalg.solve(cov, value))
+    except np.linalg.LinAlgError:
+        return float("inf")
+
+
+def _select_models(
+    ba: BundleResult,
+    free: np.ndarray,
+    dets: list[CameraDetections],
+    fixed_names: set[str],
+    opt: CalibrationOptions,
+    frames: np.ndarray,
+    obs: Observations,
+) -> tuple[BundleResult, dict]:
+    """Drop principal-point offsets and tangential distortion the data do not support.
+
+    With ``principal_point="auto"`` / ``dist_model="auto"``, a camera's principal-point offset
+    from the image centre (cx, cy) and its tangential terms (p1, p2) are tested against zero
+    with a Wald chi-square test on the bundle adjustment's covariance; parameters that are not
+    significant at 1 % are fixed (centre, zero) and the bundle adjustment is re-run from the
+    solution. Fewer free parameters make the remaining ones (rotations above all: a principal
+    point error of 1 px tilts a camera by 1/f rad) less noisy.
+
+    Returns:
+        the (possibly re-run) result and ``{camera: model description}``.
+    """
+    test_pp = opt.principal_point == "auto"
+    test_tan = opt.dist_model == "auto"
+    changed = False
+    if test_pp or test_tan:
+        cov = camera_covariance(ba, free)
+        cam = ba.cam_params.copy()
+        for i, d in enumerate(dets):
+            if d.name in fixed_names:
+                continue
+            p = cam[i]
+            if test_pp and free[i, 2]:
+                centre = np.array([(d.size[0] - 1) / 2, (d.size[1] - 1) / 2])
+                chi2 = _wald(p[2:4] - centre, cov[i, 2:4, 2:4])
+                logger.info("camera %s: principal-point offset chi2 %.1f", d.name, chi2)
+                if chi2 < CHI2_2DOF_1PCT:
+                    cam[i, 2:4] = centre
+                    free[i, 2:4] = False
+                    changed = True
+            if test_tan and free[i, 6]:
+                chi2 = _wald(p[6:8], cov[i, 6:8, 6:8])
+                logger.info("camera %s: tangential distortion chi2 %.1f", d.name, chi2)
+                if chi2 < CHI2_2DOF_1PCT:
+                    cam[i, 6:8] = 0.0
+                    free[i, 6:8] = False
+                    changed = True
+        if changed:
+            ba = _bundle(cam, free, ba.frame_params, frames, obs, opt, ba.f_scale)
+    models = {d.name: _describe_model(free[i], d.name in fixed_names) for i, d in enumerate(dets)}
+    return ba, models
 
 
 def _warn_high(stats: list[CameraStats], warnings: list[str]) -> None:

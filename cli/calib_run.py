@@ -120,10 +120,19 @@ def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
 )
 @click.option(
     "--dist-model",
-    type=click.Choice(["none", "k1", "k1k2", "k1k2p", "full"]),
-    default="k1k2p",
+    type=click.Choice(["auto", "none", "k1", "k1k2", "k1k2p", "full"]),
+    default="auto",
     show_default=True,
-    help="Distortion coefficients to estimate (k1k2p = k1 k2 p1 p2).",
+    help="Distortion coefficients to estimate: auto = k1 k2, plus p1 p2 where they are "
+    "significant; k1k2p = k1 k2 p1 p2; full adds k3.",
+)
+@click.option(
+    "--principal-point",
+    type=click.Choice(["auto", "free", "centre"]),
+    default="auto",
+    show_default=True,
+    help="auto: the image centre unless the data show a significant offset; free: always "
+    "estimated; centre: fixed at the image centre.",
 )
 @click.option("--jobs", "-j", type=int, default=None, help="Detection processes (default: CPUs).")
 @click.option("--no-cache", is_flag=True, help="Re-detect even if cached detections exist.")
@@ -137,6 +146,7 @@ def run(
     fix_intrinsics,
     report_dir,
     dist_model,
+    principal_point,
     jobs,
     no_cache,
     **board_fields,
@@ -182,6 +192,7 @@ def run(
             intrinsics_only=intrinsics_only,
             fixed_intrinsics=fixed,
             dist_model=dist_model,
+            principal_point=principal_point,
             jobs=jobs,
         )
         result = calibrate(list(inputs), board, output, opts)
