@@ -5,7 +5,9 @@
 # shows the commands you run on your own recordings. Usage:
 #
 #   examples/workflow.sh [WORKDIR]            # default WORKDIR: freipose_workflow
-#   FRAMES=100 STEPS=20 examples/workflow.sh  # a quick smoke run (meaningless numbers)
+#   FRAMES=100 STEPS=4 DETECTION=bgsub examples/workflow.sh   # a quick smoke run
+#
+# (A few-step detector finds nothing; DETECTION=bgsub predicts with background subtraction.)
 #
 # Sizes follow `freipose demo --preset small`. Every command resumes or skips finished work
 # when the script is run again (synth keeps rendered videos, train needs --resume, predict
@@ -16,6 +18,7 @@ W=${1:-freipose_workflow}
 FRAMES=${FRAMES:-750}           # frames per session (25 fps)
 CALIB_FRAMES=${CALIB_FRAMES:-80}
 STEPS=${STEPS:-300}             # voxel network steps (the baseline gets 2/3, the detector 5/6)
+DETECTION=${DETECTION:-detector}  # how predict finds the animal: detector or bgsub
 mkdir -p "$W/scenes"
 
 echo "== 1. Synthesize: a calibration recording and two stimulated sessions (7 cameras)"
@@ -130,8 +133,13 @@ freipose eval "$W/runs/pose/model.pt" "$W/labels/eval.h5" \
     --baseline "$W/runs/baseline/model.pt" -o "$W/eval"
 
 echo "== 6. Predict every session, render an overlay clip, export a table"
+if [ "$DETECTION" = bgsub ]; then
+  find_animal=(--method bgsub)
+else
+  find_animal=(--detector "$W/runs/detector/detector.pt")
+fi
 freipose predict "$W/recordings/rat1_day1" "$W/recordings/rat1_day2" \
-    --model "$W/runs/pose/model.pt" --detector "$W/runs/detector/detector.pt" \
+    --model "$W/runs/pose/model.pt" "${find_animal[@]}" \
     --calibration "$W/calibration.toml" -o "$W/poses"
 freipose render "$W/recordings/rat1_day2" "$W/poses/rat1_day2.poses.h5" \
     -o "$W/overlay_rat1_day2.mp4" --frames 20:70

@@ -162,7 +162,7 @@ PRESETS: dict[str, DemoPreset] = {
             body_part=STIM_PART,
             effect="oscillate",
             frequency_hz=5.0,
-            amplitude_mm=20.0,
+            amplitude_mm=30.0,
             duration_s=2.0,
             spacing_s=2.0,
             onset_s=1.0,
@@ -807,15 +807,19 @@ def step_evaluate(ctx: DemoContext) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- 7 analyze
-def study_toml(ctx: DemoContext, study_dir: Path) -> str:
-    """The study manifest of the demo sessions (paths relative to ``study_dir``)."""
+def study_toml(ctx: DemoContext, study_dir: Path, poses_dir: Path | None = None) -> str:
+    """The study manifest of the demo sessions (paths relative to ``study_dir``).
+
+    ``poses_dir`` holds ``<session>.poses.h5`` (default: the predictions).
+    """
+    poses_dir = ctx.poses_dir if poses_dir is None else poses_dir
     lines = [
         "# written by freipose demo: one animal, one condition, a train and a test recording",
         'skeleton = "rat"',
         "",
     ]
     for s in ctx.preset.sessions:
-        poses = os.path.relpath(ctx.poses_dir / f"{s.name}.poses.h5", study_dir)
+        poses = os.path.relpath(poses_dir / f"{s.name}.poses.h5", study_dir)
         events = os.path.relpath(ctx.session_dir(s.name) / "events.csv", study_dir)
         lines += [
             "[[recordings]]",
@@ -830,48 +834,83 @@ def study_toml(ctx: DemoContext, study_dir: Path) -> str:
     return "\n".join(lines)
 
 
-def step_analyze(ctx: DemoContext) -> dict[str, Any]:
-    import pandas as pd
+def _write_truth_poses(ctx: DemoContext, folder: Path) -> None:
+    """The true keypoints of every session as poses files (calibrated world frame)."""
+    from freipose.io.calibration import load_calibration
+    from freipose.io.poses import PoseData, write_poses_h5
+    from freipose.skeleton import load_skeleton
 
+    align = _read_marker(ctx.out, "calibrate")["results"]["alignment"]
+    rig = load_calibration(ctx.calibration)
+    skel = load_skeleton("rat")
+    for s in ctx.preset.sessions:
+        path = folder / f"{s.name}.poses.h5"
+        if path.is_file():
+            continue
+        lab = _session_labels(ctx, s.name)
+        poses = truth_to_calibrated(lab.points3d, align)
+        data = PoseData(
+            poses=poses,
+            confidence=np.ones(poses.shape[:2]),
+            keypoints=tuple(lab.keypoints),
+            frame_index=np.asarray(lab.frame_index),
+            fps=ctx.preset.fps,
+            calibration=rig,
+            skeleton=skel,
+            provenance={"source": "freipose demo: true keypoints of the synthetic session"},
+        )
+        folder.mkdir(parents=True, exist_ok=True)
+        write_poses_h5(data, path)
+
+
+def _analyze(ctx: DemoContext, study: Path, text: str, results: Path) -> dict[str, Any]:
     from freipose.analysis.attribution import AttributionConfig
     from freipose.analysis.report import analyze_study
     from freipose.analysis.variables import VariableConfig
 
-    out = ctx.out / "analysis"
-    out.mkdir(parents=True, exist_ok=True)
-    study = out / "study.toml"
-    text = study_toml(ctx, out)
     if not study.is_file() or study.read_text(encoding="utf-8") != text:
         atomic_write_text(study, text)
     acfg = AttributionConfig(**ctx.preset.analysis)
     vcfg = VariableConfig(stft_window=ctx.preset.stft_window)
     result = analyze_study(
-        study, out / "results", None, "world", vcfg, acfg, say=lambda m: ctx.say("  " + m)
+        study, results, None, "world", vcfg, acfg, say=lambda m: ctx.say("    " + m)
     )
     att = result.attribution.sort_values("f1", ascending=False)
     top = att.head(10)
     parts = top["part"].tolist()
     share = float(np.mean([pt == STIM_PART for pt in parts])) if parts else 0.0
-    cls = result.classification
     res = {
-        "classification": json.loads(cls.to_json(orient="records")),
+        "classification": json.loads(result.classification.to_json(orient="records")),
         "top_variables": json.loads(
             top[["variable", "part", "f1", "p_value", "p_adjusted", "significant"]].to_json(
                 orient="records"
             )
         ),
-        "stimulated_part": STIM_PART,
         "top10_share_stimulated_part": share,
         "significant": int(att["significant"].sum()),
     }
     ctx.say(
-        f"  {int(round(share * 10))} of the 10 best single variables belong to the stimulated "
-        f"{STIM_PART} (best: {top.iloc[0]['variable']}, F1 {top.iloc[0]['f1']:.2f}); "
-        f"{res['significant']} variables significant after the autocorrelation-corrected, "
-        f"Bonferroni-adjusted test"
+        f"    -> {int(round(share * 10))} of the 10 best single variables belong to the "
+        f"stimulated {STIM_PART} (best: {top.iloc[0]['variable']}, F1 "
+        f"{top.iloc[0]['f1']:.2f}); {res['significant']} significant after the "
+        "autocorrelation-corrected, Bonferroni-adjusted test"
     )
-    del pd
     return res
+
+
+def step_analyze(ctx: DemoContext) -> dict[str, Any]:
+    out = ctx.out / "analysis"
+    out.mkdir(parents=True, exist_ok=True)
+    ctx.say("  on the predicted poses:")
+    pred = _analyze(ctx, out / "study.toml", study_toml(ctx, out), out / "results")
+    # The same analysis on the true keypoints: what perfect tracking would show.
+    ctx.say("  on the true keypoints (for comparison: perfect tracking):")
+    truth_dir = out / "truth_poses"
+    _write_truth_poses(ctx, truth_dir)
+    truth = _analyze(
+        ctx, out / "study_truth.toml", study_toml(ctx, out, truth_dir), out / "results_truth"
+    )
+    return {"stimulated_part": STIM_PART, "predicted": pred, "truth": truth}
 
 
 # --------------------------------------------------------------------------- 8 report
@@ -1007,30 +1046,39 @@ def step_report(ctx: DemoContext) -> dict[str, Any]:
     # analysis
     an = r["analyze"]
     parts.append("<h2>7. Analysis</h2>")
-    if an:
-        rows = [
-            [c["evaluated_on"], c["balanced_accuracy"], c["f1"], c["p_value"], c["n_effective"]]
-            for c in an["classification"]
-        ]
-        parts.append(
-            "<p>Linear SVM on all variables, trained on the train recording, scored on the "
-            "test recording:</p>"
-            + _table(["evaluated on", "balanced accuracy", "F1", "p", "n effective"], rows)
-        )
-        rows = [[t["variable"], t["f1"], t["p_value"], t["significant"]]
-                for t in an["top_variables"]]  # fmt: skip
-        parts.append(
-            f"<p>Best single variables ({int(round(an['top10_share_stimulated_part'] * 10))} of "
-            f"the top 10 belong to the stimulated {STIM_PART}; {an['significant']} significant "
-            "after the autocorrelation-corrected, Bonferroni-adjusted chi-squared test):</p>"
-            + _table(["variable", "F1", "p", "significant"], rows)
-        )
-    res_dir = ctx.out / "analysis" / "results"
-    for f in sorted(res_dir.glob("attribution_*.png")):
-        parts.append(_img(ctx, f, "attribution heat map", 1000))
-    parts.append(_img(ctx, res_dir / "classifier_response.png", "onset dynamics", 480))
-    for f in sorted(res_dir.glob("top_variables_*.png")):
-        parts.append(_img(ctx, f, "top variables around onset", 700))
+    for key, label, sub in (
+        ("predicted", "the predicted poses", "results"),
+        ("truth", "the true keypoints (perfect tracking, for comparison)", "results_truth"),
+    ):
+        a = an.get(key)
+        res_dir = ctx.out / "analysis" / sub
+        parts.append(f"<h3>On {html.escape(label)}</h3>")
+        if a:
+            rows = [
+                [c["evaluated_on"], c["balanced_accuracy"], c["f1"], c["p_value"],
+                 c["n_effective"]]
+                for c in a["classification"]
+            ]  # fmt: skip
+            parts.append(
+                "<p>Linear SVM on all variables, trained on the train recording, scored on "
+                "the test recording:</p>"
+                + _table(["evaluated on", "balanced accuracy", "F1", "p", "n effective"], rows)
+            )
+            rows = [[t["variable"], t["f1"], t["p_value"], t["significant"]]
+                    for t in a["top_variables"]]  # fmt: skip
+            n_top = int(round(a["top10_share_stimulated_part"] * 10))
+            parts.append(
+                f"<p>Best single variables ({n_top} of the top 10 belong to the stimulated "
+                f"{STIM_PART}; {a['significant']} significant after the "
+                "autocorrelation-corrected, Bonferroni-adjusted chi-squared test):</p>"
+                + _table(["variable", "F1", "p", "significant"], rows)
+            )
+        for f in sorted(res_dir.glob("attribution_*.png")):
+            parts.append(_img(ctx, f, f"attribution heat map ({key})", 1000))
+        parts.append(_img(ctx, res_dir / "classifier_response.png",
+                          f"onset dynamics ({key})", 480))  # fmt: skip
+        for f in sorted(res_dir.glob("top_variables_*.png")):
+            parts.append(_img(ctx, f, f"top variables around onset ({key})", 700))
     parts.append("</body></html>")
     path = ctx.out / "report.html"
     atomic_write_text(path, "\n".join(parts) + "\n")

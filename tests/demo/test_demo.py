@@ -75,10 +75,13 @@ def test_tiny_demo_outputs(tiny_demo):
     # 7 analysis: a valid study and its tables and figures
     study = load_study(out / "analysis" / "study.toml")
     assert {r.split for r in study.recordings} == {"train", "test"}
-    res = out / "analysis" / "results"
-    for f in ("classification.csv", "attribution.csv", "classifier_response.png"):
-        assert (res / f).is_file(), f
-    assert list(res.glob("attribution_*.png"))
+    for sub in ("results", "results_truth"):  # predicted poses and, for comparison, the truth
+        res = out / "analysis" / sub
+        for f in ("classification.csv", "attribution.csv", "classifier_response.png"):
+            assert (res / f).is_file(), f
+        assert list(res.glob("attribution_*.png"))
+    marker = json.loads((out / ".demo" / "analyze.done").read_text())["results"]
+    assert 0 <= marker["truth"]["top10_share_stimulated_part"] <= 1
     # 8 report: every referenced figure and link exists
     html = (out / "report.html").read_text()
     refs = re.findall(r'(?:src|href)="([^"]+)"', html) + re.findall(r"href='([^']+)'", html)
