@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import click
+
 from freipose.cli._lazy import DefaultLazyGroup
 
 SUBCOMMANDS = {

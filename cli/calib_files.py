@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+
 from freipose.cli._common import user_errors
 
 FORMATS_HELP = (

@@ -6,9 +6,9 @@ import logging
 import sys
 
 import click
-from freipose.cli._lazy import LazyGroup
 
 from freipose import __version__
+from freipose.cli._lazy import LazyGroup
 
 # Command name -> "module:attribute". One module per command under cli/.
 COMMANDS = {

@@ -5,9 +5,9 @@ from __future__ import annotations
 import click
 import pytest
 from click.testing import CliRunner
-from freipose.cli.main import cli
 
 from freipose import __version__
+from freipose.cli.main import cli
 
 
 def _all_commands() -> list[tuple[str, ...]]:
