@@ -34,6 +34,20 @@ class MediaError(ValueError):
     """A video or image folder cannot be read; the message names it and says why."""
 
 
+def list_images(folder: str | Path) -> list[Path]:
+    """The images of a folder in frame-source order (by name, numbers numerically).
+
+    Frame ``i`` of :class:`FrameSource` on ``folder`` is element ``i``; hidden files are skipped.
+    """
+    folder = Path(folder)
+    imgs = (
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
+    )
+    return sorted(imgs, key=lambda p: _natural_key(p.name))
+
+
 class FrameSource:
     """Random and sequential access to the frames of a video file or an image folder.
 
@@ -52,14 +66,7 @@ class FrameSource:
         if not self.path.exists():
             raise MediaError(f"{self.path}: no such video file or image folder")
         if self.path.is_dir():
-            imgs = sorted(
-                (
-                    p
-                    for p in self.path.iterdir()
-                    if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
-                ),
-                key=lambda p: _natural_key(p.name),
-            )
+            imgs = list_images(self.path)
             if not imgs:
                 raise MediaError(
                     f"{self.path}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})"

@@ -13,6 +13,7 @@ The ``.h5`` files are pandas HDF5 tables; they are read with h5py directly (PyTa
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import logging
 import pickle
@@ -328,12 +329,62 @@ def read_dlc(
             names,
             indiv if inds is not None else None,
         )
-        by_session.setdefault(sess, []).append((vt, _find_video(folder, fname)))
+        by_session.setdefault(sess, []).append((vt, _find_video(folder, fname), folder))
     out = []
     for sess, items in by_session.items():
-        videos = {vt.camera: p for vt, p in items if p is not None}
-        out.append(combine_views(sess, [vt for vt, _ in items], None, videos))
+        videos = {vt.camera: p for vt, p, _ in items if p is not None}
+        vts = [vt for vt, _, _ in items]
+        if not videos:
+            vts, videos = _image_folders_as_videos(sess, vts, [d for _, _, d in items])
+        out.append(combine_views(sess, vts, None, videos))
     return out
+
+
+def _image_folders_as_videos(
+    session: str, views: list[ViewTable], folders: list[Path]
+) -> tuple[list[ViewTable], dict[str, Path]]:
+    """Without videos, use the labeled-data image folders as the cameras' frame sources.
+
+    This works when every folder of the session holds images of the same frames (by the
+    digits of their names) covering all labeled rows: the frame index of each row becomes
+    the position of its image in the folder (what :class:`~freipose.io.video.FrameSource`
+    reads as that frame). Otherwise the views are returned unchanged, without videos.
+    """
+    from freipose.io.video import list_images
+
+    frame_lists = []
+    for d in folders:
+        try:
+            frames = [frame_from_name(p.name, str(d)) for p in list_images(d)]
+        except LabelImportError:
+            frames = []
+        frame_lists.append(frames)
+    first = frame_lists[0]
+    usable = (
+        bool(first)
+        and len(set(first)) == len(first)
+        and first == sorted(first)
+        and all(f == first for f in frame_lists[1:])
+        and all(np.isin(vt.frame_index, first).all() for vt in views)
+    )
+    if not usable:
+        log.info(
+            "session %s: no videos and the labeled-data folders do not hold the same labeled "
+            "frames, so the labels list no frame sources",
+            session,
+        )
+        return views, {}
+    order = np.asarray(first, dtype=np.int64)
+    log.info(
+        "session %s: no videos; using the labeled-data image folders as frame sources (frame "
+        "index = image position, %d images per camera)",
+        session,
+        len(order),
+    )
+    remapped = [
+        dataclasses.replace(vt, frame_index=np.searchsorted(order, vt.frame_index)) for vt in views
+    ]
+    return remapped, {vt.camera: d for vt, d in zip(views, folders)}
 
 
 def dlc_table_text(

@@ -225,8 +225,9 @@ def export_labels(
     appears complete or not at all).
 
     * ``dlc``: ``labeled-data/<session>_<camera>/CollectedData_<scorer>.csv`` (+ ``.h5``
-      with PyTables), rows ``labeled-data/<folder>/img<frame:05d>.png``; the frames are
-      extracted from the session videos when they are available.
+      with PyTables), rows ``labeled-data/<folder>/img<frame:05d>.png``; the frames (all
+      labeled frames of the session, in every camera folder) are extracted from the session
+      videos when they are available.
     * ``anipose``: ``<session>/pose-2d/<session>_<camera>.csv`` (one row per video frame up
       to the last labeled one, likelihood 1 for labels) + ``<session>/calibration.toml``.
     * ``freipose``: ``<session>/anno.json`` (the original format, xyz in metres) +
@@ -328,8 +329,11 @@ def _export_dlc(
         if video is not None:
             vp = Path(video) if Path(video).is_absolute() else Path(labels_dir) / video
             if vp.exists():
+                # every labeled frame of the session, also those this camera has no label
+                # in: all folders then hold the same images, so they can serve as the
+                # cameras' frame sources when the export is imported without the videos
                 with FrameSource(vp) as src:
-                    for f in fi[keep]:
+                    for f in fi:
                         img_path = d / f"img{int(f):05d}.png"
                         cv2.imwrite(str(img_path), src.read(int(f)))
                         written.append(img_path)

@@ -440,3 +440,54 @@ def test_dlc_multi_animal_rows_per_individual(tmp_path):
     np.testing.assert_array_equal(
         lab.points2d[:, 0], [[[1.5, 2.5], [3, 4]], [[5, 6], [7, 8]], [[9.25, 10], [11, 12]]]
     )
+
+
+def test_dlc_export_import_cli_gives_usable_training_set(tmp_path, rng):
+    # labels.h5 with videos -> export --format dlc -> import the labeled-data folders without
+    # videos: the image folders become the cameras' frame sources (frame = image position)
+    from freipose.labels.dataset import MultiViewDataset
+
+    rig = make_circle_rig(3, size=(64, 48), focal=60)
+    n_frames, fi = 12, np.array([2, 5, 9])
+    uv = rig.project(_truth(rng, len(fi)) * 0.2)
+    uv[1, 2] = np.nan  # camera 2 has no label in frame 5: its folder still gets that image
+    videos = {}
+    frames = rng.integers(0, 256, (len(rig.names), n_frames, 48, 64, 3), dtype=np.uint8)
+    for c, cam in enumerate(rig.names):
+        with VideoWriter(tmp_path / f"{cam}.mkv", 30.0, (64, 48)) as w:
+            for img in frames[c]:
+                w.write(img)
+        videos[cam] = f"{cam}.mkv"
+    lab = LabelSet(
+        np.array(["s"] * len(fi), dtype=object),
+        fi,
+        uv,
+        np.full((len(fi), len(KPS), 3), np.nan),
+        rig.names,
+        tuple(KPS),
+        {"s": SessionInfo(rig, videos, 30.0)},
+    )
+    write_labels_h5(lab, tmp_path / "x.h5")
+    write_calibration_toml(rig, tmp_path / "cal.toml")
+    run = CliRunner().invoke
+    r = run(cli, ["labels", "export", str(tmp_path / "x.h5"), "--format", "dlc", "-o",
+                  str(tmp_path / "dlc")])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    folders = sorted(str(p) for p in (tmp_path / "dlc" / "labeled-data").iterdir())
+    assert len(folders) == 3
+    args = ["labels", "import", "--format", "dlc", *folders, "--calibration",
+            str(tmp_path / "cal.toml"), "-o", str(tmp_path / "y.h5")]  # fmt: skip
+    r = run(cli, args)
+    assert r.exit_code == 0, r.output
+    back = read_labels_h5(tmp_path / "y.h5")
+    assert set(back.sessions["s"].videos) == set(rig.names)
+    np.testing.assert_array_equal(back.frame_index, np.arange(len(fi)))  # image positions
+    np.testing.assert_array_equal(back.points2d, uv)
+    ds = MultiViewDataset(tmp_path / "y.h5")
+    ds.validate()
+    for i in range(len(fi)):
+        sample = ds[i]
+        assert list(sample["camera_names"]) == list(rig.names)
+        for c in range(len(rig.names)):  # lossless video -> PNG: the very same pixels
+            np.testing.assert_array_equal(sample["images"][c], frames[c, fi[i]])
+    ds.close()
