@@ -30,9 +30,9 @@ from freipose.labels.importing import (
     LabelImportError,
     SourceLabels,
     ViewTable,
+    camera_from_name,
     combine_views,
     frame_from_name,
-    match_camera,
 )
 from freipose.labels.mapping import NameMapping
 
@@ -292,18 +292,7 @@ def read_dlc(
         table = read_dlc_table(path)
         if not table.index:
             raise LabelImportError(f"{path}: the table has no rows")
-        cam_src, sess = fname, ""
-        if fname in mapping.cameras:
-            cam_src = fname
-        elif calibration is not None:
-            m = match_camera(fname, calibration.names)
-            if m is None:
-                raise LabelImportError(
-                    f"{path}: folder {fname!r} names none of the calibration cameras "
-                    f"{list(calibration.names)}; name folders <session>_<camera> or pass "
-                    f"--camera-map {fname}=CAMERA"
-                )
-            cam_src, sess = m
+        cam_src, sess = camera_from_name(fname, path, calibration, mapping, kind="folder")
         sess = (
             session
             or sess

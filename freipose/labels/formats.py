@@ -21,6 +21,7 @@ from freipose.labels.importing import (
     LabelImportError,
     SourceLabels,
     ViewTable,
+    camera_from_name,
     combine_views,
     frame_from_name,
     match_camera,
@@ -267,17 +268,7 @@ def read_anipose(
                 break
     by_session: dict[str, list[ViewTable]] = {}
     for path in files:
-        stem = path.stem
-        cam, sess = stem, ""
-        if stem not in mapping.cameras and calibration is not None:
-            m = match_camera(stem, calibration.names)
-            if m is None:
-                raise LabelImportError(
-                    f"{path}: file name {stem!r} names none of the calibration cameras "
-                    f"{list(calibration.names)}; name files <session>_<camera> or pass "
-                    f"--camera-map {stem}=CAMERA"
-                )
-            cam, sess = m
+        cam, sess = camera_from_name(path.stem, path, calibration, mapping)
         table = read_dlc_table(path)
         kps, inds, pts, lik = table_points(table, min_likelihood)
         if inds is not None:
@@ -543,16 +534,7 @@ def read_sleap(
             out.append(combine_views(session or path.stem, vts, rig, videos))
             continue
         # one camera per file
-        stem = path.stem
-        cam, sess = stem, ""
-        if stem not in mapping.cameras and calibration is not None:
-            m = match_camera(stem, calibration.names)
-            if m is None:
-                raise LabelImportError(
-                    f"{path}: file name {stem!r} names none of the calibration cameras "
-                    f"{list(calibration.names)}; pass --camera-map {stem}=CAMERA"
-                )
-            cam, sess = m
+        cam, sess = camera_from_name(path.stem, path, calibration, mapping)
         if len(labels.videos) > 1:
             raise LabelImportError(
                 f"{path}: {len(labels.videos)} videos but no recording session linking them to "

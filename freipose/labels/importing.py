@@ -125,6 +125,34 @@ def match_camera(name: str, cameras: Sequence[str]) -> tuple[str, str] | None:
     return best
 
 
+def camera_from_name(
+    name: str,
+    source: object,
+    calibration: CameraRig | None,
+    mapping: NameMapping,
+    kind: str = "file",
+) -> tuple[str, str]:
+    """``(camera, session)`` of a per-camera source file/folder called ``name``.
+
+    A name in ``--camera-map`` is kept as the camera; else, with a calibration, the
+    calibration camera inside the name (``run1_cam0`` -> ``("cam0", "run1")``); else the
+    name itself. The session is ``""`` when the name does not tell it.
+
+    Raises:
+        LabelImportError: with a calibration, the name contains none of its cameras.
+    """
+    if name in mapping.cameras or calibration is None:
+        return name, ""
+    m = match_camera(name, calibration.names)
+    if m is None:
+        raise LabelImportError(
+            f"{source}: {kind} {name!r} names none of the calibration cameras "
+            f"{list(calibration.names)}; name {kind}s <session>_<camera> or pass "
+            f"--camera-map {name}=CAMERA"
+        )
+    return m
+
+
 def _check_rows(src: SourceLabels, skip_empty: bool) -> SourceLabels:
     labeled = np.isfinite(src.points2d).all(-1).any((1, 2))
     if src.points3d is not None:
