@@ -35,6 +35,7 @@ from freipose import __version__
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
+from freipose.io.hdf5 import decode_strings, open_h5, str_array
 
 SCHEMA = "freipose.boxes"
 SCHEMA_VERSION = 1
@@ -93,10 +94,6 @@ class BoxesData:
         return len(self.frame_index)
 
 
-def _str_array(values) -> np.ndarray:
-    return np.array([str(v) for v in values], dtype=h5py.string_dtype("utf-8"))
-
-
 def write_boxes_h5(data: BoxesData, path: str | Path) -> None:
     """Write ``boxes.h5`` atomically."""
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
@@ -111,7 +108,7 @@ def write_boxes_h5(data: BoxesData, path: str | Path) -> None:
         for k, v in data.attrs.items():
             f.attrs[k] = v
         f.create_dataset("frame_index", data=data.frame_index)
-        f.create_dataset("cameras", data=_str_array(data.cameras))
+        f.create_dataset("cameras", data=str_array(data.cameras))
         for name in ("boxes", "scores", "agree", "n_agree", "center", "crop_boxes"):
             f.create_dataset(name, data=getattr(data, name), compression="gzip")
 
@@ -124,13 +121,7 @@ def read_boxes_h5(path: str | Path) -> BoxesData:
         FileNotFoundError: the file does not exist.
     """
     p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f"boxes file not found: {p}")
-    try:
-        f = h5py.File(p, "r")
-    except OSError as exc:
-        raise BoxesFormatError(f"{p}: not a readable HDF5 file ({exc}); is it truncated?") from exc
-    with f:
+    with open_h5(p, "boxes file", BoxesFormatError) as f:
         schema = f.attrs.get("schema")
         if schema != SCHEMA:
             raise BoxesFormatError(
@@ -148,7 +139,7 @@ def read_boxes_h5(path: str | Path) -> BoxesData:
         if missing:
             raise BoxesFormatError(f"{p}: missing datasets {missing}")
         arrays = {k: f[k][()] for k in need}
-        cams = [s.decode() if isinstance(s, bytes) else str(s) for s in arrays.pop("cameras")]
+        cams = decode_strings(arrays.pop("cameras"))
         rig = None
         if "calibration" in f.attrs:
             rig = rig_from_toml_text(str(f.attrs["calibration"]), source=f"{p} (calibration)")

@@ -32,6 +32,7 @@ from freipose._frozen import PicklableFrozen
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
+from freipose.io.hdf5 import decode_strings, open_h5, str_array
 
 SCHEMA = "freipose.labels"
 SCHEMA_VERSION = 1
@@ -133,14 +134,6 @@ class LabelSet(PicklableFrozen):
         return None if info is None else info.calibration
 
 
-def _str_array(values: Sequence[str]) -> np.ndarray:
-    return np.array([str(v) for v in values], dtype=h5py.string_dtype("utf-8"))
-
-
-def _decode(arr: np.ndarray) -> list[str]:
-    return [s.decode() if isinstance(s, bytes) else str(s) for s in arr]
-
-
 def write_labels_h5(labels: LabelSet, path: str | Path) -> None:
     """Write ``labels.h5`` atomically."""
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
@@ -148,14 +141,14 @@ def write_labels_h5(labels: LabelSet, path: str | Path) -> None:
         f.attrs["schema_version"] = SCHEMA_VERSION
         f.attrs["units"] = "mm"
         f.attrs["freipose_version"] = __version__
-        f.create_dataset("session", data=_str_array(labels.session))
+        f.create_dataset("session", data=str_array(labels.session))
         f.create_dataset("frame_index", data=labels.frame_index)
         f.create_dataset("points2d", data=labels.points2d, compression="gzip")
         f.create_dataset("points3d", data=labels.points3d, compression="gzip")
         if labels.visible2d is not None:
             f.create_dataset("visible2d", data=labels.visible2d, compression="gzip")
-        f.create_dataset("cameras", data=_str_array(labels.cameras))
-        f.create_dataset("keypoints", data=_str_array(labels.keypoints))
+        f.create_dataset("cameras", data=str_array(labels.cameras))
+        f.create_dataset("keypoints", data=str_array(labels.keypoints))
         g = f.create_group("sessions")
         for name, info in labels.sessions.items():
             sg = g.create_group(name)
@@ -174,15 +167,7 @@ def read_labels_h5(path: str | Path) -> LabelSet:
         FileNotFoundError: the file does not exist.
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"labels file not found: {path}")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise LabelsFormatError(
-            f"{path}: not a readable HDF5 file ({exc}); is it truncated?"
-        ) from exc
-    with f:
+    with open_h5(path, "labels file", LabelsFormatError) as f:
         need = ["session", "frame_index", "points2d", "points3d", "cameras", "keypoints"]
         missing = [d for d in need if d not in f]
         if missing:
@@ -202,12 +187,12 @@ def read_labels_h5(path: str | Path) -> LabelSet:
                         float(sg.attrs["fps"]) if "fps" in sg.attrs else None,
                     )
             return LabelSet(
-                np.array(_decode(f["session"][()]), dtype=object),
+                np.array(decode_strings(f["session"][()]), dtype=object),
                 f["frame_index"][()],
                 f["points2d"][()],
                 f["points3d"][()],
-                tuple(_decode(f["cameras"][()])),
-                tuple(_decode(f["keypoints"][()])),
+                tuple(decode_strings(f["cameras"][()])),
+                tuple(decode_strings(f["keypoints"][()])),
                 sessions,
                 f["visible2d"][()] if "visible2d" in f else None,
             )

@@ -28,6 +28,7 @@ from freipose._frozen import PicklableFrozen
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
+from freipose.io.hdf5 import decode_strings, open_h5, str_array
 from freipose.skeleton import Skeleton, skeleton_from_dict
 
 SCHEMA = "freipose.poses"
@@ -118,10 +119,6 @@ class PoseData(PicklableFrozen):
         return self.frame_index / self.fps
 
 
-def _str_array(values: Any) -> np.ndarray:
-    return np.array([str(v) for v in values], dtype=h5py.string_dtype("utf-8"))
-
-
 def write_poses_h5(data: PoseData, path: str | Path) -> None:
     """Write ``poses.h5`` atomically (temporary name, then rename)."""
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
@@ -134,7 +131,7 @@ def write_poses_group(f: h5py.Group, data: PoseData) -> None:
     f.attrs["schema_version"] = SCHEMA_VERSION
     f.create_dataset("poses", data=data.poses, compression="gzip", compression_opts=4)
     f.create_dataset("confidence", data=data.confidence, compression="gzip", compression_opts=4)
-    f.create_dataset("keypoints", data=_str_array(data.keypoints))
+    f.create_dataset("keypoints", data=str_array(data.keypoints))
     f.create_dataset("frame_index", data=data.frame_index)
     f.attrs["fps"] = data.fps
     f.attrs["units"] = "mm"
@@ -160,15 +157,7 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
         FileNotFoundError: the file does not exist.
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"poses file not found: {path}")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise PosesFormatError(
-            f"{path}: not a readable HDF5 file ({exc}); is it truncated?"
-        ) from exc
-    with f:
+    with open_h5(path, "poses file", PosesFormatError) as f:
         missing = [d for d in ("poses", "confidence", "keypoints", "frame_index") if d not in f]
         if missing:
             raise PosesFormatError(
@@ -199,9 +188,7 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
             return PoseData(
                 poses=f["poses"][()],
                 confidence=f["confidence"][()],
-                keypoints=tuple(
-                    s.decode() if isinstance(s, bytes) else str(s) for s in f["keypoints"][()]
-                ),
+                keypoints=tuple(decode_strings(f["keypoints"][()])),
                 frame_index=f["frame_index"][()],
                 fps=float(f.attrs["fps"]),
                 up=np.asarray(f.attrs.get("up", [0.0, 0.0, 1.0])),

@@ -30,6 +30,7 @@ import tomli_w
 from freipose import __version__
 from freipose.geometry.camera import CameraRig
 from freipose.io.calibration import rig_to_toml_text
+from freipose.io.hdf5 import str_array
 from freipose.io.poses import SCHEMA, SCHEMA_VERSION
 from freipose.predict.estimator import Estimate
 from freipose.skeleton import Skeleton
@@ -129,10 +130,6 @@ def is_complete(path: str | Path) -> bool:
         return False
 
 
-def _str_array(values: Any) -> np.ndarray:
-    return np.array([str(v) for v in values], dtype=h5py.string_dtype("utf-8"))
-
-
 def create_layout(f: h5py.File, header: OutputHeader, chunk_rows: int) -> None:
     """Create the attributes and the full-size, chunked datasets of an empty output."""
     T, K, C = header.num_frames, len(header.keypoints), len(header.rig)
@@ -164,7 +161,7 @@ def create_layout(f: h5py.File, header: OutputHeader, chunk_rows: int) -> None:
 
     ds(f, "poses", (T, K, 3), np.float32, nan)
     ds(f, "confidence", (T, K), np.float32, np.float32(0))
-    f.create_dataset("keypoints", data=_str_array(header.keypoints))
+    f.create_dataset("keypoints", data=str_array(header.keypoints))
     f.create_dataset("frame_index", data=np.arange(header.start, header.stop, dtype=np.int64))
     g = f.create_group("extra")
     ds(g, "points2d", (T, C, K, 2), np.float32, nan)
