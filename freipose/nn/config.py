@@ -47,6 +47,8 @@ class ModelConfig:
         refine: use the 2D refinement head (P1); otherwise P1 = P0.
         refine_channels: channels of the refinement head and the baseline's 2D head.
         heatmap_sigma: sigma (feature pixels) of the P0 heat maps given to the refinement.
+        volume_sigma: sigma (voxels) of the Gaussian target of the volumetric
+            cross-entropy loss (``schedule.weight_volume``).
         pretrained: optional local file with encoder weights (a state dict; loaded
             non-strictly, the missing and unexpected keys are logged).
     """
@@ -65,6 +67,7 @@ class ModelConfig:
     refine: bool = True
     refine_channels: int = 128
     heatmap_sigma: float = 2.0
+    volume_sigma: float = 1.0
     pretrained: str = ""
 
     def __post_init__(self) -> None:
@@ -95,6 +98,10 @@ class ModelConfig:
             )
         if self.cube_size <= 0:
             raise ConfigError(f"model.cube_size must be positive (mm), got {self.cube_size}")
+        if self.volume_sigma <= 0:
+            raise ConfigError(
+                f"model.volume_sigma must be positive (voxels), got {self.volume_sigma}"
+            )
 
     @property
     def stride(self) -> int:
@@ -130,6 +137,7 @@ class ScheduleConfig:
     refine_start: float = 0.5
     weight_p0: float = 1.0
     weight_aux: float = 0.5
+    weight_volume: float = 0.1
     weight_2d: float = 1.0
     weight_conf: float = 0.1
     weight_p1: float = 0.1
@@ -168,10 +176,19 @@ class ScheduleConfig:
 
 @dataclass(frozen=True)
 class AugmentConfig:
-    """Training augmentation. Geometric changes are compensated in the crop cameras."""
+    """Training augmentation. Geometric changes are compensated in the crop cameras.
+
+    ``grid_rotation`` (degrees): the voxel grid of each training sample is turned by a
+    random angle in ``[-grid_rotation, grid_rotation]`` about the world z axis, so the 3D
+    network cannot tie keypoints to absolute directions (evaluation uses the unrotated grid).
+    ``refine_jitter`` (mm): std of Gaussian noise added per keypoint and axis to P0 before it
+    is given to the refinement head during training, so the head learns to correct P0.
+    """
 
     enabled: bool = True
     center_jitter: float = 10.0
+    grid_rotation: float = 180.0
+    refine_jitter: float = 6.0
     rotation: float = 7.5
     zoom: tuple[float, float] = (0.9, 1.1)
     shift: float = 5.0

@@ -102,8 +102,10 @@ def prepare_sample(
         A dict of numpy arrays: ``images`` (V, 3, S, S) float32 (BGR / 255 - 0.5), ``K``
         (V, 3, 3) affine crop intrinsics, ``R`` (V, 3, 3), ``t`` (V, 3), ``dist`` (V, 5),
         ``affine`` (V, 3, 3) full-image -> crop pixels, ``view_valid`` (V,) bool, ``center``
-        (3,), ``points3d`` (K, 3) (NaN unknown), ``mask3d`` (K,), ``points2d`` (V, K, 2) crop
-        px, ``visible2d`` (V, K); plus ``rig`` (the original cameras) and ``index``.
+        (3,), ``grid_rotation`` (3, 3) orientation of the voxel grid (identity unless
+        augmenting), ``points3d`` (K, 3) (NaN unknown), ``mask3d`` (K,), ``points2d`` (V, K, 2) crop
+        px, ``visible2d`` (V, K), with augmentation ``p0_jitter`` (K, 3) mm (training noise on
+        P0 before the refinement); plus ``rig`` (the original cameras) and ``index``.
 
     Raises:
         SampleError: no rig, no centre, or images that do not match the cameras.
@@ -133,6 +135,12 @@ def prepare_sample(
         if aug is not None and aug.center_jitter > 0:
             center = center + rng.normal(0.0, aug.center_jitter, size=3)
     center = np.asarray(center, dtype=np.float64).reshape(3)
+    grid_rot = np.eye(3)
+    if aug is not None and aug.grid_rotation > 0:
+        a = math.radians(rng.uniform(-aug.grid_rotation, aug.grid_rotation))
+        grid_rot = np.array(
+            [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]]
+        )
     images = sample.get("images") or []
     if images and len(images) != V:
         raise SampleError(f"sample has {len(images)} images for {V} cameras")
@@ -179,6 +187,7 @@ def prepare_sample(
         "affine": affines,
         "view_valid": valid,
         "center": center,
+        "grid_rotation": grid_rot,
         "rig": rig,
         "index": int(sample.get("index", -1)),
     }
@@ -198,16 +207,18 @@ def prepare_sample(
         p2c = np.einsum("vij,vkj->vki", affines, hom)[..., :2]
         inside = (p2c >= -0.5).all(-1) & (p2c <= S - 0.5).all(-1)
         res.update(points3d=p3, mask3d=m3, points2d=p2c, visible2d=vis & inside & valid[:, None])
+        if aug is not None and aug.refine_jitter > 0:
+            res["p0_jitter"] = rng.normal(0.0, aug.refine_jitter, size=(nk, 3))
     return res
 
 
 def collate_prepared(items: list[dict[str, Any]]) -> dict[str, Any]:
     """Stack prepared samples into tensors, padding the view axis.
 
-    Padding views get identity intrinsics, a camera 1 m in front of the cube and
-    ``view_mask`` False. Returns float32 tensors ``images`` (B, V, 3, S, S), ``K``, ``R``,
-    ``t``, ``dist``, ``affine``, ``center`` (B, 3), ``view_mask`` (B, V) and, when labeled,
-    ``points3d`` (B, K, 3) (0 where unknown), ``mask3d`` (B, K), ``points2d`` (B, V, K, 2),
+    Padding views get identity intrinsics, a camera 1 m in front of the cube and ``view_mask``
+    False. Returns float32 tensors ``images`` (B, V, 3, S, S), ``K``, ``R``, ``t``, ``dist``,
+    ``affine``, ``center`` (B, 3), ``grid_rotation`` (B, 3, 3), ``view_mask`` (B, V) and, when
+    labeled, ``points3d`` (B, K, 3) (0 where unknown), ``mask3d`` (B, K), ``points2d`` (B, V, K, 2),
     ``visible2d`` (B, V, K); plus the lists ``rigs`` and ``index``.
     """
     B = len(items)
@@ -221,6 +232,7 @@ def collate_prepared(items: list[dict[str, Any]]) -> dict[str, Any]:
         "dist": torch.zeros(B, V, 5),
         "affine": torch.eye(3).repeat(B, V, 1, 1),
         "center": torch.zeros(B, 3),
+        "grid_rotation": torch.eye(3).repeat(B, 1, 1),
         "view_mask": torch.zeros(B, V, dtype=torch.bool),
         "rigs": [it["rig"] for it in items],
         "index": [it["index"] for it in items],
@@ -241,6 +253,8 @@ def collate_prepared(items: list[dict[str, Any]]) -> dict[str, Any]:
         for key in ("K", "R", "t", "dist", "affine"):
             out[key][b, :n] = torch.from_numpy(np.asarray(it[key], np.float32))
         out["center"][b] = torch.from_numpy(np.asarray(it["center"], np.float32))
+        if "grid_rotation" in it:
+            out["grid_rotation"][b] = torch.from_numpy(np.asarray(it["grid_rotation"], np.float32))
         out["view_mask"][b, :n] = torch.from_numpy(it["view_valid"])
         if labeled:
             out["points3d"][b] = torch.from_numpy(np.nan_to_num(it["points3d"]).astype(np.float32))
@@ -249,6 +263,10 @@ def collate_prepared(items: list[dict[str, Any]]) -> dict[str, Any]:
                 np.nan_to_num(it["points2d"]).astype(np.float32)
             )
             out["visible2d"][b, :n] = torch.from_numpy(it["visible2d"])
+    if all("p0_jitter" in it for it in items):
+        out["p0_jitter"] = torch.from_numpy(
+            np.stack([it["p0_jitter"] for it in items]).astype(np.float32)
+        )
     return out
 
 
@@ -260,11 +278,13 @@ TENSOR_KEYS = (
     "dist",
     "affine",
     "center",
+    "grid_rotation",
     "view_mask",
     "points3d",
     "mask3d",
     "points2d",
     "visible2d",
+    "p0_jitter",
 )
 
 

@@ -191,7 +191,10 @@ class UNet3D(nn.Module):
 
 
 def softargmax3d(
-    logits: torch.Tensor, center: torch.Tensor, cube_size: float
+    logits: torch.Tensor,
+    center: torch.Tensor,
+    cube_size: float,
+    rotation: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Decode score volumes to world points by soft-argmax.
 
@@ -199,6 +202,8 @@ def softargmax3d(
         logits: (B, K, G, G, G) scores; axes are the x, y, z voxel indices.
         center: (B, 3) cube centres in mm.
         cube_size: distance between the outermost voxel centres (mm).
+        rotation: optional (B, 3, 3) orientation of the grid axes in the world (voxel
+            offset ``o`` sits at ``center + rotation @ o``); identity when None.
 
     Returns:
         ``(points, probs)``: (B, K, 3) expected world positions (float32) and the
@@ -208,7 +213,10 @@ def softargmax3d(
     G = logits.shape[-1]
     probs = torch.softmax(logits.float().reshape(B, K, -1), dim=-1)
     offs = voxel_offsets(G, cube_size, device=logits.device)  # (G^3, 3)
-    return center.float()[:, None, :] + probs @ offs, probs
+    local = probs @ offs  # (B, K, 3) in grid axes
+    if rotation is not None:
+        local = local @ rotation.float().transpose(1, 2)
+    return center.float()[:, None, :] + local, probs
 
 
 def volume_confidence(probs: torch.Tensor, grid_size: int) -> torch.Tensor:

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from freipose.nn.config import ModelConfig, ScheduleConfig
+from freipose.nn.geometry import voxel_offsets
 
 
 def _masked_mean(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -31,6 +32,42 @@ def point_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(((pred.float() - gt.float()) ** 2).sum(-1) + 1e-6)
 
 
+def volume_cross_entropy(
+    probs: torch.Tensor,
+    gt: torch.Tensor,
+    mask: torch.Tensor,
+    center: torch.Tensor,
+    rotation: torch.Tensor | None,
+    model: ModelConfig,
+) -> torch.Tensor:
+    """Cross-entropy of the score volumes against a Gaussian around the 3D labels.
+
+    The target is a normalised Gaussian of ``model.volume_sigma`` voxels around each label
+    (in the grid's own axes); labels outside the cube are not counted. It makes the score
+    volumes peaked and unimodal, which the L1 loss on the soft-argmax alone does not.
+
+    Args:
+        probs: (B, K, G**3) softmax of the final score volumes.
+        gt: (B, K, 3) labels (mm); mask (B, K) labeled; center (B, 3); rotation (B, 3, 3)
+            grid axes (or None).
+
+    Returns:
+        Scalar loss (nats), per-sample mean over the valid keypoints, mean over samples.
+    """
+    G = model.grid_size
+    vs = model.voxel_size
+    rel = gt.float() - center.float()[:, None, :]
+    if rotation is not None:
+        rel = rel @ rotation.float()  # world offsets -> grid axes (R^T applied per row)
+    half = model.cube_size / 2
+    inside = (rel.abs() <= half).all(-1) & mask
+    offs = voxel_offsets(G, model.cube_size, device=probs.device)  # (G^3, 3)
+    d2 = ((offs[None, None] - rel[:, :, None, :]) ** 2).sum(-1) / (vs * vs)  # (B, K, G^3)
+    target = torch.softmax(-d2 / (2 * model.volume_sigma**2), dim=-1)
+    ce = -(target * torch.log(probs.float().clamp_min(1e-12))).sum(-1)  # (B, K)
+    return _masked_mean(ce, inside)
+
+
 def voxel_losses(
     out: Mapping[str, Any],
     batch: Mapping[str, Any],
@@ -40,11 +77,11 @@ def voxel_losses(
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss and its parts for :class:`freipose.nn.model.VoxelPoseNet`.
 
-    Terms: ``p0`` (final P0 vs 3D labels), ``aux`` (mean over deep-supervision
-    decodings), ``2d`` (refined 2D points vs visible 2D labels), ``conf`` (per-view
-    confidence, binary cross-entropy against ``visible * exp(-e^2 / 2)`` with ``e`` the
-    refined 2D error in feature pixels), ``p1`` (P1 vs 3D labels). The refinement terms are
-    weighted 0 until ``refine_on``.
+    Terms: ``p0`` (final P0 vs 3D labels), ``aux`` (mean over deep-supervision decodings), ``vol``
+    (:func:`volume_cross_entropy` of the final score volume), ``2d`` (refined 2D points vs visible
+    2D labels), ``conf`` (per-view confidence, binary cross-entropy against ``visible * exp(-e^2 /
+    2)`` with ``e`` the refined 2D error in feature pixels), ``p1`` (P1 vs 3D labels). The
+    refinement terms are weighted 0 until ``refine_on``.
     """
     gt3, m3 = batch["points3d"], batch["mask3d"]
     vs = model.voxel_size
@@ -57,6 +94,11 @@ def voxel_losses(
         else torch.zeros((), device=gt3.device)
     )
     total = sched.weight_p0 * parts["p0"] + sched.weight_aux * parts["aux"]
+    if sched.weight_volume > 0 and "volume_probs" in out:
+        parts["vol"] = volume_cross_entropy(
+            out["volume_probs"], gt3, m3, batch["center"], batch.get("grid_rotation"), model
+        )
+        total = total + sched.weight_volume * parts["vol"]
     if model.refine:
         w = 1.0 if refine_on else 0.0
         vis = batch["visible2d"] & batch["view_mask"][:, :, None]

@@ -74,11 +74,13 @@ class VoxelPoseNet(nn.Module):
     """The multi-view voxel network (see the module docstring).
 
     ``forward(batch)`` takes a collated batch (:func:`freipose.nn.data.collate_prepared`):
-    ``images`` (B, V, 3, S, S), ``K``/``R``/``t``/``dist`` crop cameras, ``view_mask``
-    (B, V), ``center`` (B, 3), and returns ``P0`` (B, K, 3), ``P0_aux`` (list of (B, K, 3)
-    deep-supervision decodings), ``P1`` (B, K, 3), ``points2d`` (B, V, K, 2) refined crop
-    pixels, ``confidence2d`` (B, V, K), ``confidence`` (B, K) and ``confidence0`` (B, K)
-    (peak mass of the score volume).
+    ``images`` (B, V, 3, S, S), ``K``/``R``/``t``/``dist`` crop cameras, ``view_mask`` (B, V),
+    ``center`` (B, 3), optional ``grid_rotation`` (B, 3, 3) (orientation of the voxel grid axes in
+    the world, a training augmentation; identity when absent), and returns ``P0`` (B, K, 3),
+    ``P0_aux`` (list of (B, K, 3) deep-supervision decodings), ``P1`` (B, K, 3), ``points2d`` (B, V,
+    K, 2) refined crop pixels, ``confidence2d`` (B, V, K), ``confidence`` (B, K), ``confidence0``
+    (B, K) (peak mass of the score volume) and ``volume_probs`` (B, K, G**3) (the final score
+    volume's softmax, for the volumetric loss).
     """
 
     def __init__(self, cfg: ModelConfig, num_keypoints: int):
@@ -117,7 +119,11 @@ class VoxelPoseNet(nn.Module):
         feats, skip = self.encoder(images.reshape(B * V, *images.shape[2:]))
         h = feats.shape[-1]
         G = cfg.grid_size
-        points = center[:, None, :] + voxel_offsets(G, cfg.cube_size, device=center.device)[None]
+        offs = voxel_offsets(G, cfg.cube_size, device=center.device)[None]  # (1, G^3, 3)
+        rot = batch.get("grid_rotation")
+        if rot is not None:
+            offs = offs @ rot.float().transpose(1, 2)  # (B, G^3, 3) world offsets
+        points = center[:, None, :] + offs
         vol, _ = unproject(
             feats.float().reshape(B, V, *feats.shape[1:]),
             K,
@@ -130,12 +136,13 @@ class VoxelPoseNet(nn.Module):
         )
         vol = vol.reshape(B, -1, G, G, G).to(feats.dtype)
         scores = self.unet(vol)
-        decoded = [softargmax3d(s, center, cfg.cube_size) for s in scores]
+        decoded = [softargmax3d(s, center, cfg.cube_size, rot) for s in scores]
         P0, probs = decoded[-1]
         out: dict[str, Any] = {
             "P0": P0,
             "P0_aux": [d[0] for d in decoded[:-1]],
             "confidence0": volume_confidence(probs, G),
+            "volume_probs": probs,
         }
         if self.refine is None:
             uv0, _ = project_affine(P0.detach(), K, R, t, dist)
@@ -147,6 +154,11 @@ class VoxelPoseNet(nn.Module):
             )
             return out
         P0d = P0.detach()
+        jitter = batch.get("p0_jitter")
+        if jitter is not None and self.training:
+            # train the refinement on displaced P0 so it learns to correct P0 rather than
+            # to trust it (on the training set P0 is nearly exact)
+            P0d = P0d + jitter.to(P0d.dtype)
         uv0, _ = project_affine(P0d, K, R, t, dist)  # (B, V, K, 2)
         heat = gaussian_heatmaps(uv0.reshape(B * V, -1, 2), h, cfg.stride, cfg.heatmap_sigma)
         maps, conf_logits = self.refine(feats, skip, heat)

@@ -50,6 +50,7 @@ LOG_COLUMNS = [
     "loss",
     "p0",
     "aux",
+    "vol",
     "2d",
     "conf",
     "p1",
@@ -110,7 +111,7 @@ def plot_log(csv_path: str | Path, png_path: str | Path) -> None:
         return
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
     steps = np.array([int(r["step"]) for r in rows])
-    for c in ("loss", "p0", "aux", "2d", "conf", "p1"):
+    for c in ("loss", "p0", "aux", "vol", "2d", "conf", "p1"):
         v = np.array([float(r[c]) if r.get(c) not in (None, "") else np.nan for r in rows])
         if np.isfinite(v).any():
             a1.plot(steps, v, label=c)

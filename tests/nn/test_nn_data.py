@@ -48,6 +48,13 @@ def test_augmented_crop_cameras_match_warped_images_and_labels():
             hits += 1
     assert hits >= 2
     assert p["visible2d"].any() and np.isfinite(p["center"]).all()
+    # the voxel grid turns about the world z axis; unaugmented samples keep it upright
+    rz = p["grid_rotation"]
+    np.testing.assert_allclose(rz @ rz.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(rz[2], [0, 0, 1])
+    assert not np.allclose(rz, np.eye(3))
+    np.testing.assert_array_equal(b["grid_rotation"][0].numpy(), rz.astype(np.float32))
+    np.testing.assert_array_equal(prepare_sample(s, cfg)["grid_rotation"], np.eye(3))
 
 
 def test_sample_errors_and_padding():
