@@ -45,14 +45,28 @@ CAMERA_SETS = {
 FRACTIONS = [0.1, 0.2, 0.3, 0.6, 0.8, 1.0]
 
 
-def make_sessions(root: Path, n_train: int, frames: int, eval_frames: int, size: tuple[int, int]):
+def make_sessions(
+    root: Path,
+    n_train: int,
+    frames: int,
+    eval_frames: int,
+    size: tuple[int, int],
+    fps: float = 5.0,
+):
+    """Synthetic training sessions (seeds 101, 102, ...) and the held-out one (seed 9001).
+
+    Every session has its own jittered camera layout (``jitter_rig``). ``fps`` sets the
+    spacing of the labeled instants: at the default 5 fps, 100 frames span 20 s of
+    behaviour (like labels spread over a recording); at 50 fps they are 2 s of nearly one
+    pose, which makes a held-out median an estimate from a single pose.
+    """
     from freipose.synth import SceneConfig, generate_session
 
     train = []
     for i in range(n_train):
-        cfg = SceneConfig(frames=frames, seed=101 + i, size=size)
+        cfg = SceneConfig(frames=frames, seed=101 + i, size=size, fps=fps)
         train.append(generate_session(root / f"train{i}", cfg, progress=False).labels)
-    cfg = SceneConfig(frames=eval_frames, seed=9001, size=size)
+    cfg = SceneConfig(frames=eval_frames, seed=9001, size=size, fps=fps)
     ev = generate_session(root / "eval", cfg, progress=False).labels
     return train, ev
 
@@ -144,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--train-sessions", type=int, default=3)
     ap.add_argument("--frames", type=int, default=100, help="frames per training session")
     ap.add_argument("--eval-frames", type=int, default=60)
+    ap.add_argument(
+        "--fps", type=float, default=5.0, help="frame rate of the sessions (label spacing)"
+    )
     ap.add_argument("--size", type=int, nargs=2, default=(320, 256), help="image width height")
     ap.add_argument("--cube-size", type=float, default=None, help="override model.cube_size (mm)")
     ap.add_argument("--device", default="cpu")
@@ -186,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     t0 = time.perf_counter()
     train_paths, eval_path = make_sessions(
-        out / "data", args.train_sessions, args.frames, args.eval_frames, tuple(args.size)
+        out / "data", args.train_sessions, args.frames, args.eval_frames, tuple(args.size), args.fps
     )
     train_lab = merged_labels(train_paths)
     eval_lab = merged_labels([eval_path])
