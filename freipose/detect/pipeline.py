@@ -17,27 +17,15 @@ from freipose.geometry import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.boxes import BoxesData
 from freipose.io.calibration import load_calibration
-from freipose.io.video import FrameSource, find_camera_videos
+from freipose.io.video import FrameSource, find_camera_videos, frame_range
 
 log = logging.getLogger(__name__)
 
 
 def parse_frames(text: str | None, n_frames: int) -> range:
-    """``START:STOP`` (either may be empty; Python slice rules, no step) -> a frame range."""
-    if text is None:
-        return range(n_frames)
-    parts = str(text).split(":")
-    if len(parts) != 2:
-        raise ValueError(f"frames must be START:STOP (e.g. 0:1000 or 500:), got {text!r}")
-    try:
-        start = int(parts[0]) if parts[0].strip() else None
-        stop = int(parts[1]) if parts[1].strip() else None
-    except ValueError as exc:
-        raise ValueError(f"frames must be START:STOP with integers, got {text!r}") from exc
-    r = range(n_frames)[slice(start, stop)]
-    if len(r) == 0:
-        raise ValueError(f"frames {text} selects no frame of a video with {n_frames} frames")
-    return r
+    """``START:STOP`` (either may be empty; Python slice rules, no step) -> a frame range;
+    see :func:`freipose.io.video.frame_range`."""
+    return frame_range(text, n_frames)
 
 
 def open_session(

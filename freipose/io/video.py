@@ -34,6 +34,41 @@ class MediaError(ValueError):
     """A video or image folder cannot be read; the message names it and says why."""
 
 
+def frame_range(spec: str | None, num_frames: int) -> range:
+    """Frame range ``START:STOP`` (Python slice semantics, no step) clipped to the video.
+
+    ``None`` or ``""`` is the whole video; ``START:`` and ``:STOP`` are accepted; negative
+    values count from the end. A STOP past the end is clipped (with a warning).
+
+    Raises:
+        ValueError: malformed spec or an empty range.
+    """
+    if not spec:
+        return range(num_frames)
+    parts = str(spec).split(":")
+    if len(parts) != 2:
+        raise ValueError(f"--frames must look like START:STOP (e.g. 0:1000 or 500:), got {spec!r}")
+    try:
+        a = int(parts[0]) if parts[0].strip() else None
+        b = int(parts[1]) if parts[1].strip() else None
+    except ValueError:
+        raise ValueError(f"--frames must be two integers START:STOP, got {spec!r}") from None
+    r = range(num_frames)[slice(a, b)]
+    if b is not None and b > num_frames:
+        log.warning(
+            "--frames %s: the videos have only %d frames; stopping at %d",
+            spec,
+            num_frames,
+            num_frames,
+        )
+    if len(r) == 0:
+        raise ValueError(
+            f"--frames {spec!r} selects no frames of a {num_frames}-frame video; "
+            f"give START < STOP within 0..{num_frames}"
+        )
+    return r
+
+
 def list_images(folder: str | Path) -> list[Path]:
     """The images of a folder in frame-source order (by name, numbers numerically).
 

@@ -21,7 +21,13 @@ import numpy as np
 from freipose._frozen import PicklableFrozen
 from freipose.geometry.camera import CameraRig
 from freipose.io.calibration import load_calibration
-from freipose.io.video import VIDEO_SUFFIXES, FrameSource, MediaError, find_camera_videos
+from freipose.io.video import (
+    VIDEO_SUFFIXES,
+    FrameSource,
+    MediaError,
+    find_camera_videos,
+    frame_range,
+)
 
 log = logging.getLogger(__name__)
 
@@ -80,38 +86,14 @@ def _find_calibration(folder: Path) -> Path | None:
 
 
 def parse_frames(spec: str | None, num_frames: int) -> tuple[int, int]:
-    """Frame range ``START:STOP`` (Python slice semantics, no step) clipped to the video.
-
-    ``None`` or ``""`` is the whole video; ``START:`` and ``:STOP`` are accepted; negative
-    values count from the end.
+    """Frame range ``START:STOP`` clipped to the video as ``(start, stop)``; see
+    :func:`freipose.io.video.frame_range`.
 
     Raises:
         ValueError: malformed spec or an empty range.
     """
-    if not spec:
-        return 0, num_frames
-    parts = spec.split(":")
-    if len(parts) != 2:
-        raise ValueError(f"--frames must look like START:STOP (e.g. 0:1000 or 500:), got {spec!r}")
-    try:
-        a = int(parts[0]) if parts[0].strip() else None
-        b = int(parts[1]) if parts[1].strip() else None
-    except ValueError:
-        raise ValueError(f"--frames must be two integers START:STOP, got {spec!r}") from None
-    start, stop, _ = slice(a, b).indices(num_frames)
-    if b is not None and b > num_frames:
-        log.warning(
-            "--frames %s: the videos have only %d frames; stopping at %d",
-            spec,
-            num_frames,
-            num_frames,
-        )
-    if stop <= start:
-        raise ValueError(
-            f"--frames {spec!r} selects no frames of a {num_frames}-frame video; "
-            f"give START < STOP within 0..{num_frames}"
-        )
-    return start, stop
+    r = frame_range(spec, num_frames)
+    return r.start, r.stop
 
 
 def open_session(
