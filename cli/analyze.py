@@ -110,6 +110,17 @@ window_option = click.option(
     help="Significance level of the Bonferroni-adjusted p-values.",
 )
 @click.option(
+    "--standardize",
+    type=click.Choice(["recording", "train"]),
+    default="recording",
+    show_default=True,
+    help="How variables are z-scored before the SVMs: 'recording' uses each recording's "
+    "own mean and deviation (removes offsets between recordings such as animal size, which "
+    "otherwise can make the full SVM predict a single class); 'train' uses the train "
+    "frames' statistics (the original method). Variables constant up to round-off in the "
+    "train frames are always left out.",
+)
+@click.option(
     "--independent-frames",
     is_flag=True,
     help="Chi-squared tests count every frame as independent, as in the original "
@@ -166,6 +177,7 @@ def run(
     margin: float,
     C: float,
     alpha: float,
+    standardize: str,
     independent_frames: bool,
     train_stride: int,
     pre_s: float,
@@ -204,6 +216,7 @@ def run(
             post_s=post_s,
             top=top,
             independent_frames=independent_frames,
+            standardize=standardize,
         )
         result = analyze_study(
             study,

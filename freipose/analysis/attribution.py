@@ -16,10 +16,19 @@ For every (animal, condition) group of a study:
 
 Frames are labelled by :func:`freipose.analysis.study.label_frames`; frames with NaN variables
 are left out of fitting and scoring (counted in the outputs).
+
+Variables that do not vary over the train frames beyond numerical noise (standard deviation
+at most ``constant_rtol`` times their root mean square, see :func:`informative_columns`) are
+left out of the full classifier and not tested as single variables. Standardizing such a
+column divides by float32 round-off: a rigid head gives distances to the ear midpoint that are
+constant up to ~1e-6 mm within a recording but differ between recordings (another animal or
+session), so the test frames get z-scores of ~1e6 and the decision function of every test
+frame is dominated by that one column (the classifier predicts a single class).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import warnings
 from collections.abc import Callable, Mapping
@@ -53,6 +62,7 @@ CLASSIFICATION_COLUMNS = [
     "n_effective",
     "n_train_frames",
     "n_train_nan_excluded",
+    "n_variables_used",
 ]
 ATTRIBUTION_COLUMNS = [
     "animal",
@@ -94,6 +104,9 @@ TIMECOURSE_COLUMNS = [
 ]
 
 
+STANDARDIZE = ("recording", "train")
+
+
 @dataclass(frozen=True)
 class AttributionConfig:
     """Settings of :func:`run_attribution` (defaults follow the method).
@@ -112,6 +125,15 @@ class AttributionConfig:
         independent_frames: test significance counting every frame as an independent
             sample, as the method did (anti-conservative: consecutive frames are correlated);
             by default the chi-squared test uses the effective number of independent frames.
+        constant_rtol: a variable whose standard deviation over the train frames is at most
+            this fraction of its root mean square is constant up to numerical noise and is
+            not used (1e-5: about 100 float32 round-offs; see :func:`informative_columns`).
+        standardize: "recording" (default) z-scores every variable of every recording with
+            that recording's own mean and deviation over all its frames before fitting and
+            scoring, which removes offsets between recordings (animal size, camera setup)
+            that a variable with little variation in the train recording would otherwise
+            turn into a constant decision; "train" standardizes with the train frames'
+            statistics only (the method's ``StandardScaler``).
     """
 
     C: float = 0.0025
@@ -126,8 +148,16 @@ class AttributionConfig:
     max_iter: int = 10000
     block: int = 16
     independent_frames: bool = False
+    constant_rtol: float = 1e-5
+    standardize: str = "recording"
 
     def __post_init__(self) -> None:
+        if self.standardize not in STANDARDIZE:
+            raise ValueError(
+                f"standardize must be one of {', '.join(STANDARDIZE)}, got {self.standardize!r}"
+            )
+        if not 0 <= self.constant_rtol < 1:
+            raise ValueError(f"constant_rtol must be in [0, 1), got {self.constant_rtol}")
         if not self.C > 0:
             raise ValueError(f"C must be > 0, got {self.C}")
         if not 0 < self.alpha < 1:
@@ -172,6 +202,43 @@ def make_svm(C: float, max_iter: int = 10000):  # noqa: ANN201 - sklearn Pipelin
         StandardScaler(),
         LinearSVC(C=C, class_weight="balanced", dual="auto", max_iter=max_iter),
     )
+
+
+def is_informative(mean: np.ndarray, std: np.ndarray, rtol: float) -> np.ndarray:
+    """True where a column with this mean and standard deviation varies beyond numerical
+    noise: ``std > rtol * sqrt(mean² + std²)`` (False for constant and all-NaN columns)."""
+    mean = np.asarray(mean, dtype=np.float64)
+    std = np.asarray(std, dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        rms = np.sqrt(mean**2 + std**2)
+        return np.isfinite(std) & np.isfinite(rms) & (std > rtol * rms)
+
+
+def informative_columns(x: np.ndarray, rtol: float = 1e-5) -> np.ndarray:
+    """Columns of ``x`` that can be standardized: at least two finite values whose standard
+    deviation exceeds ``rtol`` times their root mean square.
+
+    A column below that is constant up to float round-off (e.g. the distance of a rigidly
+    attached keypoint to the local origin); ``StandardScaler`` would divide by the round-off
+    and turn any offset of that column between recordings into z-scores of ~1e6.
+
+    Args:
+        x: (N, V) values (NaN allowed).
+
+    Returns:
+        (V,) bool.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    n = np.isfinite(x).sum(axis=0)
+    mean = np.zeros(x.shape[1])
+    std = np.zeros(x.shape[1])
+    ok = n >= 2
+    if ok.any():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean[ok] = np.nanmean(x[:, ok], axis=0)
+            std[ok] = np.nanstd(x[:, ok], axis=0)
+    return ok & is_informative(mean, std, rtol)
 
 
 def confusion(y_true: np.ndarray, y_pred: np.ndarray) -> np.ndarray:
@@ -300,6 +367,26 @@ def label_recordings(
     return out
 
 
+def standardize_recording(values: np.ndarray, rtol: float = 1e-5) -> np.ndarray:
+    """Z-score every column of one recording with its own mean and deviation (NaN ignored);
+    columns constant up to round-off (:func:`is_informative`) become 0.
+
+    Args:
+        values: (T, V) variables of one recording.
+
+    Returns:
+        (T, V) float64.
+    """
+    x = np.asarray(values, dtype=np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(x, axis=0)
+        std = np.nanstd(x, axis=0)
+    ok = is_informative(mean, std, rtol)
+    z = (x - np.where(ok, mean, 0.0)) / np.where(ok, std, 1.0)
+    return np.where(ok, z, np.where(np.isfinite(x), 0.0, np.nan))
+
+
 def _stack(
     recs: list[LabelledRecording], stride: int = 1
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -321,12 +408,14 @@ def _fit_block(
     rec_te: np.ndarray,
     C: float,
     max_iter: int,
+    constant_rtol: float = 1e-5,
 ) -> list[tuple[float, ...]]:
     """Single-variable SVMs on the columns of a block.
 
     Each column is standardized with its train mean and deviation (as ``StandardScaler``)
     and fitted with ``LinearSVC(C, class_weight="balanced")``; frames where the column is
-    NaN are left out.
+    NaN are left out. A column that is constant over the train frames up to numerical noise
+    (:func:`is_informative` with ``constant_rtol``) is not tested (F1 NaN, p 1).
 
     Returns:
         per column (F1, p, balanced accuracy, n test frames, n effective, naive p).
@@ -345,7 +434,9 @@ def _fit_block(
             continue
         x = xtr[ftr, j].astype(np.float64)
         mu, sd = x.mean(), x.std()
-        sd = sd if sd > 0 else 1.0
+        if not is_informative(mu, sd, constant_rtol):
+            out.append((nan, 1.0, nan, float(len(y_te)), 0.0, 1.0))
+            continue
         svm = LinearSVC(C=C, class_weight="balanced", dual=False, max_iter=max_iter)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
@@ -384,7 +475,16 @@ def single_variable_scores(
     v = xtr.shape[1]
     blocks = [(a, min(v, a + config.block)) for a in range(0, v, config.block)]
     jobs = (
-        delayed(_fit_block)(xtr[:, a:b], ytr, xte[:, a:b], yte, rec_te, config.C, config.max_iter)
+        delayed(_fit_block)(
+            xtr[:, a:b],
+            ytr,
+            xte[:, a:b],
+            yte,
+            rec_te,
+            config.C,
+            config.max_iter,
+            config.constant_rtol,
+        )
         for a, b in blocks
     )
     res: list[tuple[float, ...]] = []
@@ -461,6 +561,17 @@ def run_attribution(
     """
     say = log_fn or log.info
     recs = label_recordings(study, variables, config)
+    if config.standardize == "recording":
+        recs = {
+            name: dataclasses.replace(
+                r,
+                variables=dataclasses.replace(
+                    r.variables,
+                    values=standardize_recording(r.variables.values, config.constant_rtol),
+                ),
+            )
+            for name, r in recs.items()
+        }
     first = next(iter(recs.values())).variables
     fps = first.fps
     names = first.names
@@ -476,8 +587,17 @@ def run_attribution(
     for gi, (animal, cond) in enumerate(study.groups, start=1):
         train = [recs[r.name] for r in study.select(animal, cond, "train")]
         xtr_all, ytr_all, _ = _stack(train, config.train_stride)
-        fin = np.isfinite(xtr_all).all(axis=1)
-        xtr, ytr = xtr_all[fin], ytr_all[fin]
+        # Columns constant up to round-off (or undefined) in the train frames carry no
+        # information and would blow up under standardization: left out of the full SVM.
+        cols = np.flatnonzero(informative_columns(xtr_all, config.constant_rtol))
+        if len(cols) == 0:
+            raise StudyError(
+                f"group (animal {animal!r}, condition {cond!r}): no variable varies over the "
+                f"train frames (all {len(names)} are constant or undefined); check the poses "
+                f"of the train recordings"
+            )
+        fin = np.isfinite(xtr_all[:, cols]).all(axis=1)
+        xtr, ytr = xtr_all[fin][:, cols], ytr_all[fin]
         n_nan = int((~fin).sum())
         counts = np.bincount(ytr, minlength=2)
         if counts.min() == 0:
@@ -488,7 +608,9 @@ def run_attribution(
             )
         say(
             f"[{gi}/{n_groups}] {animal} / {cond}: training on {len(ytr)} frames "
-            f"({counts[1]} stimulated; {n_nan} with undefined variables left out)"
+            f"({counts[1]} stimulated; {n_nan} with undefined variables left out) on "
+            f"{len(cols)} of {len(names)} variables ({len(names) - len(cols)} constant or "
+            f"undefined over the train frames left out)"
         )
         from sklearn.exceptions import ConvergenceWarning
 
@@ -505,7 +627,7 @@ def run_attribution(
             tests = [recs[r.name] for r in study.select(target, cond, "test")]
             ys, ps, segs, trials_p, trials_d, stim_masks = [], [], [], [], [], []
             for r in tests:
-                dec, pred = _predict_frames(model, r.variables.values)
+                dec, pred = _predict_frames(model, r.variables.values[:, cols])
                 m = (r.labels != IGNORED) & np.isfinite(pred)
                 ys.append(r.labels[m])
                 ps.append(pred[m])
@@ -534,6 +656,7 @@ def run_attribution(
                     "n_effective": n_eff,
                     "n_train_frames": int(len(ytr)),
                     "n_train_nan_excluded": n_nan,
+                    "n_variables_used": int(len(cols)),
                 }
             )
             say(
