@@ -1,9 +1,11 @@
-"""Shared helpers for CLI commands: turning library errors into ClickExceptions."""
+"""Shared helpers for CLI commands: library errors as ClickExceptions, common options."""
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
 
 import click
 
@@ -23,3 +25,98 @@ def user_errors(*extra: type[BaseException]) -> Iterator[None]:
     except (ValueError, FileNotFoundError, KeyError, *extra) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
         raise click.ClickException(str(msg)) from exc
+
+
+Decorator = Callable[[Any], Any]
+
+FRAMES_HELP = "Frame range START:STOP (Python slice, e.g. 0:1000) [default: all]."
+SESSION_CALIBRATION_HELP = (
+    "Calibration for every session [default: calibration.toml in each session folder]."
+)
+
+
+def device_option(default: str = "auto") -> Decorator:
+    """``--device``: ``auto`` also picks CUDA when there is one (commands that allow it)."""
+    choices = "cpu, cuda, cuda:N or auto." if default == "auto" else "cpu, cuda or cuda:N."
+    return click.option("--device", default=default, show_default=True, help=choices)
+
+
+def frames_option(help: str = FRAMES_HELP) -> Decorator:
+    """``--frames START:STOP`` (parsed by :func:`freipose.io.video.frame_range`)."""
+    return click.option("--frames", help=help)
+
+
+def calibration_option(help: str = SESSION_CALIBRATION_HELP) -> Decorator:
+    """``--calibration FILE`` (an existing file)."""
+    return click.option(
+        "--calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path), help=help
+    )
+
+
+def detection_options(f: Any) -> Any:
+    """The options that say how to find the animal (``predict``, ``labels select``)."""
+    opts = [
+        click.option(
+            "--detector",
+            type=click.Path(exists=True, dir_okay=False, path_type=Path),
+            help="Box detector checkpoint (from `freipose train CONFIG --stage detector`).",
+        ),
+        click.option(
+            "--method",
+            type=click.Choice(["detector", "bgsub", "fixed"]),
+            help="How to find the animal [default: detector with --detector, fixed with "
+            "--fixed-boxes]; bgsub = background subtraction (static cameras, one animal).",
+        ),
+        click.option(
+            "--fixed-boxes",
+            type=click.Path(exists=True, dir_okay=False, path_type=Path),
+            help="TOML with a [boxes] table: camera = [x0, y0, x1, y1] (for --method fixed).",
+        ),
+        click.option(
+            "--min-views", type=int, default=2, show_default=True, help="Fewest agreeing views."
+        ),
+        click.option(
+            "--bg-samples",
+            type=int,
+            default=40,
+            show_default=True,
+            help="Frames for the bgsub background.",
+        ),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def detector_spec(
+    detector: Path | None,
+    method: str | None,
+    fixed_boxes: Path | None,
+    bg_samples: int,
+    min_views: int,
+) -> Any:
+    """The :class:`~freipose.predict.network.DetectorSpec` of :func:`detection_options`."""
+    from freipose.predict.network import DetectorSpec
+
+    if method is None:
+        if detector is not None and fixed_boxes is not None:
+            raise ValueError("give either --detector or --fixed-boxes, not both")
+        method = "fixed" if fixed_boxes is not None else "detector"
+    return DetectorSpec(method, detector, fixed_boxes, bg_samples, min_views)
+
+
+def echo_result(res: Any) -> None:
+    """Report one session's prediction result (a ``predict_sessions`` report callback)."""
+    if res.skipped:
+        click.echo(f"{res.path}: complete, skipped (use --overwrite to redo it)")
+        return
+    fps = res.frames / res.seconds if res.seconds > 0 else float("nan")
+    counts = ", ".join(f"{v} {k}" for k, v in res.status_counts.items() if v)
+    click.echo(
+        f"{res.path}: {counts} ({res.frames} frames in {res.seconds:.1f} s, {fps:.1f} frames/s)"
+    )
+    for cam, i in res.missing.items():
+        click.echo(
+            f"  warning: camera {cam}: frames from {i} on could not be decoded (truncated video?)",
+            err=True,
+        )

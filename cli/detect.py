@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import user_errors
+from freipose.cli._common import calibration_option, device_option, frames_option, user_errors
 
 
 @click.command()
@@ -15,10 +15,7 @@ from freipose.cli._common import user_errors
     "-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
     help="Output boxes.h5 (format in docs/formats.md).",
 )  # fmt: skip
-@click.option(
-    "--calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="Calibration file [default: SESSION/calibration.toml].",
-)  # fmt: skip
+@calibration_option("Calibration file [default: SESSION/calibration.toml].")
 @click.option(
     "--model",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
@@ -34,8 +31,8 @@ from freipose.cli._common import user_errors
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     help="TOML with a [boxes] table: camera = [x0, y0, x1, y1].",
 )
-@click.option("--frames", help="Frame range START:STOP (Python slice, e.g. 0:1000) [default: all].")
-@click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N or auto.")
+@frames_option()
+@device_option()
 @click.option(
     "--cube-size",
     type=float,

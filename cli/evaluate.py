@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import user_errors
+from freipose.cli._common import device_option, user_errors
 
 
 @click.command()
@@ -26,7 +26,7 @@ from freipose.cli._common import user_errors
     type=click.Path(file_okay=False, path_type=Path),
     help="Folder the videos are relative to [default: the labels file's folder].",
 )
-@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@device_option("cpu")
 @click.option("--batch-size", type=int, default=4, show_default=True, help="Samples per batch.")
 @click.option(
     "--center-noise", type=float, default=0.0, show_default=True,

@@ -6,8 +6,15 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import user_errors
-from freipose.cli.predict import detection_options, detector_spec, echo_result
+from freipose.cli._common import (
+    calibration_option,
+    detection_options,
+    detector_spec,
+    device_option,
+    echo_result,
+    frames_option,
+    user_errors,
+)
 
 
 @click.command("select")
@@ -49,15 +56,11 @@ from freipose.cli.predict import detection_options, detector_spec, echo_result
     type=click.Path(file_okay=False, path_type=Path),
     help="Also write the frames as DIR/<session>/<camera>/<frame:08d>.png for labeling.",
 )
-@click.option(
-    "--calibration",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="Calibration for every session [default: calibration.toml in each session folder].",
-)
+@calibration_option()
 @detection_options
-@click.option("--frames", help="Frame range START:STOP to predict [default: all].")
+@frames_option("Frame range START:STOP to predict [default: all].")
 @click.option("--batch", type=int, default=8, show_default=True, help="Time steps per batch.")
-@click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N or auto.")
+@device_option()
 @click.pass_context
 def select(
     ctx: click.Context,

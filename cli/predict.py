@@ -3,78 +3,20 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import click
 
-from freipose.cli._common import user_errors
+from freipose.cli._common import (
+    calibration_option,
+    detection_options,
+    detector_spec,
+    device_option,
+    echo_result,
+    frames_option,
+    user_errors,
+)
 
-
-def detection_options(f: Any) -> Any:
-    """The options that say how to find the animal (shared with ``labels select``)."""
-    opts = [
-        click.option(
-            "--detector",
-            type=click.Path(exists=True, dir_okay=False, path_type=Path),
-            help="Box detector checkpoint (from `freipose train CONFIG --stage detector`).",
-        ),
-        click.option(
-            "--method",
-            type=click.Choice(["detector", "bgsub", "fixed"]),
-            help="How to find the animal [default: detector with --detector, fixed with "
-            "--fixed-boxes]; bgsub = background subtraction (static cameras, one animal).",
-        ),
-        click.option(
-            "--fixed-boxes",
-            type=click.Path(exists=True, dir_okay=False, path_type=Path),
-            help="TOML with a [boxes] table: camera = [x0, y0, x1, y1] (for --method fixed).",
-        ),
-        click.option(
-            "--min-views", type=int, default=2, show_default=True, help="Fewest agreeing views."
-        ),
-        click.option(
-            "--bg-samples",
-            type=int,
-            default=40,
-            show_default=True,
-            help="Frames for the bgsub background.",
-        ),
-    ]
-    for opt in reversed(opts):
-        f = opt(f)
-    return f
-
-
-def detector_spec(
-    detector: Path | None,
-    method: str | None,
-    fixed_boxes: Path | None,
-    bg_samples: int,
-    min_views: int,
-) -> Any:
-    from freipose.predict.network import DetectorSpec
-
-    if method is None:
-        if detector is not None and fixed_boxes is not None:
-            raise ValueError("give either --detector or --fixed-boxes, not both")
-        method = "fixed" if fixed_boxes is not None else "detector"
-    return DetectorSpec(method, detector, fixed_boxes, bg_samples, min_views)
-
-
-def echo_result(res: Any) -> None:
-    if res.skipped:
-        click.echo(f"{res.path}: complete, skipped (use --overwrite to redo it)")
-        return
-    fps = res.frames / res.seconds if res.seconds > 0 else float("nan")
-    counts = ", ".join(f"{v} {k}" for k, v in res.status_counts.items() if v)
-    click.echo(
-        f"{res.path}: {counts} ({res.frames} frames in {res.seconds:.1f} s, {fps:.1f} frames/s)"
-    )
-    for cam, i in res.missing.items():
-        click.echo(
-            f"  warning: camera {cam}: frames from {i} on could not be decoded (truncated video?)",
-            err=True,
-        )
+__all__ = ["detection_options", "detector_spec", "echo_result", "predict"]
 
 
 @click.command()
@@ -92,15 +34,11 @@ def echo_result(res: Any) -> None:
     required=True,
     help="Output folder; each session gives OUTDIR/<session>.poses.h5.",
 )
-@click.option(
-    "--calibration",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="Calibration for every session [default: calibration.toml in each session folder].",
-)
+@calibration_option()
 @detection_options
-@click.option("--frames", help="Frame range START:STOP (Python slice, e.g. 0:1000) [default: all].")
+@frames_option()
 @click.option("--batch", type=int, default=8, show_default=True, help="Time steps per batch.")
-@click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N or auto.")
+@device_option()
 @click.option(
     "--refine/--no-refine",
     default=True,

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import user_errors
+from freipose.cli._common import device_option, user_errors
 
 
 @click.command()
@@ -20,7 +20,7 @@ from freipose.cli._common import user_errors
     "baseline: the per-view 2D + triangulation reference network.",
 )
 @click.option("--resume", is_flag=True, help="Continue the run in the output folder bit for bit.")
-@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@device_option("cpu")
 @click.option(
     "--out",
     "out_dir",
