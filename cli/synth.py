@@ -97,33 +97,24 @@ def synth(outdir, n_cameras, rig_file, frames, fps, size, seed, appearance, stim
         from freipose.synth import SceneConfig, StimulationConfig, generate_session
 
         base = SceneConfig.from_toml(config_file) if config_file else SceneConfig()
-        changes: dict = {}
-        if n_cameras is not None:
-            changes["n_cameras"] = n_cameras
-        if rig_file is not None:
-            changes["rig_file"] = str(rig_file)
-        if frames is not None:
-            changes["frames"] = frames
-        if fps is not None:
-            changes["fps"] = fps
-        if size is not None:
-            changes["size"] = _parse_size(size)
-        if seed is not None:
-            changes["seed"] = seed
-        if appearance is not None:
-            changes["appearance"] = appearance
-        if stim is not None:
-            changes["stimulation"] = StimulationConfig.parse(stim)
-        if calibration_video:
-            changes["calibration_video"] = True
-        if calibration_frames is not None:
-            changes["calibration_frames"] = calibration_frames
+        given = {  # options not given stay None and keep the base config's value
+            "n_cameras": n_cameras,
+            "rig_file": str(rig_file) if rig_file is not None else None,
+            "frames": frames,
+            "fps": fps,
+            "size": _parse_size(size) if size is not None else None,
+            "seed": seed,
+            "appearance": appearance,
+            "stimulation": StimulationConfig.parse(stim) if stim is not None else None,
+            "calibration_video": True if calibration_video else None,
+            "calibration_frames": calibration_frames,
+            "video_format": ".mkv" if lossless else None,
+        }
+        changes: dict = {k: v for k, v in given.items() if v is not None}
         if board_file is not None:
             from freipose.calibration.boards import load_board
 
             changes["board"] = load_board(board_file).to_dict()
-        if lossless:
-            changes["video_format"] = ".mkv"
         cfg = SceneConfig.from_dict({**base.to_dict(), **changes})
         paths = generate_session(outdir, cfg, workers=workers, overwrite=overwrite)
         click.echo(
