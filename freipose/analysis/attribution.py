@@ -3,7 +3,8 @@
 For every (animal, condition) group of a study:
 
 1. a linear SVM (``StandardScaler`` + ``LinearSVC(C, class_weight="balanced")``) on all
-   variables is trained on the group's train recordings and scored (balanced accuracy, macro
+   variables (z-scored per recording by default, see ``AttributionConfig.standardize``) is
+   trained on the group's train recordings and scored (balanced accuracy, macro
    F1, chi-squared p-value) on the group's test recordings and on the test recordings of every
    other animal with the same condition (generalization across animals);
 2. its mean prediction is aligned to the stimulation onsets of those test recordings

@@ -11,7 +11,11 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from freipose.analysis.attribution import informative_columns
+from freipose.analysis.attribution import (
+    AttributionConfig,
+    informative_columns,
+    standardize_recording,
+)
 from freipose.analysis.simulate import (
     StimulusEffect,
     simulate_rat,
@@ -102,3 +106,23 @@ def test_round_off_constant_variables_are_not_tested(short_study):
     tested = att["f1"].notna().sum()
     assert np.allclose(att["p_adjusted"], np.minimum(1, att["p_value"] * tested), rtol=1e-4)
     assert att.head(5)["keypoints"].str.contains(STIM_KP).all(), att.head(5)
+
+
+def test_standardize_recording_and_config_checks():
+    rng = np.random.default_rng(1)
+    x = np.stack(
+        [
+            rng.normal(50.0, 3.0, 200),
+            np.float32(12.63) + rng.normal(0.0, 1e-6, 200).astype(np.float32),
+            np.r_[np.full(20, np.nan), rng.normal(-4.0, 0.5, 180)],
+        ],
+        axis=1,
+    ).astype(np.float32)
+    z = standardize_recording(x)
+    assert np.allclose(z[:, 0].mean(), 0, atol=1e-9) and np.isclose(z[:, 0].std(), 1)
+    assert (z[:, 1] == 0).all()  # round-off constant: no signal, not amplified noise
+    assert np.isnan(z[:20, 2]).all() and np.isclose(np.nanstd(z[:, 2]), 1)
+    with pytest.raises(ValueError, match="standardize"):
+        AttributionConfig(standardize="zscore")
+    with pytest.raises(ValueError, match="constant_rtol"):
+        AttributionConfig(constant_rtol=-1.0)
