@@ -11,6 +11,7 @@ import logging
 import os
 import re
 from collections import OrderedDict
+from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 
@@ -67,6 +68,17 @@ def frame_range(spec: str | None, num_frames: int) -> range:
             f"give START < STOP within 0..{num_frames}"
         )
     return r
+
+
+def find_video(stem: str, folders: Sequence[str | Path]) -> Path | None:
+    """The first ``folder/<stem><suffix>`` video file (folders in order, then
+    :data:`VIDEO_SUFFIXES` in order), or None."""
+    for folder in folders:
+        for sfx in VIDEO_SUFFIXES:
+            p = Path(folder) / f"{stem}{sfx}"
+            if p.is_file():
+                return p
+    return None
 
 
 def list_images(folder: str | Path) -> list[Path]:

@@ -25,7 +25,7 @@ import numpy as np
 
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path, atomic_write_text
-from freipose.io.video import VIDEO_SUFFIXES
+from freipose.io.video import find_video
 from freipose.labels.importing import (
     LabelImportError,
     SourceLabels,
@@ -265,12 +265,7 @@ def _expand(sources: Sequence[Path]) -> list[Path]:
 
 
 def _find_video(folder: Path, name: str) -> Path | None:
-    for base in (folder.parent.parent / "videos", folder.parent):
-        for sfx in VIDEO_SUFFIXES:
-            p = base / f"{name}{sfx}"
-            if p.is_file():
-                return p
-    return None
+    return find_video(name, (folder.parent.parent / "videos", folder.parent))
 
 
 def read_dlc(

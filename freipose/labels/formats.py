@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from freipose.geometry.camera import Camera, CameraRig
-from freipose.io.video import VIDEO_SUFFIXES
+from freipose.io.video import VIDEO_SUFFIXES, find_video
 from freipose.labels.dlc import read_dlc, read_dlc_table, table_points
 from freipose.labels.importing import (
     LabelImportError,
@@ -296,11 +296,9 @@ def read_anipose(
         videos = {}
         root = Path(views[0].source).parent.parent
         for vt in views:
-            for d in (root / "videos-raw", root / "videos"):
-                for sfx in VIDEO_SUFFIXES:
-                    p = d / f"{Path(vt.source).stem}{sfx}"
-                    if p.is_file():
-                        videos[vt.camera] = p
+            p = find_video(Path(vt.source).stem, (root / "videos", root / "videos-raw"))
+            if p is not None:
+                videos[vt.camera] = p
         out.append(combine_views(sess, views, calibration, videos))
     return out
 

@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 import tomli_w
 
-from freipose.io.video import FrameSource, MediaError, VideoWriter, find_camera_videos
+from freipose.io.video import (
+    FrameSource,
+    MediaError,
+    VideoWriter,
+    find_camera_videos,
+    find_video,
+    frame_range,
+    list_images,
+)
 from freipose.skeleton import BUILTIN_SKELETONS, load_skeleton, skeleton_from_dict
 
 RAT = [
@@ -163,3 +171,24 @@ def test_find_camera_videos(tmp_path):
         find_camera_videos(empty)
     with pytest.raises(MediaError, match="not a folder"):
         find_camera_videos(tmp_path / "notes.txt")
+
+
+def test_video_helpers_find_list_and_frame_ranges(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    (b / "cam0.avi").write_bytes(b"x")
+    assert find_video("cam0", (a, b)) == b / "cam0.avi"
+    (a / "cam0.mp4").write_bytes(b"x")
+    assert find_video("cam0", (a, b)) == a / "cam0.mp4"  # earlier folder first
+    assert find_video("cam1", (a, b)) is None
+    for name in ("img10.png", "img2.png", ".hidden.png", "notes.txt"):
+        (a / name).write_bytes(b"x")
+    assert [p.name for p in list_images(a)] == ["img2.png", "img10.png"]
+    assert frame_range(None, 5) == range(5) and frame_range("", 5) == range(5)
+    assert frame_range("-2:", 10) == range(8, 10) and frame_range(":3", 10) == range(3)
+    assert frame_range("5:99", 10) == range(5, 10)  # clipped (with a warning)
+    with pytest.raises(ValueError, match="START:STOP"):
+        frame_range("5", 10)
+    with pytest.raises(ValueError, match="selects no frames"):
+        frame_range("7:3", 10)
