@@ -136,6 +136,9 @@ def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, 
             f"  [{tag}] {kind}: trained+evaluated in {time.perf_counter() - t0:.0f} s; "
             + ", ".join(f"{k} median {np.nanmedian(v):.2f} mm" for k, v in res.items())
         )
+        # a systematic offset (mean signed error, mm) points at a geometry/convention bug
+        bias = np.nanmean(pred["P1"] - pred["gt"], axis=(0, 1))
+        log(f"  [{tag}] {kind}: mean signed error x, y, z = {np.round(bias, 2).tolist()} mm")
     return res
 
 
