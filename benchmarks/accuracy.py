@@ -5,6 +5,8 @@ sessions and a held-out evaluation session with another seed (other animal motio
 the default rig is jittered from the seed, another camera layout). Both networks are
 trained on the same samples for the same number of steps, then evaluated by the joint
 position error (JPE, mm) with the cube centred on the mean labeled 3D point.
+Sessions are rendered at ``--fps`` (default 5), so their labeled instants spread over the
+animal's behaviour instead of a second or two of nearly one pose.
 
 Experiments (``--experiments``, comma separated):
 
