@@ -47,7 +47,8 @@ def project(
 
     Args:
         points: (B, P, 3) world points in mm.
-        K: (B, C, 3, 3) intrinsics.
+        K: (B, C, 3, 3) intrinsics; any affine K (last row 0 0 1) works, e.g. the
+            rotated crop cameras of training augmentation.
         R: (B, C, 3, 3) world→camera rotations.
         t: (B, C, 3) world→camera translations (mm).
         dist: optional (B, C, 5) distortion coefficients.
@@ -68,9 +69,9 @@ def project(
     xy = Xc[..., :2] / zc[..., None]
     if dist is not None:
         xy = distort_normalized(xy, dist[:, :, None, :])
-    u = K[:, :, None, 0, 0] * xy[..., 0] + K[:, :, None, 0, 1] * xy[..., 1] + K[:, :, None, 0, 2]
-    v = K[:, :, None, 1, 1] * xy[..., 1] + K[:, :, None, 1, 2]
-    return torch.stack([u, v], dim=-1), in_front
+    # The full 2x3 part of K: also right for the general affine K of rotated crops.
+    uv = torch.einsum("bcij,bcpj->bcpi", K[:, :, :2, :2], xy) + K[:, :, None, :2, 2]
+    return uv, in_front
 
 
 def triangulate_weighted(

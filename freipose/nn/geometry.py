@@ -2,9 +2,10 @@
 
 A crop camera is the original camera followed by the affine map from full-image pixels to
 crop pixels (crop, resize and, during training, an in-plane rotation/zoom/shift). Its
-intrinsic matrix ``Kc = A @ K`` is therefore a general affine 3x3 (last row ``0 0 1``),
-which :func:`freipose.geometry.torch_ops.project` (upper-triangular ``K``) cannot express
-once a rotation is involved; these functions use the full 2x3 part. Distortion acts
+intrinsic matrix ``Kc = A @ K``
+is therefore a general affine 3x3 (last row ``0 0 1``), which
+:func:`freipose.geometry.torch_ops.project` handles (it uses the full 2x3 part of K).
+Distortion acts
 before ``Kc`` (on normalized coordinates), so it is unchanged by cropping.
 """
 
@@ -12,37 +13,10 @@ from __future__ import annotations
 
 import torch
 
-from freipose.geometry.torch_ops import distort_normalized
+from freipose.geometry.torch_ops import project
 
-
-def project_affine(
-    points: torch.Tensor,
-    K: torch.Tensor,
-    R: torch.Tensor,
-    t: torch.Tensor,
-    dist: torch.Tensor | None = None,
-    min_depth: float = 1e-3,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Project world points into cameras with general affine intrinsics.
-
-    Args:
-        points: (B, P, 3) world mm.
-        K: (B, C, 3, 3) affine intrinsics (last row 0 0 1).
-        R: (B, C, 3, 3), t: (B, C, 3) world→camera.
-        dist: optional (B, C, 5) OpenCV distortion.
-
-    Returns:
-        ``(uv, in_front)``: (B, C, P, 2) pixels and (B, C, P) bool positive depth.
-    """
-    Xc = torch.einsum("bcij,bpj->bcpi", R, points) + t[:, :, None, :]
-    z = Xc[..., 2]
-    in_front = z > min_depth
-    zc = torch.where(in_front, z, torch.full_like(z, min_depth))
-    xy = Xc[..., :2] / zc[..., None]
-    if dist is not None:
-        xy = distort_normalized(xy, dist[:, :, None, :])
-    uv = torch.einsum("bcij,bcpj->bcpi", K[:, :, :2, :2], xy) + K[:, :, None, :2, 2]
-    return uv, in_front
+# Projection with a general affine K is the project-wide torch projection.
+project_affine = project
 
 
 def undistort_normalized(
