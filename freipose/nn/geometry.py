@@ -2,11 +2,10 @@
 
 A crop camera is the original camera followed by the affine map from full-image pixels to
 crop pixels (crop, resize and, during training, an in-plane rotation/zoom/shift). Its
-intrinsic matrix ``Kc = A @ K``
-is therefore a general affine 3x3 (last row ``0 0 1``), which
-:func:`freipose.geometry.torch_ops.project` handles (it uses the full 2x3 part of K).
-Distortion acts
-before ``Kc`` (on normalized coordinates), so it is unchanged by cropping.
+intrinsic matrix ``Kc = A @ K`` is therefore a general affine 3x3 (last row ``0 0 1``),
+which :func:`freipose.geometry.torch_ops.project` handles (it uses the full 2x3 part of
+``K``). Distortion acts before ``Kc`` (on normalized coordinates), so cropping leaves it
+unchanged.
 """
 
 from __future__ import annotations
