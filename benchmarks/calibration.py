@@ -29,27 +29,12 @@ from pathlib import Path
 import numpy as np
 
 
-def align_similarity(A: np.ndarray, B: np.ndarray):
-    ma, mb = A.mean(0), B.mean(0)
-    H = (A - ma).T @ (B - mb)
-    U, S, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    s = float((S * np.diag(D)).sum() / ((A - ma) ** 2).sum())
-    return s, R, mb - s * R @ ma
-
-
 def errors(centers, rotations, focals, truth):
     """Max centre error (mm), max rotation error (deg), max |focal error| (%)."""
-    s, R, t = align_similarity(centers, truth.centers)
-    c = s * centers @ R.T + t
-    dc = np.linalg.norm(c - truth.centers, axis=1)
-    rot = []
-    for Re, g in zip(rotations, truth):
-        M = Re @ R.T @ g.R.T
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(M) - 1) / 2, -1, 1))))
-    fe = [100 * abs(f / g.K[0, 0] - 1) for f, g in zip(focals, truth)]
-    return float(dc.max()), float(np.max(rot)), float(np.max(fe))
+    from freipose.geometry.alignment import camera_errors
+
+    dc, rot, fe, _ = camera_errors(centers, rotations, focals, truth)
+    return float(dc.max()), float(np.max(rot)), float(np.max(np.abs(fe)))
 
 
 def run_freipose(videos, board, out: Path, jobs: int | None):

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from freipose import __version__
+from freipose.geometry.alignment import rig_errors as geometry_rig_errors
 from freipose.io.atomic import atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -287,17 +288,6 @@ def _check_outdir(out: Path, preset: DemoPreset) -> None:
 
 
 # --------------------------------------------------------------------------- helpers
-def align_similarity(A: np.ndarray, B: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity ``(s, R, t)`` with ``s R A + t ≈ B`` for points A, B (N, 3) (Umeyama)."""
-    ma, mb = A.mean(0), B.mean(0)
-    H = (A - ma).T @ (B - mb)
-    U, S, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
-    R = Vt.T @ D @ U.T
-    s = float((S * np.diag(D)).sum() / ((A - ma) ** 2).sum())
-    return s, R, mb - s * R @ ma
-
-
 def rig_errors(est, truth) -> dict[str, Any]:  # noqa: ANN001 - CameraRig
     """Per-camera errors of a calibrated rig against the truth, after aligning the world frames.
 
@@ -308,23 +298,12 @@ def rig_errors(est, truth) -> dict[str, Any]:  # noqa: ANN001 - CameraRig
     calibrated to true world coordinates.
     """
     names = [c.name for c in truth]
-    est = est.subset(names)
-    s, R, t = align_similarity(est.centers, truth.centers)
-    c = s * est.centers @ R.T + t
-    dc = np.linalg.norm(c - truth.centers, axis=1)
-    rot = []
-    for e, g in zip(est, truth):
-        M = e.R @ R.T @ g.R.T
-        rot.append(float(np.degrees(np.arccos(np.clip((np.trace(M) - 1) / 2, -1, 1)))))
-    fe = [
-        [100 * (e.K[0, 0] / g.K[0, 0] - 1), 100 * (e.K[1, 1] / g.K[1, 1] - 1)]
-        for e, g in zip(est, truth)
-    ]
+    dc, rot, fe, (s, R, t) = geometry_rig_errors(est, truth)
     return {
         "cameras": names,
         "center_mm": dc.tolist(),
-        "rotation_deg": rot,
-        "focal_percent": fe,
+        "rotation_deg": rot.tolist(),
+        "focal_percent": fe.tolist(),
         "scale": s,
         "R": R.tolist(),
         "t": t.tolist(),
@@ -1157,7 +1136,6 @@ __all__ = [
     "STEPS",
     "DemoPreset",
     "DemoSession",
-    "align_similarity",
     "rig_errors",
     "run_demo",
     "study_toml",

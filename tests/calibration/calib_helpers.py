@@ -7,6 +7,7 @@ import numpy as np
 from freipose.calibration.bundle import rodrigues
 from freipose.calibration.detect import CameraDetections
 from freipose.geometry import CameraRig, project
+from freipose.geometry.alignment import rig_errors as geometry_rig_errors
 
 
 def board_detections(
@@ -54,28 +55,8 @@ def board_detections(
     return dets, poses
 
 
-def align_similarity(A: np.ndarray, B: np.ndarray):
-    """Similarity (s, R, t) with s R A + t ≈ B for points (N, 3)."""
-    ma, mb = A.mean(0), B.mean(0)
-    H = (A - ma).T @ (B - mb)
-    U, S, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    s = float((S * np.diag(D)).sum() / ((A - ma) ** 2).sum())
-    return s, R, mb - s * R @ ma
-
-
 def rig_errors(est: CameraRig, truth: CameraRig):
     """(centre errors mm (C,), rotation errors deg (C,), focal errors % (C, 2)) after a
     similarity alignment of the camera centres."""
-    s, R, t = align_similarity(est.centers, truth.centers)
-    c = s * est.centers @ R.T + t
-    dc = np.linalg.norm(c - truth.centers, axis=1)
-    rot = []
-    for e, g in zip(est, truth):
-        M = e.R @ R.T @ g.R.T
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(M) - 1) / 2, -1, 1))))
-    fe = np.array(
-        [[e.K[0, 0] / g.K[0, 0] - 1, e.K[1, 1] / g.K[1, 1] - 1] for e, g in zip(est, truth)]
-    )
-    return dc, np.array(rot), 100 * fe
+    dc, rot, fe, _ = geometry_rig_errors(est, truth)
+    return dc, rot, fe

@@ -10,7 +10,8 @@ import pytest
 from click.testing import CliRunner
 
 from freipose.cli.main import cli
-from freipose.demo import PRESETS, STEPS, align_similarity, study_toml
+from freipose.demo import PRESETS, STEPS, study_toml
+from freipose.geometry.alignment import align_similarity
 
 
 @pytest.fixture(scope="module")
