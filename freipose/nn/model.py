@@ -70,6 +70,13 @@ def top2_mean(conf: torch.Tensor, view_mask: torch.Tensor) -> torch.Tensor:
     return c.topk(2, dim=1).values.mean(1)
 
 
+def _encoder(cfg: ModelConfig) -> Encoder2D:
+    """The shared 2D encoder of both networks, as the config describes it."""
+    return Encoder2D(
+        cfg.encoder_channels, cfg.encoder_convs, cfg.encoder_pools, cfg.feature_channels, cfg.norm
+    )
+
+
 class VoxelPoseNet(nn.Module):
     """The multi-view voxel network (see the module docstring).
 
@@ -87,13 +94,7 @@ class VoxelPoseNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.num_keypoints = num_keypoints
-        self.encoder = Encoder2D(
-            cfg.encoder_channels,
-            cfg.encoder_convs,
-            cfg.encoder_pools,
-            cfg.feature_channels,
-            cfg.norm,
-        )
+        self.encoder = _encoder(cfg)
         self.unet = UNet3D(
             cfg.feature_channels, cfg.unet_channels, num_keypoints, cfg.norm, cfg.deep_supervision
         )
@@ -187,13 +188,7 @@ class BaselineNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.num_keypoints = num_keypoints
-        self.encoder = Encoder2D(
-            cfg.encoder_channels,
-            cfg.encoder_convs,
-            cfg.encoder_pools,
-            cfg.feature_channels,
-            cfg.norm,
-        )
+        self.encoder = _encoder(cfg)
         self.head = Head2D(
             cfg.feature_channels,
             self.encoder.skip_channels,
