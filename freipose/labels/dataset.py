@@ -45,8 +45,6 @@ from freipose.io.video import FrameSource, MediaError
 log = logging.getLogger(__name__)
 
 
-
-
 class LabelsDataError(ValueError):
     """A sample cannot be assembled (missing video, frame past a video's end, ...)."""
 

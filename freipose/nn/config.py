@@ -46,6 +46,11 @@ class ModelConfig:
         deep_supervision: decode and supervise one volume per U-Net decoder level.
         refine: use the 2D refinement head (P1); otherwise P1 = P0.
         refine_channels: channels of the refinement head and the baseline's 2D head.
+        head_levels: decoder steps of both 2D heads above the features, each doubling the
+            resolution with the encoder's skip map of that scale; the heads' maps have stride
+            ``stride / 2**head_levels`` (2 in the paper: 112 x 112 maps of 224 crops, like the
+            original's finest refinement map). Sub-feature-pixel precision of the refinement
+            (P1 better than P0) needs the finer maps.
         heatmap_sigma: sigma (feature pixels) of the P0 heat maps given to the refinement.
         volume_sigma: sigma (voxels) of the Gaussian target of the volumetric
             cross-entropy loss (``schedule.weight_volume``).
@@ -66,6 +71,7 @@ class ModelConfig:
     deep_supervision: bool = True
     refine: bool = True
     refine_channels: int = 128
+    head_levels: int = 2
     heatmap_sigma: float = 2.0
     volume_sigma: float = 1.0
     pretrained: str = ""
@@ -84,6 +90,11 @@ class ModelConfig:
             raise ConfigError(
                 f"model.encoder_pools must be in 1..{len(self.encoder_channels)}, "
                 f"got {self.encoder_pools}"
+            )
+        if not 1 <= self.head_levels <= self.encoder_pools:
+            raise ConfigError(
+                f"model.head_levels must be in 1..encoder_pools ({self.encoder_pools}), "
+                f"got {self.head_levels}"
             )
         if self.crop_size % self.stride:
             raise ConfigError(
@@ -107,6 +118,11 @@ class ModelConfig:
     def stride(self) -> int:
         """Feature stride: crop pixels per feature pixel."""
         return 2**self.encoder_pools
+
+    @property
+    def map_stride(self) -> float:
+        """Crop pixels per pixel of the 2D heads' maps."""
+        return self.stride / 2**self.head_levels
 
     @property
     def feature_size(self) -> int:
@@ -235,6 +251,7 @@ PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
             grid_size=8,
             unet_channels=(8,),
             refine_channels=8,
+            head_levels=1,
             heatmap_sigma=1.0,
         ),
         dict(
@@ -260,6 +277,7 @@ PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
             cube_size=320.0,
             unet_channels=(16, 32, 32),
             refine_channels=32,
+            head_levels=2,
             heatmap_sigma=1.5,
         ),
         dict(

@@ -47,7 +47,9 @@ class Encoder2D(nn.Module):
     """VGG-style 2D encoder shared by all views.
 
     Input (N, 3, S, S) (BGR / 255 - 0.5). Returns the features (N, feature_channels, S/s,
-    S/s) and a skip map (N, encoder_channels[pools-1], 2S/s, 2S/s) at half the stride.
+    S/s) and the skip maps taken before each max-pool, coarsest first: ``skips[j]`` is
+    (N, encoder_channels[pools-1-j], 2**(j+1) S/s, 2**(j+1) S/s), i.e. at stride s / 2**(j+1)
+    (``skip_channels`` lists their channels in that order).
     """
 
     def __init__(
@@ -70,17 +72,16 @@ class Encoder2D(nn.Module):
             blocks.append(nn.Sequential(*layers))
         self.blocks = nn.ModuleList(blocks)
         self.out = conv2d(cin, out_channels, 3, norm)
-        self.skip_channels = channels[pools - 1]
+        self.skip_channels = tuple(channels[pools - 1 - j] for j in range(pools))
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        skip = x
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        skips: list[torch.Tensor] = []
         for i, block in enumerate(self.blocks):
             x = block(x)
             if i < self.pools:
-                if i == self.pools - 1:
-                    skip = x
+                skips.insert(0, x)
                 x = F.max_pool2d(x, 2)
-        return self.out(x), skip
+        return self.out(x), skips
 
 
 def unproject(
@@ -286,33 +287,58 @@ def gaussian_log_prior(uv: torch.Tensor, size: int, stride: float, sigma: float)
 
 
 class Head2D(nn.Module):
-    """Per-view 2D keypoint head: maps at half the feature stride and confidences.
+    """Per-view 2D keypoint head: maps ``levels`` octaves finer than the features, and
+    confidences.
 
     Used as the refinement head (input: features + P0 heat maps) and as the baseline's 2D
-    detector (features only). Outputs map logits (N, K, 2h, 2w) and confidence logits of the
-    same shape (the per-keypoint confidence is their expectation under the map's softmax).
+    detector (features only). A base of three convolutions at feature resolution, then
+    ``levels`` decoder steps (stride-2 transposed conv, concatenation with the encoder's skip
+    map of that resolution, 3x3 conv; channels halve at each step, as in the original's
+    RefineNet2D). Outputs map logits (N, K, 2**levels h, 2**levels w) and confidence logits of
+    the same shape (the per-keypoint confidence is their expectation under the map's softmax).
     """
 
-    def __init__(self, feat_ch: int, skip_ch: int, k: int, ch: int, norm: str, heat_in: int):
+    def __init__(
+        self,
+        feat_ch: int,
+        skip_ch: tuple[int, ...],
+        k: int,
+        ch: int,
+        norm: str,
+        heat_in: int,
+        levels: int = 1,
+    ):
         super().__init__()
-        half = max(ch // 2, 1)
+        if not 1 <= levels <= len(skip_ch):
+            raise ValueError(f"Head2D: levels must be in 1..{len(skip_ch)}, got {levels}")
         self.base = nn.Sequential(
             conv2d(feat_ch + heat_in, ch, 1, norm, "lrelu"),
             conv2d(ch, ch, 3, norm, "lrelu"),
             conv2d(ch, ch, 3, norm, "lrelu"),
         )
-        self.up = nn.ConvTranspose2d(ch, half, 4, stride=2, padding=1)
-        self.skip = conv2d(skip_ch, half, 1, norm, "lrelu")
-        self.fuse = conv2d(2 * half, half, 3, norm, "lrelu")
-        self.maps = nn.Conv2d(half, k, 1, bias=False)
-        self.conf = nn.Conv2d(half, k, 1)
+        ups, skips, fuses = [], [], []
+        c_prev = ch
+        for lvl in range(levels):
+            c = max(ch // 2 ** (lvl + 1), 4)
+            ups.append(nn.ConvTranspose2d(c_prev, c, 4, stride=2, padding=1))
+            skips.append(conv2d(skip_ch[lvl], c, 1, norm, "lrelu"))
+            fuses.append(conv2d(2 * c, c, 3, norm, "lrelu"))
+            c_prev = c
+        self.ups, self.skips, self.fuses = (
+            nn.ModuleList(ups),
+            nn.ModuleList(skips),
+            nn.ModuleList(fuses),
+        )
+        self.maps = nn.Conv2d(c_prev, k, 1, bias=False)
+        self.conf = nn.Conv2d(c_prev, k, 1)
 
     def forward(
-        self, feat: torch.Tensor, skip: torch.Tensor, heat: torch.Tensor | None = None
+        self, feat: torch.Tensor, skips: list[torch.Tensor], heat: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         x = feat if heat is None else torch.cat([feat, heat.to(feat.dtype)], dim=1)
         x = self.base(x)
-        x = self.fuse(torch.cat([F.leaky_relu(self.up(x), 0.1), self.skip(skip)], dim=1))
+        for up, skip, fuse, s in zip(self.ups, self.skips, self.fuses, skips):
+            x = fuse(torch.cat([F.leaky_relu(up(x), 0.1), skip(s)], dim=1))
         return self.maps(x), self.conf(x)
 
 

@@ -48,7 +48,8 @@ from freipose.nn.layers import (
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "freipose.pose_checkpoint"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
+# version 1: the 2D heads had one decoder level and the config no ``head_levels``
 
 
 class CheckpointError(ValueError):
@@ -106,6 +107,7 @@ class VoxelPoseNet(nn.Module):
                 cfg.refine_channels,
                 cfg.norm,
                 heat_in=num_keypoints,
+                levels=cfg.head_levels,
             )
             if cfg.refine
             else None
@@ -166,10 +168,13 @@ class VoxelPoseNet(nn.Module):
         # Residual formulation: the map logits are added to a Gaussian log-prior around the
         # projected P0, so an untrained head returns P0's projection (P1 = P0) and training
         # learns corrections.
+        # The prior's width is fixed in crop pixels (2 heatmap_sigma feature pixels at half
+        # the feature stride, whatever the map resolution).
+        ms = cfg.map_stride
         prior = gaussian_log_prior(
-            uv0.reshape(B * V, -1, 2), maps.shape[-1], cfg.stride / 2, 2.0 * cfg.heatmap_sigma
+            uv0.reshape(B * V, -1, 2), maps.shape[-1], ms, cfg.heatmap_sigma * cfg.stride / ms
         )
-        uv, conf = decode_head(maps.float() + prior, conf_logits, cfg.stride / 2)
+        uv, conf = decode_head(maps.float() + prior, conf_logits, ms)
         uv = uv.reshape(B, V, -1, 2)
         conf = conf.reshape(B, V, -1) * mask[:, :, None]
         P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0d)
@@ -196,6 +201,7 @@ class BaselineNet(nn.Module):
             cfg.refine_channels,
             cfg.norm,
             heat_in=0,
+            levels=cfg.head_levels,
         )
 
     def forward(self, batch: Mapping[str, Any]) -> dict[str, Any]:
@@ -203,7 +209,7 @@ class BaselineNet(nn.Module):
         B, V = images.shape[:2]
         feats, skip = self.encoder(images.reshape(B * V, *images.shape[2:]))
         maps, conf_logits = self.head(feats, skip)
-        uv, conf = decode_head(maps, conf_logits, self.cfg.stride / 2)
+        uv, conf = decode_head(maps, conf_logits, self.cfg.map_stride)
         conf = conf.reshape(B, V, -1) * batch["view_mask"][:, :, None]
         return {"points2d": uv.reshape(B, V, -1, 2), "confidence2d": conf}
 
@@ -314,6 +320,12 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(
             f"{path}: checkpoint version {ckpt.get('version')} is newer than this FreiPose "
             f"supports ({CHECKPOINT_VERSION}); upgrade freipose"
+        )
+    if ckpt.get("version", 0) < CHECKPOINT_VERSION:
+        raise CheckpointError(
+            f"{path}: checkpoint version {ckpt.get('version')} was written by an older FreiPose "
+            f"whose 2D heads differ from this version's ({CHECKPOINT_VERSION}); retrain it with "
+            "`freipose train`"
         )
     if state_hash(ckpt["model"]) != ckpt.get("weights_sha256"):
         raise CheckpointError(f"{path}: the weights do not match their stored hash (corrupt file)")

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from freipose.geometry import project
 from freipose.geometry.crops import crop_camera, cube_crop_boxes
 from freipose.nn.geometry import pixels_to_normalized, project_affine, voxel_offsets
 from freipose.nn.layers import (
+    Encoder2D,
+    Head2D,
+    decode_head,
     gaussian_heatmaps,
     softargmax2d,
     softargmax3d,
@@ -243,3 +247,27 @@ def test_rotated_grid_decodes_and_volume_loss_prefers_the_label():
     ce_far = volume_cross_entropy(probs, far, mask, center, rot, cfg)
     ce_one = volume_cross_entropy(probs, pts, torch.tensor([[True, False]]), center, rot, cfg)
     torch.testing.assert_close(ce_far, ce_one)
+
+
+def test_head_levels_refine_the_map_resolution():
+    """Each decoder level doubles the map size with the encoder's skip of that scale, and the
+    decoded points stay in crop pixels whatever the map stride."""
+    torch.manual_seed(0)
+    enc = Encoder2D((4, 6, 8), (1, 1, 1), 3, 5, "group")
+    assert enc.skip_channels == (8, 6, 4)
+    feats, skips = enc(torch.zeros(2, 3, 32, 32))
+    assert feats.shape == (2, 5, 4, 4)
+    assert [tuple(s.shape[1:]) for s in skips] == [(8, 8, 8), (6, 16, 16), (4, 32, 32)]
+    for levels, size in ((1, 8), (2, 16), (3, 32)):
+        head = Head2D(5, enc.skip_channels, 2, 8, "group", heat_in=0, levels=levels)
+        maps, conf = head(feats, skips)
+        assert maps.shape == conf.shape == (2, 2, size, size)
+        # a map peaked at one pixel decodes to that pixel's centre in crop pixels
+        stride = 32 / size
+        peak = torch.full((1, 1, size, size), -50.0)
+        peak[0, 0, 3, 5] = 50.0
+        uv, c = decode_head(peak, torch.zeros_like(peak), stride)
+        np.testing.assert_allclose(uv[0, 0].numpy(), [(5.5) * stride - 0.5, 3.5 * stride - 0.5])
+        assert abs(float(c) - 0.5) < 1e-6
+    with pytest.raises(ValueError, match="levels must be in 1..3"):
+        Head2D(5, enc.skip_channels, 2, 8, "group", heat_in=0, levels=4)

@@ -127,6 +127,11 @@ def test_checkpoint_hash_and_predict_batch(tmp_path):
     torch.save(ck, tmp_path / "bad.pt")
     with pytest.raises(CheckpointError, match="hash"):
         read_checkpoint(tmp_path / "bad.pt")
+    ck["model"][k] = ck["model"][k] - 1
+    ck["version"] = 1  # one-level 2D heads: refused with a clear message
+    torch.save(ck, tmp_path / "old.pt")
+    with pytest.raises(CheckpointError, match="older FreiPose.*retrain"):
+        read_checkpoint(tmp_path / "old.pt")
     (tmp_path / "trunc.pt").write_bytes(path.read_bytes()[:100])
     with pytest.raises(CheckpointError, match="truncated"):
         read_checkpoint(tmp_path / "trunc.pt")
@@ -139,6 +144,8 @@ def test_config_validation(tmp_path):
         config_from_dict({"schedule": {"stepz": 3}})
     with pytest.raises(ConfigError, match="grid_size"):
         config_from_dict({"model": {"preset": "tiny", "grid_size": 9}})
+    with pytest.raises(ConfigError, match=r"head_levels must be in 1..encoder_pools \(2\), got 3"):
+        config_from_dict({"model": {"preset": "tiny", "head_levels": 3}})
     p = tmp_path / "c.toml"
     p.write_text('[model]\npreset = "small"\ngrid_size = 16\n[schedule]\nlr = "fast"\n')
     with pytest.raises(ConfigError, match="schedule.lr must be a number"):
