@@ -94,6 +94,13 @@ def main() -> None:
     )
     ap.add_argument("--seed", type=int, default=1, help="board motion and image noise seed")
     ap.add_argument("--workdir", type=Path, default=None, help="keep the videos here")
+    ap.add_argument(
+        "--format",
+        default=".mp4",
+        choices=(".mp4", ".mkv"),
+        help="video container: .mp4 (MPEG-4 Part 2, lossy, fast to decode, like camera "
+        "recordings; default) or .mkv (lossless FFV1, ~20 ms per frame to decode)",
+    )
     args = ap.parse_args()
 
     from freipose.synth.board import default_board, write_board_videos
@@ -104,7 +111,9 @@ def main() -> None:
     rig = default_rig(args.cameras, size=(args.width, args.width * 3 // 4))
     board = default_board()
     t0 = time.perf_counter()
-    vids, _ = write_board_videos(work, rig, board, args.frames, seed=args.seed, progress=False)
+    vids, _ = write_board_videos(
+        work, rig, board, args.frames, seed=args.seed, fmt=args.format, progress=False
+    )
     jobs = args.jobs or os.cpu_count() or 1
     print(
         f"rendered {args.cameras} x {args.frames} frames {args.width}x{args.width * 3 // 4} "

@@ -53,6 +53,13 @@ def rodrigues(r: np.ndarray) -> np.ndarray:
 
 
 MIN_F_SCALE = 0.05  # px: floor of the estimated robust-loss scale
+# Levenberg-Marquardt stops when a step lowers the cost by less than this fraction: the cost
+# is ~σ² per residual, so 1e-8 is far below what moves a parameter by a fraction of its
+# uncertainty (that takes a change of ~σ², i.e. ~1 / (2 N) of the cost)
+REL_TOL = 1e-8
+# outlier-rejection rounds stop when at most this fraction of the detections change status
+# (and the loss scale changes by at most 20 %)
+ROUND_TOL = 1e-3
 
 
 def noise_sigma(errors: np.ndarray) -> float:
@@ -175,6 +182,11 @@ class _Problem:
         key = self.obs.cam * F + self.obs.frame
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
         self.starts = starts
+        # each observation's (camera, frame) pair and its slot in that pair: the normal
+        # equations are sums over pairs, done as batched products of padded (pair, slot) blocks
+        self.pair_id = np.cumsum(np.r_[True, key[1:] != key[:-1]]) - 1 if len(key) else key
+        self.slot = np.arange(len(key)) - starts[self.pair_id] if len(key) else key
+        self.slots = int(self.slot.max()) + 1 if len(key) else 0
         self.pair_cam = self.obs.cam[starts]
         self.pair_frame = self.obs.frame[starts]
         self.C, self.F = C, F
@@ -267,30 +279,45 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
     return rodrigues(w)
 
 
-def _normal_equations(prob: _Problem, Rc, Rf, cache, r, w, free):
+def _tie_focal(Jc: np.ndarray, cam: np.ndarray, tie: np.ndarray | None) -> np.ndarray:
+    """Camera Jacobian (N, 2, 15) with fy = fx for the cameras in ``tie`` (C,): the fx column
+    moves both focal lengths (the fy column is then fixed)."""
+    if tie is not None and tie.any():
+        Jc[:, :, 0] += tie[cam][:, None] * Jc[:, :, 1]
+    return Jc
+
+
+def _normal_equations(prob: _Problem, Rc, Rf, cache, r, w, free, tie=None):
     """Weighted Gauss-Newton blocks: Hcc (C,15,15), Hff (F,6,6), Hcf (C,F,15,6), gc (C,15),
     gf (F,6); fixed camera parameters get identity rows (and zero gradient)."""
     C, F = prob.C, prob.F
     starts, pc, pf = prob.starts, prob.pair_cam, prob.pair_frame
     Jc, Jf = prob.jacobians(Rc, Rf, cache)
-    w = w[:, None, None]
+    Jc = _tie_focal(Jc, prob.obs.cam, tie)
     Jc = Jc * free.astype(float)[prob.obs.cam][:, None, :]
-    WJc, WJf = w * Jc, w * Jf
-    Hcc_o = np.einsum("nki,nkj->nij", WJc, Jc)
-    Hff_o = np.einsum("nki,nkj->nij", WJf, Jf)
-    Hcf_o = np.einsum("nki,nkj->nij", WJc, Jf)
-    gc_o = np.einsum("nki,nk->ni", WJc, r)
-    gf_o = np.einsum("nki,nk->ni", WJf, r)
+    sw = np.sqrt(w)  # robust weights are >= 0
+    n_pairs, S = len(starts), prob.slots
+    at = (prob.pair_id, prob.slot)
+    A = np.zeros((n_pairs, S, 2, 15))  # sqrt(w) J, padded per (camera, frame) pair
+    A[at] = Jc * sw[:, None, None]
+    A = A.reshape(n_pairs, 2 * S, 15)
+    B = np.zeros((n_pairs, S, 2, 6))
+    B[at] = Jf * sw[:, None, None]
+    B = B.reshape(n_pairs, 2 * S, 6)
+    Rw = np.zeros((n_pairs, S, 2))
+    Rw[at] = r * sw[:, None]
+    Rw = Rw.reshape(n_pairs, 2 * S, 1)
+    At, Bt = A.transpose(0, 2, 1), B.transpose(0, 2, 1)
     Hcc = np.zeros((C, 15, 15))
-    np.add.at(Hcc, pc, np.add.reduceat(Hcc_o, starts, axis=0))
+    np.add.at(Hcc, pc, At @ A)
     Hff = np.zeros((F, 6, 6))
-    np.add.at(Hff, pf, np.add.reduceat(Hff_o, starts, axis=0))
+    np.add.at(Hff, pf, Bt @ B)
     gc = np.zeros((C, 15))
-    np.add.at(gc, pc, np.add.reduceat(gc_o, starts, axis=0))
+    np.add.at(gc, pc, (At @ Rw)[..., 0])
     gf = np.zeros((F, 6))
-    np.add.at(gf, pf, np.add.reduceat(gf_o, starts, axis=0))
+    np.add.at(gf, pf, (Bt @ Rw)[..., 0])
     Hcf = np.zeros((C, F, 15, 6))
-    Hcf[pc, pf] = np.add.reduceat(Hcf_o, starts, axis=0)
+    Hcf[pc, pf] = At @ B
     fixed = ~free
     for c in range(C):
         idx = np.flatnonzero(fixed[c])
@@ -317,11 +344,13 @@ def _schur(Hcc, Hff, Hcf, gc, gf):
     return S, rhs, Hff_inv
 
 
-def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter):
+def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None):
     """Levenberg-Marquardt with the Schur complement over the board poses."""
     C, F = cam0.shape[0], frame0.shape[0]
     prob = _Problem(obs, C, F)
     intr = cam0[:, :9].copy()
+    if tie is not None:
+        intr[tie, 1] = intr[tie, 0]
     Rc = rodrigues(cam0[:, 9:12])
     tc = cam0[:, 12:15].copy()
     Rf = rodrigues(frame0[:, :3])
@@ -339,7 +368,7 @@ def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter):
     nfev = 1
     for it in range(1, max_iter + 1):  # noqa: B007
         w = _robust_weights(e, loss, f_scale)
-        Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free)
+        Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free, tie)
         improved = False
         for _ in range(12):
             # damped system
@@ -358,6 +387,8 @@ def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter):
             dcam = dcam.reshape(C, 15) * freef
             dfr = -np.einsum("fij,fj->fi", Hff_inv, gf + np.einsum("cfij,ci->fj", Hcf, dcam))
             n_intr = intr + dcam[:, :9]
+            if tie is not None:
+                n_intr[tie, 1] = n_intr[tie, 0]
             n_Rc = _exp_so3(dcam[:, 9:12]) @ Rc
             n_tc = tc + dcam[:, 12:15] + 0.0
             # left rotation update of Rc acts on (Rc Xw); t is updated additively
@@ -373,7 +404,7 @@ def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter):
                 improved = True
                 break
             lam *= 4
-        if not improved or rel < 1e-10:
+        if not improved or rel < REL_TOL:
             break
     cam = np.zeros_like(cam0)
     cam[:, :9] = intr
@@ -407,7 +438,7 @@ def _sparsity(obs: Observations, cam_cols: np.ndarray, n_cam_free: int, F: int):
     return coo_matrix((data, (rows_a, cols_a)), shape=(2 * N, n_cam_free + 6 * F)).tocsr()
 
 
-def _solve_scipy(cam0, free, frame0, obs, loss, f_scale, max_iter):
+def _solve_scipy(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None):
     """``scipy.optimize.least_squares`` (TRF, LSMR) with a finite-difference sparse Jacobian."""
     from scipy.optimize import least_squares
 
@@ -419,6 +450,8 @@ def _solve_scipy(cam0, free, frame0, obs, loss, f_scale, max_iter):
     def unpack(x):
         cam = cam0.copy()
         cam[free] = x[:n_cam_free]
+        if tie is not None:
+            cam[tie, 1] = cam[tie, 0]
         return cam, x[n_cam_free:].reshape(F, 6)
 
     def fun(x):
@@ -459,6 +492,8 @@ def bundle_adjust(
     method: str = "lm",
     outlier_sigmas: float = 5.0,
     start_f_scale: float = 1.0,
+    equal_focal: np.ndarray | None = None,
+    keep: np.ndarray | None = None,
 ) -> BundleResult:
     """Jointly refine cameras and board poses.
 
@@ -479,6 +514,10 @@ def bundle_adjust(
             ``"scipy"`` (``least_squares`` with a sparse finite-difference Jacobian).
         outlier_px, outlier_sigmas: a detection is rejected when its error exceeds
             ``max(outlier_px, outlier_sigmas * σ)`` after a round.
+        equal_focal: (C,) bool, cameras whose fy is tied to fx (square pixels; their
+            ``free[:, 1]`` must be False); ``None`` = none.
+        keep: (N,) bool, the detections to start from (e.g. the inliers of a previous
+            adjustment of the same observations); ``None`` = all but gross outliers.
     """
     if method not in ("lm", "scipy"):
         raise ValueError(f"unknown bundle-adjustment method {method!r}; expected lm or scipy")
@@ -486,18 +525,31 @@ def bundle_adjust(
     t0 = time.perf_counter()
     cam = np.asarray(cam_params, np.float64).copy()
     fr = np.asarray(frame_params, np.float64).copy()
+    tie = None
+    if equal_focal is not None:
+        tie = np.asarray(equal_focal, bool)
+        if tie.shape != (cam.shape[0],):
+            raise ValueError(f"equal_focal must have shape ({cam.shape[0]},), got {tie.shape}")
+        if np.any(np.asarray(free)[tie, 1]):
+            raise ValueError("a camera with equal_focal must have fy fixed (free[:, 1] False)")
+        cam[tie, 1] = cam[tie, 0]
     uv, _ = project_observations(cam, fr, obs)
     e0 = np.linalg.norm(uv - obs.uv, axis=1)
     initial_rms = float(np.sqrt(np.mean(e0**2)))
-    keep = np.ones(len(obs), bool)
-    # grossly wrong initial detections would drag the first round
-    if len(obs) > 20:
-        keep &= e0 < max(50.0, 20 * np.median(e0))
+    if keep is not None:
+        keep = np.asarray(keep, bool).copy()
+        if keep.shape != (len(obs),):
+            raise ValueError(f"keep must have shape ({len(obs)},), got {keep.shape}")
+    else:
+        keep = np.ones(len(obs), bool)
+        # grossly wrong initial detections would drag the first round
+        if len(obs) > 20:
+            keep &= e0 < max(50.0, 20 * np.median(e0))
     nfev = 0
     rounds = 0
     scale = float(start_f_scale) if f_scale is None else float(f_scale)
     for rounds in range(1, max_rounds + 1):  # noqa: B007
-        cam, fr, n = solver(cam, free, fr, obs.subset(keep), loss, scale, max_iter)
+        cam, fr, n = solver(cam, free, fr, obs.subset(keep), loss, scale, max_iter, tie)
         nfev += n
         uv, _ = project_observations(cam, fr, obs)
         err = np.linalg.norm(uv - obs.uv, axis=1)
@@ -516,8 +568,9 @@ def bundle_adjust(
             int((~new_keep).sum()),
             thr,
         )
-        if np.array_equal(new_keep, keep) and abs(new_scale - scale) <= 0.2 * scale:
-            break
+        n_changed = int((new_keep != keep).sum())
+        if n_changed <= ROUND_TOL * len(obs) and abs(new_scale - scale) <= 0.2 * scale:
+            break  # the inliers stay those the solution was fitted to
         keep, scale = new_keep, new_scale
     uv, _ = project_observations(cam, fr, obs)
     err = np.linalg.norm(uv - obs.uv, axis=1)

@@ -54,8 +54,11 @@ HIGH_ERROR_PX = 1.0
 # model selection: a camera keeps a principal-point offset or tangential distortion only when
 # the bundle adjustment's estimate differs from zero by more than this Wald chi-square
 # (2 degrees of freedom, 1 % significance)
+# (the fx = fy test has 1 degree of freedom)
 CHI2_2DOF_1PCT = 9.21
+CHI2_1DOF_1PCT = 6.63
 PRINCIPAL_POINT_MODES = ("auto", "free", "centre")
+ASPECT_MODES = ("auto", "free", "square")
 # board frame (x right, y down the print, z into the board) -> floor frame (z up out of it)
 BOARD_TO_FLOOR = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -77,6 +80,9 @@ class CalibrationOptions:
         principal_point: ``auto`` (default: the image centre unless the bundle adjustment
             finds a significant offset), ``free`` or ``centre`` (fixed at
             ``((w - 1) / 2, (h - 1) / 2)``).
+        aspect: ``auto`` (default: fy = fx, square pixels, unless the bundle adjustment finds
+            them significantly different), ``free`` (fx and fy estimated separately) or
+            ``square`` (always fy = fx).
         jobs: detection processes (default: CPU count).
         max_views: views per camera for the intrinsics initialisation.
         loss, f_scale: robust loss of the bundle adjustment and its scale (px); ``None``
@@ -92,6 +98,7 @@ class CalibrationOptions:
     fixed_intrinsics: CameraRig | None = None
     dist_model: str = "auto"
     principal_point: str = "auto"
+    aspect: str = "auto"
     jobs: int | None = None
     max_views: int = 40
     loss: str = "huber"
@@ -221,6 +228,10 @@ def calibrate_detections(
             f"unknown principal_point mode {opt.principal_point!r}; expected one of "
             f"{', '.join(PRINCIPAL_POINT_MODES)}"
         )
+    if opt.aspect not in ASPECT_MODES:
+        raise CalibrationError(
+            f"unknown aspect mode {opt.aspect!r}; expected one of {', '.join(ASPECT_MODES)}"
+        )
 
     # ---- intrinsics
     Ks, dists, intr = [], [], {}
@@ -331,6 +342,7 @@ def calibrate_detections(
 
     cam0 = np.zeros((C, 15))
     free = np.zeros((C, 15), bool)
+    square = np.zeros(C, bool)  # fy tied to fx
     for i, d in enumerate(dets):
         K = Ks[i]
         cam0[i, :4] = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
@@ -343,14 +355,18 @@ def calibrate_detections(
             if opt.principal_point == "centre":
                 cam0[i, 2:4] = ((d.size[0] - 1) / 2, (d.size[1] - 1) / 2)
                 free[i, 2:4] = False
+            if opt.aspect == "square":
+                cam0[i, :2] = 0.5 * (K[0, 0] + K[1, 1])
+                free[i, 1] = False
+                square[i] = True
         if i != graph.root:
             free[i, 9:] = True
     fr0 = np.zeros((len(frames), 6))
     for k, f in enumerate(frames):
         fr0[k, :3] = matrix_to_rvec(B0[f, :3, :3])
         fr0[k, 3:] = B0[f, :3, 3]
-    ba = _bundle(cam0, free, fr0, frames, obs, opt)
-    ba, models = _select_models(ba, free, dets, fixed_names, opt, frames, obs)
+    ba = _bundle(cam0, free, fr0, frames, obs, opt, square=square)
+    ba, models = _select_models(ba, free, square, dets, fixed_names, opt, frames, obs)
     logger.info(
         "bundle adjustment: RMS %.3f -> %.3f px in %.2f s (%d evaluations)",
         ba.initial_rms,
@@ -427,7 +443,9 @@ def calibrate_detections(
     return CalibrationResult(rig, board, dets, stats, Bw, world, graph, ba, warnings, intr)
 
 
-def _bundle(cam, free, fr, frames, obs, opt: CalibrationOptions, start_scale=1.0) -> BundleResult:
+def _bundle(
+    cam, free, fr, frames, obs, opt: CalibrationOptions, start_scale=1.0, square=None, keep=None
+) -> BundleResult:
     return bundle_adjust(
         cam,
         free,
@@ -439,16 +457,19 @@ def _bundle(cam, free, fr, frames, obs, opt: CalibrationOptions, start_scale=1.0
         outlier_px=opt.outlier_px,
         method=opt.solver,
         start_f_scale=start_scale,
+        equal_focal=square,
+        keep=keep,
     )
 
 
-def _describe_model(free_row: np.ndarray, fixed: bool) -> dict:
+def _describe_model(free_row: np.ndarray, square: bool, fixed: bool) -> dict:
     if fixed:
-        return {"principal_point": "given", "distortion": "given"}
+        return {"principal_point": "given", "distortion": "given", "focal": "given"}
     names = [n for n, f in zip(("k1", "k2", "p1", "p2", "k3"), free_row[4:9]) if f]
     return {
         "principal_point": "estimated" if free_row[2] else "image centre",
         "distortion": " ".join(names) if names else "none",
+        "focal": "fx = fy" if square else "fx, fy",
     }
 
 
@@ -463,28 +484,35 @@ def _wald(value: np.ndarray, cov: np.ndarray) -> float:
 def _select_models(
     ba: BundleResult,
     free: np.ndarray,
+    square: np.ndarray,
     dets: list[CameraDetections],
     fixed_names: set[str],
     opt: CalibrationOptions,
     frames: np.ndarray,
     obs: Observations,
 ) -> tuple[BundleResult, dict]:
-    """Drop principal-point offsets and tangential distortion the data do not support.
+    """Drop principal-point offsets, tangential distortion and fx != fy the data do not support.
 
-    With ``principal_point="auto"`` / ``dist_model="auto"``, a camera's principal-point offset
-    from the image centre (cx, cy) and its tangential terms (p1, p2) are tested against zero
-    with a Wald chi-square test on the bundle adjustment's covariance; parameters that are not
-    significant at 1 % are fixed (centre, zero) and the bundle adjustment is re-run from the
-    solution. Fewer free parameters make the remaining ones (rotations above all: a principal
-    point error of 1 px tilts a camera by 1/f rad) less noisy.
+    With ``principal_point="auto"`` / ``dist_model="auto"`` / ``aspect="auto"``, a camera's
+    principal-point offset from the image centre (cx, cy), its tangential terms (p1, p2) and
+    the difference fx - fy are tested against zero with Wald chi-square tests on the bundle
+    adjustment's covariance; what is not significant at 1 % is fixed (centre, zero, fy = fx)
+    and the bundle adjustment is re-run from the solution with the same inliers. Fewer free
+    parameters make the remaining ones (rotations above all: a principal point error of 1 px
+    tilts a camera by 1/f rad) less noisy.
+
+    Args:
+        free: (C, 15) the bundle adjustment's free parameters (updated in place).
+        square: (C,) cameras with fy tied to fx (updated in place).
 
     Returns:
         the (possibly re-run) result and ``{camera: model description}``.
     """
     test_pp = opt.principal_point == "auto"
     test_tan = opt.dist_model == "auto"
+    test_aspect = opt.aspect == "auto"
     changed = False
-    if test_pp or test_tan:
+    if test_pp or test_tan or test_aspect:
         cov = camera_covariance(ba, free)
         cam = ba.cam_params.copy()
         for i, d in enumerate(dets):
@@ -506,9 +534,24 @@ def _select_models(
                     cam[i, 6:8] = 0.0
                     free[i, 6:8] = False
                     changed = True
+            if test_aspect and free[i, 0] and free[i, 1]:
+                # var(fx - fy) = var fx + var fy - 2 cov(fx, fy)
+                c = cov[i, :2, :2]
+                chi2 = _wald(np.array([p[0] - p[1]]), (c[0, 0] + c[1, 1] - 2 * c[0, 1])[None, None])
+                logger.info("camera %s: fx - fy = %.3f px, chi2 %.1f", d.name, p[0] - p[1], chi2)
+                if chi2 < CHI2_1DOF_1PCT:
+                    cam[i, :2] = 0.5 * (p[0] + p[1])
+                    free[i, 1] = False
+                    square[i] = True
+                    changed = True
         if changed:
-            ba = _bundle(cam, free, ba.frame_params, frames, obs, opt, ba.f_scale)
-    models = {d.name: _describe_model(free[i], d.name in fixed_names) for i, d in enumerate(dets)}
+            ba = _bundle(
+                cam, free, ba.frame_params, frames, obs, opt, ba.f_scale, square, ba.inliers
+            )
+    models = {
+        d.name: _describe_model(free[i], bool(square[i]), d.name in fixed_names)
+        for i, d in enumerate(dets)
+    }
     return ba, models
 
 

@@ -134,6 +134,14 @@ def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
     help="auto: the image centre unless the data show a significant offset; free: always "
     "estimated; centre: fixed at the image centre.",
 )
+@click.option(
+    "--aspect",
+    type=click.Choice(["auto", "free", "square"]),
+    default="auto",
+    show_default=True,
+    help="auto: fy = fx (square pixels) unless the data show a significant difference; free: "
+    "fx and fy estimated separately; square: always fy = fx.",
+)
 @click.option("--jobs", "-j", type=int, default=None, help="Detection processes (default: CPUs).")
 @click.option("--no-cache", is_flag=True, help="Re-detect even if cached detections exist.")
 def run(
@@ -147,6 +155,7 @@ def run(
     report_dir,
     dist_model,
     principal_point,
+    aspect,
     jobs,
     no_cache,
     **board_fields,
@@ -193,6 +202,7 @@ def run(
             fixed_intrinsics=fixed,
             dist_model=dist_model,
             principal_point=principal_point,
+            aspect=aspect,
             jobs=jobs,
         )
         result = calibrate(list(inputs), board, output, opts)

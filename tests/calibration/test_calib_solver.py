@@ -7,6 +7,7 @@ import pytest
 from calib_helpers import board_detections, rig_errors
 
 from freipose.calibration.boards import CharucoBoard
+from freipose.calibration.bundle import bundle_adjust
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.extrinsics import connected_groups
 from freipose.calibration.intrinsics import CalibrationError, calibrate_intrinsics, select_views
@@ -50,6 +51,40 @@ def test_scipy_solver_agrees(dets, rig):
     b = calibrate_detections(few, BOARD, CalibrationOptions(solver="scipy", **opt))
     assert np.abs(a.rig.centers - b.rig.centers).max() < 0.5
     assert np.abs(a.rig.K - b.rig.K).max() < 0.5
+
+
+def test_square_pixels_tie_agrees_with_scipy(dets, rig):
+    # fy tied to fx (square pixels): both solvers keep fx == fy exactly and reach one optimum
+    few = [CameraDetections(d.name, d.size, d.points[:40]) for d in dets[:2]]
+    opt = {"aspect": "square", "principal_point": "centre", "dist_model": "k1k2"}
+    a = calibrate_detections(few, BOARD, CalibrationOptions(**opt))
+    b = calibrate_detections(few, BOARD, CalibrationOptions(solver="scipy", **opt))
+    for res in (a, b):
+        assert all(c.K[0, 0] == c.K[1, 1] for c in res.rig)
+        assert all(m["focal"] == "fx = fy" for m in res.rig.metadata["intrinsics_model"].values())
+    assert np.abs(a.rig.centers - b.rig.centers).max() < 0.5
+    assert np.abs(a.rig.K - b.rig.K).max() < 0.5
+    assert np.abs(a.rig.K[:, 0, 0] / rig.K[:2, 0, 0] - 1).max() < 0.005
+
+
+def test_bundle_checks_tie_and_start_inliers(result):
+    ba = result.bundle
+    free = np.ones_like(ba.cam_params, bool)
+    C = ba.cam_params.shape[0]
+    with pytest.raises(ValueError, match="equal_focal"):
+        bundle_adjust(ba.cam_params, free, ba.frame_params, ba.frames, ba.obs,
+                      equal_focal=np.ones(C, bool))  # fmt: skip
+    with pytest.raises(ValueError, match="keep"):
+        bundle_adjust(ba.cam_params, free, ba.frame_params, ba.frames, ba.obs,
+                      keep=np.ones(3, bool))  # fmt: skip
+    # starting from the previous inliers at the solution: one round, nothing changes
+    free[:, :9] = False  # (intrinsics fixed: the fixture's model selection fixed some)
+    free[0, 9:] = False
+    again = bundle_adjust(ba.cam_params, free, ba.frame_params, ba.frames, ba.obs,
+                          start_f_scale=ba.f_scale, keep=ba.inliers)  # fmt: skip
+    assert again.rounds == 1
+    assert np.array_equal(again.inliers, ba.inliers)
+    assert np.abs(again.cam_params - ba.cam_params).max() < 1e-3
 
 
 def test_origin_frame_defines_floor(dets):
