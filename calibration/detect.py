@@ -36,8 +36,9 @@ __all__ = [
     "CACHE_VERSION",
 ]
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: ChArUco markers from two threshold windows
 PROGRESS_EVERY = 10  # frames between progress messages of a worker
+CHARUCO_THRESH_WIN_MAX = 13  # px, largest adaptive-threshold window for ChArUco markers
 
 
 class DetectionError(ValueError):
@@ -120,6 +121,13 @@ def _charuco_detector(board: CharucoBoard):
     cp = cv2.aruco.CharucoParameters()
     cp.minMarkers = 2  # a corner needs both neighbouring markers (no edge artefacts)
     dp = cv2.aruco.DetectorParameters()
+    # marker candidates from two adaptive-threshold windows (3 and 13 px) instead of OpenCV's
+    # three (3, 13, 23): detection ~30 % faster; on the rendered benchmark rigs (640 x 480,
+    # markers 15-60 px) 0.1-0.5 % fewer corners, with the same corner accuracy (median error
+    # against the truth 0.059 / 0.053 px either way). Bits are read from the image, not from
+    # the thresholded one, so large markers are still found: their outline is an edge at any
+    # window size.
+    dp.adaptiveThreshWinSizeMax = CHARUCO_THRESH_WIN_MAX
     return cv2.aruco.CharucoDetector(board.cv_board(), cp, dp)
 
 

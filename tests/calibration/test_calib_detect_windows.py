@@ -1,0 +1,38 @@
+"""ChArUco detection with two adaptive-threshold windows finds what OpenCV's default finds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+def test_two_threshold_windows_match_default_detection():
+    cv2 = pytest.importorskip("cv2")
+    from freipose.calibration.detect import CHARUCO_THRESH_WIN_MAX, detect_image
+    from freipose.geometry import CameraRig, project
+    from freipose.synth.board import board_poses, default_board, render_board_frames
+    from freipose.synth.rig import default_rig
+
+    full = default_rig(4, size=(640, 480))
+    rig = CameraRig((full[0],), full.metadata)
+    board = default_board()
+    poses = board_poses(60, rng=3, board_size_mm=board.size_mm)[8::4]  # board in the air
+    images = render_board_frames(rig, board, poses, seed=3)[rig[0].name]
+    cp = cv2.aruco.CharucoParameters()
+    cp.minMarkers = 2
+    dp = cv2.aruco.DetectorParameters()  # OpenCV's default windows 3, 13, 23 px
+    assert dp.adaptiveThreshWinSizeMax > CHARUCO_THRESH_WIN_MAX
+    reference = cv2.aruco.CharucoDetector(board.cv_board(), cp, dp)
+    n_ours = n_ref = 0
+    errors = []
+    for image, pose in zip(images, poses):
+        ids, pts = detect_image(image, board)
+        cc, ci, _, _ = reference.detectBoard(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+        ref_ids = np.zeros(0, int) if ci is None else np.asarray(ci).reshape(-1)
+        n_ours, n_ref = n_ours + len(ids), n_ref + len(ref_ids)
+        truth = project(board.object_points @ pose[:3, :3].T + pose[:3, 3], rig[0])
+        errors.append(np.linalg.norm(pts - truth[ids], axis=1))
+    errors = np.concatenate(errors)
+    assert n_ref > 60  # the board is seen in most frames
+    assert n_ours >= 0.97 * n_ref
+    assert np.median(errors) < 0.1 and np.percentile(errors, 90) < 0.5
