@@ -38,22 +38,26 @@ def errors(centers, rotations, focals, truth):
 
 
 def run_freipose(videos, board, out: Path, jobs: int | None):
-    import shutil
+    """What ``calibrate`` does (detection in ``jobs`` processes, then the solver), timed in
+    two parts. Returns centres, rotations, focals, detection s, solver s."""
+    from freipose.calibration.detect import detect_cameras
+    from freipose.calibration.pipeline import CalibrationOptions, calibrate_detections
 
-    from freipose.calibration.pipeline import CalibrationOptions, calibrate, detection_cache_dir
-
-    shutil.rmtree(detection_cache_dir(out / "freipose.toml"), ignore_errors=True)  # time it all
     t0 = time.perf_counter()
-    res = calibrate(
-        videos, board, out / "freipose.toml", CalibrationOptions(jobs=jobs, progress=False)
-    )
-    wall = time.perf_counter() - t0
+    dets = detect_cameras(videos, board, cache_dir=None, jobs=jobs, progress=False)
+    t1 = time.perf_counter()
+    res = calibrate_detections(dets, board, CalibrationOptions(jobs=jobs, progress=False))
+    t2 = time.perf_counter()
     rig = res.rig
     focals = [0.5 * (c.K[0, 0] + c.K[1, 1]) for c in rig]
-    return rig.centers, [c.R for c in rig], focals, wall
+    return rig.centers, [c.R for c in rig], focals, t1 - t0, t2 - t1
 
 
-def run_aniposelib(videos, board):
+def run_aniposelib(videos, board, seed: int):
+    """``CameraGroup.calibrate_videos`` timed in its two parts (``get_rows_videos``, then
+    ``calibrate_rows``). aniposelib subsamples points with ``np.random``: seeded for
+    reproducibility."""
+    import cv2
     from aniposelib.boards import CharucoBoard
     from aniposelib.cameras import CameraGroup
 
@@ -69,19 +73,68 @@ def run_aniposelib(videos, board):
     )
     names = [Path(v).stem for v in videos]
     cg = CameraGroup.from_names(names, fisheye=False)
+    vids = [[str(v)] for v in videos]
+    np.random.seed(seed)
     t0 = time.perf_counter()
-    cg.calibrate_videos([[str(v)] for v in videos], ab, verbose=False)
-    wall = time.perf_counter() - t0
+    rows = cg.get_rows_videos(vids, ab, verbose=False)
+    cg.set_camera_sizes_videos(vids)
+    t1 = time.perf_counter()
+    cg.calibrate_rows(rows, ab, verbose=False)
+    t2 = time.perf_counter()
     centers, rots, focals = [], [], []
     for cam in cg.cameras:
         R = cam.get_rotation()
-        R = R if np.shape(R) == (3, 3) else __import__("cv2").Rodrigues(np.asarray(R))[0]
+        R = R if np.shape(R) == (3, 3) else cv2.Rodrigues(np.asarray(R))[0]
         t = np.asarray(cam.get_translation()).reshape(3)
         centers.append(-R.T @ t)
         rots.append(R)
         K = cam.get_camera_matrix()
         focals.append(0.5 * (K[0, 0] + K[1, 1]))
-    return np.array(centers), rots, focals, wall
+    return np.array(centers), rots, focals, t1 - t0, t2 - t1
+
+
+def bench_seed(args, seed: int, work: Path) -> dict:
+    from freipose.synth.board import default_board, write_board_videos
+    from freipose.synth.rig import default_rig
+
+    rig = default_rig(args.cameras, size=(args.width, args.width * 3 // 4))
+    board = default_board()
+    t0 = time.perf_counter()
+    vids, _ = write_board_videos(
+        work, rig, board, args.frames, seed=seed, fmt=args.format, progress=False
+    )
+    jobs = args.jobs or os.cpu_count() or 1
+    print(
+        f"\nseed {seed}: {args.cameras} x {args.frames} frames {args.width}x"
+        f"{args.width * 3 // 4} {args.format} (rendered in {time.perf_counter() - t0:.1f} s); "
+        f"FreiPose detection processes: {jobs}"
+    )
+    videos = [vids[n] for n in rig.names]
+    rows = {}
+    c, r, f, td, ts = run_freipose(videos, board, work, jobs)
+    rows["freipose"] = (*errors(np.asarray(c), r, f, rig), td, ts)
+    try:
+        c, r, f, td, ts = run_aniposelib(videos, board, seed)
+        rows["aniposelib"] = (*errors(c, r, f, rig), td, ts)
+    except ImportError:
+        print("aniposelib is not installed (pip install -e .[bench]); FreiPose only")
+    print(
+        f"{'method':<12}{'centre err mm':>15}{'rot err deg':>13}{'focal err %':>13}"
+        f"{'detect s':>10}{'solve s':>9}{'wall s':>9}"
+    )
+    for k, v in rows.items():
+        print(
+            f"{k:<12}{v[0]:>15.3f}{v[1]:>13.3f}{v[2]:>13.3f}{v[3]:>10.2f}{v[4]:>9.2f}"
+            f"{v[3] + v[4]:>9.2f}"
+        )
+    if "aniposelib" in rows:
+        a, b = rows["aniposelib"], rows["freipose"]
+        print(
+            f"{'ratio a/f':<12}{a[0] / b[0]:>15.2f}{a[1] / b[1]:>13.2f}{a[2] / b[2]:>13.2f}"
+            f"{a[3] / b[3]:>10.2f}{a[4] / b[4]:>9.2f}{(a[3] + a[4]) / (b[3] + b[4]):>9.2f}"
+            f"   (aniposelib / FreiPose; > 1 means FreiPose is better)"
+        )
+    return rows
 
 
 def main() -> None:
@@ -92,8 +145,12 @@ def main() -> None:
     ap.add_argument(
         "--jobs", type=int, default=None, help="FreiPose detection processes (default: CPUs)"
     )
-    ap.add_argument("--seed", type=int, default=1, help="board motion and image noise seed")
-    ap.add_argument("--workdir", type=Path, default=None, help="keep the videos here")
+    ap.add_argument(
+        "--seed", type=int, nargs="+", default=[1], help="board motion and image noise seed(s)"
+    )
+    ap.add_argument(
+        "--workdir", type=Path, default=None, help="keep the videos here (seed<N>/ per seed)"
+    )
     ap.add_argument(
         "--format",
         default=".mp4",
@@ -103,46 +160,33 @@ def main() -> None:
     )
     args = ap.parse_args()
 
-    from freipose.synth.board import default_board, write_board_videos
-    from freipose.synth.rig import default_rig
+    from freipose.synth.board import default_board
 
     tmp = tempfile.TemporaryDirectory()
-    work = args.workdir or Path(tmp.name)
-    rig = default_rig(args.cameras, size=(args.width, args.width * 3 // 4))
-    board = default_board()
-    t0 = time.perf_counter()
-    vids, _ = write_board_videos(
-        work, rig, board, args.frames, seed=args.seed, fmt=args.format, progress=False
-    )
-    jobs = args.jobs or os.cpu_count() or 1
+    root = args.workdir or Path(tmp.name)
+    print(f"board {default_board()}")
+    results = {s: bench_seed(args, s, root / f"seed{s}") for s in args.seed}
     print(
-        f"rendered {args.cameras} x {args.frames} frames {args.width}x{args.width * 3 // 4} "
-        f"(seed {args.seed}) in {time.perf_counter() - t0:.1f} s; board {board}; FreiPose "
-        f"detection processes: {jobs}"
+        "\nerrors are the maximum over cameras after a similarity alignment of all camera "
+        "centres (the same for both tools); wall = detect + solve"
     )
-    videos = [vids[n] for n in rig.names]
-    rows = {}
-    c, r, f, w = run_freipose(videos, board, work, jobs)
-    rows["freipose"] = (*errors(np.asarray(c), r, f, rig), w)
-    try:
-        c, r, f, w = run_aniposelib(videos, board)
-        rows["aniposelib"] = (*errors(c, r, f, rig), w)
-    except ImportError:
-        print("aniposelib is not installed (pip install -e .[bench]); FreiPose only")
-    hdr = f"{'method':<12}{'centre err mm':>15}{'rot err deg':>13}{'focal err %':>13}{'wall s':>9}"
-    print(hdr)
-    for k, v in rows.items():
-        print(f"{k:<12}{v[0]:>15.3f}{v[1]:>13.3f}{v[2]:>13.3f}{v[3]:>9.1f}")
-    if "aniposelib" in rows:
-        a, b = rows["aniposelib"], rows["freipose"]
+    both = [r for r in results.values() if "aniposelib" in r]
+    if len(both) > 1:
+        names = ("centre err", "rot err", "focal err", "wall")
+        ratios = np.array(
+            [[r["aniposelib"][i] / r["freipose"][i] for i in range(3)]
+             + [sum(r["aniposelib"][3:]) / sum(r["freipose"][3:])] for r in both]
+        )  # fmt: skip
         print(
-            f"{'ratio a/f':<12}{a[0] / b[0]:>15.2f}{a[1] / b[1]:>13.2f}{a[2] / b[2]:>13.2f}"
-            f"{a[3] / b[3]:>9.2f}   (aniposelib / FreiPose; > 1 means FreiPose is better)"
+            "ratios aniposelib / FreiPose over seeds "
+            + " ".join(str(s) for s, r in results.items() if "aniposelib" in r)
+            + ": "
+            + "; ".join(
+                f"{n} min {ratios[:, i].min():.2f} geometric mean "
+                f"{np.exp(np.log(ratios[:, i]).mean()):.2f}"
+                for i, n in enumerate(names)
+            )
         )
-    print(
-        "errors are the maximum over cameras after a similarity alignment of all camera "
-        "centres (the same for both tools)"
-    )
 
 
 if __name__ == "__main__":

@@ -62,6 +62,20 @@ REL_TOL = 1e-8
 ROUND_TOL = 1e-3
 
 
+def _one_blas_thread():
+    """Context limiting BLAS to one thread: the solver's matrices are small (cameras x 15
+    squared, batches of 15 x 24 blocks), where BLAS threads cost more than they save; on a busy
+    machine their spinning made the adjustment 5x slower. (``threadpoolctl`` comes with
+    scikit-learn.)"""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - scikit-learn depends on it
+        from contextlib import nullcontext
+
+        return nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def noise_sigma(errors: np.ndarray) -> float:
     """Per-axis detection noise σ (px) from reprojection error norms (N,), robustly.
 
@@ -519,6 +533,44 @@ def bundle_adjust(
         keep: (N,) bool, the detections to start from (e.g. the inliers of a previous
             adjustment of the same observations); ``None`` = all but gross outliers.
     """
+    with _one_blas_thread():
+        return _bundle_adjust(
+            cam_params,
+            free,
+            frame_params,
+            frames,
+            obs,
+            loss=loss,
+            f_scale=f_scale,
+            max_rounds=max_rounds,
+            outlier_px=outlier_px,
+            max_iter=max_iter,
+            method=method,
+            outlier_sigmas=outlier_sigmas,
+            start_f_scale=start_f_scale,
+            equal_focal=equal_focal,
+            keep=keep,
+        )
+
+
+def _bundle_adjust(
+    cam_params,
+    free,
+    frame_params,
+    frames,
+    obs,
+    *,
+    loss,
+    f_scale,
+    max_rounds,
+    outlier_px,
+    max_iter,
+    method,
+    outlier_sigmas,
+    start_f_scale,
+    equal_focal,
+    keep,
+) -> BundleResult:
     if method not in ("lm", "scipy"):
         raise ValueError(f"unknown bundle-adjustment method {method!r}; expected lm or scipy")
     solver = _solve if method == "lm" else _solve_scipy
@@ -603,6 +655,11 @@ def camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
         result: a bundle-adjustment result.
         free: (C, 15) bool, the parameters that were optimised.
     """
+    with _one_blas_thread():
+        return _camera_covariance(result, free)
+
+
+def _camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
     cam, fr, obs = result.cam_params, result.frame_params, result.obs.subset(result.inliers)
     C, F = cam.shape[0], fr.shape[0]
     prob = _Problem(obs, C, F)
