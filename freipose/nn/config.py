@@ -52,6 +52,8 @@ class ModelConfig:
             original's finest refinement map). Sub-feature-pixel precision of the refinement
             (P1 better than P0) needs the finer maps.
         heatmap_sigma: sigma (feature pixels) of the P0 heat maps given to the refinement.
+        map_sigma: sigma (map pixels) of the Gaussian target of the 2D heads' map
+            cross-entropy loss (``schedule.weight_map``).
         volume_sigma: sigma (voxels) of the Gaussian target of the volumetric
             cross-entropy loss (``schedule.weight_volume``).
         pretrained: optional local file with encoder weights (a state dict; loaded
@@ -73,6 +75,7 @@ class ModelConfig:
     refine_channels: int = 128
     head_levels: int = 2
     heatmap_sigma: float = 2.0
+    map_sigma: float = 1.0
     volume_sigma: float = 1.0
     pretrained: str = ""
 
@@ -109,6 +112,8 @@ class ModelConfig:
             )
         if self.cube_size <= 0:
             raise ConfigError(f"model.cube_size must be positive (mm), got {self.cube_size}")
+        if self.map_sigma <= 0:
+            raise ConfigError(f"model.map_sigma must be positive (map px), got {self.map_sigma}")
         if self.volume_sigma <= 0:
             raise ConfigError(
                 f"model.volume_sigma must be positive (voxels), got {self.volume_sigma}"
@@ -156,6 +161,7 @@ class ScheduleConfig:
     weight_volume: float = 0.1
     weight_2d: float = 1.0
     weight_conf: float = 0.1
+    weight_map: float = 0.1
     weight_p1: float = 0.1
     checkpoint_every: int = 1000
     eval_every: int = 1000

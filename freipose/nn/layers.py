@@ -359,7 +359,7 @@ def triangulate_with_prior(
     t: torch.Tensor,
     dist: torch.Tensor | None,
     prior: torch.Tensor,
-    prior_weight: float = 1e-3,
+    prior_weight: float | torch.Tensor = 1e-3,
 ) -> torch.Tensor:
     """Confidence-weighted linear triangulation of crop pixels, anchored to a prior point.
 
@@ -374,6 +374,7 @@ def triangulate_with_prior(
             R, t, dist the views' extrinsics and distortion.
         weights: (B, V, K) non-negative confidences (0 for padding views).
         prior: (B, K, 3) world mm.
+        prior_weight: scalar or (B, K) weight of the prior (same units as ``weights``).
 
     Returns:
         (B, K, 3) world mm.
@@ -389,6 +390,8 @@ def triangulate_with_prior(
     AtA = (A[..., :, None] * A[..., None, :] * w[..., None]).sum(dim=(1, 2))  # (B, K, 3, 3)
     Atb = (A * b * w).sum(dim=(1, 2))  # (B, K, 3)
     eye = torch.eye(3, dtype=AtA.dtype, device=AtA.device)
-    AtA = AtA + prior_weight * eye
-    Atb = Atb + prior_weight * prior.float()
+    pw = torch.as_tensor(prior_weight, dtype=AtA.dtype, device=AtA.device)
+    pw = pw.expand(AtA.shape[:-2])
+    AtA = AtA + pw[..., None, None] * eye
+    Atb = Atb + pw[..., None] * prior.float()
     return torch.linalg.solve(AtA, Atb[..., None])[..., 0]

@@ -68,6 +68,38 @@ def volume_cross_entropy(
     return _masked_mean(ce, inside)
 
 
+def map_cross_entropy(
+    logits: torch.Tensor, gt2d: torch.Tensor, visible: torch.Tensor, model: ModelConfig
+) -> torch.Tensor:
+    """Cross-entropy of the 2D heads' maps against a Gaussian around the visible 2D labels.
+
+    The target is a normalised Gaussian of ``model.map_sigma`` map pixels around each label
+    (labels outside the map are not counted). Like :func:`volume_cross_entropy` for the score
+    volumes, it makes the maps peaked, which the soft-argmax point loss alone does not.
+
+    Args:
+        logits: (B, V, K, H, W) map logits (those the soft-argmax decodes).
+        gt2d: (B, V, K, 2) crop pixels; visible (B, V, K).
+
+    Returns:
+        Scalar loss (nats), per-sample mean over the visible entries, mean over samples.
+    """
+    H, W = logits.shape[-2:]
+    ms = model.map_stride
+    f = (gt2d.float() + 0.5) / ms - 0.5  # map px
+    inside = visible & (f >= -0.5).all(-1) & (f[..., 0] <= W - 0.5) & (f[..., 1] <= H - 0.5)
+    f = torch.nan_to_num(f, nan=0.0)
+    ax_x = torch.arange(W, device=logits.device, dtype=torch.float32)
+    ax_y = torch.arange(H, device=logits.device, dtype=torch.float32)
+    dx = (ax_x - f[..., 0:1]) ** 2  # (B, V, K, W)
+    dy = (ax_y - f[..., 1:2]) ** 2  # (B, V, K, H)
+    d2 = (dy[..., :, None] + dx[..., None, :]).flatten(-2)
+    target = torch.softmax(-d2 / (2 * model.map_sigma**2), dim=-1)
+    logp = torch.log_softmax(logits.float().flatten(-2), dim=-1)
+    ce = -(target * logp).sum(-1)  # (B, V, K)
+    return _masked_mean(ce, inside)
+
+
 def voxel_losses(
     out: Mapping[str, Any],
     batch: Mapping[str, Any],
@@ -80,8 +112,9 @@ def voxel_losses(
     Terms: ``p0`` (final P0 vs 3D labels), ``aux`` (mean over deep-supervision decodings), ``vol``
     (:func:`volume_cross_entropy` of the final score volume), ``2d`` (refined 2D points vs visible
     2D labels), ``conf`` (per-view confidence, binary cross-entropy against ``visible * exp(-e^2 /
-    2)`` with ``e`` the refined 2D error in feature pixels), ``p1`` (P1 vs 3D labels). The
-    refinement terms are weighted 0 until ``refine_on``.
+    2)`` with ``e`` the refined 2D error in feature pixels), ``map`` (:func:`map_cross_entropy`
+    of the refinement maps), ``p1`` (P1 vs 3D labels). The refinement terms are weighted 0
+    until ``refine_on``.
     """
     gt3, m3 = batch["points3d"], batch["mask3d"]
     vs = model.voxel_size
@@ -111,8 +144,10 @@ def voxel_losses(
         )
         parts["conf"] = _masked_mean(bce, cmask)
         parts["p1"] = _masked_mean(point_error(out["P1"], gt3) / vs, m3)
+        parts["map"] = map_cross_entropy(out["map_logits"], batch["points2d"], vis, model)
         total = total + w * (
-            sched.weight_2d * parts["2d"]
+            sched.weight_map * parts["map"]
+            + sched.weight_2d * parts["2d"]
             + sched.weight_conf * parts["conf"]
             + sched.weight_p1 * parts["p1"]
         )
@@ -122,7 +157,8 @@ def voxel_losses(
 def baseline_losses(
     out: Mapping[str, Any], batch: Mapping[str, Any], model: ModelConfig, sched: ScheduleConfig
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Loss of :class:`freipose.nn.model.BaselineNet`: 2D error and confidence (as above)."""
+    """Loss of :class:`freipose.nn.model.BaselineNet`: 2D error, confidence and map
+    cross-entropy (as above)."""
     vis = batch["visible2d"] & batch["view_mask"][:, :, None]
     e2 = point_error(out["points2d"], batch["points2d"]) / model.stride
     l2d = _masked_mean(e2, vis)
@@ -132,5 +168,10 @@ def baseline_losses(
         out["confidence2d"].float().clamp(1e-6, 1 - 1e-6), target, reduction="none"
     )
     lconf = _masked_mean(bce, cmask)
-    total = sched.weight_2d * l2d + sched.weight_conf * lconf
-    return total, {"2d": float(l2d.detach()), "conf": float(lconf.detach())}
+    lmap = map_cross_entropy(out["map_logits"], batch["points2d"], vis, model)
+    total = sched.weight_2d * l2d + sched.weight_conf * lconf + sched.weight_map * lmap
+    return total, {
+        "2d": float(l2d.detach()),
+        "conf": float(lconf.detach()),
+        "map": float(lmap.detach()),
+    }

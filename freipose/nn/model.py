@@ -5,9 +5,11 @@ unprojection of the features into a voxel cube around the animal (mean over the 
 see each voxel), a 3D U-Net giving one score volume per keypoint, soft-argmax to the
 initial pose P0 (world mm), then a 2D refinement head per view (features + Gaussian heat
 maps of the projected P0) whose refined 2D points and per-view confidences are fused into
-P1 by confidence-weighted triangulation. The refinement is residual: its map logits are
-added to a Gaussian log-prior around the projected P0, so an untrained head reproduces P0
-and training learns corrections; with a single view the fusion keeps P0's depth (eq. 5.3).
+P1 by confidence-weighted triangulation anchored to P0 (P0 counts with a learnt multiple of
+the views' total confidence, so P1 moves from P0 only as far as the refined views agree).
+The refinement is residual: its map logits are added to a Gaussian log-prior around the
+projected P0, so an untrained head reproduces P0 and training learns corrections; with a
+single view the fusion keeps P0's depth (eq. 5.3).
 
 :class:`BaselineNet`: the comparison the paper makes (DeepLabCut + triangulation): the same
 encoder and 2D head predict every view's keypoints independently; 3D comes from robust
@@ -112,6 +114,8 @@ class VoxelPoseNet(nn.Module):
             if cfg.refine
             else None
         )
+        # log of the weight of P0 in the P1 fusion, relative to the views' total confidence
+        self.prior_log_weight = nn.Parameter(torch.zeros(()))
 
     def forward(self, batch: Mapping[str, Any]) -> dict[str, Any]:
         cfg = self.cfg
@@ -174,11 +178,21 @@ class VoxelPoseNet(nn.Module):
         prior = gaussian_log_prior(
             uv0.reshape(B * V, -1, 2), maps.shape[-1], ms, cfg.heatmap_sigma * cfg.stride / ms
         )
-        uv, conf = decode_head(maps.float() + prior, conf_logits, ms)
+        logits = maps.float() + prior
+        uv, conf = decode_head(logits, conf_logits, ms)
         uv = uv.reshape(B, V, -1, 2)
         conf = conf.reshape(B, V, -1) * mask[:, :, None]
-        P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0d)
-        out.update(P1=P1, points2d=uv, confidence2d=conf, confidence=top2_mean(conf, mask))
+        # P0 enters the fusion as a prior whose weight is a learnt multiple of the views'
+        # total confidence, so P1 blends the refined views with P0 as far as they agree
+        prior_w = self.prior_log_weight.exp() * conf.sum(1)  # (B, K)
+        P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0d, prior_w + 1e-3)
+        out.update(
+            P1=P1,
+            points2d=uv,
+            confidence2d=conf,
+            confidence=top2_mean(conf, mask),
+            map_logits=logits.reshape(B, V, *logits.shape[1:]),
+        )
         return out
 
 
@@ -211,7 +225,11 @@ class BaselineNet(nn.Module):
         maps, conf_logits = self.head(feats, skip)
         uv, conf = decode_head(maps, conf_logits, self.cfg.map_stride)
         conf = conf.reshape(B, V, -1) * batch["view_mask"][:, :, None]
-        return {"points2d": uv.reshape(B, V, -1, 2), "confidence2d": conf}
+        return {
+            "points2d": uv.reshape(B, V, -1, 2),
+            "confidence2d": conf,
+            "map_logits": maps.reshape(B, V, *maps.shape[1:]),
+        }
 
 
 def build_model(cfg: ModelConfig, num_keypoints: int) -> nn.Module:

@@ -271,3 +271,34 @@ def test_head_levels_refine_the_map_resolution():
         assert abs(float(c) - 0.5) < 1e-6
     with pytest.raises(ValueError, match="levels must be in 1..3"):
         Head2D(5, enc.skip_channels, 2, 8, "group", heat_in=0, levels=4)
+
+
+def test_map_loss_prefers_the_label_and_skips_hidden_or_outside_labels():
+    from freipose.nn.config import ModelConfig
+    from freipose.nn.losses import map_cross_entropy
+
+    cfg = ModelConfig(
+        crop_size=32,
+        encoder_channels=(8, 8, 16),
+        encoder_convs=(1, 1, 1),
+        encoder_pools=2,
+        head_levels=1,
+        grid_size=8,
+        unet_channels=(8,),
+    )
+    ms = cfg.map_stride  # 2 crop px per map px, 16 x 16 maps
+    logits = torch.full((1, 1, 2, 16, 16), -20.0)
+    logits[0, 0, 0, 4, 10] = 20.0  # keypoint 0 peaked at map (x=10, y=4)
+    logits[0, 0, 1, 12, 3] = 20.0
+    gt = torch.tensor([[[[10.5 * ms - 0.5, 4.5 * ms - 0.5], [3.5 * ms - 0.5, 12.5 * ms - 0.5]]]])
+    vis = torch.ones(1, 1, 2, dtype=torch.bool)
+    right = map_cross_entropy(logits, gt, vis, cfg)
+    wrong = map_cross_entropy(logits, gt.flip(2), vis, cfg)
+    assert float(right) < float(wrong)
+    only0 = map_cross_entropy(logits, gt, torch.tensor([[[True, False]]]), cfg)
+    outside = gt.clone()
+    outside[0, 0, 1] = torch.tensor([100.0, 5.0])
+    torch.testing.assert_close(map_cross_entropy(logits, outside, vis, cfg), only0)
+    nan = gt.clone()
+    nan[0, 0, 1] = float("nan")
+    torch.testing.assert_close(map_cross_entropy(logits, nan, vis, cfg), only0)
