@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from freipose.nn.config import ModelConfig, ScheduleConfig
 from freipose.nn.geometry import voxel_offsets
+from freipose.nn.layers import gaussian_log_prior
 
 
 def _masked_mean(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -84,17 +85,13 @@ def map_cross_entropy(
     Returns:
         Scalar loss (nats), per-sample mean over the visible entries, mean over samples.
     """
-    H, W = logits.shape[-2:]
+    size = logits.shape[-1]  # square maps
     ms = model.map_stride
     f = (gt2d.float() + 0.5) / ms - 0.5  # map px
-    inside = visible & (f >= -0.5).all(-1) & (f[..., 0] <= W - 0.5) & (f[..., 1] <= H - 0.5)
-    f = torch.nan_to_num(f, nan=0.0)
-    ax_x = torch.arange(W, device=logits.device, dtype=torch.float32)
-    ax_y = torch.arange(H, device=logits.device, dtype=torch.float32)
-    dx = (ax_x - f[..., 0:1]) ** 2  # (B, V, K, W)
-    dy = (ax_y - f[..., 1:2]) ** 2  # (B, V, K, H)
-    d2 = (dy[..., :, None] + dx[..., None, :]).flatten(-2)
-    target = torch.softmax(-d2 / (2 * model.map_sigma**2), dim=-1)
+    inside = visible & (f >= -0.5).all(-1) & (f <= size - 0.5).all(-1)
+    uv = torch.nan_to_num(gt2d.float(), nan=0.0)
+    prior = gaussian_log_prior(uv.flatten(0, 1), size, ms, model.map_sigma)
+    target = torch.softmax(prior.reshape(*uv.shape[:3], -1), dim=-1)
     logp = torch.log_softmax(logits.float().flatten(-2), dim=-1)
     ce = -(target * logp).sum(-1)  # (B, V, K)
     return _masked_mean(ce, inside)
