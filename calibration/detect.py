@@ -448,7 +448,7 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
         # (the server imports this module once; workers fork from it ready to run)
         if "forkserver" in mp.get_all_start_methods():
             ctx = mp.get_context("forkserver")
-            ctx.set_forkserver_preload([__name__])
+            ctx.set_forkserver_preload([__name__, "cv2"])  # cv2 starts no threads on import
         else:
             ctx = mp.get_context("spawn")
         with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_init_worker) as ex:
