@@ -18,6 +18,7 @@ from freipose.calibration.boards import Board
 from freipose.calibration.bundle import (
     BundleResult,
     Observations,
+    board_point_offsets,
     bundle_adjust,
     camera_covariance,
     matrix_to_rvec,
@@ -58,6 +59,7 @@ HIGH_ERROR_PX = 1.0
 CHI2_2DOF_1PCT = 9.21
 CHI2_1DOF_1PCT = 6.63
 PRINCIPAL_POINT_MODES = ("auto", "free", "centre")
+BOARD_REFINE_ROUNDS = 2  # board-point corrections, each followed by a bundle adjustment
 ASPECT_MODES = ("auto", "free", "square")
 # board frame (x right, y down the print, z into the board) -> floor frame (z up out of it)
 BOARD_TO_FLOOR = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -91,6 +93,11 @@ class CalibrationOptions:
         outlier_px: minimum rejection threshold (px); detections further than
             ``max(outlier_px, 5 σ)`` from their projection are rejected.
         solver: ``lm`` (Schur-complement Levenberg-Marquardt) or ``scipy`` (least_squares).
+        refine_board: after the bundle adjustment, correct every board point's position in
+            the board plane (printing errors, and each corner's own detection bias, which is
+            the same in every view) and adjust again, ``BOARD_REFINE_ROUNDS`` times (see
+            :func:`freipose.calibration.bundle.board_point_offsets`; the board keeps its
+            printed size).
     """
 
     origin_frame: int | None = None
@@ -106,6 +113,7 @@ class CalibrationOptions:
     outlier_px: float = 0.5
     solver: str = "lm"
     progress: bool = True
+    refine_board: bool = True
 
 
 @dataclass(frozen=True)
@@ -145,6 +153,8 @@ class CalibrationResult:
         graph: camera graph (None for ``intrinsics_only``).
         bundle: bundle-adjustment result (None for ``intrinsics_only``).
         warnings: messages for the user.
+        intrinsics: per-camera initial intrinsics.
+        board_offsets: (P, 2) mm in-plane corrections of the board points (``refine_board``).
     """
 
     rig: CameraRig
@@ -157,6 +167,7 @@ class CalibrationResult:
     bundle: BundleResult | None = None
     warnings: list[str] = field(default_factory=list)
     intrinsics: dict[str, IntrinsicsResult] = field(default_factory=dict)
+    board_offsets: np.ndarray | None = None
 
     def camera_errors(self, camera: int) -> np.ndarray:
         """Final reprojection errors (px) of the inlier detections of camera index ``camera``."""
@@ -367,6 +378,23 @@ def calibrate_detections(
         fr0[k, 3:] = B0[f, :3, 3]
     ba = _bundle(cam0, free, fr0, frames, obs, opt, square=square)
     ba, models = _select_models(ba, free, square, dets, fixed_names, opt, frames, obs)
+    offsets = np.zeros((len(obj), 2))
+    if opt.refine_board:
+        point_ids = np.concatenate(pt_i)
+        for _ in range(BOARD_REFINE_ROUNDS):
+            offsets += board_point_offsets(ba, point_ids, len(obj))
+            pts = obj.copy()
+            pts[:, :2] += offsets
+            obs = Observations(obs.cam, obs.frame, pts[point_ids], obs.uv)
+            ba = _bundle(
+                ba.cam_params, free, ba.frame_params, frames, obs, opt, ba.f_scale, square,
+                ba.inliers,
+            )  # fmt: skip
+        logger.info(
+            "board points corrected by %.3f mm RMS (max %.3f mm)",
+            float(np.sqrt(np.mean(np.sum(offsets**2, axis=1)))),
+            float(np.linalg.norm(offsets, axis=1).max()),
+        )
     logger.info(
         "bundle adjustment: RMS %.3f -> %.3f px in %.2f s (%d evaluations)",
         ba.initial_rms,
@@ -437,10 +465,17 @@ def calibrate_detections(
         "distortion_model": opt.dist_model,
         "intrinsics_model": models,
     }
+    if opt.refine_board:
+        metadata["board_point_corrections_rms_mm"] = round(
+            float(np.sqrt(np.mean(np.sum(offsets**2, axis=1)))), 4
+        )
     if opt.origin_frame is not None:
         metadata["origin_frame"] = int(opt.origin_frame)
     rig = CameraRig(tuple(cams), metadata)
-    return CalibrationResult(rig, board, dets, stats, Bw, world, graph, ba, warnings, intr)
+    return CalibrationResult(
+        rig, board, dets, stats, Bw, world, graph, ba, warnings, intr,
+        offsets if opt.refine_board else None,
+    )  # fmt: skip
 
 
 def _bundle(

@@ -142,6 +142,13 @@ def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
     help="auto: fy = fx (square pixels) unless the data show a significant difference; free: "
     "fx and fy estimated separately; square: always fy = fx.",
 )
+@click.option(
+    "--refine-board/--no-refine-board",
+    default=True,
+    show_default=True,
+    help="Correct each board point's position in the board plane (print errors, per-corner "
+    "detector bias) when every point is seen in at least 100 views.",
+)
 @click.option("--jobs", "-j", type=int, default=None, help="Detection processes (default: CPUs).")
 @click.option("--no-cache", is_flag=True, help="Re-detect even if cached detections exist.")
 def run(
@@ -156,6 +163,7 @@ def run(
     dist_model,
     principal_point,
     aspect,
+    refine_board,
     jobs,
     no_cache,
     **board_fields,
@@ -203,6 +211,7 @@ def run(
             dist_model=dist_model,
             principal_point=principal_point,
             aspect=aspect,
+            refine_board=refine_board,
             jobs=jobs,
         )
         result = calibrate(list(inputs), board, output, opts)
