@@ -59,7 +59,6 @@ HIGH_ERROR_PX = 1.0
 CHI2_2DOF_1PCT = 9.21
 CHI2_1DOF_1PCT = 6.63
 PRINCIPAL_POINT_MODES = ("auto", "free", "centre")
-BOARD_REFINE_ROUNDS = 2  # board-point corrections, each followed by a bundle adjustment
 ASPECT_MODES = ("auto", "free", "square")
 # board frame (x right, y down the print, z into the board) -> floor frame (z up out of it)
 BOARD_TO_FLOOR = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -95,9 +94,9 @@ class CalibrationOptions:
         solver: ``lm`` (Schur-complement Levenberg-Marquardt) or ``scipy`` (least_squares).
         refine_board: after the bundle adjustment, correct every board point's position in
             the board plane (printing errors, and each corner's own detection bias, which is
-            the same in every view) and adjust again, ``BOARD_REFINE_ROUNDS`` times (see
-            :func:`freipose.calibration.bundle.board_point_offsets`; the board keeps its
-            printed size).
+            the same in every view) and adjust again; once before and once after the model
+            selection (see :func:`freipose.calibration.bundle.board_point_offsets`; the board
+            keeps its printed size).
     """
 
     origin_frame: int | None = None
@@ -377,19 +376,29 @@ def calibrate_detections(
         fr0[k, :3] = matrix_to_rvec(B0[f, :3, :3])
         fr0[k, 3:] = B0[f, :3, 3]
     ba = _bundle(cam0, free, fr0, frames, obs, opt, square=square)
-    ba, models = _select_models(ba, free, square, dets, fixed_names, opt, frames, obs)
     offsets = np.zeros((len(obj), 2))
+    point_ids = np.concatenate(pt_i)
+
+    def refine(ba: BundleResult, start: np.ndarray, obs: Observations):
+        nonlocal offsets
+        offsets = offsets + board_point_offsets(ba, point_ids, len(obj))
+        pts = obj.copy()
+        pts[:, :2] += offsets
+        obs = Observations(obs.cam, obs.frame, pts[point_ids], obs.uv)
+        return _bundle(
+            start, free, ba.frame_params, frames, obs, opt, ba.f_scale, square, ba.inliers
+        ), obs
+
+    # with refine_board: correct the board once before the model selection (per-corner
+    # detector biases otherwise pass for principal-point offsets or tangential distortion),
+    # and once more with the selected model (that adjustment also serves the selection)
     if opt.refine_board:
-        point_ids = np.concatenate(pt_i)
-        for _ in range(BOARD_REFINE_ROUNDS):
-            offsets += board_point_offsets(ba, point_ids, len(obj))
-            pts = obj.copy()
-            pts[:, :2] += offsets
-            obs = Observations(obs.cam, obs.frame, pts[point_ids], obs.uv)
-            ba = _bundle(
-                ba.cam_params, free, ba.frame_params, frames, obs, opt, ba.f_scale, square,
-                ba.inliers,
-            )  # fmt: skip
+        ba, obs = refine(ba, ba.cam_params, obs)
+    ba, models, start = _select_models(
+        ba, free, square, dets, fixed_names, opt, frames, obs, rerun=not opt.refine_board
+    )
+    if opt.refine_board:
+        ba, obs = refine(ba, start, obs)
         logger.info(
             "board points corrected by %.3f mm RMS (max %.3f mm)",
             float(np.sqrt(np.mean(np.sum(offsets**2, axis=1)))),
@@ -525,7 +534,8 @@ def _select_models(
     opt: CalibrationOptions,
     frames: np.ndarray,
     obs: Observations,
-) -> tuple[BundleResult, dict]:
+    rerun: bool = True,
+) -> tuple[BundleResult, dict, np.ndarray]:
     """Drop principal-point offsets, tangential distortion and fx != fy the data do not support.
 
     With ``principal_point="auto"`` / ``dist_model="auto"`` / ``aspect="auto"``, a camera's
@@ -541,8 +551,10 @@ def _select_models(
         square: (C,) cameras with fy tied to fx (updated in place).
 
     Returns:
-        the (possibly re-run) result and ``{camera: model description}``.
+        the (with ``rerun``, re-run) result, ``{camera: model description}`` and the camera
+        parameters (C, 15) to re-run from (the result's when nothing changed).
     """
+    cam = ba.cam_params
     test_pp = opt.principal_point == "auto"
     test_tan = opt.dist_model == "auto"
     test_aspect = opt.aspect == "auto"
@@ -579,7 +591,7 @@ def _select_models(
                     free[i, 1] = False
                     square[i] = True
                     changed = True
-        if changed:
+        if changed and rerun:
             ba = _bundle(
                 cam, free, ba.frame_params, frames, obs, opt, ba.f_scale, square, ba.inliers
             )
@@ -587,7 +599,7 @@ def _select_models(
         d.name: _describe_model(free[i], bool(square[i]), d.name in fixed_names)
         for i, d in enumerate(dets)
     }
-    return ba, models
+    return ba, models, cam
 
 
 def _warn_high(stats: list[CameraStats], warnings: list[str]) -> None:
