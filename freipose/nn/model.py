@@ -184,8 +184,10 @@ class VoxelPoseNet(nn.Module):
         conf = conf.reshape(B, V, -1) * mask[:, :, None]
         # P0 enters the fusion as a prior whose weight is a learnt multiple of the views'
         # total confidence, so P1 blends the refined views with P0 as far as they agree
+        # (the prior is the unjittered P0: the weight learns how far to trust P0 as it is at
+        # inference, while the head learns corrections from the jittered one)
         prior_w = self.prior_log_weight.exp() * conf.sum(1)  # (B, K)
-        P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0d, prior_w + 1e-3)
+        P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0.detach(), prior_w + 1e-3)
         out.update(
             P1=P1,
             points2d=uv,

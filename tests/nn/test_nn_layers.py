@@ -135,6 +135,14 @@ def test_triangulation_with_prior(circle_rig, rng):
     uv1, _ = project_affine(X1, t["K"], t["R"], t["t"], t["dist"])
     torch.testing.assert_close(uv1[:, 0], uv[:, 0], atol=0.05, rtol=0)
     assert float((X1 - X).norm(dim=-1).max()) < float((prior - X).norm(dim=-1).max())
+    # a per-point prior weight: huge keeps the prior, tiny the triangulation, in between
+    # the point lies between the two
+    pw = torch.tensor([[1e9, 1e-6, 4.0, 4.0, 4.0]])
+    Xp = triangulate_with_prior(uv, w, t["K"], t["R"], t["t"], t["dist"], prior, pw)
+    torch.testing.assert_close(Xp[:, 0], prior[:, 0], atol=1e-3, rtol=0)
+    torch.testing.assert_close(Xp[:, 1], X[:, 1], atol=0.05, rtol=0)
+    d_mid = (Xp[:, 2:] - X[:, 2:]).norm(dim=-1)
+    assert bool((d_mid > 0.1).all() and (d_mid < 30.0 * 3**0.5 - 0.1).all())
     # undistortion inverts distortion
     xy = pixels_to_normalized(uv, t["K"], t["dist"])
     Xc = torch.einsum("bcij,bpj->bcpi", t["R"], X) + t["t"][:, :, None]
