@@ -55,9 +55,9 @@ def rodrigues(r: np.ndarray) -> np.ndarray:
 
 MIN_F_SCALE = 0.05  # px: floor of the estimated robust-loss scale
 # Levenberg-Marquardt stops when a step lowers the cost by less than this fraction: the cost
-# is ~σ² per residual, so 1e-8 is far below what moves a parameter by a fraction of its
-# uncertainty (that takes a change of ~σ², i.e. ~1 / (2 N) of the cost)
-REL_TOL = 1e-8
+# is ~σ² per residual, and moving a parameter by one standard error changes it by ~σ², i.e.
+# ~1 / (2 N) of it (1e-4 for 5000 detections), 100 times more than this tolerance
+REL_TOL = 1e-6
 # outlier-rejection rounds stop when at most this fraction of the detections change status
 # (and the loss scale changes by at most 20 %)
 ROUND_TOL = 1e-3
