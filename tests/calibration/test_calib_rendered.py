@@ -16,8 +16,8 @@ def test_rendered_charuco_rig(tmp_path):
     from freipose.synth.rig import default_rig
 
     # small and short to stay fast: 4 distorted 320x240 cameras, 90 frames, sensor noise.
-    # (At 640x480 and 150 frames the errors are about 0.4 mm, 0.03 deg, 0.07 %; see
-    # benchmarks/calibration.py.)
+    # (At 640x480 and 150 frames the errors are about 0.06-0.24 mm, 0.01-0.03 deg,
+    # 0.04-0.08 %; see benchmarks/calibration.py.)
     rig = default_rig(4, size=(320, 240))
     board = synth_board.default_board()
     vids, _ = synth_board.write_board_videos(tmp_path, rig, board, 90, seed=0, progress=False)
