@@ -146,8 +146,8 @@ def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
     "--refine-board/--no-refine-board",
     default=True,
     show_default=True,
-    help="Correct each board point's position in the board plane (print errors, per-corner "
-    "detector bias) when every point is seen in at least 100 views.",
+    help="Correct the position in the board plane of each board point seen in at least 100 "
+    "views (print errors, per-corner detector bias).",
 )
 @click.option("--jobs", "-j", type=int, default=None, help="Detection processes (default: CPUs).")
 @click.option("--no-cache", is_flag=True, help="Re-detect even if cached detections exist.")

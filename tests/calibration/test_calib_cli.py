@@ -165,11 +165,18 @@ def test_stereo_cli_with_report(tmp_path, shared_data):
             str(tmp_path / "rep"),
             "-j",
             "1",
+            "--aspect",
+            "square",
+            "--no-refine-board",
         ]
     )
     assert code == 0, text
     rig = load_calibration(out)
     assert rig.names == ["left", "right"] and "camera left" in rig.metadata["world"]
+    # the solver options reach the pipeline
+    assert all(c.K[0, 0] == c.K[1, 1] for c in rig)
+    assert rig.metadata["intrinsics_model"]["left"]["focal"] == "fx = fy"
+    assert "board_point_corrections_rms_mm" not in rig.metadata
     assert abs(np.linalg.norm(rig["right"].center) - 99.8) < 1.5
     summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
     assert summary["cameras"]["left"]["frames_with_detections"] == 8
