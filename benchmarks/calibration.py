@@ -27,7 +27,15 @@ errors mm / deg / %, wall s (FreiPose, aniposelib):
     seed 5: 0.177 / 0.022 / 0.055, 2.7   vs diverged (349 mm), 179
     seed 6: 0.238 / 0.020 / 0.063, 3.4   vs 0.384 / 0.034 / 0.056, 18.7   (5.6x)
 
-FreiPose's errors are lower in 14 of the 15 comparisons (not seed 6's focal: 0.063 vs
+The same on the idle machine (2026-11-22, ``--seed 1 2 3 4 5 6``; wall s FreiPose vs
+aniposelib): seed 1 0.056 / 0.009 / 0.035, 2.0 vs 0.370 / 0.066 / 0.136, 8.7 (4.35x; 4.99x in
+a second run); seed 2 1.9 vs 13.5 s (6.95x); seed 3 2.2 vs 11.1 s (5.07x); seed 4 2.4 vs 14.6 s
+(6.03x); seed 5 1.5 s vs aniposelib diverged; seed 6 1.9 vs 12.8 s (6.75x), errors as above.
+Errors: FreiPose better or equal in 5/5 (centre), 5/5 (rotation), 4/5 (focal: seed 6, 0.063 vs
+0.056 %); geometric-mean wall ratio 7.7. The 5x target holds on every seed but seed 1, whose
+ratio is 4.35-4.99x (aniposelib's own time on it varies 8.7-10 s between runs).
+
+Under load: FreiPose's errors are lower in 14 of the 15 comparisons (not seed 6's focal: 0.063 vs
 0.056 %); geometric-mean error ratios 2.5 (centre), 3.0 (rotation), 2.5 (focal). Wall-time
 ratio 4.2-7.9 (geometric mean 5.4 over the converged seeds): the 5x target is missed on
 seeds 2 and 3, where detection (600 frames, ~3.5 ms CPU each for decoding and ChArUco
