@@ -397,11 +397,13 @@ def calibrate_detections(
     ba, models, start = _select_models(
         ba, free, square, dets, fixed_names, opt, frames, obs, rerun=not opt.refine_board
     )
+    offsets_rms = 0.0
     if opt.refine_board:
         ba, obs = refine(ba, start, obs)
+        offsets_rms = float(np.sqrt(np.mean(np.sum(offsets**2, axis=1))))
         logger.info(
             "board points corrected by %.3f mm RMS (max %.3f mm)",
-            float(np.sqrt(np.mean(np.sum(offsets**2, axis=1)))),
+            offsets_rms,
             float(np.linalg.norm(offsets, axis=1).max()),
         )
     logger.info(
@@ -475,9 +477,7 @@ def calibrate_detections(
         "intrinsics_model": models,
     }
     if opt.refine_board:
-        metadata["board_point_corrections_rms_mm"] = round(
-            float(np.sqrt(np.mean(np.sum(offsets**2, axis=1)))), 4
-        )
+        metadata["board_point_corrections_rms_mm"] = round(offsets_rms, 4)
     if opt.origin_frame is not None:
         metadata["origin_frame"] = int(opt.origin_frame)
     rig = CameraRig(tuple(cams), metadata)

@@ -115,7 +115,8 @@ class VoxelPoseNet(nn.Module):
             else None
         )
         # log of the weight of P0 in the P1 fusion, relative to the views' total confidence
-        self.prior_log_weight = nn.Parameter(torch.zeros(()))
+        # (only with the refinement: an unused parameter would break DDP's gradient reduction)
+        self.prior_log_weight = nn.Parameter(torch.zeros(())) if cfg.refine else None
 
     def forward(self, batch: Mapping[str, Any]) -> dict[str, Any]:
         cfg = self.cfg
@@ -172,8 +173,7 @@ class VoxelPoseNet(nn.Module):
         # Residual formulation: the map logits are added to a Gaussian log-prior around the
         # projected P0, so an untrained head returns P0's projection (P1 = P0) and training
         # learns corrections.
-        # The prior's width is fixed in crop pixels (2 heatmap_sigma feature pixels at half
-        # the feature stride, whatever the map resolution).
+        # The prior's width is heatmap_sigma * stride crop pixels, whatever the map resolution.
         ms = cfg.map_stride
         prior = gaussian_log_prior(
             uv0.reshape(B * V, -1, 2), maps.shape[-1], ms, cfg.heatmap_sigma * cfg.stride / ms
