@@ -3,7 +3,9 @@
 Levenberg-Marquardt with analytic Jacobians and the Schur complement over the per-frame board
 poses (each residual depends on one camera and one board pose, so the normal equations reduce to
 a small dense system in the camera parameters), a robust loss (iteratively reweighted), and
-outlier rejection between rounds. ``method="scipy"`` uses ``scipy.optimize.least_squares``
+outlier rejection between rounds, in which every board view's residuals are also weighted by
+its own noise level (views with motion blur or a steep board are noisier than the rest).
+``method="scipy"`` uses ``scipy.optimize.least_squares``
 with a sparse Jacobian pattern instead (slower; kept as a cross-check).
 """
 
@@ -29,6 +31,9 @@ __all__ = [
 ]
 
 N_CAM = 15  # fx fy cx cy k1 k2 p1 p2 k3 r1 r2 r3 t1 t2 t3
+# views are only down-weighted: up-weighting the quiet ones shrinks the covariance that the
+# model-selection tests use (on a rendered rig it freed a principal point the truth does not have)
+MAX_VIEW_SCALE = 1.0
 
 
 def rodrigues(r: np.ndarray) -> np.ndarray:
@@ -157,6 +162,9 @@ class BundleResult:
         errors: (N,) final reprojection error (px) of every observation.
         rounds, nfev, seconds: solver statistics.
         loss, f_scale: the robust loss and the scale (px) of the last round.
+        view_scale: (N,) the factor every observation's residual was scaled by in the last
+            round (``σ / σ_view``, the global over its board view's noise level; ones without
+            view weighting).
     """
 
     cam_params: np.ndarray
@@ -171,6 +179,42 @@ class BundleResult:
     seconds: float
     loss: str = "huber"
     f_scale: float = 1.0
+    view_scale: np.ndarray | None = None
+
+    def weights(self, errors: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+        """IRLS weights of the error norms ``errors`` of the observations ``keep`` (all)."""
+        s = self.view_scale
+        if s is None:
+            return _robust_weights(errors, self.loss, self.f_scale)
+        s = s if keep is None else s[keep]
+        return s**2 * _robust_weights(errors * s, self.loss, self.f_scale)
+
+
+def view_noise_scales(
+    errors: np.ndarray, groups: np.ndarray, sigma: float, prior_count: float = 8.0
+) -> np.ndarray:
+    """Per-observation residual scales ``σ / σ_view`` (N,) from the error norms of one view each.
+
+    ``σ_view`` is the robust noise level of the observation's group (one board view: camera and
+    frame) from its median error (:func:`noise_sigma`), shrunk towards the global ``σ`` as if
+    the global level had been seen ``prior_count`` more times; the scales are clipped to
+    [0.25, 1]: noisy views count less, none counts more than with equal weights (so the
+    covariance behind the model-selection tests is not made over-confident), none vanishes.
+
+    Args:
+        errors: (N,) error norms (px) of the observations used (inliers).
+        groups: (N,) int group (view) id of each.
+        sigma: global per-axis noise σ (px).
+    """
+    e = np.asarray(errors, np.float64)
+    _, inv, counts = np.unique(groups, return_inverse=True, return_counts=True)
+    order = np.argsort(inv, kind="stable")
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    med = np.array([np.median(e[order[a : a + n]]) for a, n in zip(starts, counts)])
+    sv2 = (med / np.sqrt(2 * np.log(2))) ** 2
+    sv2 = (counts * sv2 + prior_count * sigma**2) / (counts + prior_count)
+    scale = np.clip(sigma / np.sqrt(np.maximum(sv2, 1e-24)), 0.25, MAX_VIEW_SCALE)
+    return scale[inv]
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -359,8 +403,9 @@ def _schur(Hcc, Hff, Hcf, gc, gf):
     return S, rhs, Hff_inv
 
 
-def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None):
-    """Levenberg-Marquardt with the Schur complement over the board poses."""
+def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None, scale=None):
+    """Levenberg-Marquardt with the Schur complement over the board poses; ``scale`` (N,) or
+    None multiplies each observation's residual (per-view noise weighting)."""
     C, F = cam0.shape[0], frame0.shape[0]
     prob = _Problem(obs, C, F)
     intr = cam0[:, :9].copy()
@@ -375,14 +420,17 @@ def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None):
     def cost_of(intr, Rc, tc, Rf, tf):
         r, cache = prob.residuals(intr, Rc, tc, Rf, tf)
         e = np.linalg.norm(r, axis=1)
-        return _robust_cost(e, loss, f_scale), r, e, cache
+        return _robust_cost(e if scale is None else e * scale, loss, f_scale), r, e, cache
 
     cost, r, e, cache = cost_of(intr, Rc, tc, Rf, tf)
     lam = 1e-3
     it = 0
     nfev = 1
     for it in range(1, max_iter + 1):  # noqa: B007
-        w = _robust_weights(e, loss, f_scale)
+        if scale is None:
+            w = _robust_weights(e, loss, f_scale)
+        else:
+            w = scale**2 * _robust_weights(e * scale, loss, f_scale)
         Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free, tie)
         improved = False
         for _ in range(12):
@@ -453,7 +501,7 @@ def _sparsity(obs: Observations, cam_cols: np.ndarray, n_cam_free: int, F: int):
     return coo_matrix((data, (rows_a, cols_a)), shape=(2 * N, n_cam_free + 6 * F)).tocsr()
 
 
-def _solve_scipy(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None):
+def _solve_scipy(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None, scale=None):
     """``scipy.optimize.least_squares`` (TRF, LSMR) with a finite-difference sparse Jacobian."""
     from scipy.optimize import least_squares
 
@@ -472,7 +520,8 @@ def _solve_scipy(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None):
     def fun(x):
         cam, fr = unpack(x)
         uv, _z = project_observations(cam, fr, obs)
-        return (uv - obs.uv).ravel()
+        r = uv - obs.uv
+        return (r if scale is None else r * scale[:, None]).ravel()
 
     x0 = np.concatenate([cam0[free], frame0.ravel()])
     res = least_squares(
@@ -509,6 +558,8 @@ def bundle_adjust(
     start_f_scale: float = 1.0,
     equal_focal: np.ndarray | None = None,
     keep: np.ndarray | None = None,
+    view_weighting: bool = True,
+    view_scale: np.ndarray | None = None,
 ) -> BundleResult:
     """Jointly refine cameras and board poses.
 
@@ -533,6 +584,13 @@ def bundle_adjust(
             ``free[:, 1]`` must be False); ``None`` = none.
         keep: (N,) bool, the detections to start from (e.g. the inliers of a previous
             adjustment of the same observations); ``None`` = all but gross outliers.
+        view_weighting: after the first round, scale each board view's residuals by
+            ``σ / σ_view`` (:func:`view_noise_scales`), i.e. weight the views by their own
+            noise level (on rendered rigs 10 % of the views are 2-3x noisier than the median
+            one: motion blur, steep boards).
+        view_scale: (N,) residual scales to start from (the ``view_scale`` of a previous
+            adjustment of the same observations, with its ``keep``); ``None`` = ones in the
+            first round. Ignored without ``view_weighting``.
     """
     with _one_blas_thread():
         return _bundle_adjust(
@@ -551,6 +609,8 @@ def bundle_adjust(
             start_f_scale=start_f_scale,
             equal_focal=equal_focal,
             keep=keep,
+            view_weighting=view_weighting,
+            view_scale=view_scale,
         )
 
 
@@ -571,6 +631,8 @@ def _bundle_adjust(
     start_f_scale,
     equal_focal,
     keep,
+    view_weighting,
+    view_scale,
 ) -> BundleResult:
     if method not in ("lm", "scipy"):
         raise ValueError(f"unknown bundle-adjustment method {method!r}; expected lm or scipy")
@@ -601,12 +663,28 @@ def _bundle_adjust(
     nfev = 0
     rounds = 0
     scale = float(start_f_scale) if f_scale is None else float(f_scale)
+    groups = obs.cam.astype(np.int64) * (int(obs.frame.max(initial=0)) + 1) + obs.frame
+    # per-observation residual scale (view weighting): from round 2, or given
+    vscale = None
+    if view_weighting and view_scale is not None:
+        vscale = np.asarray(view_scale, np.float64)
+        if vscale.shape != (len(obs),):
+            raise ValueError(f"view_scale must have shape ({len(obs)},), got {vscale.shape}")
     for rounds in range(1, max_rounds + 1):  # noqa: B007
-        cam, fr, n = solver(cam, free, fr, obs.subset(keep), loss, scale, max_iter, tie)
+        sub = None if vscale is None else vscale[keep]
+        cam, fr, n = solver(cam, free, fr, obs.subset(keep), loss, scale, max_iter, tie, sub)
         nfev += n
         uv, _ = project_observations(cam, fr, obs)
         err = np.linalg.norm(uv - obs.uv, axis=1)
         sigma = noise_sigma(err[keep])
+        new_vscale = vscale
+        if view_weighting and keep.any():
+            new_vscale = np.ones(len(obs))
+            new_vscale[keep] = view_noise_scales(err[keep], groups[keep], sigma)
+            # rejected detections keep their view's scale (they may come back)
+            first = {g: s for g, s in zip(groups[keep], new_vscale[keep])}
+            out = ~keep
+            new_vscale[out] = [first.get(g, 1.0) for g in groups[out]]
         thr = max(outlier_px, outlier_sigmas * sigma)
         new_keep = err < thr
         new_scale = scale if f_scale is not None else max(MIN_F_SCALE, 2.0 * sigma)
@@ -622,9 +700,16 @@ def _bundle_adjust(
             thr,
         )
         n_changed = int((new_keep != keep).sum())
-        if n_changed <= ROUND_TOL * len(obs) and abs(new_scale - scale) <= 0.2 * scale:
-            break  # the inliers stay those the solution was fitted to
-        keep, scale = new_keep, new_scale
+        weights_settled = (vscale is None) == (new_vscale is None) and (
+            vscale is None or np.max(np.abs(new_vscale - vscale)) <= 0.2
+        )
+        if (
+            n_changed <= ROUND_TOL * len(obs)
+            and abs(new_scale - scale) <= 0.2 * scale
+            and weights_settled
+        ):
+            break  # the inliers and weights stay those the solution was fitted to
+        keep, scale, vscale = new_keep, new_scale, new_vscale
     uv, _ = project_observations(cam, fr, obs)
     err = np.linalg.norm(uv - obs.uv, axis=1)
     return BundleResult(
@@ -640,6 +725,7 @@ def _bundle_adjust(
         seconds=time.perf_counter() - t0,
         loss=loss,
         f_scale=scale,
+        view_scale=vscale,
     )
 
 
@@ -667,7 +753,7 @@ def _camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
     Rc, Rf = rodrigues(cam[:, 9:12]), rodrigues(fr[:, :3])
     r, cache = prob.residuals(cam[:, :9], Rc, cam[:, 12:15], Rf, fr[:, 3:])
     e = np.linalg.norm(r, axis=1)
-    w = _robust_weights(e, result.loss, result.f_scale)
+    w = result.weights(e, result.inliers)
     Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free)
     S, _rhs, _ = _schur(Hcc, Hff + 1e-12 * np.eye(6), Hcf, gc, gf)
     dof = max(1, 2 * len(obs) - int(free.sum()) - 6 * F)
@@ -713,7 +799,7 @@ def board_point_offsets(
         return out
     uv, _ = project_observations(b.cam_params, b.frame_params, o)
     r = o.uv - uv
-    w = _robust_weights(np.linalg.norm(r, axis=1), b.loss, b.f_scale)
+    w = b.weights(np.linalg.norm(r, axis=1), keep)
     h = 1e-2  # mm; the projection is linear over this
     J = np.zeros((len(o), 2, 2))  # d uv / d (board x, board y)
     for k in range(2):

@@ -97,6 +97,10 @@ class CalibrationOptions:
             the same in every view) and adjust again; once before and once after the model
             selection (see :func:`freipose.calibration.bundle.board_point_offsets`; the board
             keeps its printed size).
+        view_weights: weight every board view's detections by that view's own noise level
+            (σ / σ_view, estimated from its residuals after the first round; see
+            :func:`freipose.calibration.bundle.view_noise_scales`): blurred or steep views
+            count less.
     """
 
     origin_frame: int | None = None
@@ -113,6 +117,7 @@ class CalibrationOptions:
     solver: str = "lm"
     progress: bool = True
     refine_board: bool = True
+    view_weights: bool = True
 
 
 @dataclass(frozen=True)
@@ -385,9 +390,7 @@ def calibrate_detections(
         pts = obj.copy()
         pts[:, :2] += offsets
         obs = Observations(obs.cam, obs.frame, pts[point_ids], obs.uv)
-        return _bundle(
-            start, free, ba.frame_params, frames, obs, opt, ba.f_scale, square, ba.inliers
-        ), obs
+        return _bundle(start, free, ba.frame_params, frames, obs, opt, ba.f_scale, square, ba), obs
 
     # with refine_board: correct the board once before the model selection (per-corner
     # detector biases otherwise pass for principal-point offsets or tangential distortion),
@@ -488,8 +491,10 @@ def calibrate_detections(
 
 
 def _bundle(
-    cam, free, fr, frames, obs, opt: CalibrationOptions, start_scale=1.0, square=None, keep=None
+    cam, free, fr, frames, obs, opt: CalibrationOptions, start_scale=1.0, square=None, prev=None
 ) -> BundleResult:
+    """Bundle adjustment with the options; ``prev`` (a result on the same observations) gives
+    the starting inliers and view weights."""
     return bundle_adjust(
         cam,
         free,
@@ -502,7 +507,9 @@ def _bundle(
         method=opt.solver,
         start_f_scale=start_scale,
         equal_focal=square,
-        keep=keep,
+        keep=None if prev is None else prev.inliers,
+        view_weighting=opt.view_weights,
+        view_scale=None if prev is None else prev.view_scale,
     )
 
 
@@ -592,9 +599,7 @@ def _select_models(
                     square[i] = True
                     changed = True
         if changed and rerun:
-            ba = _bundle(
-                cam, free, ba.frame_params, frames, obs, opt, ba.f_scale, square, ba.inliers
-            )
+            ba = _bundle(cam, free, ba.frame_params, frames, obs, opt, ba.f_scale, square, ba)
     models = {
         d.name: _describe_model(free[i], bool(square[i]), d.name in fixed_names)
         for i, d in enumerate(dets)

@@ -149,6 +149,13 @@ def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
     help="Correct the position in the board plane of each board point seen in at least 100 "
     "views (print errors, per-corner detector bias).",
 )
+@click.option(
+    "--view-weights/--no-view-weights",
+    default=True,
+    show_default=True,
+    help="Weight each board view's detections by its own noise level (blurred or steep views "
+    "count less).",
+)
 @click.option("--jobs", "-j", type=int, default=None, help="Detection processes (default: CPUs).")
 @click.option("--no-cache", is_flag=True, help="Re-detect even if cached detections exist.")
 def run(
@@ -164,6 +171,7 @@ def run(
     principal_point,
     aspect,
     refine_board,
+    view_weights,
     jobs,
     no_cache,
     **board_fields,
@@ -212,6 +220,7 @@ def run(
             principal_point=principal_point,
             aspect=aspect,
             refine_board=refine_board,
+            view_weights=view_weights,
             jobs=jobs,
         )
         result = calibrate(list(inputs), board, output, opts)

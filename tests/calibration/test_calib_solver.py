@@ -77,11 +77,16 @@ def test_bundle_checks_tie_and_start_inliers(result):
     with pytest.raises(ValueError, match="keep"):
         bundle_adjust(ba.cam_params, free, ba.frame_params, ba.frames, ba.obs,
                       keep=np.ones(3, bool))  # fmt: skip
-    # starting from the previous inliers at the solution: one round, nothing changes
+    with pytest.raises(ValueError, match="view_scale"):
+        bundle_adjust(ba.cam_params, free, ba.frame_params, ba.frames, ba.obs,
+                      view_scale=np.ones(3))  # fmt: skip
+    # starting from the previous inliers and view weights at the solution: one round,
+    # nothing changes
     free[:, :9] = False  # (intrinsics fixed: the fixture's model selection fixed some)
     free[0, 9:] = False
     again = bundle_adjust(ba.cam_params, free, ba.frame_params, ba.frames, ba.obs,
-                          start_f_scale=ba.f_scale, keep=ba.inliers)  # fmt: skip
+                          start_f_scale=ba.f_scale, keep=ba.inliers,
+                          view_scale=ba.view_scale)  # fmt: skip
     assert again.rounds == 1
     assert np.array_equal(again.inliers, ba.inliers)
     assert np.abs(again.cam_params - ba.cam_params).max() < 1e-3
