@@ -47,6 +47,11 @@ import sys
 import time
 from pathlib import Path
 
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
 import numpy as np
 
 CAMERA_SETS = {
@@ -182,6 +187,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, nargs=2, default=(320, 256), help="image width height")
     ap.add_argument("--cube-size", type=float, default=None, help="override model.cube_size (mm)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="TABLE.KEY=VALUE",
+        help="override a [model] or [schedule] key of the preset (TOML value), e.g. "
+        "--set model.unproject_levels=1; repeatable",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     torch_threads = int(os.environ.get("OMP_NUM_THREADS", "1"))
@@ -213,6 +226,13 @@ def main(argv: list[str] | None = None) -> int:
         "checkpoint_every": 100,
         "log_every": 10,
     }
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        table, dot, name = key.strip().partition(".")
+        if not sep or not dot or table not in ("model", "schedule"):
+            ap.error(f"--set expects model.KEY=VALUE or schedule.KEY=VALUE, got {item!r}")
+        parsed = tomllib.loads(f"v = {value.strip()}")["v"]
+        (model_over if table == "model" else sched)[name] = parsed
     base_cfg = config_from_dict({"model": model_over, "schedule": sched})
     log(
         f"preset {args.preset}, {args.steps} steps x batch {args.batch_size}, "

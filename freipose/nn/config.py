@@ -42,6 +42,11 @@ class ModelConfig:
         norm: ``"group"``, ``"batch"`` or ``"none"`` (the original had none).
         grid_size: voxels per cube edge (64 in the paper).
         cube_size: distance in mm between the outermost voxel centres (400 in the paper).
+        crop_fraction: each view's crop encloses the projection of a cube of ``crop_fraction *
+            cube_size`` around the centre (1: the whole voxel cube, as in the paper). Below 1
+            the crops spend their pixels on the middle of the cube where the animal is; voxels
+            outside a view's crop do not count for that view (the unprojection's validity
+            mask).
         unet_channels: channels of the 3D U-Net encoder levels (each halves the grid).
         deep_supervision: decode and supervise one volume per U-Net decoder level.
         refine: use the 2D refinement head (P1); otherwise P1 = P0.
@@ -51,6 +56,10 @@ class ModelConfig:
             ``stride / 2**head_levels`` (2 in the paper: 112 x 112 maps of 224 crops, like the
             original's finest refinement map). Sub-feature-pixel precision of the refinement
             (P1 better than P0) needs the finer maps.
+        unproject_levels: decoder steps applied to the features before the unprojection
+            (each doubles their resolution with the encoder's skip map of that scale, keeping
+            ``feature_channels``): the voxel grid then samples features of stride
+            ``stride / 2**unproject_levels``. 0 unprojects the encoder's features (the paper).
         heatmap_sigma: sigma (feature pixels) of the P0 heat maps given to the refinement.
         map_sigma: sigma (map pixels) of the Gaussian target of the 2D heads' map
             cross-entropy loss (``schedule.weight_map``).
@@ -69,11 +78,13 @@ class ModelConfig:
     norm: str = "group"
     grid_size: int = 64
     cube_size: float = 400.0
+    crop_fraction: float = 1.0
     unet_channels: tuple[int, ...] = (32, 64, 64, 64)
     deep_supervision: bool = True
     refine: bool = True
     refine_channels: int = 128
     head_levels: int = 2
+    unproject_levels: int = 0
     heatmap_sigma: float = 2.0
     map_sigma: float = 1.0
     volume_sigma: float = 1.0
@@ -99,6 +110,11 @@ class ModelConfig:
                 f"model.head_levels must be in 1..encoder_pools ({self.encoder_pools}), "
                 f"got {self.head_levels}"
             )
+        if not 0 <= self.unproject_levels <= self.encoder_pools:
+            raise ConfigError(
+                f"model.unproject_levels must be in 0..encoder_pools ({self.encoder_pools}), "
+                f"got {self.unproject_levels}"
+            )
         if self.crop_size % self.stride:
             raise ConfigError(
                 f"model.crop_size ({self.crop_size}) must be a multiple of the feature stride "
@@ -112,6 +128,10 @@ class ModelConfig:
             )
         if self.cube_size <= 0:
             raise ConfigError(f"model.cube_size must be positive (mm), got {self.cube_size}")
+        if not 0.1 <= self.crop_fraction <= 1.0:
+            raise ConfigError(
+                f"model.crop_fraction must be in [0.1, 1] (of the cube), got {self.crop_fraction}"
+            )
         if self.map_sigma <= 0:
             raise ConfigError(f"model.map_sigma must be positive (map px), got {self.map_sigma}")
         if self.volume_sigma <= 0:

@@ -1,6 +1,7 @@
 """From multi-view samples (``freipose.labels.dataset.MultiViewDataset``) to network input.
 
-For every view the voxel cube around the sample's centre is projected into the full
+For every view the voxel cube around the sample's centre (or its middle part,
+``model.crop_fraction``) is projected into the full
 frame (:func:`freipose.geometry.crops.cube_crop_boxes`), that square is cut out and resized
 to the crop size, and the crop camera is derived exactly (:func:`crop_camera`). During
 training the centre is the mean of the labeled 3D points plus Gaussian jitter, and each
@@ -144,7 +145,7 @@ def prepare_sample(
     images = sample.get("images") or []
     if images and len(images) != V:
         raise SampleError(f"sample has {len(images)} images for {V} cameras")
-    boxes = cube_crop_boxes(rig, center, model.cube_size)  # (V, 4)
+    boxes = cube_crop_boxes(rig, center, model.cube_size * model.crop_fraction)  # (V, 4)
     out_img = np.zeros((V, 3, S, S), np.float32)
     Ks = np.tile(np.eye(3), (V, 1, 1))
     affines = np.tile(np.eye(3), (V, 1, 1))

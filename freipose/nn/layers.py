@@ -342,6 +342,31 @@ class Head2D(nn.Module):
         return self.maps(x), self.conf(x)
 
 
+class FeatureDecoder(nn.Module):
+    """Raises the encoder's features ``levels`` octaves with its skip maps (U-Net style).
+
+    Each step: stride-2 transposed conv, concatenation with the (1x1-reduced) skip map of
+    that resolution, 3x3 conv; the channels stay ``ch``. Input (N, ch, h, w) features and the
+    encoder's skips (coarsest first); output (N, ch, 2**levels h, 2**levels w).
+    """
+
+    def __init__(self, ch: int, skip_ch: tuple[int, ...], norm: str, levels: int):
+        super().__init__()
+        if not 1 <= levels <= len(skip_ch):
+            raise ValueError(f"FeatureDecoder: levels must be in 1..{len(skip_ch)}, got {levels}")
+        self.ups = nn.ModuleList(
+            nn.ConvTranspose2d(ch, ch, 4, stride=2, padding=1) for _ in range(levels)
+        )
+        self.skips = nn.ModuleList(conv2d(skip_ch[i], ch, 1, norm, "lrelu") for i in range(levels))
+        self.fuses = nn.ModuleList(conv2d(2 * ch, ch, 3, norm, "lrelu") for _ in range(levels))
+
+    def forward(self, feat: torch.Tensor, skips: list[torch.Tensor]) -> torch.Tensor:
+        x = feat
+        for up, skip, fuse, s in zip(self.ups, self.skips, self.fuses, skips):
+            x = fuse(torch.cat([F.leaky_relu(up(x), 0.1), skip(s)], dim=1))
+        return x
+
+
 def decode_head(
     maps: torch.Tensor, conf_logits: torch.Tensor, stride: float
 ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -36,6 +36,7 @@ from freipose.nn.config import ModelConfig, TrainConfig, config_from_dict
 from freipose.nn.geometry import project_affine, voxel_offsets
 from freipose.nn.layers import (
     Encoder2D,
+    FeatureDecoder,
     Head2D,
     UNet3D,
     decode_head,
@@ -101,6 +102,14 @@ class VoxelPoseNet(nn.Module):
         self.unet = UNet3D(
             cfg.feature_channels, cfg.unet_channels, num_keypoints, cfg.norm, cfg.deep_supervision
         )
+        # optional finer features for the unprojection (model.unproject_levels)
+        self.lift = (
+            FeatureDecoder(
+                cfg.feature_channels, self.encoder.skip_channels, cfg.norm, cfg.unproject_levels
+            )
+            if cfg.unproject_levels
+            else None
+        )
         self.refine = (
             Head2D(
                 cfg.feature_channels,
@@ -132,8 +141,9 @@ class VoxelPoseNet(nn.Module):
         if rot is not None:
             offs = offs @ rot.float().transpose(1, 2)  # (B, G^3, 3) world offsets
         points = center[:, None, :] + offs
+        vfeats = feats if self.lift is None else self.lift(feats, skip)
         vol, _ = unproject(
-            feats.float().reshape(B, V, *feats.shape[1:]),
+            vfeats.float().reshape(B, V, *vfeats.shape[1:]),
             K,
             R,
             t,
@@ -142,7 +152,7 @@ class VoxelPoseNet(nn.Module):
             points,
             cfg.crop_size,
         )
-        vol = vol.reshape(B, -1, G, G, G).to(feats.dtype)
+        vol = vol.reshape(B, -1, G, G, G).to(vfeats.dtype)
         scores = self.unet(vol)
         decoded = [softargmax3d(s, center, cfg.cube_size, rot) for s in scores]
         P0, probs = decoded[-1]

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 
 from freipose.geometry import project
 from freipose.geometry.crops import crop_camera, cube_crop_boxes
+from freipose.nn.config import config_from_dict
 from freipose.nn.geometry import pixels_to_normalized, project_affine, voxel_offsets
 from freipose.nn.layers import (
     Encoder2D,
+    FeatureDecoder,
     Head2D,
     decode_head,
     gaussian_heatmaps,
@@ -20,6 +24,7 @@ from freipose.nn.layers import (
     unproject,
     volume_confidence,
 )
+from freipose.nn.model import build_model
 from freipose.testing import make_circle_rig
 
 
@@ -279,6 +284,33 @@ def test_head_levels_refine_the_map_resolution():
         assert abs(float(c) - 0.5) < 1e-6
     with pytest.raises(ValueError, match="levels must be in 1..3"):
         Head2D(5, enc.skip_channels, 2, 8, "group", heat_in=0, levels=4)
+
+
+def test_feature_decoder_and_unproject_levels():
+    """``unproject_levels`` raises the unprojected features' resolution with the encoder's skip
+    maps; the network runs the same with them."""
+    torch.manual_seed(0)
+    enc = Encoder2D((4, 6, 8), (1, 1, 1), 3, 5, "group")
+    feats, skips = enc(torch.zeros(2, 3, 32, 32))
+    for levels, size in ((1, 8), (3, 32)):
+        out = FeatureDecoder(5, enc.skip_channels, "group", levels)(feats, skips)
+        assert out.shape == (2, 5, size, size)
+    with pytest.raises(ValueError, match="levels must be in 1..3"):
+        FeatureDecoder(5, enc.skip_channels, "group", 4)
+    cfg = config_from_dict({"model": {"preset": "tiny", "unproject_levels": 2}}).model
+    net = build_model(cfg, 3)
+    assert net.lift is not None and build_model(replace(cfg, unproject_levels=0), 3).lift is None
+    seen = {}
+    net.lift.register_forward_hook(lambda m, i, o: seen.update(shape=tuple(o.shape)))
+    from nn_toydata import toy_samples
+
+    from freipose.nn.data import collate_prepared, prepare_sample
+
+    b = collate_prepared([prepare_sample(s, cfg) for s in toy_samples(2, cams=3)])
+    out = net(b)
+    s = cfg.crop_size // cfg.stride * 4
+    assert seen["shape"] == (2 * 3, cfg.feature_channels, s, s)
+    assert out["P0"].shape == (2, 3, 3) and torch.isfinite(out["P1"]).all()
 
 
 def test_map_loss_prefers_the_label_and_skips_hidden_or_outside_labels():

@@ -146,6 +146,10 @@ def test_config_validation(tmp_path):
         config_from_dict({"model": {"preset": "tiny", "grid_size": 9}})
     with pytest.raises(ConfigError, match=r"head_levels must be in 1..encoder_pools \(2\), got 3"):
         config_from_dict({"model": {"preset": "tiny", "head_levels": 3}})
+    with pytest.raises(ConfigError, match=r"unproject_levels must be in 0..encoder_pools"):
+        config_from_dict({"model": {"preset": "tiny", "unproject_levels": 3}})
+    with pytest.raises(ConfigError, match=r"crop_fraction must be in \[0.1, 1\]"):
+        config_from_dict({"model": {"preset": "tiny", "crop_fraction": 1.5}})
     p = tmp_path / "c.toml"
     p.write_text('[model]\npreset = "small"\ngrid_size = 16\n[schedule]\nlr = "fast"\n')
     with pytest.raises(ConfigError, match="schedule.lr must be a number"):
