@@ -39,6 +39,7 @@ __all__ = [
 CACHE_VERSION = 2  # 2: ChArUco markers from two threshold windows
 PROGRESS_EVERY = 10  # frames between progress messages of a worker
 CHARUCO_THRESH_WIN_MAX = 13  # px, largest adaptive-threshold window for ChArUco markers
+TRACK_GROW = 0.3  # search window around the previous frame's board: grown by this fraction
 
 
 class DetectionError(ValueError):
@@ -219,30 +220,98 @@ def detect_image(image: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarra
     raise TypeError(f"unsupported board {type(board).__name__}")
 
 
+def _track_window(prev: np.ndarray, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
+    """Search window ``(x0, y0, x1, y1)`` around the previous frame's points (M, 2): their box
+    grown by 30 % of its size plus two point spacings and 16 px on each side (the board's
+    motion between frames), clipped to the image."""
+    lo, hi = prev.min(axis=0), prev.max(axis=0)
+    ext = hi - lo
+    spacing = float(np.sqrt(max(ext[0] * ext[1], 1.0) / len(prev)))
+    m = TRACK_GROW * float(ext.max()) + 2 * spacing + 16
+    h, w = shape[:2]
+    x0, y0 = int(max(0, lo[0] - m)), int(max(0, lo[1] - m))
+    x1, y1 = int(min(w, np.ceil(hi[0] + m) + 1)), int(min(h, np.ceil(hi[1] + m) + 1))
+    return x0, y0, x1, y1
+
+
+def _clear_of_window_edges(
+    pts: np.ndarray, win: tuple[int, int, int, int], shape: tuple[int, ...]
+) -> bool:
+    """Whether the points found in the window (image px) stay clear of the window's edges that
+    are not image edges: a board point further out would have been cut off (with its marker),
+    so the window's result is complete only then."""
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    ext = hi - lo
+    guard = 1.5 * float(np.sqrt(max(ext[0] * ext[1], 1.0) / len(pts))) + 5
+    x0, y0, x1, y1 = win
+    h, w = shape[:2]
+    return bool(
+        (x0 == 0 or lo[0] - x0 > guard)
+        and (y0 == 0 or lo[1] - y0 > guard)
+        and (x1 == w or x1 - hi[0] > guard)
+        and (y1 == h or y1 - hi[1] > guard)
+    )
+
+
 class _Detector:
-    """Reusable per-process detector (builds OpenCV objects once)."""
+    """Reusable per-process detector (builds OpenCV objects once).
+
+    ``detector(image)`` searches the whole image. ``detector.track(image)``, for consecutive
+    frames of one video, first searches a window around the previous frame's detection and
+    keeps that result when at least 4 points were found clear of the window's edges;
+    otherwise (and when the previous frame had no board) it searches the whole image. The
+    marker search costs by image area, so this saves ~30-40 % per frame on videos where the
+    board covers a small part of the view; the points are those of the whole-image search
+    (on the rendered benchmark rigs 3 of 10,000 corners differ: not found, or moved by
+    <= 0.06 px).
+    """
 
     def __init__(self, board: Board):
         self.board = board
         self.P = len(board.object_points)
         self._cv = None
+        self._prev: np.ndarray | None = None
+        self.windowed = 0  # frames that the window search served (statistics)
         if isinstance(board, CharucoBoard):
             self._cv = _charuco_detector(board)
         elif isinstance(board, AprilGridBoard):
             self._cv = _aruco_detector(board.dictionary, board.border)
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
-        gray = _gray(image)
+    def _detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         b = self.board
         if isinstance(b, CharucoBoard):
-            ids, pts = _detect_charuco(gray, b, self._cv)
-        elif isinstance(b, AprilGridBoard):
-            ids, pts = _detect_aprilgrid(gray, b, self._cv)
-        else:
-            ids, pts = _detect_chessboard(gray, b)
+            return _detect_charuco(gray, b, self._cv)
+        if isinstance(b, AprilGridBoard):
+            return _detect_aprilgrid(gray, b, self._cv)
+        return _detect_chessboard(gray, b)
+
+    def _points(self, ids: np.ndarray, pts: np.ndarray) -> np.ndarray:
         out = np.full((self.P, 2), np.nan)
         ok = (ids >= 0) & (ids < self.P)
         out[ids[ok]] = pts[ok]
+        return out
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        return self._points(*self._detect(_gray(image)))
+
+    def track(self, image: np.ndarray) -> np.ndarray:
+        """Detect in the next frame of a video (see the class docstring); (P, 2) px, NaN where
+        a point is not found."""
+        gray = _gray(image)
+        out = None
+        if self._prev is not None:
+            win = _track_window(self._prev, gray.shape)
+            x0, y0, x1, y1 = win
+            ids, pts = self._detect(np.ascontiguousarray(gray[y0:y1, x0:x1]))
+            if len(ids) >= 4:
+                pts = pts + np.array([x0, y0], np.float64)
+                if _clear_of_window_edges(pts, win, gray.shape):
+                    out = self._points(ids, pts)
+                    self.windowed += 1
+        if out is None:
+            out = self._points(*self._detect(gray))
+        found = np.isfinite(out[:, 0])
+        self._prev = out[found] if found.sum() >= 4 else None
         return out
 
 
@@ -272,9 +341,12 @@ def _detect_chunk(
     done = 0
     # cache_size=1 keeps frame 0, which opening the source decodes, so a chunk starting at 0
     # does not seek back to it
+    folder = Path(path).is_dir()
     with FrameSource(path, cache_size=1) as src:
         for i in range(start, stop):
-            out[i - start] = det(src.read(i))
+            # consecutive video frames: search around the previous frame's board first
+            # (image folders hold unrelated photos: the whole image each time)
+            out[i - start] = det(src.read(i)) if folder else det.track(src.read(i))
             done += 1
             if progress is not None and done == PROGRESS_EVERY:
                 progress.put(done)
