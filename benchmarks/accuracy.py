@@ -113,8 +113,11 @@ def merged_labels(paths: list[Path]):
     )
 
 
-def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, log):
-    """Train voxel + baseline on the same data/steps; evaluate both. Returns JPE arrays."""
+def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, log, kinds):
+    """Train voxel + baseline on the same data/steps; evaluate both. Returns JPE arrays.
+
+    Only the networks in ``kinds`` are trained; a network left out is still evaluated when
+    its model already exists (another process trained it: ``--kinds``)."""
     from freipose.labels.dataset import MultiViewDataset
     from freipose.nn.evaluate import jpe, predict_dataset
     from freipose.nn.model import load_checkpoint
@@ -133,6 +136,8 @@ def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, 
         t0 = time.perf_counter()
         resume = (run_dir / "checkpoint.pt").exists()
         path = run_dir / "model.pt"
+        if kind not in kinds and not path.exists():
+            continue
         if not path.exists():
             path = train_pose(
                 cfg,
@@ -187,6 +192,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, nargs=2, default=(320, 256), help="image width height")
     ap.add_argument("--cube-size", type=float, default=None, help="override model.cube_size (mm)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument(
+        "--kinds",
+        default="voxel,baseline",
+        help="networks to train (comma separated): run one process with voxel and one with "
+        "baseline on the same --out to use two machines' worth of cores, then once more with "
+        "both to print the comparison (trained models are reused)",
+    )
     ap.add_argument(
         "--set",
         action="append",
@@ -252,15 +264,19 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {"config": vars(args) | {"out": str(out)}, "experiments": {}}
     exps = [e.strip() for e in args.experiments.split(",") if e.strip()]
     all_idx = np.arange(len(train_lab))
+    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
+    if not kinds or not kinds <= {"voxel", "baseline"}:
+        ap.error(f"--kinds takes voxel and/or baseline, got {args.kinds!r}")
+    nan3 = (float("nan"),) * 3
     if "main" in exps:
-        res = run_pair("main", base_cfg, train_lab, eval_lab, None, all_idx, out, args.device, log)
+        res = run_pair(
+            "main", base_cfg, train_lab, eval_lab, None, all_idx, out, args.device, log, kinds
+        )
         write_report(out / "main", res, read_labels_h5(eval_path).keypoints)
         results["experiments"]["main"] = {k: stats(v) for k, v in res.items()}
-        v, b = (
-            results["experiments"]["main"]["voxel_P1"],
-            results["experiments"]["main"]["baseline"],
-        )
-        p0 = results["experiments"]["main"]["voxel_P0"]
+        main_res = results["experiments"]["main"]
+        v, b = main_res.get("voxel_P1", nan3), main_res.get("baseline", nan3)
+        p0 = main_res.get("voxel_P0", nan3)
         log("\nMAIN (7 cameras, all instants): median JPE mm [30 %, 70 %]")
         log(f"  voxel P0   {p0[0]:7.2f}  [{p0[1]:.2f}, {p0[2]:.2f}]")
         log(f"  voxel P1   {v[0]:7.2f}  [{v[1]:.2f}, {v[2]:.2f}]")
@@ -285,6 +301,7 @@ def main(argv: list[str] | None = None) -> int:
                     out,
                     args.device,
                     log,
+                    kinds,
                 )
                 for k, e in res.items():
                     accs.setdefault(k, []).append(e.reshape(-1))
@@ -292,8 +309,8 @@ def main(argv: list[str] | None = None) -> int:
         results["experiments"]["cameras"] = table
         log("\nCAMERAS: median JPE mm (voxel P1 / baseline)")
         for n, row in table.items():
-            b = row.get("baseline", (float("nan"),) * 3)
-            log(f"  {n} cams: voxel {row['voxel_P1'][0]:7.2f}   baseline {b[0]:7.2f}")
+            vx, b = row.get("voxel_P1", nan3), row.get("baseline", nan3)
+            log(f"  {n} cams: voxel {vx[0]:7.2f}   baseline {b[0]:7.2f}")
     if "fraction" in exps:
         table = {}
         rng = np.random.default_rng(0)
@@ -313,6 +330,7 @@ def main(argv: list[str] | None = None) -> int:
                     out,
                     args.device,
                     log,
+                    kinds,
                 )
                 for k, e in res.items():
                     accs.setdefault(k, []).append(e.reshape(-1))
@@ -320,10 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         results["experiments"]["fraction"] = {str(k): v for k, v in table.items()}
         log("\nLABEL FRACTION: median JPE mm (voxel P1 / baseline)")
         for f, row in table.items():
-            log(
-                f"  {int(f * 100):3d} %: voxel {row['voxel_P1'][0]:7.2f}   "
-                f"baseline {row['baseline'][0]:7.2f}"
-            )
+            vx, b = row.get("voxel_P1", nan3), row.get("baseline", nan3)
+            log(f"  {int(f * 100):3d} %: voxel {vx[0]:7.2f}   baseline {b[0]:7.2f}")
     _plots(out, results)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
     log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / 'results.json'}")
