@@ -191,7 +191,11 @@ class BundleResult:
 
 
 def view_noise_scales(
-    errors: np.ndarray, groups: np.ndarray, sigma: float, prior_count: float = 8.0
+    errors: np.ndarray,
+    groups: np.ndarray,
+    sigma: float,
+    prior_count: float = 8.0,
+    use: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per-observation residual scales ``σ / σ_view`` (N,) from the error norms of one view each.
 
@@ -202,18 +206,32 @@ def view_noise_scales(
     covariance behind the model-selection tests is not made over-confident), none vanishes.
 
     Args:
-        errors: (N,) error norms (px) of the observations used (inliers).
+        errors: (N,) error norms (px).
         groups: (N,) int group (view) id of each.
         sigma: global per-axis noise σ (px).
+        use: (N,) bool, the observations that estimate the views' noise (the inliers; default
+            all); the others get their view's scale, or 1 in a view without any.
     """
     e = np.asarray(errors, np.float64)
-    _, inv, counts = np.unique(groups, return_inverse=True, return_counts=True)
-    order = np.argsort(inv, kind="stable")
+    g = np.asarray(groups)
+    use = np.ones(len(e), bool) if use is None else np.asarray(use, bool)
+    uniq, inv = np.unique(g, return_inverse=True)
+    inv = inv.reshape(-1)
+    counts = np.bincount(inv[use], minlength=len(uniq))
+    # per-group medians, vectorized: sort the used errors by (group, error)
+    iu, eu = inv[use], e[use]
+    order = np.lexsort((eu, iu))
     starts = np.r_[0, np.cumsum(counts)[:-1]]
-    med = np.array([np.median(e[order[a : a + n]]) for a, n in zip(starts, counts)])
+    has = counts > 0
+    lo = starts + np.maximum(counts - 1, 0) // 2
+    hi = starts + counts // 2
+    es = eu[order]
+    med = np.zeros(len(uniq))
+    med[has] = 0.5 * (es[lo[has]] + es[np.minimum(hi[has], len(es) - 1)])
     sv2 = (med / np.sqrt(2 * np.log(2))) ** 2
     sv2 = (counts * sv2 + prior_count * sigma**2) / (counts + prior_count)
     scale = np.clip(sigma / np.sqrt(np.maximum(sv2, 1e-24)), 0.25, MAX_VIEW_SCALE)
+    scale[~has] = 1.0
     return scale[inv]
 
 
@@ -679,12 +697,8 @@ def _bundle_adjust(
         sigma = noise_sigma(err[keep])
         new_vscale = vscale
         if view_weighting and keep.any():
-            new_vscale = np.ones(len(obs))
-            new_vscale[keep] = view_noise_scales(err[keep], groups[keep], sigma)
-            # rejected detections keep their view's scale (they may come back)
-            first = {g: s for g, s in zip(groups[keep], new_vscale[keep])}
-            out = ~keep
-            new_vscale[out] = [first.get(g, 1.0) for g in groups[out]]
+            # rejected detections get their view's scale too (they may come back)
+            new_vscale = view_noise_scales(err, groups, sigma, use=keep)
         thr = max(outlier_px, outlier_sigmas * sigma)
         new_keep = err < thr
         new_scale = scale if f_scale is not None else max(MIN_F_SCALE, 2.0 * sigma)

@@ -29,6 +29,13 @@ def test_view_noise_scales_follow_each_views_noise():
     assert 1 / 3 < few[0] < 1.0
     loud = view_noise_scales(np.full(50, 10.0), np.zeros(50, int), sigma=0.1, prior_count=0)
     assert np.allclose(loud, 0.25)
+    # observations not used for the estimate (rejected) get their view's scale; a view with
+    # none used gets 1
+    use = groups != 3
+    use[groups == 2] = np.arange(200) % 2 == 0
+    part = view_noise_scales(err, groups, sigma=0.1, prior_count=0.0, use=use)
+    assert np.all(part[groups == 3] == 1.0)
+    assert np.ptp(part[groups == 2]) == 0 and part[groups == 2][0] < 0.5
 
 
 def test_noisy_views_count_less():
