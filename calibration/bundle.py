@@ -229,7 +229,7 @@ def view_noise_scales(
     med = np.zeros(len(uniq))
     med[has] = 0.5 * (es[lo[has]] + es[np.minimum(hi[has], len(es) - 1)])
     sv2 = (med / np.sqrt(2 * np.log(2))) ** 2
-    sv2 = (counts * sv2 + prior_count * sigma**2) / (counts + prior_count)
+    sv2 = (counts * sv2 + prior_count * sigma**2) / np.maximum(counts + prior_count, 1e-12)
     scale = np.clip(sigma / np.sqrt(np.maximum(sv2, 1e-24)), 0.25, MAX_VIEW_SCALE)
     scale[~has] = 1.0
     return scale[inv]
