@@ -181,13 +181,12 @@ class BundleResult:
     f_scale: float = 1.0
     view_scale: np.ndarray | None = None
 
-    def weights(self, errors: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
-        """IRLS weights of the error norms ``errors`` of the observations ``keep`` (all)."""
-        s = self.view_scale
-        if s is None:
-            return _robust_weights(errors, self.loss, self.f_scale)
-        s = s if keep is None else s[keep]
-        return s**2 * _robust_weights(errors * s, self.loss, self.f_scale)
+
+def _irls_weights(e: np.ndarray, loss: str, k: float, scale: np.ndarray | None) -> np.ndarray:
+    """IRLS weights of error norms ``e`` (N,) whose residuals are scaled by ``scale`` (N,)."""
+    if scale is None:
+        return _robust_weights(e, loss, k)
+    return scale**2 * _robust_weights(e * scale, loss, k)
 
 
 def view_noise_scales(
@@ -426,6 +425,8 @@ def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None, scale=Non
     None multiplies each observation's residual (per-view noise weighting)."""
     C, F = cam0.shape[0], frame0.shape[0]
     prob = _Problem(obs, C, F)
+    if scale is not None:
+        scale = np.asarray(scale)[prob.order]  # the problem sorts the observations
     intr = cam0[:, :9].copy()
     if tie is not None:
         intr[tie, 1] = intr[tie, 0]
@@ -445,10 +446,7 @@ def _solve(cam0, free, frame0, obs, loss, f_scale, max_iter, tie=None, scale=Non
     it = 0
     nfev = 1
     for it in range(1, max_iter + 1):  # noqa: B007
-        if scale is None:
-            w = _robust_weights(e, loss, f_scale)
-        else:
-            w = scale**2 * _robust_weights(e * scale, loss, f_scale)
+        w = _irls_weights(e, loss, f_scale, scale)
         Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free, tie)
         improved = False
         for _ in range(12):
@@ -763,11 +761,14 @@ def camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
 def _camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
     cam, fr, obs = result.cam_params, result.frame_params, result.obs.subset(result.inliers)
     C, F = cam.shape[0], fr.shape[0]
-    prob = _Problem(obs, C, F)
+    prob = _Problem(obs, C, F)  # (sorts the observations: prob.order)
     Rc, Rf = rodrigues(cam[:, 9:12]), rodrigues(fr[:, :3])
     r, cache = prob.residuals(cam[:, :9], Rc, cam[:, 12:15], Rf, fr[:, 3:])
     e = np.linalg.norm(r, axis=1)
-    w = result.weights(e, result.inliers)
+    vs = result.view_scale
+    w = _irls_weights(
+        e, result.loss, result.f_scale, None if vs is None else vs[result.inliers][prob.order]
+    )
     Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free)
     S, _rhs, _ = _schur(Hcc, Hff + 1e-12 * np.eye(6), Hcf, gc, gf)
     dof = max(1, 2 * len(obs) - int(free.sum()) - 6 * F)
@@ -813,7 +814,8 @@ def board_point_offsets(
         return out
     uv, _ = project_observations(b.cam_params, b.frame_params, o)
     r = o.uv - uv
-    w = b.weights(np.linalg.norm(r, axis=1), keep)
+    vs = None if b.view_scale is None else b.view_scale[keep]
+    w = _irls_weights(np.linalg.norm(r, axis=1), b.loss, b.f_scale, vs)
     h = 1e-2  # mm; the projection is linear over this
     J = np.zeros((len(o), 2, 2))  # d uv / d (board x, board y)
     for k in range(2):

@@ -64,3 +64,27 @@ def test_noisy_views_count_less():
     # the noisy views got the low weights
     s = w.bundle.view_scale[w.bundle.inliers]
     assert np.median(s) > 0.9 and np.percentile(s, 10) < 0.5
+
+
+def test_view_weights_follow_their_observations_in_any_order():
+    # the solver sorts observations by camera and frame internally: view scales (and the
+    # covariance's weights) must be permuted with them
+    from freipose.calibration.bundle import Observations, bundle_adjust, camera_covariance
+
+    rig = make_circle_rig(3, radius=700.0, height=400.0, distortion=True)
+    dets, _ = board_detections(rig, BOARD.object_points, BOARD.size_mm, 40, noise_px=0.1, seed=1)
+    ba = calibrate_detections(dets, BOARD, CalibrationOptions(refine_board=False)).bundle
+    rng = np.random.default_rng(0)
+    scale = rng.uniform(0.3, 1.0, len(ba.obs))
+    free = np.zeros_like(ba.cam_params, bool)
+    free[1:, 9:] = True
+    perm = rng.permutation(len(ba.obs))
+    o = ba.obs
+    shuffled = Observations(o.cam[perm], o.frame[perm], o.point[perm], o.uv[perm])
+    kw = dict(f_scale=0.2, max_rounds=1)
+    a = bundle_adjust(ba.cam_params, free, ba.frame_params, ba.frames, o, view_scale=scale, **kw)
+    b = bundle_adjust(
+        ba.cam_params, free, ba.frame_params, ba.frames, shuffled, view_scale=scale[perm], **kw
+    )
+    np.testing.assert_allclose(a.cam_params, b.cam_params, atol=1e-6)
+    np.testing.assert_allclose(camera_covariance(a, free), camera_covariance(b, free), rtol=1e-6)
