@@ -52,6 +52,7 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "freipose.pose_checkpoint"
 CHECKPOINT_VERSION = 2
+FUSION_LR_SCALE = 10.0  # learning-rate multiplier of the P1 fusion weights
 # version 1: the 2D heads had one decoder level and the config no ``head_levels``
 
 
@@ -123,9 +124,18 @@ class VoxelPoseNet(nn.Module):
             if cfg.refine
             else None
         )
-        # log of the weight of P0 in the P1 fusion, relative to the views' total confidence
-        # (only with the refinement: an unused parameter would break DDP's gradient reduction)
-        self.prior_log_weight = nn.Parameter(torch.zeros(())) if cfg.refine else None
+        # log of the weight of P0 in the P1 fusion, per keypoint, relative to the views' total
+        # confidence (the refinement helps some keypoints more than others; only with the
+        # refinement: an unused parameter would break DDP's gradient reduction). It learns
+        # FUSION_LR_SCALE times faster than the network (optimizer_groups).
+        self.prior_log_weight = nn.Parameter(torch.zeros(num_keypoints)) if cfg.refine else None
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints of version 2 up to 2026-11-22 hold one weight for all keypoints
+        key = prefix + "prior_log_weight"
+        if self.prior_log_weight is not None and key in state_dict and state_dict[key].ndim == 0:
+            state_dict[key] = state_dict[key].expand(self.num_keypoints).clone()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, batch: Mapping[str, Any]) -> dict[str, Any]:
         cfg = self.cfg
@@ -196,7 +206,7 @@ class VoxelPoseNet(nn.Module):
         # total confidence, so P1 blends the refined views with P0 as far as they agree
         # (the prior is the unjittered P0: the weight learns how far to trust P0 as it is at
         # inference, while the head learns corrections from the jittered one)
-        prior_w = self.prior_log_weight.exp() * conf.sum(1)  # (B, K)
+        prior_w = self.prior_log_weight.exp()[None] * conf.sum(1)  # (B, K)
         P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0.detach(), prior_w + 1e-3)
         out.update(
             P1=P1,
@@ -242,6 +252,20 @@ class BaselineNet(nn.Module):
             "confidence2d": conf,
             "map_logits": maps.reshape(B, V, *maps.shape[1:]),
         }
+
+
+def optimizer_groups(model: nn.Module) -> list[dict[str, Any]]:
+    """Adam parameter groups: the network, and the P1 fusion weights (``prior_log_weight``)
+    whose learning rate is ``FUSION_LR_SCALE`` times the schedule's (``lr_scale``): they are
+    a few scalars that only the P1 loss moves, and the refinement trains for part of the run.
+    """
+    fusion = [p for n, p in model.named_parameters() if n.endswith("prior_log_weight")]
+    ids = {id(p) for p in fusion}
+    rest = [p for p in model.parameters() if id(p) not in ids]
+    groups: list[dict[str, Any]] = [{"params": rest, "lr_scale": 1.0}]
+    if fusion:
+        groups.append({"params": fusion, "lr_scale": FUSION_LR_SCALE})
+    return groups
 
 
 def build_model(cfg: ModelConfig, num_keypoints: int) -> nn.Module:

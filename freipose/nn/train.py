@@ -37,6 +37,7 @@ from freipose.nn.model import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
     build_model,
+    optimizer_groups,
     read_checkpoint,
     serialize_checkpoint,
     state_hash,
@@ -217,7 +218,7 @@ def train_pose(
             ev = ev[np.linspace(0, len(ev) - 1, sched.eval_samples).round().astype(int)]
     torch.manual_seed(sched.seed)
     model = build_model(mcfg, nk).to(dev)
-    opt = torch.optim.Adam(model.parameters(), lr=sched.lr)
+    opt = torch.optim.Adam(optimizer_groups(model), lr=sched.lr)
     start = 0
     if resume:
         ckpt = read_checkpoint(ckpt_path)
@@ -237,6 +238,14 @@ def train_pose(
                 f"{ckpt_path}: schedule.seed and schedule.batch_size must not change on resume"
             )
         model.load_state_dict(ckpt["model"])
+        groups = ckpt["optimizer"]["param_groups"]
+        if len(groups) != len(opt.param_groups) or any("lr_scale" not in g for g in groups):
+            raise ValueError(
+                f"{ckpt_path}: the checkpoint was written by an older FreiPose (its optimizer "
+                f"has {len(groups)} parameter group(s) without learning-rate scales, this "
+                f"version uses {len(opt.param_groups)}); it cannot be resumed: start a new run "
+                "in another folder (its model.pt still works for eval and predict)"
+            )
         opt.load_state_dict(ckpt["optimizer"])
         start = int(ckpt["step"])
         _set_rng_state(ckpt["rng"])
@@ -301,7 +310,7 @@ def train_pose(
     for step, batch in zip(range(start, sched.steps), loader):
         lr = sched.lr_at(step)
         for g in opt.param_groups:
-            g["lr"] = lr
+            g["lr"] = lr * g["lr_scale"]
         net.train()
         b = to_device(batch, dev)
         with torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=amp):

@@ -137,6 +137,40 @@ def test_checkpoint_hash_and_predict_batch(tmp_path):
         read_checkpoint(tmp_path / "trunc.pt")
 
 
+def test_fusion_weights_per_keypoint_learn_faster_and_old_checkpoints_load(tmp_path):
+    from dataclasses import replace
+
+    from freipose.nn.model import FUSION_LR_SCALE, optimizer_groups, serialize_checkpoint
+
+    src = toy_samples(3)
+    cfg = _cfg(steps=4, refine_start=0.0, lr=1e-3)
+    path = train_pose(cfg, tmp_path / "run", src, toy_skeleton(), progress=False)
+    model, _, _ = load_checkpoint(path)
+    w = model.prior_log_weight.detach()
+    assert w.shape == (5,)  # one P0 weight per keypoint
+    # 4 Adam steps move a parameter by at most ~4 lr; the fusion weights move further
+    assert 4 * 1e-3 < float(w.abs().max()) <= 4 * 1e-3 * FUSION_LR_SCALE * 1.01
+    groups = optimizer_groups(model)
+    assert [g["lr_scale"] for g in groups] == [1.0, FUSION_LR_SCALE]
+    assert sum(len(g["params"]) for g in groups) == len(list(model.parameters()))
+    assert len(optimizer_groups(build_model(replace(cfg.model, kind="baseline"), 5))) == 1
+    # a checkpoint with one weight for all keypoints (before 2026-11-22) still loads
+    ck = torch.load(path, weights_only=False)
+    ck["model"]["prior_log_weight"] = torch.tensor(0.5)
+    model.load_state_dict(ck["model"])
+    torch.testing.assert_close(model.prior_log_weight.detach(), torch.full((5,), 0.5))
+    # ... but its optimizer state cannot be resumed
+    ck = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    ck["optimizer"]["param_groups"] = ck["optimizer"]["param_groups"][:1]
+    for g in ck["optimizer"]["param_groups"]:
+        del g["lr_scale"]
+    ck["step"] = 2
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "checkpoint.pt").write_bytes(serialize_checkpoint(ck))
+    with pytest.raises(ValueError, match="older FreiPose.*cannot be resumed"):
+        train_pose(cfg, tmp_path / "old", src, toy_skeleton(), progress=False, resume=True)
+
+
 def test_config_validation(tmp_path):
     with pytest.raises(ConfigError, match="model.preset"):
         config_from_dict({"model": {"preset": "huge"}})
