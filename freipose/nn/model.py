@@ -1,12 +1,14 @@
 """The FreiPose voxel network, the triangulation baseline, checkpoints and batch prediction.
 
 :class:`VoxelPoseNet` (Section 5.3 of the method): a shared 2D encoder per view crop,
-unprojection of the features into a voxel cube around the animal (mean over the views that
+unprojection of the features (optionally raised to a finer stride with the encoder's skip
+maps, ``unproject_levels``) into a voxel cube around the animal (mean over the views that
 see each voxel), a 3D U-Net giving one score volume per keypoint, soft-argmax to the
 initial pose P0 (world mm), then a 2D refinement head per view (features + Gaussian heat
 maps of the projected P0) whose refined 2D points and per-view confidences are fused into
 P1 by confidence-weighted triangulation anchored to P0 (P0 counts with a learnt multiple of
-the views' total confidence, so P1 moves from P0 only as far as the refined views agree).
+the views' total confidence, one per keypoint, so P1 moves from P0 only as far as the refined
+views agree and the refinement has earned for that keypoint).
 The refinement is residual: its map logits are added to a Gaussian log-prior around the
 projected P0, so an untrained head reproduces P0 and training learns corrections; with a
 single view the fusion keeps P0's depth (eq. 5.3).
