@@ -42,11 +42,13 @@ class ModelConfig:
         norm: ``"group"``, ``"batch"`` or ``"none"`` (the original had none).
         grid_size: voxels per cube edge (64 in the paper).
         cube_size: distance in mm between the outermost voxel centres (400 in the paper).
-        crop_fraction: each view's crop encloses the projection of a cube of ``crop_fraction *
-            cube_size`` around the centre (1: the whole voxel cube, as in the paper). Below 1
-            the crops spend their pixels on the middle of the cube where the animal is; voxels
-            outside a view's crop do not count for that view (the unprojection's validity
-            mask).
+        crop_fraction: the voxel network's crops enclose the projection of a cube of
+            ``crop_fraction * cube_size`` around the centre (1: the whole voxel cube, as in the
+            paper). Below 1 the crops spend their pixels on the middle of the cube where the
+            animal is; voxels outside a view's crop do not count for that view (the
+            unprojection's validity mask), and the other views cover them. The baseline always
+            crops the whole cube (:meth:`crop_cube`): it has no other view to fall back on for a
+            keypoint outside a crop.
         unet_channels: channels of the 3D U-Net encoder levels (each halves the grid).
         deep_supervision: decode and supervise one volume per U-Net decoder level.
         refine: use the 2D refinement head (P1); otherwise P1 = P0.
@@ -143,6 +145,11 @@ class ModelConfig:
     def stride(self) -> int:
         """Feature stride: crop pixels per feature pixel."""
         return 2**self.encoder_pools
+
+    @property
+    def crop_cube(self) -> float:
+        """Edge (mm) of the cube whose projection each crop encloses."""
+        return self.cube_size * (self.crop_fraction if self.kind == "voxel" else 1.0)
 
     @property
     def map_stride(self) -> float:

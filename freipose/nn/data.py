@@ -145,7 +145,7 @@ def prepare_sample(
     images = sample.get("images") or []
     if images and len(images) != V:
         raise SampleError(f"sample has {len(images)} images for {V} cameras")
-    boxes = cube_crop_boxes(rig, center, model.cube_size * model.crop_fraction)  # (V, 4)
+    boxes = cube_crop_boxes(rig, center, model.crop_cube)  # (V, 4)
     out_img = np.zeros((V, 3, S, S), np.float32)
     Ks = np.tile(np.eye(3), (V, 1, 1))
     affines = np.tile(np.eye(3), (V, 1, 1))

@@ -64,18 +64,21 @@ def test_crop_fraction_crops_the_middle_of_the_cube():
 
     cfg = config_from_dict({"model": {"preset": "small", "crop_size": 64}}).model
     s = toy_samples(1, cams=3)[0]
-    for frac in (1.0, 0.6):
-        p = prepare_sample(s, replace(cfg, crop_fraction=frac))
+    # (the baseline always crops the whole cube: it has no other view for a keypoint outside)
+    for frac, kind, cube in ((1.0, "voxel", 1.0), (0.6, "voxel", 0.6), (0.6, "baseline", 1.0)):
+        p = prepare_sample(s, replace(cfg, crop_fraction=frac, kind=kind))
         b = collate_prepared([p])
         # the corners of the crop_fraction cube project onto the crop's edges
         corners = torch.tensor(
             [[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=torch.float32
-        ) * (0.5 * frac * cfg.cube_size) + torch.tensor(p["center"], dtype=torch.float32)
+        ) * (0.5 * cube * cfg.cube_size) + torch.tensor(p["center"], dtype=torch.float32)
         pts = torch.cat([corners, torch.tensor(p["center"], dtype=torch.float32)[None]])
         uv, _ = project_affine(pts[None], b["K"], b["R"], b["t"], b["dist"])
         half = (uv[0, :, :8] - uv[0, :, 8:]).abs().amax(dim=(1, 2))  # (V,)
         torch.testing.assert_close(half, torch.full((3,), 32.0), atol=0.05, rtol=0)
-    # with 0.6 the whole cube's corner voxels fall outside the crops
+    # with 0.6 the whole cube's corner voxels fall outside the voxel network's crops
+    p = prepare_sample(s, replace(cfg, crop_fraction=0.6))
+    b = collate_prepared([p])
     outer = voxel_offsets(8, cfg.cube_size)[:1] + torch.tensor(p["center"], dtype=torch.float32)
     uv, _ = project_affine(outer[None], b["K"], b["R"], b["t"], b["dist"])
     assert not torch.all((uv >= -0.5) & (uv <= 63.5))
