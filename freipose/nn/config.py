@@ -311,10 +311,13 @@ PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
             unet_channels=(16, 32, 32),
             refine_channels=32,
             head_levels=2,
+            unproject_levels=1,
+            crop_fraction=0.6,
             heatmap_sigma=1.5,
         ),
         dict(
             steps=3000,
+            refine_start=0.2,
             batch_size=2,
             lr=1e-3,
             lr_decay_steps=2000,
