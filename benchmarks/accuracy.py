@@ -24,16 +24,38 @@ idle core, each sweep setting 5-10 minutes at 600 steps)::
     python benchmarks/accuracy.py --out bench/accuracy --preset small --steps 1500
     python benchmarks/accuracy.py --out bench/sweeps --steps 600 --experiments cameras,fraction
 
-Measured (``small`` preset, 1500 steps x batch 2, CPU, one thread of a shared 2-core machine;
-3 training sessions of 100 instants, held-out session of 60 instants): median JPE voxel P0
-5.30 mm, voxel P1 4.96 mm, baseline 6.84 mm, i.e. P1 / baseline 0.725 (the paper's 0.58 is
-not reached at this budget) and P1 / P0 0.936. The paws dominate both methods' errors
-(10-15 mm); head keypoints are 2-4 mm. The sweeps at 600 steps (one subset / draw per setting;
-median JPE voxel P1 vs baseline, mm): cameras 1: 20.1 vs - (cannot triangulate), 2: 12.6 vs
-21.2, 3: 11.7 vs 22.5, 4: 8.9 vs 18.3, 5: 8.3 vs 16.7, 6: 8.8 vs 16.4; labeled fraction 10 %:
-8.9 vs 14.9, 20 %: 9.8 vs 15.8, 30 %: 8.3 vs 14.9, 60 %: 7.6 vs 19.3, 80 %: 7.2 vs 16.3,
-100 %: 8.1 vs 18.7. At 600 steps the baseline is under-trained (6.84 mm at 1500 steps), so
-these ratios (~0.5) flatter the voxel network; one draw per setting makes them noisy.
+Measured 2026-11-22 (``small`` preset: stride-4 unprojected features, crops of the middle
+60 % of the cube, refinement trained from 20 % of the steps, P0 fusion weight per keypoint;
+1500 steps x batch 2, CPU, one thread of the 2-core machine with another training on the
+other core; 3 training sessions of 100 instants, held-out session of 60 instants with another
+seed and camera layout), ``python benchmarks/accuracy.py --steps 1500 --experiments main``:
+
+    training seed 0: voxel P0 4.25 mm, P1 3.90 mm [30 %: 2.50, 70 %: 6.20]; baseline 6.84 mm
+                     [4.13, 12.69]: P1 / baseline 0.570, P1 / P0 0.917
+    training seed 1 (``--set schedule.seed=1``): P0 5.00, P1 3.93 [2.51, 6.53]; baseline
+                     7.53 [4.38, 14.59]: P1 / baseline 0.522 (0.574 against seed 0's
+                     baseline), P1 / P0 0.785
+
+The voxel network beats the baseline on every keypoint (paws 4.5-8.4 mm vs 9.5-21 mm, head
+2-3 mm vs 2-4 mm). What each change did (seed 0, same data, same baseline 6.84 mm; P0 / P1):
+the previous preset 5.30 / 4.96; stride-4 unprojected features 4.63 / 4.99 (the refinement,
+trained for only the last half, then made P1 worse than P0); refinement from 20 % of the
+steps 4.57 / 4.63; crops of the middle 70 % of the cube 4.58 / 4.19, with per-keypoint fusion
+weights 4.44 / 4.09 (seed 1: 4.48 / 4.01); middle 60 % 4.25 / 3.90. The baseline crops the
+whole cube (with 70 % crops it got worse: 7.88 mm, keypoints outside a crop are lost to it).
+
+The sweeps were measured with the previous preset at 600 steps (one subset / draw per
+setting; median JPE voxel P1 vs baseline, mm): cameras 1: 20.1 vs - (cannot triangulate), 2:
+12.6 vs 21.2, 3: 11.7 vs 22.5, 4: 8.9 vs 18.3, 5: 8.3 vs 16.7, 6: 8.8 vs 16.4; labeled
+fraction 10 %: 8.9 vs 14.9, 20 %: 9.8 vs 15.8, 30 %: 8.3 vs 14.9, 60 %: 7.6 vs 19.3, 80 %: 7.2
+vs 16.3, 100 %: 8.1 vs 18.7. At 600 steps the baseline is under-trained (6.84 mm at 1500
+steps), so these ratios (~0.5) flatter the voxel network; one draw per setting makes them
+noisy. With one or two cameras, consider ``--set model.crop_fraction=1``: a keypoint outside
+a view's crop then has no other view to cover it.
+
+``--set TABLE.KEY=VALUE`` overrides the preset (as above); ``--kinds voxel`` and ``--kinds
+baseline`` in two processes on the same ``--out`` use two cores, a third run with both
+compares (trained models are reused).
 """
 
 from __future__ import annotations
