@@ -33,10 +33,10 @@ error ratios 2.4 centre, 3.2 rotation, 2.7 focal; the closest: seed 6's focal le
 5). A second idle run gave the same errors and wall ratios 5.8, 4.92, 6.8, 7.9, 26.9, 6.2
 (seed 2: FreiPose 2.2 s, aniposelib 10.7 s): the 5x target holds on five seeds and sits at
 the edge on seed 2 (4.9-5.2x). FreiPose's time is detection (1.0-1.9 s for 600 frames in 2
-processes) and the solver
-(0.5-0.9 s: intrinsics, bundle adjustment with view weights, model selection and board-point
-correction); aniposelib's detection takes 10-15 s and its solver 2-5 s. aniposelib's own time
-on the same videos varies between runs (seed 1: 8.7 s in an earlier run, 17.8 s here).
+processes) and the solver (0.5-0.9 s: intrinsics, bundle adjustment with view weights, model
+selection and board-point correction); aniposelib's detection takes 9-15 s and its solver 2-5
+s. aniposelib's own time on the same videos varies between runs (seed 1: 8.7 s in an earlier
+run, 17.8 s in the first run here, 14.3 s in the second).
 
 What the per-view weights changed (same detections, solver only; before -> after, maximum
 over cameras): seed 5 centre 0.177 -> 0.132 mm, rotation 0.022 -> 0.015 deg, focal 0.055 ->
