@@ -59,6 +59,8 @@ def rodrigues(r: np.ndarray) -> np.ndarray:
 
 
 MIN_F_SCALE = 0.05  # px: floor of the estimated robust-loss scale
+# median of the norm of isotropic 2D Gaussian noise of σ per axis (Rayleigh): σ √(2 ln 2)
+RAYLEIGH_MEDIAN = float(np.sqrt(2 * np.log(2)))
 # Levenberg-Marquardt stops when a step lowers the cost by less than this fraction: the cost
 # is ~σ² per residual, and moving a parameter by one standard error changes it by ~σ², i.e.
 # ~1 / (2 N) of it (1e-4 for 5000 detections), 100 times more than this tolerance
@@ -92,7 +94,7 @@ def noise_sigma(errors: np.ndarray) -> float:
     e = e[np.isfinite(e)]
     if e.size == 0:
         return float("nan")
-    return float(np.median(e) / np.sqrt(2 * np.log(2)))
+    return float(np.median(e) / RAYLEIGH_MEDIAN)
 
 
 def matrix_to_rvec(R: np.ndarray) -> np.ndarray:
@@ -227,7 +229,7 @@ def view_noise_scales(
     es = eu[order]
     med = np.zeros(len(uniq))
     med[has] = 0.5 * (es[lo[has]] + es[np.minimum(hi[has], len(es) - 1)])
-    sv2 = (med / np.sqrt(2 * np.log(2))) ** 2
+    sv2 = (med / RAYLEIGH_MEDIAN) ** 2
     sv2 = (counts * sv2 + prior_count * sigma**2) / np.maximum(counts + prior_count, 1e-12)
     scale = np.clip(sigma / np.sqrt(np.maximum(sv2, 1e-24)), 0.25, MAX_VIEW_SCALE)
     scale[~has] = 1.0

@@ -220,14 +220,20 @@ def detect_image(image: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarra
     raise TypeError(f"unsupported board {type(board).__name__}")
 
 
+def _box_spacing(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Bounding box ``(lo (2,), hi (2,))`` of points (M, 2) px and their typical spacing (px):
+    the side of the box's area shared out among the points."""
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    ext = hi - lo
+    return lo, hi, float(np.sqrt(max(ext[0] * ext[1], 1.0) / len(pts)))
+
+
 def _track_window(prev: np.ndarray, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
     """Search window ``(x0, y0, x1, y1)`` around the previous frame's points (M, 2): their box
     grown by 30 % of its size plus two point spacings and 16 px on each side (the board's
     motion between frames), clipped to the image."""
-    lo, hi = prev.min(axis=0), prev.max(axis=0)
-    ext = hi - lo
-    spacing = float(np.sqrt(max(ext[0] * ext[1], 1.0) / len(prev)))
-    m = TRACK_GROW * float(ext.max()) + 2 * spacing + 16
+    lo, hi, spacing = _box_spacing(prev)
+    m = TRACK_GROW * float((hi - lo).max()) + 2 * spacing + 16
     h, w = shape[:2]
     x0, y0 = int(max(0, lo[0] - m)), int(max(0, lo[1] - m))
     x1, y1 = int(min(w, np.ceil(hi[0] + m) + 1)), int(min(h, np.ceil(hi[1] + m) + 1))
@@ -240,9 +246,8 @@ def _clear_of_window_edges(
     """Whether the points found in the window (image px) stay clear of the window's edges that
     are not image edges: a board point further out would have been cut off (with its marker),
     so the window's result is complete only then."""
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    ext = hi - lo
-    guard = 1.5 * float(np.sqrt(max(ext[0] * ext[1], 1.0) / len(pts))) + 5
+    lo, hi, spacing = _box_spacing(pts)
+    guard = 1.5 * spacing + 5
     x0, y0, x1, y1 = win
     h, w = shape[:2]
     return bool(

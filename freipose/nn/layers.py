@@ -286,6 +286,35 @@ def gaussian_log_prior(uv: torch.Tensor, size: int, stride: float, sigma: float)
     return -(dy[..., :, None] + dx[..., None, :]) / (2 * sigma**2)
 
 
+def _skip_decoder(
+    c_in: int, channels: list[int], skip_ch: tuple[int, ...], norm: str
+) -> tuple[nn.ModuleList, nn.ModuleList, nn.ModuleList]:
+    """Layers of ``len(channels)`` decoder steps (:func:`_skip_decode`): stride-2 transposed
+    convs, 1x1 convs of the encoder's skip maps, 3x3 fusing convs; step ``i`` has
+    ``channels[i]`` channels and takes ``skip_ch[i]`` skip channels."""
+    ups, skips, fuses = [], [], []
+    c_prev = c_in
+    for c, cs in zip(channels, skip_ch):
+        ups.append(nn.ConvTranspose2d(c_prev, c, 4, stride=2, padding=1))
+        skips.append(conv2d(cs, c, 1, norm, "lrelu"))
+        fuses.append(conv2d(2 * c, c, 3, norm, "lrelu"))
+        c_prev = c
+    return nn.ModuleList(ups), nn.ModuleList(skips), nn.ModuleList(fuses)
+
+
+def _skip_decode(
+    x: torch.Tensor,
+    ups: nn.ModuleList,
+    skips: nn.ModuleList,
+    fuses: nn.ModuleList,
+    skip_maps: list[torch.Tensor],
+) -> torch.Tensor:
+    """Each step doubles the resolution of ``x`` and fuses the skip map of that scale."""
+    for up, skip, fuse, s in zip(ups, skips, fuses, skip_maps):
+        x = fuse(torch.cat([F.leaky_relu(up(x), 0.1), skip(s)], dim=1))
+    return x
+
+
 class Head2D(nn.Module):
     """Per-view 2D keypoint head: maps ``levels`` octaves finer than the features, and
     confidences.
@@ -316,29 +345,16 @@ class Head2D(nn.Module):
             conv2d(ch, ch, 3, norm, "lrelu"),
             conv2d(ch, ch, 3, norm, "lrelu"),
         )
-        ups, skips, fuses = [], [], []
-        c_prev = ch
-        for lvl in range(levels):
-            c = max(ch // 2 ** (lvl + 1), 4)
-            ups.append(nn.ConvTranspose2d(c_prev, c, 4, stride=2, padding=1))
-            skips.append(conv2d(skip_ch[lvl], c, 1, norm, "lrelu"))
-            fuses.append(conv2d(2 * c, c, 3, norm, "lrelu"))
-            c_prev = c
-        self.ups, self.skips, self.fuses = (
-            nn.ModuleList(ups),
-            nn.ModuleList(skips),
-            nn.ModuleList(fuses),
-        )
-        self.maps = nn.Conv2d(c_prev, k, 1, bias=False)
-        self.conf = nn.Conv2d(c_prev, k, 1)
+        channels = [max(ch // 2 ** (lvl + 1), 4) for lvl in range(levels)]
+        self.ups, self.skips, self.fuses = _skip_decoder(ch, channels, skip_ch, norm)
+        self.maps = nn.Conv2d(channels[-1], k, 1, bias=False)
+        self.conf = nn.Conv2d(channels[-1], k, 1)
 
     def forward(
         self, feat: torch.Tensor, skips: list[torch.Tensor], heat: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         x = feat if heat is None else torch.cat([feat, heat.to(feat.dtype)], dim=1)
-        x = self.base(x)
-        for up, skip, fuse, s in zip(self.ups, self.skips, self.fuses, skips):
-            x = fuse(torch.cat([F.leaky_relu(up(x), 0.1), skip(s)], dim=1))
+        x = _skip_decode(self.base(x), self.ups, self.skips, self.fuses, skips)
         return self.maps(x), self.conf(x)
 
 
@@ -354,17 +370,10 @@ class FeatureDecoder(nn.Module):
         super().__init__()
         if not 1 <= levels <= len(skip_ch):
             raise ValueError(f"FeatureDecoder: levels must be in 1..{len(skip_ch)}, got {levels}")
-        self.ups = nn.ModuleList(
-            nn.ConvTranspose2d(ch, ch, 4, stride=2, padding=1) for _ in range(levels)
-        )
-        self.skips = nn.ModuleList(conv2d(skip_ch[i], ch, 1, norm, "lrelu") for i in range(levels))
-        self.fuses = nn.ModuleList(conv2d(2 * ch, ch, 3, norm, "lrelu") for _ in range(levels))
+        self.ups, self.skips, self.fuses = _skip_decoder(ch, [ch] * levels, skip_ch, norm)
 
     def forward(self, feat: torch.Tensor, skips: list[torch.Tensor]) -> torch.Tensor:
-        x = feat
-        for up, skip, fuse, s in zip(self.ups, self.skips, self.fuses, skips):
-            x = fuse(torch.cat([F.leaky_relu(up(x), 0.1), skip(s)], dim=1))
-        return x
+        return _skip_decode(feat, self.ups, self.skips, self.fuses, skips)
 
 
 def decode_head(
