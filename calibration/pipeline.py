@@ -478,6 +478,7 @@ def calibrate_detections(
         "reprojection_rms_px": round(rms_all, 4),
         "distortion_model": opt.dist_model,
         "intrinsics_model": models,
+        "view_weights": bool(opt.view_weights),
     }
     if opt.refine_board:
         metadata["board_point_corrections_rms_mm"] = round(offsets_rms, 4)

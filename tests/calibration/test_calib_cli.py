@@ -168,6 +168,7 @@ def test_stereo_cli_with_report(tmp_path, shared_data):
             "--aspect",
             "square",
             "--no-refine-board",
+            "--no-view-weights",
         ]
     )
     assert code == 0, text
@@ -177,6 +178,7 @@ def test_stereo_cli_with_report(tmp_path, shared_data):
     assert all(c.K[0, 0] == c.K[1, 1] for c in rig)
     assert rig.metadata["intrinsics_model"]["left"]["focal"] == "fx = fy"
     assert "board_point_corrections_rms_mm" not in rig.metadata
+    assert rig.metadata["view_weights"] is False
     assert abs(np.linalg.norm(rig["right"].center) - 99.8) < 1.5
     summary = json.loads((tmp_path / "rep" / "summary.json").read_text())
     assert summary["cameras"]["left"]["frames_with_detections"] == 8

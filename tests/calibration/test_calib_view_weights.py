@@ -54,6 +54,7 @@ def test_noisy_views_count_less():
     w = calibrate_detections(noisy, BOARD, CalibrationOptions(**opts))
     u = calibrate_detections(noisy, BOARD, CalibrationOptions(view_weights=False, **opts))
     assert w.bundle.view_scale is not None and u.bundle.view_scale is None
+    assert w.rig.metadata["view_weights"] is True and u.rig.metadata["view_weights"] is False
     dc_w, rot_w, fe_w = rig_errors(w.rig, rig)
     dc_u, rot_u, fe_u = rig_errors(u.rig, rig)
     # RMS over cameras, measured: centres 0.17 vs 0.27 mm, rotations 0.013 vs 0.027 deg,
