@@ -218,8 +218,8 @@ def main(argv: list[str] | None = None) -> int:
         "--kinds",
         default="voxel,baseline",
         help="networks to train (comma separated): run one process with voxel and one with "
-        "baseline on the same --out to use two machines' worth of cores, then once more with "
-        "both to print the comparison (trained models are reused)",
+        "baseline on the same --out to use two cores, then once more with both to print the "
+        "comparison (trained models are reused)",
     )
     ap.add_argument(
         "--set",
@@ -236,19 +236,10 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from freipose.io.labels import read_labels_h5
-    from freipose.nn.config import config_from_dict
+    from freipose.nn.config import ConfigError, config_from_dict
     from freipose.nn.evaluate import write_report
 
     torch.set_num_threads(torch_threads)
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    logf = (out / "log.txt").open("a")
-
-    def log(msg: str) -> None:
-        print(msg, flush=True)
-        logf.write(msg + "\n")
-        logf.flush()
-
     model_over = {"preset": args.preset}
     if args.cube_size:
         model_over["cube_size"] = args.cube_size
@@ -265,9 +256,31 @@ def main(argv: list[str] | None = None) -> int:
         table, dot, name = key.strip().partition(".")
         if not sep or not dot or table not in ("model", "schedule"):
             ap.error(f"--set expects model.KEY=VALUE or schedule.KEY=VALUE, got {item!r}")
-        parsed = tomllib.loads(f"v = {value.strip()}")["v"]
+        try:
+            parsed = tomllib.loads(f"v = {value.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            ap.error(
+                f"--set {item!r}: the value is not a TOML value (numbers, true/false, "
+                f"quoted strings, [lists]), e.g. --set model.norm='\"batch\"'"
+            )
         (model_over if table == "model" else sched)[name] = parsed
-    base_cfg = config_from_dict({"model": model_over, "schedule": sched})
+    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
+    if not kinds or not kinds <= {"voxel", "baseline"}:
+        ap.error(f"--kinds takes voxel and/or baseline, got {args.kinds!r}")
+    try:
+        base_cfg = config_from_dict({"model": model_over, "schedule": sched})
+    except ConfigError as exc:
+        ap.error(f"--set: {exc}")
+    # the arguments are valid: only now the output folder
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    logf = (out / "log.txt").open("a")
+
+    def log(msg: str) -> None:
+        print(msg, flush=True)
+        logf.write(msg + "\n")
+        logf.flush()
+
     log(
         f"preset {args.preset}, {args.steps} steps x batch {args.batch_size}, "
         f"device {args.device}, "
@@ -286,9 +299,6 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {"config": vars(args) | {"out": str(out)}, "experiments": {}}
     exps = [e.strip() for e in args.experiments.split(",") if e.strip()]
     all_idx = np.arange(len(train_lab))
-    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
-    if not kinds or not kinds <= {"voxel", "baseline"}:
-        ap.error(f"--kinds takes voxel and/or baseline, got {args.kinds!r}")
     nan3 = (float("nan"),) * 3
     if "main" in exps:
         res = run_pair(
