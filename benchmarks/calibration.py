@@ -142,6 +142,8 @@ def run_aniposelib(videos, board, seed: int):
         dict_size=size,
     )
     names = [Path(v).stem for v in videos]
+    # aniposelib at its defaults: OpenCV's thread pool over all CPUs (its detection uses it)
+    cv2.setNumThreads(-1)
     cg = CameraGroup.from_names(names, fisheye=False)
     vids = [[str(v)] for v in videos]
     np.random.seed(seed)
@@ -179,7 +181,7 @@ def bench_seed(args, seed: int, work: Path) -> dict:
     print(
         f"\nseed {seed}: {args.cameras} x {args.frames} frames {args.width}x"
         f"{args.width * 3 // 4} {args.format} (rendered in {time.perf_counter() - t0:.1f} s); "
-        f"FreiPose detection processes: {jobs}"
+        f"FreiPose detection processes: {jobs}; aniposelib: OpenCV's default thread pool"
     )
     videos = [vids[n] for n in rig.names]
     rows = {}

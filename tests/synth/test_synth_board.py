@@ -66,12 +66,22 @@ def test_rendered_charuco_is_detected_at_the_true_corners():
 
 
 def test_write_board_videos(tmp_path):
+    import cv2
+
     board = default_board()
     rig = CameraRig(tuple(
         Camera.look_at(f"c{i}", (600 * np.cos(a), 600 * np.sin(a), 700), (0, 0, 50), (96, 80), 90.0)
         for i, a in enumerate((0.3, 2.5))
     ))  # fmt: skip
-    videos, poses = write_board_videos(tmp_path, rig, board, 3, seed=2, fmt=".mkv")
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(3)
+    try:
+        videos, poses = write_board_videos(tmp_path, rig, board, 3, seed=2, fmt=".mkv")
+        # rendered in this process with one OpenCV thread; the caller's setting is given back
+        # (it once stayed at 1, which slowed down what ran next: aniposelib in the benchmark)
+        assert cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(threads)
     assert sorted(videos) == ["c0", "c1"] and poses.shape == (3, 4, 4)
     assert load_board(tmp_path / "board.toml") == board
     np.testing.assert_array_equal(np.load(tmp_path / "board_poses.npy"), poses)
