@@ -8,7 +8,7 @@ import pytest
 
 def test_two_threshold_windows_match_default_detection():
     cv2 = pytest.importorskip("cv2")
-    from freipose.calibration.detect import CHARUCO_THRESH_WIN_MAX, detect_image
+    from freipose.calibration.detect import CHARUCO_THRESH_WINDOWS, detect_image
     from freipose.geometry import CameraRig, project
     from freipose.synth.board import board_poses, default_board, render_board_frames
     from freipose.synth.rig import default_rig
@@ -21,7 +21,7 @@ def test_two_threshold_windows_match_default_detection():
     cp = cv2.aruco.CharucoParameters()
     cp.minMarkers = 2
     dp = cv2.aruco.DetectorParameters()  # OpenCV's default windows 3, 13, 23 px
-    assert dp.adaptiveThreshWinSizeMax > CHARUCO_THRESH_WIN_MAX
+    assert dp.adaptiveThreshWinSizeMax > CHARUCO_THRESH_WINDOWS[1]
     reference = cv2.aruco.CharucoDetector(board.cv_board(), cp, dp)
     n_ours = n_ref = 0
     errors = []
