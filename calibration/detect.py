@@ -38,6 +38,9 @@ __all__ = [
 
 CACHE_VERSION = 3  # 2: ChArUco markers from two threshold windows; 3: fast search in videos
 PROGRESS_EVERY = 10  # frames between progress messages of a worker
+# frames per detection chunk: a chunk is one sequential decode (one seek), handed to whichever
+# process is free; ~100 frames keep two to a few dozen processes busy to the end
+CHUNK_FRAMES = 100
 CHARUCO_THRESH_WINDOWS = (3, 13)  # px, smallest and largest adaptive-threshold window (ChArUco)
 CHARUCO_FAST_WINDOW = 3  # px, the one threshold window of the fast search in videos
 EXPECTED_MARGIN = 4.0  # px: a marker counts as expected when predicted this far inside
@@ -441,22 +444,21 @@ def _detect_chunk(
     return start, out
 
 
-def plan_chunks(frames: Sequence[int], jobs: int) -> list[tuple[int, int, int]]:
-    """Split cameras with ``frames[c]`` frames into contiguous ``(camera, start, stop)`` chunks.
+def plan_chunks(
+    frames: Sequence[int], chunk_frames: int = CHUNK_FRAMES
+) -> list[tuple[int, int, int]]:
+    """Split cameras with ``frames[c]`` frames into contiguous ``(camera, start, stop)`` chunks
+    of at most ``chunk_frames`` frames, of equal length within a camera (to one frame).
 
-    Each chunk is decoded sequentially (a seek costs OpenCV about 16 decoded frames), so there
-    are as few chunks as keep ``jobs`` processes busy: about ``total / jobs`` frames each, cut
-    at camera boundaries and split evenly within a camera.
+    Each chunk is decoded sequentially (a seek costs OpenCV about 16 decoded frames) and
+    tracks the board from its first frame on; the chunks do not depend on the number of
+    processes, so neither do the detections. Returned longest first.
     """
-    total = int(sum(frames))
-    if total == 0:
-        return []
-    target = max(1, -(-total // max(1, int(jobs))))
     out = []
     for ci, n in enumerate(frames):
         if n <= 0:
             continue
-        pieces = max(1, round(n / target))
+        pieces = -(-int(n) // max(1, int(chunk_frames)))
         edges = np.linspace(0, n, pieces + 1).round().astype(int)
         out.extend((ci, int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a)
     # longest first, so that the last chunks to finish are short
@@ -512,10 +514,11 @@ def detect_cameras(
 ) -> list[CameraDetections]:
     """Detect the board in every frame of every camera (video files or image folders).
 
-    Frames are split into a few contiguous chunks (see :func:`plan_chunks`; every frame is
-    decoded once) that run in ``jobs`` worker processes with one OpenCV thread each (default:
-    the CPU count; ``1`` runs in this process). Results are cached in ``cache_dir`` keyed by
-    video and board hash, so a second call with the same inputs does not re-detect.
+    Frames are split into contiguous chunks (see :func:`plan_chunks`; every frame is decoded
+    once) that run in ``jobs`` processes, this one and ``jobs - 1`` workers, with one
+    OpenCV thread each (default: the CPU count; ``1``: this process only). Results are cached
+    in ``cache_dir`` keyed by video and board hash, so a second call with the same inputs does
+    not re-detect.
 
     Returns:
         one :class:`CameraDetections` per source, in order.
@@ -547,7 +550,7 @@ def detect_cameras(
         todo_frames[ci] = n
     if jobs is None:
         jobs = os.cpu_count() or 1
-    todo = plan_chunks(todo_frames, max(1, int(jobs)))
+    todo = plan_chunks(todo_frames)
     total = sum(b - a for _, a, b in todo)
     jobs = max(1, min(int(jobs), len(todo) or 1))
     bar = tqdm(
@@ -584,13 +587,31 @@ class _BarTicks:
 
 
 def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
-    """Run ``todo`` chunks in ``jobs`` processes, filling ``results`` and advancing ``bar``."""
+    """Run ``todo`` chunks in this process and ``jobs - 1`` worker processes, filling
+    ``results`` and advancing ``bar``.
+
+    The chunks are handed out one at a time, to whichever process is free: this process
+    starts at once, while the workers start (~0.2 s: a fresh interpreter importing OpenCV)."""
     import multiprocessing as mp
     import queue as queue_mod
-    from concurrent.futures import FIRST_COMPLETED, wait
+    import threading
+    from collections import deque
+
+    import cv2
 
     manager = mp.get_context("spawn").Manager() if not bar.disable else None
     ticks = manager.Queue() if manager is not None else None
+    pending = deque(todo)
+    lock = threading.Lock()
+    errors: list[BaseException] = []
+
+    def take() -> tuple[int, int, int] | None:
+        with lock:
+            return pending.popleft() if pending else None
+
+    def stop() -> None:
+        with lock:
+            pending.clear()
 
     def drain() -> None:
         while ticks is not None:
@@ -598,6 +619,24 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
                 bar.update(ticks.get_nowait())
             except queue_mod.Empty:
                 return
+
+    class _MainTicks:
+        """This process's progress: its own frames, and the workers' reported so far."""
+
+        def put(self, n: int) -> None:
+            bar.update(n)
+            drain()
+
+    def feed(ex: ProcessPoolExecutor) -> None:
+        """Keep one worker busy: submit the next chunk when it has finished the last."""
+        try:
+            while (chunk := take()) is not None:
+                ci, a, b = chunk
+                _, pts = ex.submit(_detect_chunk, str(sources[ci]), board, a, b, ticks).result()
+                results[ci][a:b] = pts
+        except BaseException as e:  # re-raised in the main thread
+            errors.append(e)
+            stop()
 
     try:
         # forkserver: workers start from a clean process (forking a process whose OpenCV or
@@ -608,20 +647,33 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
             ctx.set_forkserver_preload([__name__, "cv2"])  # cv2 starts no threads on import
         else:
             ctx = mp.get_context("spawn")
-        with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_init_worker) as ex:
-            futs = {
-                ex.submit(_detect_chunk, str(sources[ci]), board, a, b, ticks): (ci, a, b)
-                for ci, a, b in todo
-            }
-            pending = set(futs)
-            while pending:
-                finished, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
-                drain()
-                for fut in finished:
-                    ci, a, b = futs[fut]
-                    _, pts = fut.result()
+        with ProcessPoolExecutor(jobs - 1, mp_context=ctx, initializer=_init_worker) as ex:
+            feeders = [
+                threading.Thread(target=feed, args=(ex,), daemon=True) for _ in range(jobs - 1)
+            ]
+            for t in feeders:
+                t.start()
+            threads = cv2.getNumThreads()
+            cv2.setNumThreads(1)  # like the workers: the parallelism is across processes
+            try:
+                while (chunk := take()) is not None:
+                    ci, a, b = chunk
+                    _, pts = _detect_chunk(
+                        str(sources[ci]), board, a, b, None if bar.disable else _MainTicks()
+                    )
                     results[ci][a:b] = pts
+            except BaseException:
+                stop()
+                raise
+            finally:
+                cv2.setNumThreads(threads)
+                while any(t.is_alive() for t in feeders):
+                    for t in feeders:
+                        t.join(timeout=0.25)
+                    drain()
             drain()
+        if errors:
+            raise errors[0]
     finally:
         if manager is not None:
             manager.shutdown()

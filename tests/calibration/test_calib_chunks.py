@@ -1,4 +1,4 @@
-"""Detection work planning: every frame decoded once, in few contiguous chunks."""
+"""Detection work planning: every frame decoded once, in contiguous chunks of a fixed size."""
 
 from __future__ import annotations
 
@@ -9,10 +9,11 @@ from freipose.calibration.detect import plan_chunks
 
 
 @pytest.mark.parametrize(
-    "frames, jobs", [([150] * 4, 2), ([150] * 4, 8), ([100, 0, 37], 3), ([5], 16), ([1000], 1)]
+    "frames, size",
+    [([150] * 4, 100), ([150] * 4, 8), ([100, 0, 37], 30), ([5], 16), ([1000], 1000)],
 )
-def test_plan_chunks_covers_every_frame_once(frames, jobs):
-    chunks = plan_chunks(frames, jobs)
+def test_plan_chunks_covers_every_frame_once(frames, size):
+    chunks = plan_chunks(frames, size)
     for ci, n in enumerate(frames):
         own = sorted((a, b) for c, a, b in chunks if c == ci)
         covered = np.zeros(n, int)
@@ -20,19 +21,37 @@ def test_plan_chunks_covers_every_frame_once(frames, jobs):
             assert 0 <= a < b <= n
             covered[a:b] += 1
         assert (covered == 1).all()
-    # no more chunks than needed: one per camera when there are at least as many cameras as
-    # processes; otherwise about one per process
-    if len([n for n in frames if n]) >= jobs:
-        assert len(chunks) == len([n for n in frames if n])
-    else:
-        assert len(chunks) <= jobs + len(frames)
+        lengths = [b - a for a, b in own]
+        if n:  # as few chunks as the size allows, of equal length within a camera
+            assert max(lengths) <= size and len(own) == -(-n // size)
+            assert max(lengths) - min(lengths) <= 1
+    lengths = [b - a for _, a, b in chunks]
+    assert lengths == sorted(lengths, reverse=True)  # longest first
 
 
-def test_plan_chunks_balances_processes():
-    chunks = plan_chunks([300], 4)
-    assert len(chunks) == 4
-    assert {b - a for _, a, b in chunks} == {75}
+def test_plan_chunks_edge_cases():
+    assert plan_chunks([300], 75) == [(0, 0, 75), (0, 75, 150), (0, 150, 225), (0, 225, 300)]
     assert plan_chunks([], 4) == [] and plan_chunks([0, 0], 2) == []
+
+
+def test_parallel_detection_equals_serial_detection(tmp_path):
+    """The chunks do not depend on the process count, so neither do the detections (the
+    progress bar's queue is in use: progress on)."""
+    from freipose.calibration.detect import detect_cameras
+    from freipose.geometry import CameraRig
+    from freipose.synth.board import default_board, write_board_videos
+    from freipose.synth.rig import default_rig
+
+    full = default_rig(4, size=(320, 240))
+    rig = CameraRig(tuple(full)[:2], full.metadata)
+    board = default_board()
+    videos, _ = write_board_videos(tmp_path, rig, board, 45, seed=5, fmt=".mp4", progress=False)
+    paths = [videos[c.name] for c in rig]
+    one = detect_cameras(paths, board, jobs=1, progress=False)
+    two = detect_cameras(paths, board, jobs=2, progress=True)
+    assert sum(int(d.mask.sum()) for d in one) > 100
+    for a, b in zip(one, two):
+        np.testing.assert_array_equal(a.points, b.points)
 
 
 def test_detect_chunk_reports_progress(tmp_path):
