@@ -236,13 +236,23 @@ def view_noise_scales(
     return scale[inv]
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) cross-product matrices."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
+class _Segments:
+    """Sums of consecutive rows that share a sorted key (K,) in [0, n): ``self(x)`` (K, ...)
+    -> (n, ...), zero for keys that do not occur."""
+
+    def __init__(self, keys: np.ndarray, n: int):
+        self.n = n
+        if len(keys):
+            self.starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+            self.keys = keys[self.starts]
+        else:
+            self.starts = self.keys = np.zeros(0, np.int64)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        out = np.zeros((self.n,) + x.shape[1:])
+        if len(self.starts):
+            out[self.keys] = np.add.reduceat(x, self.starts, axis=0)
+        return out
 
 
 class _Problem:
@@ -267,6 +277,12 @@ class _Problem:
         self.slots = int(self.slot.max()) + 1 if len(key) else 0
         self.pair_cam = self.obs.cam[starts]
         self.pair_frame = self.obs.frame[starts]
+        self.flat_slot = self.pair_id * self.slots + self.slot  # into (pairs * slots)
+        # sums over a camera's / a board pose's pairs as segment sums (np.add.reduceat): the
+        # pairs are sorted by camera; by_frame sorts them by board pose
+        self.cam_sum = _Segments(self.pair_cam, C)
+        self.by_frame = np.argsort(self.pair_frame, kind="stable")
+        self.frame_sum = _Segments(self.pair_frame[self.by_frame], F)
         self.C, self.F = C, F
 
     def residuals(self, intr, Rc, tc, Rf, tf):
@@ -318,14 +334,15 @@ class _Problem:
         Bn[:, 0, 2] = -x / z
         Bn[:, 1, 2] = -y / z
         D = A @ Bn  # (N, 2, 3) d uv / d Xc
-        RcXw = Xc - 0  # Rc Xw + tc; rotation perturbation acts on Rc Xw
+        # the rotation perturbation acts on Rc Xw: d uv / d δrot = -D [Rc Xw]x, whose rows are
+        # (Rc Xw) x (rows of D)
         RcXw = np.einsum("nij,nj->ni", Rc[o.cam], Xw)
-        Jc[:, :, 9:12] = -D @ _skew(RcXw)
+        Jc[:, :, 9:12] = np.cross(RcXw[:, None, :], D)
         Jc[:, :, 12:15] = D
         DR = D @ Rc[o.cam]  # d uv / d Xw
         RfX = np.einsum("nij,nj->ni", Rf[o.frame], o.point)
         Jf = np.empty((N, 2, 6))
-        Jf[:, :, :3] = -DR @ _skew(RfX)
+        Jf[:, :, :3] = np.cross(RfX[:, None, :], DR)
         Jf[:, :, 3:] = DR
         return Jc, Jf
 
@@ -369,33 +386,24 @@ def _normal_equations(prob: _Problem, Rc, Rf, cache, r, w, free, tie=None):
     """Weighted Gauss-Newton blocks: Hcc (C,15,15), Hff (F,6,6), Hcf (C,F,15,6), gc (C,15),
     gf (F,6); fixed camera parameters get identity rows (and zero gradient)."""
     C, F = prob.C, prob.F
-    starts, pc, pf = prob.starts, prob.pair_cam, prob.pair_frame
+    pc, pf = prob.pair_cam, prob.pair_frame
     Jc, Jf = prob.jacobians(Rc, Rf, cache)
     Jc = _tie_focal(Jc, prob.obs.cam, tie)
     Jc = Jc * free.astype(float)[prob.obs.cam][:, None, :]
     sw = np.sqrt(w)  # robust weights are >= 0
-    n_pairs, S = len(starts), prob.slots
-    at = (prob.pair_id, prob.slot)
-    A = np.zeros((n_pairs, S, 2, 15))  # sqrt(w) J, padded per (camera, frame) pair
-    A[at] = Jc * sw[:, None, None]
-    A = A.reshape(n_pairs, 2 * S, 15)
-    B = np.zeros((n_pairs, S, 2, 6))
-    B[at] = Jf * sw[:, None, None]
-    B = B.reshape(n_pairs, 2 * S, 6)
-    Rw = np.zeros((n_pairs, S, 2))
-    Rw[at] = r * sw[:, None]
-    Rw = Rw.reshape(n_pairs, 2 * S, 1)
-    At, Bt = A.transpose(0, 2, 1), B.transpose(0, 2, 1)
-    Hcc = np.zeros((C, 15, 15))
-    np.add.at(Hcc, pc, At @ A)
-    Hff = np.zeros((F, 6, 6))
-    np.add.at(Hff, pf, Bt @ B)
-    gc = np.zeros((C, 15))
-    np.add.at(gc, pc, (At @ Rw)[..., 0])
-    gf = np.zeros((F, 6))
-    np.add.at(gf, pf, (Bt @ Rw)[..., 0])
+    n_pairs, S = len(prob.starts), prob.slots
+    # sqrt(w) [J r], padded per (camera, frame) pair: (pairs, 2 slots, 15 + 6 + 1)
+    M = np.zeros((n_pairs * S, 2, 22))
+    M[prob.flat_slot] = np.concatenate([Jc, Jf, r[:, :, None]], axis=2) * sw[:, None, None]
+    M = M.reshape(n_pairs, 2 * S, 22)
+    G = M[:, :, :21].transpose(0, 2, 1) @ M  # (pairs, 21, 22): [Jc Jf]^T [Jc Jf r]
+    Hcc = prob.cam_sum(G[:, :15, :15])
+    gc = prob.cam_sum(G[:, :15, 21])
+    Gf = G[prob.by_frame, 15:]
+    Hff = prob.frame_sum(Gf[:, :, 15:21])
+    gf = prob.frame_sum(Gf[:, :, 21])
     Hcf = np.zeros((C, F, 15, 6))
-    Hcf[pc, pf] = At @ B
+    Hcf[pc, pf] = G[:, :15, 15:21]
     fixed = ~free
     for c in range(C):
         idx = np.flatnonzero(fixed[c])
@@ -412,7 +420,7 @@ def _schur(Hcc, Hff, Hcf, gc, gf):
     P = C * 15
     Hff_inv = np.linalg.inv(Hff)
     Hcf_flat = Hcf.transpose(0, 2, 1, 3).reshape(P, F * 6)
-    Y = np.einsum("cfij,fjk->cfik", Hcf, Hff_inv)
+    Y = Hcf @ Hff_inv
     Y_flat = Y.transpose(0, 2, 1, 3).reshape(P, F * 6)
     S = np.zeros((P, P))
     for c in range(C):
