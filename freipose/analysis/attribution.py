@@ -194,14 +194,15 @@ class AttributionResult:
 
 
 def make_svm(C: float, max_iter: int = 10000):  # noqa: ANN201 - sklearn Pipeline
-    """StandardScaler + LinearSVC(C, class_weight="balanced")."""
+    """StandardScaler + LinearSVC(C, class_weight="balanced"), seeded: liblinear's dual solver
+    (used when there are more variables than frames) visits the frames in a random order."""
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
     from sklearn.svm import LinearSVC
 
     return make_pipeline(
         StandardScaler(),
-        LinearSVC(C=C, class_weight="balanced", dual="auto", max_iter=max_iter),
+        LinearSVC(C=C, class_weight="balanced", dual="auto", max_iter=max_iter, random_state=0),
     )
 
 

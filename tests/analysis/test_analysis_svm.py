@@ -126,3 +126,15 @@ def test_standardize_recording_and_config_checks():
         AttributionConfig(standardize="zscore")
     with pytest.raises(ValueError, match="constant_rtol"):
         AttributionConfig(constant_rtol=-1.0)
+
+
+def test_full_classifier_is_reproducible():
+    """More variables than frames: liblinear's dual solver, whose frame order is seeded."""
+    from freipose.analysis.attribution import make_svm
+
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(120, 300))
+    y = (X[:, 0] + rng.normal(size=120) > 0).astype(int)
+    coefs = [make_svm(1.0, max_iter=50).fit(X, y)[-1].coef_ for _ in range(3)]
+    for c in coefs[1:]:
+        np.testing.assert_array_equal(c, coefs[0])
