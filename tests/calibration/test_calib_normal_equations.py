@@ -48,41 +48,33 @@ def test_jacobians_match_finite_differences():
     prob, (intr, Rc, tc, Rf, tf) = _problem(rng)
     r0, cache = prob.residuals(intr, Rc, tc, Rf, tf)
     Jc, Jf = prob.jacobians(Rc, Rf, cache)
-    o = prob.obs
     h = 1e-6
-    for c in range(prob.C):
-        m = o.cam == c
-        for k in range(15):
-            d = np.zeros(15)
-            d[k] = h
-            i2, Rc2, tc2 = intr.copy(), Rc.copy(), tc.copy()
-            i2[c] += d[:9]
-            Rc2[c] = rodrigues(d[9:12]) @ Rc[c]  # left-multiplied rotation update
-            tc2[c] += d[12:]
-            r1, _ = prob.residuals(i2, Rc2, tc2, Rf, tf)
-            np.testing.assert_allclose(
-                (r1[m] - r0[m]) / h,
-                Jc[m, :, k],
-                rtol=2e-4,
-                atol=2e-3 * max(1, abs(Jc[m, :, k]).max()),
-            )
-    for f in range(prob.F):
-        m = o.frame == f
-        if not m.any():
-            continue
-        for k in range(6):
-            d = np.zeros(6)
-            d[k] = h
-            Rf2, tf2 = Rf.copy(), tf.copy()
-            Rf2[f] = rodrigues(d[:3]) @ Rf[f]
-            tf2[f] += d[3:]
-            r1, _ = prob.residuals(intr, Rc, tc, Rf2, tf2)
-            np.testing.assert_allclose(
-                (r1[m] - r0[m]) / h,
-                Jf[m, :, k],
-                rtol=2e-4,
-                atol=2e-3 * max(1, abs(Jf[m, :, k]).max()),
-            )
+
+    def camera_step(c, d):  # d (15,): intrinsics, left-multiplied rotation, translation
+        i2, Rc2, tc2 = intr.copy(), Rc.copy(), tc.copy()
+        i2[c] += d[:9]
+        Rc2[c] = rodrigues(d[9:12]) @ Rc[c]
+        tc2[c] += d[12:]
+        return prob.residuals(i2, Rc2, tc2, Rf, tf)[0]
+
+    def frame_step(f, d):  # d (6,): left-multiplied rotation, translation
+        Rf2, tf2 = Rf.copy(), tf.copy()
+        Rf2[f] = rodrigues(d[:3]) @ Rf[f]
+        tf2[f] += d[3:]
+        return prob.residuals(intr, Rc, tc, Rf2, tf2)[0]
+
+    for J, owner, step in ((Jc, prob.obs.cam, camera_step), (Jf, prob.obs.frame, frame_step)):
+        for i in np.unique(owner):
+            m = owner == i
+            for k in range(J.shape[2]):
+                d = np.zeros(J.shape[2])
+                d[k] = h
+                np.testing.assert_allclose(
+                    (step(i, d)[m] - r0[m]) / h,
+                    J[m, :, k],
+                    rtol=2e-4,
+                    atol=2e-3 * max(1, abs(J[m, :, k]).max()),
+                )
 
 
 def test_normal_equations_match_dense_products():
