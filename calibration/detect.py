@@ -599,7 +599,16 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
 
     import cv2
 
-    manager = mp.get_context("spawn").Manager() if not bar.disable else None
+    # forkserver: workers start from a clean process (forking a process whose OpenCV or
+    # FFmpeg thread pools are running can deadlock the child)
+    # (the server imports this module once; workers fork from it ready to run)
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload([__name__, "cv2"])  # cv2 starts no threads on import
+    else:
+        ctx = mp.get_context("spawn")
+    # the progress queue's server process forks from the same clean server
+    manager = ctx.Manager() if not bar.disable else None
     ticks = manager.Queue() if manager is not None else None
     pending = deque(todo)
     lock = threading.Lock()
@@ -639,14 +648,6 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
             stop()
 
     try:
-        # forkserver: workers start from a clean process (forking a process whose OpenCV or
-        # FFmpeg thread pools are running can deadlock the child)
-        # (the server imports this module once; workers fork from it ready to run)
-        if "forkserver" in mp.get_all_start_methods():
-            ctx = mp.get_context("forkserver")
-            ctx.set_forkserver_preload([__name__, "cv2"])  # cv2 starts no threads on import
-        else:
-            ctx = mp.get_context("spawn")
         with ProcessPoolExecutor(jobs - 1, mp_context=ctx, initializer=_init_worker) as ex:
             feeders = [
                 threading.Thread(target=feed, args=(ex,), daemon=True) for _ in range(jobs - 1)
