@@ -311,8 +311,6 @@ class _Detector:
         self.windowed = 0  # frames that the window search served (statistics)
         self.fast = 0  # frames that the one-window search served (statistics)
         if isinstance(board, CharucoBoard):
-            import cv2
-
             self._cv = _charuco_detector(board)
             self._fast = _charuco_detector(board, (CHARUCO_FAST_WINDOW, CHARUCO_FAST_WINDOW))
             cvb = board.cv_board()
@@ -320,8 +318,6 @@ class _Detector:
             self._corners_2d = np.asarray(cvb.getChessboardCorners(), np.float64)[:, :2]
             self._markers_2d = np.asarray(cvb.getObjPoints(), np.float64)[:, :, :2]
             self._marker_ids = np.asarray(cvb.getIds(), np.int64).reshape(-1)
-            self._homography = cv2.findHomography
-            self._transform = cv2.perspectiveTransform
         elif isinstance(board, AprilGridBoard):
             self._cv = _aruco_detector(board.dictionary, board.border)
 
@@ -346,10 +342,12 @@ class _Detector:
         """Marker ids (E,) that the previous frame's board, mapped by the homography of its
         corners, puts inside ``win`` with :data:`EXPECTED_MARGIN`; None when there is no
         usable homography or no such marker."""
-        H, _ = self._homography(self._corners_2d[self._prev_ids], self._prev, 0)
+        import cv2
+
+        H, _ = cv2.findHomography(self._corners_2d[self._prev_ids], self._prev, 0)
         if H is None or not np.all(np.isfinite(H)):
             return None
-        q = self._transform(self._markers_2d.reshape(-1, 1, 2), H).reshape(-1, 4, 2)
+        q = cv2.perspectiveTransform(self._markers_2d.reshape(-1, 1, 2), H).reshape(-1, 4, 2)
         x0, y0, x1, y1 = win
         m = EXPECTED_MARGIN
         inside = (
@@ -577,13 +575,17 @@ def detect_cameras(
 
 
 class _BarTicks:
-    """Progress sink for in-process detection: ``put(n)`` advances the bar."""
+    """Progress sink for detection in this process: ``put(n)`` advances the bar, then calls
+    ``then()`` (when given; in parallel: take in the workers' reports)."""
 
-    def __init__(self, bar):
+    def __init__(self, bar, then=None):
         self.bar = bar
+        self.then = then
 
     def put(self, n: int) -> None:
         self.bar.update(n)
+        if self.then is not None:
+            self.then()
 
 
 def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
@@ -597,7 +599,7 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
     import threading
     from collections import deque
 
-    import cv2
+    from freipose.io.video import opencv_threads
 
     # forkserver: workers start from a clean process (forking a process whose OpenCV or
     # FFmpeg thread pools are running can deadlock the child)
@@ -629,20 +631,20 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
             except queue_mod.Empty:
                 return
 
-    class _MainTicks:
-        """This process's progress: its own frames, and the workers' reported so far."""
-
-        def put(self, n: int) -> None:
-            bar.update(n)
-            drain()
+    def work(run) -> None:
+        """Take chunks until none is left; ``run(ci, a, b)`` detects one: its points."""
+        while (chunk := take()) is not None:
+            ci, a, b = chunk
+            results[ci][a:b] = run(ci, a, b)
 
     def feed(ex: ProcessPoolExecutor) -> None:
         """Keep one worker busy: submit the next chunk when it has finished the last."""
+
+        def run(ci: int, a: int, b: int) -> np.ndarray:
+            return ex.submit(_detect_chunk, str(sources[ci]), board, a, b, ticks).result()[1]
+
         try:
-            while (chunk := take()) is not None:
-                ci, a, b = chunk
-                _, pts = ex.submit(_detect_chunk, str(sources[ci]), board, a, b, ticks).result()
-                results[ci][a:b] = pts
+            work(run)
         except BaseException as e:  # re-raised in the main thread
             errors.append(e)
             stop()
@@ -654,20 +656,15 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
             ]
             for t in feeders:
                 t.start()
-            threads = cv2.getNumThreads()
-            cv2.setNumThreads(1)  # like the workers: the parallelism is across processes
+            # this process's progress: its own frames, then the workers' reported so far
+            mine = None if bar.disable else _BarTicks(bar, drain)
             try:
-                while (chunk := take()) is not None:
-                    ci, a, b = chunk
-                    _, pts = _detect_chunk(
-                        str(sources[ci]), board, a, b, None if bar.disable else _MainTicks()
-                    )
-                    results[ci][a:b] = pts
+                with opencv_threads(1):  # like the workers: the parallelism is across processes
+                    work(lambda ci, a, b: _detect_chunk(str(sources[ci]), board, a, b, mine)[1])
             except BaseException:
                 stop()
                 raise
             finally:
-                cv2.setNumThreads(threads)
                 while any(t.is_alive() for t in feeders):
                     for t in feeders:
                         t.join(timeout=0.25)

@@ -7,11 +7,12 @@ temporary name and rename on close.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 
@@ -33,6 +34,18 @@ def _natural_key(name: str) -> list[object]:
 
 class MediaError(ValueError):
     """A video or image folder cannot be read; the message names it and says why."""
+
+
+@contextlib.contextmanager
+def opencv_threads(n: int) -> Iterator[None]:
+    """Run the block with ``n`` OpenCV threads and give the caller's setting back after it
+    (the setting is process-wide: work spread over processes wants one thread each)."""
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(int(n))
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def frame_range(spec: str | None, num_frames: int) -> range:

@@ -409,13 +409,11 @@ def _run_jobs(fn, jobs: list, n_workers: int, desc: str, progress: bool | None) 
     if n_workers > 1 and (main_file is None or not Path(main_file).exists()):
         n_workers = 1  # "spawn" cannot start workers from an interactive/stdin __main__
     if n_workers <= 1:
-        import cv2
+        from freipose.io.video import opencv_threads
 
-        threads = cv2.getNumThreads()  # the jobs set one OpenCV thread: give the caller's back
-        try:
+        # the jobs set one OpenCV thread for themselves: the caller gets its setting back
+        with opencv_threads(1):
             return [fn(j) for j in tqdm(jobs, desc=desc, disable=disable)]
-        finally:
-            cv2.setNumThreads(threads)
     with ProcessPoolExecutor(max_workers=n_workers, mp_context=get_context("spawn")) as ex:
         return list(tqdm(ex.map(fn, jobs), total=len(jobs), desc=desc, disable=disable))
 
