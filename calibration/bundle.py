@@ -236,17 +236,21 @@ def view_noise_scales(
     return scale[inv]
 
 
+def _run_starts(keys: np.ndarray) -> np.ndarray:
+    """Indices (R,) where the runs of equal values of a sorted key array (K,) start."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+
+
 class _Segments:
     """Sums of consecutive rows that share a sorted key (K,) in [0, n): ``self(x)`` (K, ...)
     -> (n, ...), zero for keys that do not occur."""
 
     def __init__(self, keys: np.ndarray, n: int):
         self.n = n
-        if len(keys):
-            self.starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-            self.keys = keys[self.starts]
-        else:
-            self.starts = self.keys = np.zeros(0, np.int64)
+        self.starts = _run_starts(keys)
+        self.keys = keys[self.starts]
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         out = np.zeros((self.n,) + x.shape[1:])
@@ -268,16 +272,17 @@ class _Problem:
         self.obs = obs.subset(order)
         self.order = order
         key = self.obs.cam * F + self.obs.frame
-        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-        self.starts = starts
+        starts = _run_starts(key)
+        self.n_pairs = len(starts)
         # each observation's (camera, frame) pair and its slot in that pair: the normal
         # equations are sums over pairs, done as batched products of padded (pair, slot) blocks
-        self.pair_id = np.cumsum(np.r_[True, key[1:] != key[:-1]]) - 1 if len(key) else key
-        self.slot = np.arange(len(key)) - starts[self.pair_id] if len(key) else key
-        self.slots = int(self.slot.max()) + 1 if len(key) else 0
+        counts = np.diff(np.r_[starts, len(key)])
+        pair_id = np.repeat(np.arange(self.n_pairs), counts)
+        slot = np.arange(len(key)) - starts[pair_id]
+        self.slots = int(counts.max(initial=0))
+        self.flat_slot = pair_id * self.slots + slot  # into (pairs * slots)
         self.pair_cam = self.obs.cam[starts]
         self.pair_frame = self.obs.frame[starts]
-        self.flat_slot = self.pair_id * self.slots + self.slot  # into (pairs * slots)
         # sums over a camera's / a board pose's pairs as segment sums (np.add.reduceat): the
         # pairs are sorted by camera; by_frame sorts them by board pose
         self.cam_sum = _Segments(self.pair_cam, C)
@@ -391,7 +396,7 @@ def _normal_equations(prob: _Problem, Rc, Rf, cache, r, w, free, tie=None):
     Jc = _tie_focal(Jc, prob.obs.cam, tie)
     Jc = Jc * free.astype(float)[prob.obs.cam][:, None, :]
     sw = np.sqrt(w)  # robust weights are >= 0
-    n_pairs, S = len(prob.starts), prob.slots
+    n_pairs, S = prob.n_pairs, prob.slots
     # sqrt(w) [J r], padded per (camera, frame) pair: (pairs, 2 slots, 15 + 6 + 1)
     M = np.zeros((n_pairs * S, 2, 22))
     M[prob.flat_slot] = np.concatenate([Jc, Jf, r[:, :, None]], axis=2) * sw[:, None, None]
