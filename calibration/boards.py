@@ -93,6 +93,24 @@ def get_dictionary(name: str):
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, _normalize_dictionary_name(name)))
 
 
+def board_dictionary(name: str, num_markers: int):
+    """The first ``num_markers`` markers of a named dictionary (those a board with ids
+    0..num_markers-1 uses) as a ``cv2.aruco.Dictionary`` with the named one's error correction.
+
+    OpenCV identifies a marker candidate as the *first* dictionary entry within its error
+    correction, so a detector with this dictionary reports exactly the board's markers that one
+    with the whole dictionary reports, and drops the markers of other boards. It is faster:
+    most candidates are not markers (a ChArUco board's black squares), and each of them is
+    compared with every entry before it is rejected (DICT_4X4_50 on the 5 x 4 benchmark board:
+    10 entries instead of 50, marker search ~2x faster).
+    """
+    import cv2
+
+    full = get_dictionary(name)
+    n = min(int(num_markers), len(full.bytesList))
+    return cv2.aruco.Dictionary(full.bytesList[:n].copy(), full.markerSize, full.maxCorrectionBits)
+
+
 def _marker_bits(dictionary_name: str, marker_id: int, border_bits: int = 1) -> np.ndarray:
     """(n, n) bool array, True = black, of one marker including its black border."""
     import cv2
@@ -281,15 +299,21 @@ class CharucoBoard:
         w, h = self.size_mm
         return _rasterize(w, h, px_per_mm, self._black)
 
-    def cv_board(self):
-        """The equivalent ``cv2.aruco.CharucoBoard`` (lengths in mm)."""
+    def cv_board(self, *, board_markers_only: bool = False):
+        """The equivalent ``cv2.aruco.CharucoBoard`` (lengths in mm); with
+        ``board_markers_only`` its dictionary holds only the board's markers (for detection:
+        the same detections, faster; see :func:`board_dictionary`)."""
         import cv2
 
+        if board_markers_only:
+            dictionary = board_dictionary(self.dictionary, self.n_markers)
+        else:
+            dictionary = get_dictionary(self.dictionary)
         b = cv2.aruco.CharucoBoard(
             (self.squares_x, self.squares_y),
             float(self.square_size),
             float(self.marker_size),
-            get_dictionary(self.dictionary),
+            dictionary,
         )
         b.setLegacyPattern(self.legacy_pattern)
         return b
