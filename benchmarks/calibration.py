@@ -23,40 +23,48 @@ marker detection uses: before 2026-11-22 (session 4) the benchmark rendered the 
 own process, which left OpenCV at one thread, so aniposelib detected ~2x slower (seed 2: 11-12
 s instead of 5-6 s) and the wall ratios printed then (5.2-7.9x) overstated FreiPose's lead.
 
-Measured 2026-11-22 (session 4) on the idle 2-core machine, ``--seed 1 2 3 4 5 6`` (.mp4),
-aniposelib 0.8.0; errors mm / deg / % (maximum over cameras), wall s (median of 3):
+Measured 2026-11-22 (session 5) on the 2-core machine, ``--seed 1 2 3 4 6 --repeat 5``
+(.mp4), aniposelib 0.8.0; errors mm / deg / % (maximum over cameras), wall s (median of 5):
 
-    seed 1: 0.127 / 0.008 / 0.037, 1.69  vs 0.370 / 0.066 / 0.136, 6.38   (3.8x faster)
-    seed 2: 0.200 / 0.022 / 0.033, 1.58  vs 0.310 / 0.040 / 0.299, 6.02   (3.8x)
-    seed 3: 0.212 / 0.019 / 0.076, 1.39  vs 0.367 / 0.044 / 0.092, 6.12   (4.4x)
-    seed 4: 0.207 / 0.010 / 0.047, 1.36  vs 0.812 / 0.050 / 0.154, 8.19   (6.0x)
-    seed 5: 0.137 / 0.015 / 0.044, 1.62  vs diverged (349 mm), 49.3      (30x)
-    seed 6: 0.202 / 0.021 / 0.050, 1.35  vs 0.384 / 0.034 / 0.056, 6.83   (5.1x)
+    seed 1: 0.127 / 0.008 / 0.037, 1.68  vs 0.370 / 0.066 / 0.136, 10.84  (6.5x faster)
+    seed 2: 0.200 / 0.022 / 0.033, 1.38  vs 0.310 / 0.040 / 0.299, 7.75   (5.6x)
+    seed 3: 0.212 / 0.019 / 0.076, 1.34  vs 0.367 / 0.044 / 0.092, 7.84   (5.8x)
+    seed 4: 0.207 / 0.010 / 0.047, 1.58  vs 0.812 / 0.050 / 0.154, 11.33  (7.2x)
+    seed 6: 0.202 / 0.021 / 0.050, 1.49  vs 0.384 / 0.034 / 0.056, 8.48   (5.7x)
 
+and seed 5 (``--repeat 3``, an earlier run the same hour): 0.137 / 0.015 / 0.044, 1.24 s vs
+aniposelib diverged (349 mm), 45.4 s (37x). The machine was slower during this run than in
+session 4 (aniposelib 7-11 s instead of 6-8 s; the ratios are taken within each run); the
+earlier run gave 5.4, 6.6, 6.0, 7.4, 37 and 4.5x (seed 6's FreiPose runs: 2.10, 1.62 and 1.22 s).
 FreiPose's errors are lower in all 15 comparisons with a converged aniposelib (geometric-mean
 error ratios 2.3 centre, 3.1 rotation, 2.7 focal; the closest: seed 6's focal length, 0.050 vs
-0.056 %, and seed 3's, 0.076 vs 0.092 %). It is 3.8-6.0x faster where aniposelib converges:
-the 5x target holds on seeds 4 and 6 (and 5), not on seeds 1-3. An earlier run the same day
-gave 3.4, 3.9, 5.2, 5.8, 21.8 and 4.0x (machine speed varies by up to ~1.5x within minutes).
-FreiPose's time is detection (0.9-1.2 s for 600 frames in 2 processes: ~3 ms of CPU per frame,
-2 of them in OpenCV's ArUco marker search) and the solver (0.42-0.52 s); aniposelib's
-detection takes 4.5-6.6 s (~16 ms of CPU per frame on 2 threads) and its solver 1.3-3.4 s.
+0.056 %, and seed 3's, 0.076 vs 0.092 %); the errors are those of session 4, as the detections
+did not change (identical points in all 3600 frames).
+What changed since session 4 (3.8-6.0x then): the marker detectors' dictionary holds only the
+board's markers (ids 0-9 of DICT_4X4_50). OpenCV compares a marker candidate with the
+dictionary's entries in id order and stops at the first match, so a candidate that is no
+marker, such as each of the board's 10 black squares, was compared with all 50 entries: that
+was about half of the marker search (on the tracking windows of seed 2: 1.5-1.9 ms -> 0.8 ms
+per search). Detection now takes 0.8-1.0 s for 600 frames in 2 processes
+(~2 ms of CPU per frame, of which ~0.5 ms decoding and colour conversion, ~0.5 ms OpenCV's
+thresholding and contours), the solver 0.43-0.67 s; aniposelib's detection takes 6.0-6.4 s
+(~16 ms of CPU per frame on 2 threads) and its solver 1.6-5.2 s.
 At 1280x960 (``--width 1280``; the original FreiPose's cameras were 600-1280 px wide, and
-most lab cameras record at 1280x1024 or more) the same six rigs give, median of 3:
+most lab cameras record at 1280x1024 or more), median of 3; seeds 1-3 measured in session 5,
+seeds 4-6 in session 4 (before the board-only dictionary, so FreiPose's times there are
+longer than it takes now):
 
-    seed 1: 0.157 / 0.010 / 0.029, 3.50  vs 0.592 / 0.080 / 0.158, 31.3   (8.9x faster)
-    seed 2: 0.063 / 0.009 / 0.030, 3.66  vs 0.658 / 0.013 / 0.107, 24.2   (6.6x)
-    seed 3: 0.057 / 0.010 / 0.023, 2.80  vs 0.366 / 0.034 / 0.059, 30.8   (11.0x)
+    seed 1: 0.157 / 0.010 / 0.029, 2.85  vs 0.592 / 0.080 / 0.158, 30.2   (10.6x faster)
+    seed 2: 0.063 / 0.009 / 0.030, 2.99  vs 0.658 / 0.013 / 0.107, 30.3   (10.1x)
+    seed 3: 0.057 / 0.010 / 0.023, 2.84  vs 0.366 / 0.034 / 0.059, 24.2   (8.5x)
     seed 4: 0.047 / 0.004 / 0.008, 2.66  vs diverged (449 mm), 103.6     (39x)
     seed 5: 0.169 / 0.010 / 0.027, 3.26  vs 0.500 / 0.047 / 0.124, 24.2   (7.4x)
     seed 6: 0.136 / 0.015 / 0.029, 2.74  vs 0.331 / 0.046 / 0.177, 22.5   (8.2x)
 
 FreiPose's errors are lower in all 15 comparisons (geometric-mean ratios 4.5 centre, 3.5
-rotation, 4.2 focal) and it is 6.6-11x faster on every seed: aniposelib's detection (13
-threshold windows of 100-700 px) grows with the image area (21-27 s), FreiPose's (2.2-3.0 s)
-less than that, because much of it is per marker candidate, not per pixel. So the 5x target
-holds at this resolution and not at 640x480, where FreiPose's fixed per-frame costs (decoding,
-colour conversion, ~20 marker candidates) dominate.
+rotation, 4.2 focal): aniposelib's detection (13 threshold windows of 100-700 px) grows with
+the image area (21-28 s), FreiPose's (2.3 s now, 2.2-3.0 s in session 4) less than that,
+because much of it is per marker candidate, not per pixel.
 Session 4's changes, measured on the 640x480 rigs: the one-window ChArUco search in videos (~20 %
 less detection CPU), this process detecting next to the worker (the worker's ~0.2 s start no
 longer idles both cores), and the bundle adjustment's normal equations (solver 0.5-0.8 ->
