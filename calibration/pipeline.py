@@ -8,9 +8,12 @@ detections (tests, other detectors).
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -38,6 +41,9 @@ from freipose.calibration.intrinsics import (
     dist_free_mask,
 )
 from freipose.geometry import Camera, CameraRig
+
+_In = TypeVar("_In")
+_Out = TypeVar("_Out")
 
 logger = logging.getLogger(__name__)
 
@@ -84,7 +90,8 @@ class CalibrationOptions:
         aspect: ``auto`` (default: fy = fx, square pixels, unless the bundle adjustment finds
             them significantly different), ``free`` (fx and fy estimated separately) or
             ``square`` (always fy = fx).
-        jobs: detection processes (default: CPU count).
+        jobs: detection processes, and threads that initialise the cameras (default: CPU
+            count).
         max_views: views per camera for the intrinsics initialisation.
         loss, f_scale: robust loss of the bundle adjustment and its scale (px); ``None``
             estimates the scale from the detection noise (see
@@ -222,8 +229,32 @@ def calibrate_detections(
     board: Board,
     options: CalibrationOptions | None = None,
 ) -> CalibrationResult:
-    """Calibrate a rig from per-camera detections of ``board`` (synchronized by frame index)."""
-    opt = options or CalibrationOptions()
+    """Calibrate a rig from per-camera detections of ``board`` (synchronized by frame index).
+
+    The same detections give the same calibration to the last bit: the solver's OpenCV calls
+    run on one OpenCV thread each (OpenCV's multi-threaded ``calibrateCamera`` sums in a
+    varying order, which moved camera positions by ~1e-8 mm between runs), and the cameras'
+    intrinsics and board poses are initialised in up to ``options.jobs`` threads instead.
+    """
+    from freipose.io.video import opencv_threads
+
+    with opencv_threads(1):
+        return _calibrate_detections(detections, board, options or CalibrationOptions())
+
+
+def _map_cameras(fn: Callable[[_In], _Out], items: Sequence[_In], jobs: int | None) -> list[_Out]:
+    """``[fn(x) for x in items]`` in up to ``jobs`` threads (default: CPU count); OpenCV
+    releases the interpreter while it computes."""
+    n = min(len(items), jobs or os.cpu_count() or 1)
+    if n <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(n) as ex:
+        return list(ex.map(fn, items))
+
+
+def _calibrate_detections(
+    detections: Sequence[CameraDetections], board: Board, opt: CalibrationOptions
+) -> CalibrationResult:
     warnings: list[str] = []
     dets = _common_prefix(list(detections), warnings)
     if not dets:
@@ -249,8 +280,9 @@ def calibrate_detections(
         )
 
     # ---- intrinsics
-    Ks, dists, intr = [], [], {}
+    Ks, dists = [], []
     fixed_names: set[str] = set()
+    to_calibrate = []
     for d in dets:
         if opt.fixed_intrinsics is not None:
             if d.name not in opt.fixed_intrinsics:
@@ -264,11 +296,11 @@ def calibrate_detections(
                     f"camera {d.name}: the --fix-intrinsics file is for {cam.size[0]}x"
                     f"{cam.size[1]} images but the video is {d.size[0]}x{d.size[1]}"
                 )
-            Ks.append(cam.K.copy())
-            dists.append(cam.dist.copy())
             fixed_names.add(d.name)
-            continue
-        res = calibrate_intrinsics(
+        else:
+            to_calibrate.append(d)
+    results = _map_cameras(
+        lambda d: calibrate_intrinsics(
             d.points,
             obj,
             d.size,
@@ -276,8 +308,18 @@ def calibrate_detections(
             camera=d.name,
             max_views=opt.max_views,
             fix_principal_point=opt.principal_point == "centre",
-        )
-        intr[d.name] = res
+        ),
+        to_calibrate,
+        opt.jobs,
+    )
+    intr = {d.name: res for d, res in zip(to_calibrate, results)}
+    for d in dets:
+        if d.name in fixed_names:
+            cam = opt.fixed_intrinsics[d.name]
+            Ks.append(cam.K.copy())
+            dists.append(cam.dist.copy())
+            continue
+        res = intr[d.name]
         if res.max_tilt_difference_deg < 10.0 or res.coverage < 0.1:
             warnings.append(
                 f"camera {d.name}: intrinsics rest on {len(res.frames)} board views covering "
@@ -324,8 +366,13 @@ def calibrate_detections(
 
     # ---- board poses, camera graph, initial extrinsics
     poses = np.full((C, F, 4, 4), np.nan)
+    found = _map_cameras(
+        lambda i: board_poses_per_camera(dets[i].points, obj, Ks[i], dists[i])[0],
+        range(C),
+        opt.jobs,
+    )
     for i, d in enumerate(dets):
-        poses[i], _rms = board_poses_per_camera(d.points, obj, Ks[i], dists[i])
+        poses[i] = found[i]
         if not np.isfinite(poses[i, :, 0, 0]).any():
             raise CalibrationError(
                 f"camera {d.name}: no frame gives a consistent board pose (reprojection error "

@@ -187,3 +187,16 @@ def test_view_selection_covers_and_tilts(dets):
     assert 4 <= len(frames) <= 15 and coverage > 0.3 and tilt > 20
     res = calibrate_intrinsics(d.points, BOARD.object_points, d.size, "k1k2p", max_views=15)
     assert res.rms < 0.6
+
+
+def test_same_detections_give_the_same_calibration(dets, result):
+    # bit for bit, with one thread or several (OpenCV's multi-threaded calibrateCamera sums
+    # in a varying order); the caller's OpenCV thread setting is given back
+    cv2 = pytest.importorskip("cv2")
+    before = cv2.getNumThreads()
+    for jobs in (1, None):
+        again = calibrate_detections(dets, BOARD, CalibrationOptions(dist_model="full", jobs=jobs))
+        for a, b in zip(result.rig, again.rig):
+            for x, y in ((a.K, b.K), (a.dist, b.dist), (a.R, b.R), (a.t, b.t)):
+                np.testing.assert_array_equal(x, y)
+    assert cv2.getNumThreads() == before
