@@ -35,7 +35,11 @@ Measured 2026-11-22 (session 5) on the 2-core machine, ``--seed 1 2 3 4 6 --repe
 and seed 5 (``--repeat 3``, an earlier run the same hour): 0.137 / 0.015 / 0.044, 1.24 s vs
 aniposelib diverged (349 mm), 45.4 s (37x). The machine was slower during this run than in
 session 4 (aniposelib 7-11 s instead of 6-8 s; the ratios are taken within each run); the
-earlier run gave 5.4, 6.6, 6.0, 7.4, 37 and 4.5x (seed 6's FreiPose runs: 2.10, 1.62 and 1.22 s).
+earlier run gave 5.4, 6.6, 6.0, 7.4, 37 and 4.5x (seed 6's FreiPose runs: 2.10, 1.62 and 1.22 s),
+two later ones (``--repeat 5``) 4.9, 5.2, 5.5x on seeds 2, 3, 6 (seed 2's FreiPose runs 1.35-5.60
+s, aniposelib's 7.0-13.6 s) and 6.3, 5.2, 5.5, 8.0, 6.1x on seeds 1, 2, 3, 4, 6. FreiPose is
+~5.4-5.7x faster on the hardest rigs (2, 3, 6; the median over the four runs), a margin that the
+machine's speed swings can take away in a single run.
 FreiPose's errors are lower in all 15 comparisons with a converged aniposelib (geometric-mean
 error ratios 2.3 centre, 3.1 rotation, 2.7 focal; the closest: seed 6's focal length, 0.050 vs
 0.056 %, and seed 3's, 0.076 vs 0.092 %); the errors are those of session 4, as the detections
