@@ -232,9 +232,10 @@ def calibrate_detections(
     """Calibrate a rig from per-camera detections of ``board`` (synchronized by frame index).
 
     The same detections give the same calibration to the last bit: the solver's OpenCV calls
-    run on one OpenCV thread each (OpenCV's multi-threaded ``calibrateCamera`` sums in a
-    varying order, which moved camera positions by ~1e-8 mm between runs), and the cameras'
-    intrinsics and board poses are initialised in up to ``options.jobs`` threads instead.
+    run on one OpenCV thread (OpenCV's multi-threaded ``calibrateCamera`` sums in a varying
+    order, which moved the results by up to ~1e-8 px or mm between runs; the setting is
+    process-wide and given back afterwards), and the cameras' intrinsics and board poses are
+    initialised in up to ``options.jobs`` threads instead.
     """
     from freipose.io.video import opencv_threads
 
