@@ -156,7 +156,13 @@ def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
     help="Weight each board view's detections by its own noise level (blurred or steep views "
     "count less).",
 )
-@click.option("--jobs", "-j", type=int, default=None, help="Detection processes (default: CPUs).")
+@click.option(
+    "--jobs",
+    "-j",
+    type=int,
+    default=None,
+    help="Detection processes, and threads that initialise the cameras (default: CPUs).",
+)
 @click.option("--no-cache", is_flag=True, help="Re-detect even if cached detections exist.")
 def run(
     inputs,
