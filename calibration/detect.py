@@ -327,7 +327,7 @@ class _Detector:
         if isinstance(board, CharucoBoard):
             self._cv = _charuco_detector(board)
             self._fast = _charuco_detector(board, (CHARUCO_FAST_WINDOW, CHARUCO_FAST_WINDOW))
-            cvb = board.cv_board()
+            cvb = self._cv.getBoard()
             # board-plane coordinates of the ChArUco corners (P, 2) and marker outlines (M, 4, 2)
             self._corners_2d = np.asarray(cvb.getChessboardCorners(), np.float64)[:, :2]
             self._markers_2d = np.asarray(cvb.getObjPoints(), np.float64)[:, :, :2]
