@@ -366,14 +366,14 @@ def _calibrate_detections(
         )
 
     # ---- board poses, camera graph, initial extrinsics
-    poses = np.full((C, F, 4, 4), np.nan)
-    found = _map_cameras(
-        lambda i: board_poses_per_camera(dets[i].points, obj, Ks[i], dists[i])[0],
-        range(C),
-        opt.jobs,
-    )
+    poses = np.stack(
+        _map_cameras(
+            lambda i: board_poses_per_camera(dets[i].points, obj, Ks[i], dists[i])[0],
+            range(C),
+            opt.jobs,
+        )
+    )  # (C, F, 4, 4)
     for i, d in enumerate(dets):
-        poses[i] = found[i]
         if not np.isfinite(poses[i, :, 0, 0]).any():
             raise CalibrationError(
                 f"camera {d.name}: no frame gives a consistent board pose (reprojection error "
