@@ -60,3 +60,21 @@ def rig_errors(est: CameraRig, truth: CameraRig):
     similarity alignment of the camera centres."""
     dc, rot, fe, _ = geometry_rig_errors(est, truth)
     return dc, rot, fe
+
+
+def rendered_view(camera: int, n_poses: int, seed: int, keep: slice):
+    """Board frames rendered by the synthetic-scene renderer in one camera (index ``camera``)
+    of the 640 x 480 four-camera default rig: the default ChArUco board at
+    ``board_poses(n_poses, rng=seed)[keep]``, image noise seeded with ``seed``.
+
+    Returns ``(one-camera rig, board, poses (F, 4, 4), BGR images [F])``.
+    """
+    from freipose.synth.board import board_poses, default_board, render_board_frames
+    from freipose.synth.rig import default_rig
+
+    full = default_rig(4, size=(640, 480))
+    rig = CameraRig((full[camera],), full.metadata)
+    board = default_board()
+    poses = board_poses(n_poses, rng=seed, board_size_mm=board.size_mm)[keep]
+    images = render_board_frames(rig, board, poses, seed=seed)[rig[0].name]
+    return rig, board, poses, images

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from calib_helpers import rendered_view
 
 cv2 = pytest.importorskip("cv2")
 
@@ -33,15 +34,8 @@ def _paste(image: np.ndarray, patch: np.ndarray, x: int, y: int) -> np.ndarray:
 
 def test_charuco_detector_with_board_markers_only_matches_full_dictionary():
     from freipose.calibration.detect import _charuco_detector
-    from freipose.geometry import CameraRig
-    from freipose.synth.board import board_poses, default_board, render_board_frames
-    from freipose.synth.rig import default_rig
 
-    full_rig = default_rig(4, size=(640, 480))
-    rig = CameraRig((full_rig[1],), full_rig.metadata)
-    board = default_board()
-    poses = board_poses(40, rng=5, board_size_mm=board.size_mm)[4::3]
-    images = render_board_frames(rig, board, poses, seed=5)[rig[0].name]
+    _rig, board, _poses, images = rendered_view(1, 40, 5, slice(4, None, 3))
     # a marker of another board (same dictionary, id beyond this board's) in every frame
     foreign_id = board.n_markers + 7
     dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)

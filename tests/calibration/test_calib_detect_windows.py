@@ -4,20 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from calib_helpers import rendered_view
 
 
 def test_two_threshold_windows_match_default_detection():
     cv2 = pytest.importorskip("cv2")
     from freipose.calibration.detect import CHARUCO_THRESH_WINDOWS, detect_image
-    from freipose.geometry import CameraRig, project
-    from freipose.synth.board import board_poses, default_board, render_board_frames
-    from freipose.synth.rig import default_rig
+    from freipose.geometry import project
 
-    full = default_rig(4, size=(640, 480))
-    rig = CameraRig((full[0],), full.metadata)
-    board = default_board()
-    poses = board_poses(60, rng=3, board_size_mm=board.size_mm)[8::4]  # board in the air
-    images = render_board_frames(rig, board, poses, seed=3)[rig[0].name]
+    rig, board, poses, images = rendered_view(0, 60, 3, slice(8, None, 4))  # board in the air
     cp = cv2.aruco.CharucoParameters()
     cp.minMarkers = 2
     dp = cv2.aruco.DetectorParameters()  # OpenCV's default windows 3, 13, 23 px

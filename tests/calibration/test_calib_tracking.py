@@ -4,6 +4,7 @@ one-threshold-window ChArUco search, find what the whole-image search finds."""
 from __future__ import annotations
 
 import numpy as np
+from calib_helpers import rendered_view
 
 
 def test_tracked_detection_matches_whole_image_detection(tmp_path):
@@ -80,15 +81,8 @@ class _DropsMarker:
 
 def test_one_window_search_falls_back_when_an_expected_marker_is_missing():
     from freipose.calibration.detect import _Detector
-    from freipose.geometry import CameraRig
-    from freipose.synth.board import board_poses, default_board, render_board_frames
-    from freipose.synth.rig import default_rig
 
-    full = default_rig(4, size=(640, 480))
-    rig = CameraRig((full[1],), full.metadata)
-    board = default_board()
-    poses = board_poses(60, rng=3, board_size_mm=board.size_mm)[:16]  # whole board in view
-    frames = render_board_frames(rig, board, poses, seed=3)[rig[0].name]
+    _rig, board, _poses, frames = rendered_view(1, 60, 3, slice(16))  # whole board in view
     whole = _Detector(board)
     ref = [whole(f) for f in frames]
     assert all(np.isfinite(r[:, 0]).all() for r in ref)
