@@ -1,0 +1,101 @@
+"""Reading TOML files and tables with messages that name the file, the key and the fix.
+
+Every TOML file FreiPose reads (configs, rigs, boards, studies, skeletons, mappings,
+calibrations) is parsed by :func:`read_toml` or :func:`parse_toml`, and every table that
+becomes a dataclass or a fixed set of keys is checked by :func:`check_keys` or built by
+:func:`dataclass_from_table`, so that a typo is an error with a "did you mean" instead of
+a key that is silently ignored.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from freipose._compat import tomllib
+from freipose.errors import FreiPoseError, InputFileError
+
+T = TypeVar("T")
+
+
+class TomlFileError(FreiPoseError):
+    """A TOML file that cannot be parsed or holds an unknown key."""
+
+
+def parse_toml(
+    text: str, source: str, what: str = "file", error: type[Exception] = TomlFileError
+) -> dict[str, Any]:
+    """Parse TOML ``text`` read from ``source`` (a path or a description, for messages).
+
+    Raises:
+        error: the text is not valid TOML; the message names ``what``, ``source`` and the
+            parser's line and column.
+    """
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{what} {source}: not valid TOML ({exc})") from None
+
+
+def read_toml(
+    path: str | Path, what: str = "file", error: type[Exception] = TomlFileError
+) -> dict[str, Any]:
+    """Read and parse the TOML file ``path``; ``what`` names it in messages ("study file").
+
+    Raises:
+        InputFileError: no such file (a ``FileNotFoundError`` too).
+        error: not UTF-8 text or not valid TOML.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{what} not found: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{what} {path}: not a UTF-8 text file ({exc})") from None
+    return parse_toml(text, str(path), what, error)
+
+
+def did_you_mean(key: str, known: Iterable[str]) -> str:
+    """``"; did you mean 'x'?"`` for the closest known key, or ``""`` when none is close."""
+    close = difflib.get_close_matches(key, sorted(known), n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def check_keys(
+    table: Mapping[str, Any],
+    known: Iterable[str],
+    where: str,
+    error: type[Exception] = TomlFileError,
+) -> None:
+    """Raise ``error`` when ``table`` holds a key outside ``known``.
+
+    The message names ``where`` (e.g. ``"train.toml [model]"``), the unknown key, the
+    closest known key and all known keys.
+    """
+    known = sorted(known)
+    unknown = [k for k in table if k not in known]
+    if unknown:
+        k = unknown[0]
+        raise error(
+            f"{where}: unknown key {k!r}{did_you_mean(k, known)} (known keys: {', '.join(known)})"
+        )
+
+
+def dataclass_from_table(
+    cls: type[T],
+    table: Mapping[str, Any],
+    where: str,
+    error: type[Exception] = TomlFileError,
+    **fixed: Any,
+) -> T:
+    """Build the dataclass ``cls`` from ``table`` (plus ``fixed`` values), rejecting unknown keys.
+
+    Values are passed as they are; ``cls.__post_init__`` checks them.
+    """
+    names = [f.name for f in dataclasses.fields(cls) if f.init]  # type: ignore[arg-type]
+    check_keys(table, [n for n in names if n not in fixed], where, error)
+    return cls(**dict(table), **fixed)
