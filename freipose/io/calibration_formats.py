@@ -1,4 +1,4 @@
-"""Other tools' calibration formats, registered into :mod:`freipose.io.calibration`.
+"""Other tools' calibration formats, dispatched to by :mod:`freipose.io.calibration`.
 
 Format names (``--format``) and what they read/write (details in ``docs/formats.md``):
 
@@ -36,23 +36,24 @@ import numpy as np
 import tomli_w
 
 from freipose.geometry.camera import Camera, CameraRig
-from freipose.io import calibration as _calib
 from freipose.io.atomic import atomic_write_text
-from freipose.io.calibration import UNIT_SCALE_TO_MM, CalibrationFormatError
+from freipose.io.calibration_toml import (
+    UNIT_SCALE_TO_MM,
+    CalibrationFormatError,
+    read_calibration_toml,
+    rig_to_toml_dict,
+    toml_value,
+)
+from freipose.io.natsort import natural_key
+from freipose.io.video import VIDEO_SUFFIXES
 
 log = logging.getLogger(__name__)
 
 ESTIMATED_KEY = "image_size_estimated"
-_VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".mpg", ".mpeg", ".wmv")
 _YAML_SUFFIXES = (".yaml", ".yml")
 
 
 # -- helpers ---------------------------------------------------------------------------
-def natural_key(name: str) -> list[Any]:
-    """Sort key that orders embedded numbers numerically (``cam2`` before ``cam10``)."""
-    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name)]
-
-
 def _as_rotation(R: Any, source: str, name: str) -> np.ndarray:
     """A 3x3 rotation; tiny non-orthonormality (stored with few digits) is projected away."""
     R = np.asarray(R, dtype=np.float64)
@@ -96,7 +97,7 @@ def video_sizes(folder: Path, names: Sequence[str]) -> dict[str, tuple[int, int]
     videos = sorted(
         p
         for p in folder.iterdir()
-        if p.suffix.lower() in _VIDEO_SUFFIXES and not p.name.startswith(".")
+        if p.suffix.lower() in VIDEO_SUFFIXES and not p.name.startswith(".")
     )
     if not videos:
         return {}
@@ -255,7 +256,7 @@ def write_mjson(rig: CameraRig, path: str | Path) -> None:
         "dist": {c.name: c.dist.tolist() for c in rig},
         "M": M,
         "img_size": {c.name: [int(c.size[0]), int(c.size[1])] for c in rig},
-        "metadata": _calib._toml_value(dict(rig.metadata)),
+        "metadata": toml_value(dict(rig.metadata)),
     }
     atomic_write_text(path, json.dumps(data, indent=2) + "\n")
 
@@ -270,7 +271,7 @@ def read_anipose_calibration(path: str | Path, units: str = "mm") -> CameraRig:
         raise CalibrationFormatError(
             f"units must be one of {sorted(UNIT_SCALE_TO_MM)}, got {units!r}"
         )
-    return _calib.read_calibration_toml(path, units=units)
+    return read_calibration_toml(path, units=units)
 
 
 def anipose_toml_text(rig: CameraRig, units: str = "mm") -> str:
@@ -280,7 +281,7 @@ def anipose_toml_text(rig: CameraRig, units: str = "mm") -> str:
             f"units must be one of {sorted(UNIT_SCALE_TO_MM)}, got {units!r}"
         )
     scale = UNIT_SCALE_TO_MM[units]
-    data = _calib.rig_to_toml_dict(rig)
+    data = rig_to_toml_dict(rig)
     data.pop("metadata", None)
     for i, cam in enumerate(rig):
         data[f"cam_{i}"]["translation"] = (cam.t / scale).tolist()
@@ -523,24 +524,19 @@ def with_image_sizes(rig: CameraRig, sizes: Mapping[str | None, tuple[int, int]]
     return CameraRig(tuple(cams), md)
 
 
-def _register() -> None:
-    _calib.READERS.update(
-        mjson=read_mjson,
-        anipose=read_anipose_calibration,
-        jarvis=read_jarvis_calibration,
-        dannce=read_dannce_calibration,
-    )
-    _calib.WRITERS.update(
-        mjson=write_mjson,
-        anipose=write_anipose_calibration,
-        jarvis=write_jarvis_calibration,
-    )
-    _calib.SUFFIXES.update(
-        {".json": "mjson", ".yaml": "jarvis", ".yml": "jarvis", ".mat": "dannce", "/": "jarvis"}
-    )
-
-
-_register()
+# Format name -> reader / writer, and suffix (lower case) -> format name ("/": a folder).
+READERS = {
+    "mjson": read_mjson,
+    "anipose": read_anipose_calibration,
+    "jarvis": read_jarvis_calibration,
+    "dannce": read_dannce_calibration,
+}
+WRITERS = {
+    "mjson": write_mjson,
+    "anipose": write_anipose_calibration,
+    "jarvis": write_jarvis_calibration,
+}
+SUFFIXES = {".json": "mjson", ".yaml": "jarvis", ".yml": "jarvis", ".mat": "dannce", "/": "jarvis"}
 
 __all__ = [
     "ESTIMATED_KEY",
@@ -548,7 +544,6 @@ __all__ = [
     "dannce_camera_params",
     "estimate_size_from_principal_point",
     "jarvis_yaml_text",
-    "natural_key",
     "read_anipose_calibration",
     "read_dannce_calibration",
     "read_jarvis_calibration",

@@ -31,7 +31,7 @@ from freipose import __version__
 from freipose._frozen import PicklableFrozen
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
-from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
+from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
 from freipose.io.hdf5 import decode_strings, open_h5, str_array
 
 SCHEMA = "freipose.labels"

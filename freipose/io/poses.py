@@ -27,7 +27,7 @@ from freipose._compat import tomllib
 from freipose._frozen import PicklableFrozen
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
-from freipose.io.calibration import rig_from_toml_text, rig_to_toml_text
+from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
 from freipose.io.hdf5 import decode_strings, open_h5, str_array
 from freipose.skeleton import Skeleton, skeleton_from_dict
 

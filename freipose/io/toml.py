@@ -26,9 +26,23 @@ class TomlFileError(FreiPoseError):
 
 
 def parse_toml(
-    text: str, source: str, what: str = "file", error: type[Exception] = TomlFileError
+    text: str,
+    source: str,
+    what: str = "file",
+    error: type[Exception] = TomlFileError,
+    invalid: str = "not valid TOML",
 ) -> dict[str, Any]:
     """Parse TOML ``text`` read from ``source`` (a path or a description, for messages).
+
+    Args:
+        text: the TOML text.
+        source: where the text comes from (a path or a description), for messages.
+        what: what the text is ("study file"), for messages.
+        error: the exception class raised for text that is not TOML.
+        invalid: the words of the message that say the text is not TOML.
+
+    Returns:
+        The parsed tables.
 
     Raises:
         error: the text is not valid TOML; the message names ``what``, ``source`` and the
@@ -37,13 +51,25 @@ def parse_toml(
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise error(f"{what} {source}: not valid TOML ({exc})") from None
+        raise error(f"{what} {source}: {invalid} ({exc})") from None
 
 
 def read_toml(
-    path: str | Path, what: str = "file", error: type[Exception] = TomlFileError
+    path: str | Path,
+    what: str = "file",
+    error: type[Exception] = TomlFileError,
+    invalid: str = "not valid TOML",
 ) -> dict[str, Any]:
     """Read and parse the TOML file ``path``; ``what`` names it in messages ("study file").
+
+    Args:
+        path: the TOML file.
+        what: what the file is ("study file"), for messages.
+        error: the exception class raised for a file that is not UTF-8 TOML.
+        invalid: the words of the message that say the file is not TOML.
+
+    Returns:
+        The parsed tables.
 
     Raises:
         InputFileError: no such file (a ``FileNotFoundError`` too).
@@ -56,7 +82,7 @@ def read_toml(
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         raise error(f"{what} {path}: not a UTF-8 text file ({exc})") from None
-    return parse_toml(text, str(path), what, error)
+    return parse_toml(text, str(path), what, error, invalid)
 
 
 def did_you_mean(key: str, known: Iterable[str]) -> str:

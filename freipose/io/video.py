@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import re
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -19,17 +18,14 @@ from types import TracebackType
 import cv2
 import numpy as np
 
+from freipose.io.natsort import natural_key
+
 log = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".mpg", ".mpeg", ".wmv")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 # FourCC per suffix for writing; .mkv is lossless (FFV1).
 FOURCC = {".mp4": "mp4v", ".avi": "MJPG", ".mkv": "FFV1"}
-
-
-def _natural_key(name: str) -> list[object]:
-    """Sort key with numbers compared numerically (``frame_2.png`` before ``frame_10.png``)."""
-    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name)]
 
 
 class MediaError(ValueError):
@@ -105,7 +101,7 @@ def list_images(folder: str | Path) -> list[Path]:
         for p in folder.iterdir()
         if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
     )
-    return sorted(imgs, key=lambda p: _natural_key(p.name))
+    return sorted(imgs, key=lambda p: natural_key(p.name))
 
 
 class FrameSource:

@@ -29,7 +29,7 @@ import tomli_w
 
 from freipose import __version__
 from freipose.geometry.camera import CameraRig
-from freipose.io.calibration import rig_to_toml_text
+from freipose.io.calibration_toml import rig_to_toml_text
 from freipose.io.hdf5 import str_array
 from freipose.io.poses import SCHEMA, SCHEMA_VERSION
 from freipose.predict.estimator import Estimate

@@ -334,7 +334,8 @@ def write_board_videos(
 
     from freipose.calibration.boards import save_board
     from freipose.io.atomic import atomic_path, atomic_write_text
-    from freipose.io.calibration import rig_to_toml_text, save_calibration
+    from freipose.io.calibration import save_calibration
+    from freipose.io.calibration_toml import rig_to_toml_text
     from freipose.synth.scene import _run_jobs
 
     out = Path(outdir)

@@ -12,7 +12,8 @@ from click.testing import CliRunner
 
 from freipose._compat import tomllib
 from freipose.cli.main import cli
-from freipose.io.calibration import load_calibration, write_calibration_toml
+from freipose.io.calibration import load_calibration
+from freipose.io.calibration_toml import write_calibration_toml
 from freipose.testing import make_circle_rig
 
 

@@ -10,14 +10,12 @@ import pytest
 from freipose._compat import tomllib
 from freipose.geometry import Camera, CameraRig, project
 from freipose.io import calibration_formats as cf
-from freipose.io.calibration import (
+from freipose.io.calibration import detect_format, load_calibration, save_calibration
+from freipose.io.calibration_toml import (
     CalibrationFormatError,
-    detect_format,
-    load_calibration,
     read_calibration_toml,
     rig_from_toml_text,
     rig_to_toml_text,
-    save_calibration,
     write_calibration_toml,
 )
 from freipose.testing import make_circle_rig

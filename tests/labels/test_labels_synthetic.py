@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from freipose.cli.main import cli
-from freipose.io.calibration import write_calibration_toml
+from freipose.io.calibration_toml import write_calibration_toml
 from freipose.io.labels import LabelSet, SessionInfo, read_labels_h5, write_labels_h5
 from freipose.io.video import VideoWriter
 from freipose.labels.check import check_labels, infer_symmetry

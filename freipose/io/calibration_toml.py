@@ -1,0 +1,159 @@
+"""The native calibration file ``calibration.toml`` (a superset of Anipose's).
+
+One ``[cam_N]`` table per camera (name, size, matrix, distortions, Rodrigues rotation and
+translation, world -> camera) and a ``[metadata]`` table; lengths are stored in mm.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomli_w
+
+from freipose.errors import FreiPoseError
+from freipose.geometry.camera import Camera, CameraRig
+from freipose.io.atomic import atomic_write_text
+from freipose.io.toml import parse_toml, read_toml
+
+log = logging.getLogger(__name__)
+
+UNIT_SCALE_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+
+
+class CalibrationFormatError(FreiPoseError):
+    """A calibration file is malformed; the message names the file and the problem."""
+
+
+def _cam_index(key: str) -> int:
+    m = re.fullmatch(r"cam_(\d+)", key)
+    return int(m.group(1)) if m else -1
+
+
+def rig_to_toml_dict(rig: CameraRig) -> dict[str, Any]:
+    """The ``calibration.toml`` structure for a rig (numeric ``cam_N`` tables + metadata)."""
+    out: dict[str, Any] = {}
+    for i, cam in enumerate(rig):
+        out[f"cam_{i}"] = {
+            "name": cam.name,
+            "size": [int(cam.size[0]), int(cam.size[1])],
+            "matrix": cam.K.tolist(),
+            "distortions": cam.dist.tolist(),
+            "rotation": cam.rvec.tolist(),
+            "translation": cam.t.tolist(),
+        }
+    md = {k: toml_value(v) for k, v in rig.metadata.items() if v is not None}
+    md["units"] = "mm"
+    out["metadata"] = md
+    return out
+
+
+def toml_value(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, (np.bool_, Path)):
+        return v.item() if isinstance(v, np.bool_) else str(v)
+    if isinstance(v, dict):  # TOML has no null: None entries are left out
+        return {str(k): toml_value(x) for k, x in v.items() if x is not None}
+    if isinstance(v, (list, tuple)):
+        return [toml_value(x) for x in v]
+    return v
+
+
+def rig_from_toml_dict(
+    data: dict[str, Any], source: str = "<toml>", units: str | None = None
+) -> CameraRig:
+    """Parse the ``calibration.toml`` structure; lengths are converted to millimetres.
+
+    Args:
+        data: the parsed TOML.
+        source: file name for error messages.
+        units: units of the stored translations when ``metadata.units`` is absent
+            (Anipose files often omit it); default ``mm``.
+    """
+    keys = sorted((k for k in data if _cam_index(k) >= 0), key=_cam_index)
+    if not keys:
+        raise CalibrationFormatError(
+            f"{source}: no [cam_N] tables found; expected one table per camera such as "
+            f"[cam_0] with name, size, matrix, distortions, rotation, translation"
+        )
+    md = dict(data.get("metadata", {}))
+    unit = str(md.get("units", units or "mm"))
+    if unit not in UNIT_SCALE_TO_MM:
+        raise CalibrationFormatError(
+            f"{source}: metadata.units is {unit!r}; expected one of {sorted(UNIT_SCALE_TO_MM)}"
+        )
+    scale = UNIT_SCALE_TO_MM[unit]
+    cams = []
+    for k in keys:
+        tab = data[k]
+        missing = [f for f in ("size", "matrix", "rotation", "translation") if f not in tab]
+        if missing:
+            raise CalibrationFormatError(
+                f"{source}: [{k}] lacks {missing}; every camera needs size, matrix, "
+                f"distortions, rotation (Rodrigues, world->camera) and translation"
+            )
+        try:
+            cams.append(
+                Camera.from_rvec(
+                    str(tab.get("name", k)),
+                    tuple(tab["size"]),
+                    tab["matrix"],
+                    tab.get("distortions", [0.0] * 5),
+                    tab["rotation"],
+                    np.asarray(tab["translation"], dtype=np.float64) * scale,
+                )
+            )
+        except ValueError as exc:
+            raise CalibrationFormatError(f"{source}: [{k}]: {exc}") from exc
+    md["units"] = "mm"
+    return CameraRig(tuple(cams), md)
+
+
+def read_calibration_toml(path: str | Path, units: str | None = None) -> CameraRig:
+    """Read a native or Anipose ``calibration.toml``.
+
+    Args:
+        path: the file.
+        units: units of the stored translations when ``metadata.units`` is absent.
+
+    Returns:
+        The rig, lengths in mm.
+
+    Raises:
+        InputFileError: no such file.
+        CalibrationFormatError: not TOML or not a calibration.
+    """
+    data = read_toml(path, "calibration file", CalibrationFormatError, "not a valid TOML file")
+    return rig_from_toml_dict(data, str(path), units=units)
+
+
+def write_calibration_toml(rig: CameraRig, path: str | Path) -> None:
+    """Write the native ``calibration.toml`` atomically."""
+    atomic_write_text(path, rig_to_toml_text(rig))
+
+
+def rig_to_toml_text(rig: CameraRig) -> str:
+    """The ``calibration.toml`` text for a rig (also embedded in HDF5 files)."""
+    return tomli_w.dumps(rig_to_toml_dict(rig))
+
+
+def rig_from_toml_text(text: str, source: str = "<embedded calibration>") -> CameraRig:
+    """Parse ``calibration.toml`` text (as embedded in HDF5 files).
+
+    Args:
+        text: the TOML text.
+        source: where the text comes from, for messages.
+
+    Returns:
+        The rig, lengths in mm.
+
+    Raises:
+        CalibrationFormatError: not TOML or not a calibration.
+    """
+    return rig_from_toml_dict(parse_toml(text, source, "calibration", CalibrationFormatError), source)
