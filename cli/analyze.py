@@ -200,7 +200,7 @@ def run(
       freipose analyze study.toml -o results/ --jobs 4
     """
     with user_errors():
-        from freipose.analysis.attribution import AttributionConfig
+        from freipose.analysis.config import AttributionConfig
         from freipose.analysis.report import analyze_study
         from freipose.analysis.variables import VariableConfig
 

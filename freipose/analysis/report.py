@@ -14,7 +14,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from freipose.analysis import figures
-from freipose.analysis.attribution import AttributionConfig, AttributionResult, run_attribution
+from freipose.analysis.attribution import AttributionResult, run_attribution
+from freipose.analysis.config import AttributionConfig
 from freipose.analysis.io import cached_variables
 from freipose.analysis.study import load_study
 from freipose.analysis.variables import VariableConfig

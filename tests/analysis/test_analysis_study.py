@@ -8,9 +8,9 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from freipose.analysis.attribution import effective_frames
 from freipose.analysis.io import cached_variables
 from freipose.analysis.simulate import simulate_rat, simulate_study, write_events_csv
+from freipose.analysis.stats import effective_frames
 from freipose.analysis.study import (
     IGNORED,
     NOT_STIMULATED,

@@ -11,17 +11,14 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from freipose.analysis.attribution import (
-    AttributionConfig,
-    informative_columns,
-    standardize_recording,
-)
+from freipose.analysis.config import AttributionConfig
 from freipose.analysis.simulate import (
     StimulusEffect,
     simulate_rat,
     stimulation_windows,
     write_events_csv,
 )
+from freipose.analysis.stats import informative_columns, standardize_recording
 from freipose.cli.main import cli
 from freipose.io.poses import write_poses_h5
 
@@ -130,7 +127,7 @@ def test_standardize_recording_and_config_checks():
 
 def test_full_classifier_is_reproducible():
     """More variables than frames: liblinear's dual solver, whose frame order is seeded."""
-    from freipose.analysis.attribution import make_svm
+    from freipose.analysis.classifier import make_svm
 
     rng = np.random.default_rng(0)
     X = rng.normal(size=(120, 300))
