@@ -53,7 +53,7 @@ def main() -> None:
     from freipose.predict.network import NetworkEstimator, load_model
     from freipose.predict.reader import SyncReader
     from freipose.predict.run import predict_session
-    from freipose.predict.session import discover_sessions
+    from freipose.io.session import discover_sessions
     from freipose.skeleton import load_skeleton
     from freipose.synth import SceneConfig, generate_session
 

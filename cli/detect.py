@@ -88,14 +88,17 @@ def detect(
     """
     with user_errors():
         from freipose.detect.multiview import ConsistencyConfig
-        from freipose.detect.pipeline import detect_session, make_source, open_session, parse_frames
+        from freipose.detect.pipeline import detect_session, make_source, open_sources
         from freipose.io.boxes import write_boxes_h5
+        from freipose.io.session import discover_sessions
+        from freipose.io.video import frame_range
 
         if batch_size < 1:
             raise ValueError(f"--batch-size must be >= 1, got {batch_size}")
         cfg = ConsistencyConfig(cube_size=cube_size, min_views=min_views)
-        rig, sources, n_frames = open_session(session, calibration)
-        rng = parse_frames(frames, n_frames)
+        opened = discover_sessions([session], calibration, cameras="calibration", need_fps=False)
+        rig, sources = opened[0].rig, open_sources(opened[0])
+        rng = frame_range(frames, opened[0].num_frames)
         source, method_name, desc = make_source(
             rig, sources, rng, model, method, fixed_boxes, device, bg_samples
         )

@@ -99,7 +99,7 @@ def select(
         from freipose.predict.network import predict_sessions
         from freipose.predict.run import output_path
         from freipose.predict.select import extract_frames, select_frames, write_selection_csv
-        from freipose.predict.session import discover_sessions
+        from freipose.io.session import discover_sessions
         from freipose.predict.writer import is_complete
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))

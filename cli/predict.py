@@ -96,7 +96,7 @@ def predict(
     with user_errors():
         from freipose.predict.network import predict_sessions
         from freipose.predict.run import parse_shard
-        from freipose.predict.session import discover_sessions
+        from freipose.io.session import discover_sessions
         from freipose.skeleton import load_skeleton
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))

@@ -54,7 +54,7 @@ def render(
         from freipose.io.poses import read_poses_h5
         from freipose.io.video import find_camera_videos
         from freipose.predict.render import render_overlay
-        from freipose.predict.session import parse_frames
+        from freipose.io.video import frame_range
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         if tile_width < 32:
@@ -85,7 +85,8 @@ def render(
         rng = None
         if frames:
             stop = int(data.frame_index.max()) + 1
-            rng = parse_frames(frames, stop)
+            r = frame_range(frames, stop)
+            rng = (r.start, r.stop)
         out = render_overlay(
             [videos[n] for n in names],
             rig.subset(names),

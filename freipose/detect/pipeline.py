@@ -16,58 +16,23 @@ from freipose.detect.multiview import ConsistencyConfig, detect_multiview_batch
 from freipose.geometry import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.boxes import BoxesData
-from freipose.io.calibration import load_calibration
-from freipose.io.video import FrameSource, find_camera_videos, frame_range
+from freipose.io.session import Session
+from freipose.io.video import FrameSource
 
 log = logging.getLogger(__name__)
 
 
-def parse_frames(text: str | None, n_frames: int) -> range:
-    """``START:STOP`` (either may be empty; Python slice rules, no step) -> a frame range;
-    see :func:`freipose.io.video.frame_range`."""
-    return frame_range(text, n_frames)
-
-
-def open_session(
-    session: Path, calibration: Path | None = None
-) -> tuple[CameraRig, dict[str, FrameSource], int]:
-    """The calibrated cameras that have a video, their frame sources and the frame count.
+def open_sources(session: Session) -> dict[str, FrameSource]:
+    """A frame source per camera of ``session``, in its camera order (the caller closes them).
 
     Args:
-        session: a folder with one video per camera (file stem = camera name).
-        calibration: the calibration file (default ``session/calibration.toml``).
+        session: a session opened with ``cameras="calibration"`` (see
+            :func:`freipose.io.session.discover_sessions`).
+
+    Returns:
+        Camera name -> open frame source.
     """
-    session = Path(session)
-    calib = Path(calibration) if calibration is not None else session / "calibration.toml"
-    if not calib.is_file():
-        raise FileNotFoundError(
-            f"{calib}: calibration not found; pass --calibration FILE or put calibration.toml "
-            f"in the session folder"
-        )
-    rig = load_calibration(calib)
-    videos = find_camera_videos(session)
-    names = [n for n in rig.names if n in videos]
-    missing = [n for n in rig.names if n not in videos]
-    if len(names) < 2:
-        raise ValueError(
-            f"{session}: videos {sorted(videos)} match only {names} of the calibrated cameras "
-            f"{rig.names}; video file stems must be the camera names and at least two are needed"
-        )
-    if missing:
-        log.warning("no video for calibrated cameras %s; using %s", missing, names)
-    rig = rig.subset(names)
-    sources = {n: FrameSource(videos[n]) for n in names}
-    counts = {n: s.num_frames for n, s in sources.items()}
-    n_frames = min(counts.values())
-    if len(set(counts.values())) > 1:
-        log.warning("videos differ in length %s; using the first %d frames", counts, n_frames)
-    for n, cam in zip(names, rig):
-        if tuple(sources[n].size) != tuple(cam.size):
-            raise ValueError(
-                f"{videos[n]}: frames are {sources[n].size[0]}x{sources[n].size[1]} but the "
-                f"calibration says camera {n} is {cam.size[0]}x{cam.size[1]}; wrong calibration?"
-            )
-    return rig, sources, n_frames
+    return {n: FrameSource(p) for n, p in session.videos.items()}
 
 
 def make_source(

@@ -22,9 +22,11 @@ import numpy as np
 from tqdm import tqdm
 
 from freipose import __version__
+from freipose.errors import FreiPoseError
 from freipose.predict.estimator import PoseEstimator, estimate_with_missing
 from freipose.predict.reader import SyncReader
-from freipose.predict.session import Session, parse_frames
+from freipose.io.session import Session
+from freipose.io.video import frame_range
 from freipose.predict.writer import (
     STATUS_FEW_VIEWS,
     STATUS_NOT_FOUND,
@@ -41,11 +43,15 @@ CHUNK_FRAMES = 256
 MIN_VIEWS = 2
 
 
+class PredictError(FreiPoseError):
+    """A prediction run cannot start as asked (bad shard, frames or skeleton)."""
+
+
 def parse_shard(spec: str | None) -> tuple[int, int] | None:
     """``"i/n"`` (0 <= i < n) -> (i, n); None stays None.
 
     Raises:
-        ValueError: malformed spec.
+        PredictError: malformed spec.
     """
     if spec is None or spec == "":
         return None
@@ -53,9 +59,9 @@ def parse_shard(spec: str | None) -> tuple[int, int] | None:
         i_s, n_s = spec.split("/")
         i, n = int(i_s), int(n_s)
     except ValueError:
-        raise ValueError(f"--shard must look like I/N (e.g. 0/4), got {spec!r}") from None
+        raise PredictError(f"--shard must look like I/N (e.g. 0/4), got {spec!r}") from None
     if n < 1 or not 0 <= i < n:
-        raise ValueError(f"--shard {spec!r}: need 0 <= I < N (shards are numbered from 0)")
+        raise PredictError(f"--shard {spec!r}: need 0 <= I < N (shards are numbered from 0)")
     return i, n
 
 
@@ -127,6 +133,120 @@ def session_provenance(
     return prov
 
 
+@dataclass(frozen=True)
+class _RunPlan:
+    """The frames one call processes.
+
+    Attributes:
+        start: first frame of the whole run (batches and chunks align to it).
+        stop: end (exclusive) of the whole run.
+        a: first frame of this call's shard.
+        b: end (exclusive) of this call's shard.
+        rows_per_chunk: rows per committed chunk.
+    """
+
+    start: int
+    stop: int
+    a: int
+    b: int
+    rows_per_chunk: int
+
+
+def _plan_run(
+    session: Session,
+    frames: str | tuple[int, int] | None,
+    batch_size: int,
+    chunk_frames: int,
+    shard: tuple[int, int] | None,
+) -> _RunPlan:
+    """The run's frame range and this shard's part of it, aligned to whole chunks."""
+    if isinstance(frames, tuple):
+        start, stop = frames
+    else:
+        r = frame_range(frames, session.num_frames)
+        start, stop = r.start, r.stop
+    rows_per_chunk = commit_rows(batch_size, chunk_frames)
+    a, b = shard_range(start, stop, shard, rows_per_chunk)
+    return _RunPlan(start, stop, a, b, rows_per_chunk)
+
+
+@dataclass(frozen=True)
+class _LoopResult:
+    """What the frame loop did.
+
+    Attributes:
+        frames: rows written in this call.
+        missing: camera -> first frame that could not be decoded.
+    """
+
+    frames: int
+    missing: dict[str, int]
+
+
+def _predict_frames(
+    session: Session,
+    estimator: PoseEstimator,
+    writer: IncrementalPosesWriter,
+    plan: _RunPlan,
+    done: int,
+    batch_size: int,
+    progress: bool,
+    prefetch: int,
+    on_batch: Callable[[int], None] | None,
+) -> _LoopResult:
+    """Estimate and write the frames ``plan.a + done .. plan.b`` batch by batch."""
+    done_now = 0
+    shapes = [(cam.height, cam.width) for cam in session.rig]
+    bar = tqdm(
+        total=plan.b - plan.a,
+        initial=done,
+        unit="frame",
+        desc=session.name,
+        disable=not progress or None,
+        leave=False,
+        dynamic_ncols=True,
+    )
+    with (
+        bar,
+        SyncReader(
+            list(session.videos.values()),
+            plan.a + done,
+            plan.b,
+            batch_size,
+            shapes,
+            align=plan.start,
+            prefetch=prefetch,
+        ) as reader,
+    ):
+        for fb in reader:
+            est, ran = estimate_with_missing(estimator, fb.images, fb.valid, session.rig, MIN_VIEWS)
+            found = np.isfinite(est.poses).all(-1).any(-1)
+            status = np.where(~ran, STATUS_FEW_VIEWS, np.where(found, STATUS_OK, STATUS_NOT_FOUND))
+            writer.add(est, status, fb.valid)
+            done_now += len(fb)
+            bar.update(len(fb))
+            if on_batch is not None:
+                on_batch(done + done_now)
+        missing = {session.rig.names[c]: i for c, i in sorted(reader.first_missing.items())}
+    return _LoopResult(done_now, missing)
+
+
+def _warn_missing(session: Session, missing: Mapping[str, int], stop: int) -> None:
+    """Log the cameras whose video ended early (frames ``i .. stop - 1`` undecodable)."""
+    for cam, i in missing.items():
+        log.warning(
+            "session %r: camera %r: frames %d..%d could not be decoded (truncated or damaged "
+            "video?); they are predicted from the other cameras where at least %d remain, else "
+            "NaN with status %d",
+            session.name,
+            cam,
+            i,
+            stop - 1,
+            MIN_VIEWS,
+            STATUS_FEW_VIEWS,
+        )
+
+
 def predict_session(
     session: Session,
     estimator: PoseEstimator,
@@ -157,16 +277,18 @@ def predict_session(
         provenance: further facts to store (e.g. settings such as ``refine``).
         chunk_frames: rows per committed chunk (rounded up to a multiple of ``batch_size``).
         progress: show a progress bar (frames per second, ETA).
+        prefetch: batches decoded ahead of the estimator.
         on_batch: called with the number of rows written so far after each batch (tests use
             it to simulate a kill).
 
     Returns:
         A :class:`PredictResult`.
+
+    Raises:
+        PredictError: the skeleton's keypoints are not the estimator's.
     """
     t0 = time.perf_counter()
-    start, stop = frames if isinstance(frames, tuple) else parse_frames(frames, session.num_frames)
-    rows_per_chunk = commit_rows(batch_size, chunk_frames)
-    a, b = shard_range(start, stop, shard, rows_per_chunk)
+    plan = _plan_run(session, frames, batch_size, chunk_frames, shard)
     path = output_path(outdir, session.name, shard)
     if path.exists() and not overwrite:
         if is_complete(path):
@@ -174,85 +296,38 @@ def predict_session(
             return PredictResult(path=path, skipped=True)
         log.warning("%s exists but is not a complete output; redoing it", path)
     if skeleton is not None and tuple(skeleton.keypoints) != tuple(estimator.keypoints):
-        raise ValueError(
+        raise PredictError(
             f"skeleton {skeleton.name!r} has keypoints {list(skeleton.keypoints)} but the model "
             f"predicts {list(estimator.keypoints)}"
         )
     header = OutputHeader(
         keypoints=tuple(estimator.keypoints),
         rig=session.rig,
-        start=a,
-        stop=b,
+        start=plan.a,
+        stop=plan.b,
         fps=session.fps,
         skeleton=skeleton,
         provenance=session_provenance(session, estimator, provenance),
-        run_start=start,
-        run_stop=stop,
+        run_start=plan.start,
+        run_stop=plan.stop,
         shard=shard,
     )
-    writer = IncrementalPosesWriter(path, header, rows_per_chunk)
-    missing: dict[str, int] = {}
-    done_now = 0
+    writer = IncrementalPosesWriter(path, header, plan.rows_per_chunk)
     try:
         done = writer.open()
-        shapes = [(cam.height, cam.width) for cam in session.rig]
-        bar = tqdm(
-            total=b - a,
-            initial=done,
-            unit="frame",
-            desc=session.name,
-            disable=not progress or None,
-            leave=False,
-            dynamic_ncols=True,
+        loop = _predict_frames(
+            session, estimator, writer, plan, done, batch_size, progress, prefetch, on_batch
         )
-        with (
-            bar,
-            SyncReader(
-                list(session.videos.values()),
-                a + done,
-                b,
-                batch_size,
-                shapes,
-                align=start,
-                prefetch=prefetch,
-            ) as reader,
-        ):
-            for fb in reader:
-                est, ran = estimate_with_missing(
-                    estimator, fb.images, fb.valid, session.rig, MIN_VIEWS
-                )
-                found = np.isfinite(est.poses).all(-1).any(-1)
-                status = np.where(
-                    ~ran, STATUS_FEW_VIEWS, np.where(found, STATUS_OK, STATUS_NOT_FOUND)
-                )
-                writer.add(est, status, fb.valid)
-                done_now += len(fb)
-                bar.update(len(fb))
-                if on_batch is not None:
-                    on_batch(done + done_now)
-            missing = {session.rig.names[c]: i for c, i in sorted(reader.first_missing.items())}
         out = writer.finish()
     finally:
         writer.close()
-    for cam, i in missing.items():
-        log.warning(
-            "session %r: camera %r: frames %d..%d could not be decoded (truncated or damaged "
-            "video?); they are predicted from the other cameras where at least %d remain, else "
-            "NaN with status %d",
-            session.name,
-            cam,
-            i,
-            b - 1,
-            MIN_VIEWS,
-            STATUS_FEW_VIEWS,
-        )
-    counts = _status_counts(out)
+    _warn_missing(session, loop.missing, plan.b)
     return PredictResult(
         path=out,
-        frames=done_now,
+        frames=loop.frames,
         seconds=time.perf_counter() - t0,
-        missing=missing,
-        status_counts=counts,
+        missing=loop.missing,
+        status_counts=_status_counts(out),
     )
 
 

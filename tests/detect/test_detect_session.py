@@ -7,9 +7,9 @@ from click.testing import CliRunner
 
 from freipose.cli.main import cli
 from freipose.detect.detector import load_checkpoint
-from freipose.detect.pipeline import parse_frames
 from freipose.detect.train import DetectorTrainConfig, train_detector
 from freipose.io.boxes import BoxesData, BoxesFormatError, read_boxes_h5, write_boxes_h5
+from freipose.io.video import frame_range
 
 TINY = {"input_size": 64, "width": 0.25, "neck_channels": 16, "batch_size": 8, "warmup_steps": 5}
 
@@ -100,11 +100,11 @@ def test_cli_detect_model_and_errors(session_dir, tmp_path):
 
 
 def test_parse_frames():
-    assert parse_frames(None, 5) == range(5)
-    assert parse_frames("1:3", 10) == range(1, 3)
-    assert parse_frames("-2:", 10) == range(8, 10)
+    assert frame_range(None, 5) == range(5)
+    assert frame_range("1:3", 10) == range(1, 3)
+    assert frame_range("-2:", 10) == range(8, 10)
     with pytest.raises(ValueError, match="START:STOP"):
-        parse_frames("5", 10)
+        frame_range("5", 10)
 
 
 def test_boxes_h5_round_trip_and_errors(tmp_path, circle_rig):
@@ -135,9 +135,11 @@ def test_boxes_h5_round_trip_and_errors(tmp_path, circle_rig):
 
 def test_detect_session_resumes_after_interruption(session_dir, tmp_path):
     from freipose.detect import FixedBoxes
-    from freipose.detect.pipeline import detect_session, open_session
+    from freipose.detect.pipeline import detect_session, open_sources
+    from freipose.io.session import discover_sessions
 
-    rig, sources, n = open_session(session_dir)
+    session = discover_sessions([session_dir], cameras="calibration", need_fps=False)[0]
+    rig, sources, n = session.rig, open_sources(session), session.num_frames
     boxes = {c: [39.5 + i, 29.5, 119.5 + i, 89.5] for i, c in enumerate(rig.names)}
 
     class Flaky(FixedBoxes):

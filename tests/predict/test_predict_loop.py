@@ -16,10 +16,10 @@ from predict_helpers import KEYPOINTS, BlobEstimator, h5_equal, make_session
 from freipose.cli.main import cli
 from freipose.io.calibration import load_calibration, save_calibration
 from freipose.io.poses import read_poses_h5
-from freipose.io.video import MediaError
+from freipose.io.session import SessionError, discover_sessions
+from freipose.io.video import MediaError, frame_range
 from freipose.predict.merge import MergeError, merge_outputs, merge_shards
 from freipose.predict.run import parse_shard, predict_session, shard_range
-from freipose.predict.session import SessionError, discover_sessions, parse_frames
 from freipose.predict.writer import STATUS_FEW_VIEWS, STATUS_NOT_FOUND, STATUS_OK, partial_path
 
 N = 40
@@ -194,14 +194,14 @@ def test_shards_from_different_runs_refuse_to_merge(session_dir, tmp_path):
 
 
 def test_frame_range_and_shard_parsing():
-    assert parse_frames("10:20", 100) == (10, 20)
-    assert parse_frames(":5", 100) == (0, 5)
-    assert parse_frames("90:", 100) == (90, 100)
-    assert parse_frames(None, 7) == (0, 7)
+    assert frame_range("10:20", 100) == range(10, 20)
+    assert frame_range(":5", 100) == range(0, 5)
+    assert frame_range("90:", 100) == range(90, 100)
+    assert frame_range(None, 7) == range(0, 7)
     with pytest.raises(ValueError, match="START:STOP"):
-        parse_frames("10", 100)
+        frame_range("10", 100)
     with pytest.raises(ValueError, match="selects no frames"):
-        parse_frames("50:40", 100)
+        frame_range("50:40", 100)
     assert parse_shard("2/4") == (2, 4)
     for bad in ("4/4", "x/2", "1", "-1/3"):
         with pytest.raises(ValueError):

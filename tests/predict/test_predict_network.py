@@ -21,7 +21,7 @@ from freipose.predict.network import (
     make_box_source,
 )
 from freipose.predict.run import predict_session
-from freipose.predict.session import discover_sessions
+from freipose.io.session import discover_sessions
 from freipose.skeleton import Skeleton
 
 T = 24

@@ -13,7 +13,7 @@ from freipose.cli.labels_select import select as select_cmd
 from freipose.io.poses import PoseData
 from freipose.predict.run import predict_session
 from freipose.predict.select import read_selection_csv, select_frames
-from freipose.predict.session import discover_sessions
+from freipose.io.session import discover_sessions
 
 
 def _data(rng, T=200):
