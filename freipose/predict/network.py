@@ -21,7 +21,7 @@ import numpy as np
 from freipose.geometry.camera import CameraRig
 from freipose.geometry.crops import cube_crop_boxes
 from freipose.predict.estimator import Estimate
-from freipose.predict.session import Session
+from freipose.io.session import Session
 from freipose.skeleton import Skeleton
 
 log = logging.getLogger(__name__)
@@ -240,11 +240,12 @@ def predict_sessions(
         One :class:`~freipose.predict.run.PredictResult` per session.
     """
     from freipose.predict.run import PredictResult, output_path, predict_session
-    from freipose.predict.session import parse_frames
+    from freipose.io.video import frame_range
     from freipose.predict.writer import is_complete
 
     dev = resolve_device(device)
-    ranges = {s.name: parse_frames(frames, s.num_frames) for s in sessions}
+    bounds = {s.name: frame_range(frames, s.num_frames) for s in sessions}
+    ranges = {name: (r.start, r.stop) for name, r in bounds.items()}
     net, config, skel, sha = load_model(model_path, dev)
     check_keypoints(skel, expected_skeleton, model_path)
     shared = None
