@@ -51,7 +51,7 @@ def image_sizes(sample: dict) -> list[tuple[int, int]]:
     rig = sample.get("rig")
     if rig is None:
         raise ValueError("sample has neither images nor a calibration to tell its image sizes")
-    return [tuple(int(v) for v in c.size) for c in rig]
+    return [(int(c.size[0]), int(c.size[1])) for c in rig]
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,7 @@ class DetectionMetrics:
     n_instants: int
 
     def summary(self) -> str:
+        """The metrics as one line of text (what ``freipose train --stage detector`` prints)."""
         return (
             f"recall@IoU0.5 {self.recall:.3f} (best box per view alone {self.recall_top1:.3f}) "
             f"over {self.n_views} views; median 3D centre error {self.median_center_error:.2f} mm; "

@@ -41,8 +41,9 @@ and its ``[detector]`` table the training (every key optional; defaults below)::
                             # input); e.g. 128 with input_size 192 halves the training cost
 
 Writes ``detector_last.pt`` (resumable: weights, optimizer, step) every
-``checkpoint_every`` steps and ``detector.pt`` (weights and metrics) at the end, and prints
-recall at IoU 0.5, the median 3D centre error and CPU frames per second.
+``checkpoint_every`` steps, ``log.csv`` (the loss history, a row every ``log_every`` steps)
+and ``detector.pt`` (weights and metrics) at the end, and prints recall at IoU 0.5, the
+median 3D centre error and CPU frames per second.
 """
 
 from __future__ import annotations
@@ -59,10 +60,9 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
-from torch.nn import functional as F
 from tqdm import tqdm
 
-from freipose.detect.augment import AugmentConfig, augment, make_targets
+from freipose.detect.augment import AugmentConfig, augment
 from freipose.detect.boxes import clip_boxes, visible_fraction
 from freipose.detect.detector import (
     Detector,
@@ -72,13 +72,20 @@ from freipose.detect.detector import (
     save_checkpoint,
 )
 from freipose.detect.evaluate import DetectionMetrics, evaluate_source, gt_boxes, measure_fps
+from freipose.detect.loss import detection_loss
 from freipose.detect.model import DetectorConfig, DetectorNet, to_tensor
 from freipose.detect.multiview import ConsistencyConfig
+from freipose.detect.train_log import LOG, log_row, read_log, write_log
+from freipose.errors import FreiPoseError, InputFileError
 
 log = logging.getLogger(__name__)
 
 LAST = "detector_last.pt"
 FINAL = "detector.pt"
+
+
+class DetectorTrainError(FreiPoseError):
+    """A detector training that cannot run as configured (bad table, no training data)."""
 
 
 @dataclass(frozen=True)
@@ -117,17 +124,19 @@ class DetectorTrainConfig:
         object.__setattr__(self, "scale", tuple(float(v) for v in self.scale))
         for name in ("steps", "batch_size", "max_images", "checkpoint_every", "log_every"):
             if int(getattr(self, name)) < 1:
-                raise ValueError(f"[detector] {name} must be >= 1, got {getattr(self, name)}")
+                raise DetectorTrainError(
+                    f"[detector] {name} must be >= 1, got {getattr(self, name)}"
+                )
         if not 0 <= self.eval_fraction < 1:
-            raise ValueError(
+            raise DetectorTrainError(
                 f"[detector] eval_fraction must be in [0, 1), got {self.eval_fraction}"
             )
         if self.lr <= 0:
-            raise ValueError(f"[detector] lr must be positive, got {self.lr}")
+            raise DetectorTrainError(f"[detector] lr must be positive, got {self.lr}")
         if self.train_crop and (
             self.train_crop % 32 or not 64 <= self.train_crop <= self.input_size
         ):
-            raise ValueError(
+            raise DetectorTrainError(
                 f"[detector] train_crop must be 0 (whole input) or a multiple of 32 between 64 "
                 f"and input_size {self.input_size}, got {self.train_crop}"
             )
@@ -141,18 +150,20 @@ class DetectorTrainConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(table) - known)
         if unknown:
-            raise ValueError(
+            raise DetectorTrainError(
                 f"[detector] has unknown keys {unknown}; known keys are {sorted(known)}"
             )
         try:
             return cls(**table)
         except TypeError as exc:
-            raise ValueError(f"[detector]: {exc}") from exc
+            raise DetectorTrainError(f"[detector]: {exc}") from exc
 
     def model_config(self) -> DetectorConfig:
+        """The network architecture (input size, width, neck channels)."""
         return DetectorConfig(self.input_size, self.width, self.neck_channels)
 
     def augment_config(self) -> AugmentConfig:
+        """The augmentation settings (zoom, flips, colour, blur, noise)."""
         return AugmentConfig(
             self.scale, self.hflip, self.vflip, self.color, self.hue, self.blur, self.noise
         )
@@ -169,7 +180,7 @@ class ViewImages:
 def _data_paths(config: dict, config_path: Path) -> tuple[list[Path], list[Path], Path | None]:
     data = config.get("data")
     if not isinstance(data, dict) or "labels" not in data:
-        raise ValueError(
+        raise DetectorTrainError(
             f"{config_path}: the training config needs a [data] table with `labels = "
             f'"labels.h5"` (a path or a list of paths, relative to the config file)'
         )
@@ -178,11 +189,13 @@ def _data_paths(config: dict, config_path: Path) -> tuple[list[Path], list[Path]
     def paths(v: Any, key: str) -> list[Path]:
         vs = [v] if isinstance(v, (str, Path)) else list(v)
         if not vs or not all(isinstance(x, (str, Path)) for x in vs):
-            raise ValueError(f"{config_path}: [data] {key} must be a path or a list of paths")
+            raise DetectorTrainError(
+                f"{config_path}: [data] {key} must be a path or a list of paths"
+            )
         out = [p if p.is_absolute() else base / p for p in map(Path, vs)]
         for p in out:
             if not p.is_file():
-                raise FileNotFoundError(f"{config_path}: [data] {key}: {p} does not exist")
+                raise InputFileError(f"{config_path}: [data] {key}: {p} does not exist")
         return out
 
     train = paths(data["labels"], "labels")
@@ -193,7 +206,7 @@ def _data_paths(config: dict, config_path: Path) -> tuple[list[Path], list[Path]
 
 
 def _datasets(paths: Sequence[Path], root: Path | None) -> list:
-    from freipose.labels.dataset import MultiViewDataset
+    from freipose.nn.dataset import MultiViewDataset
 
     return [MultiViewDataset(p, root=root) for p in paths]
 
@@ -253,43 +266,54 @@ def _collate(batch: list[tuple[np.ndarray, np.ndarray]]) -> tuple[torch.Tensor, 
     return to_tensor(imgs), np.stack([b[1] for b in batch])
 
 
-def focal_loss(logits: torch.Tensor, target: torch.Tensor, n_pos: torch.Tensor) -> torch.Tensor:
-    """CenterNet's penalty-reduced pixel-wise focal loss (alpha 2, beta 4)."""
-    p = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
-    pos = target.ge(0.999).float()
-    pos_loss = -torch.log(p) * (1 - p) ** 2 * pos
-    neg_loss = -torch.log(1 - p) * p**2 * (1 - target) ** 4 * (1 - pos)
-    return (pos_loss.sum() + neg_loss.sum()) / n_pos.clamp(min=1.0)
-
-
-def detection_loss(
-    outputs: tuple[torch.Tensor, torch.Tensor, torch.Tensor], boxes: np.ndarray, input_size: int
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """Focal heat-map loss + L1 on log size and offset at the centre cell."""
-    heat_l, size_p, off_p = outputs
-    dev = heat_l.device
-    heat, index, size, offset, mask = (
-        torch.from_numpy(a).to(dev) for a in make_targets(boxes, input_size)
-    )
-    n_pos = mask.sum()
-    l_heat = focal_loss(heat_l.float(), heat, n_pos)
-    b = heat_l.shape[0]
-    sp = size_p.float().flatten(2).gather(2, index.view(b, 1, 1).expand(b, 2, 1))[..., 0]
-    op = off_p.float().flatten(2).gather(2, index.view(b, 1, 1).expand(b, 2, 1))[..., 0]
-    m = mask[:, None]
-    denom = n_pos.clamp(min=1.0) * 2
-    l_size = (F.l1_loss(sp, size, reduction="none") * m).sum() / denom
-    l_off = (F.l1_loss(op, offset, reduction="none") * m).sum() / denom
-    total = l_heat + l_size + l_off
-    parts = {"heat": l_heat.item(), "size": l_size.item(), "offset": l_off.item()}
-    return total, parts
-
-
 def _lr_factor(step: int, cfg: DetectorTrainConfig) -> float:
     if step < cfg.warmup_steps:
         return (step + 1) / cfg.warmup_steps
     t = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
     return 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, t)))
+
+
+@dataclass(frozen=True)
+class _Training:
+    """A training run ready to take its first step: network, optimizer, schedule, position."""
+
+    net: DetectorNet
+    opt: torch.optim.Optimizer
+    sched: torch.optim.lr_scheduler.LambdaLR
+    start: int  # optimizer steps already done (resumed runs)
+    last: Path | None  # the resumable checkpoint, None without an output folder
+
+
+def _start_training(
+    cfg: DetectorTrainConfig, dev: torch.device, out_dir: Path | None, resume: bool
+) -> _Training:
+    """Build the network and optimizer (seeded), resuming from ``detector_last.pt`` if asked.
+
+    Raises:
+        DetectorTrainError: the checkpoint to resume was trained with another architecture.
+    """
+    torch.manual_seed(cfg.seed)
+    net = DetectorNet(cfg.model_config())
+    if cfg.backbone_weights:
+        load_backbone_weights(net, cfg.backbone_weights)
+    net.to(dev)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg))
+    start = 0
+    last = None if out_dir is None else Path(out_dir) / LAST
+    if resume and last is not None and last.is_file():
+        ckpt = load_checkpoint(last)
+        if ckpt["config"] != cfg.model_config().to_dict():
+            raise DetectorTrainError(
+                f"{last}: was trained with {ckpt['config']}, the config asks for "
+                f"{cfg.model_config().to_dict()}; use another output folder or drop --resume"
+            )
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        sched.load_state_dict(ckpt["scheduler"])
+        start = int(ckpt["step"])
+        log.info("resuming detector training from %s at step %d", last, start)
+    return _Training(net, opt, sched, start, last)
 
 
 def fit(
@@ -303,32 +327,34 @@ def fit(
     """Train a detector on cached views; returns the network and the per-step losses.
 
     With ``out_dir``, writes ``detector_last.pt`` every ``checkpoint_every`` steps (and at
-    the end); with ``resume``, continues from it.
+    the end) and ``log.csv`` (:data:`LOG_COLUMNS`, a row every ``log_every`` steps and at
+    the end); with ``resume``, continues from ``detector_last.pt`` and keeps the log rows
+    up to its step.
+
+    Args:
+        views: the training views.
+        cfg: the training settings.
+        device: torch device.
+        out_dir: the run folder (None: no checkpoints, no log).
+        resume: continue from ``out_dir/detector_last.pt`` when it exists.
+        progress: show a progress bar (on a terminal).
+
+    Returns:
+        The trained network (in eval mode) and the losses of the steps run by this call.
+
+    Raises:
+        DetectorTrainError: no training views, or a checkpoint of another architecture.
     """
     dev = resolve_device(device)
     if not views.images:
-        raise ValueError("no training views: the labels have no labeled views with images")
-    torch.manual_seed(cfg.seed)
-    net = DetectorNet(cfg.model_config())
-    if cfg.backbone_weights:
-        load_backbone_weights(net, cfg.backbone_weights)
-    net.to(dev)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg))
-    start = 0
-    last = None if out_dir is None else Path(out_dir) / LAST
-    if resume and last is not None and last.is_file():
-        ckpt = load_checkpoint(last)
-        if ckpt["config"] != cfg.model_config().to_dict():
-            raise ValueError(
-                f"{last}: was trained with {ckpt['config']}, the config asks for "
-                f"{cfg.model_config().to_dict()}; use another output folder or drop --resume"
-            )
-        net.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        sched.load_state_dict(ckpt["scheduler"])
-        start = int(ckpt["step"])
-        log.info("resuming detector training from %s at step %d", last, start)
+        raise DetectorTrainError("no training views: the labels have no labeled views with images")
+    run = _start_training(cfg, dev, out_dir, resume)
+    net, opt, sched, start, last = run.net, run.opt, run.sched, run.start, run.last
+    log_path = None if out_dir is None else Path(out_dir) / LOG
+    rows: list[dict[str, Any]] = []
+    if log_path is not None:
+        rows = read_log(log_path, start)
+        write_log(log_path, rows)
     data = AugmentedBatches(views, cfg, cfg.steps * cfg.batch_size)
     sampler = range(start * cfg.batch_size, cfg.steps * cfg.batch_size)
     loader = torch.utils.data.DataLoader(
@@ -343,6 +369,8 @@ def fit(
     bar = tqdm(total=cfg.steps, initial=start, desc="detector", disable=None if progress else True)
     step = start
     window: list[float] = []
+    window_parts: list[dict[str, float]] = []
+    t0 = time.perf_counter()
     for x, boxes in loader:
         out = net(x.to(dev, non_blocking=True))
         loss, parts = detection_loss(out, boxes, cfg.train_crop or cfg.input_size)
@@ -355,6 +383,7 @@ def fit(
         lv = loss.item()
         losses.append(lv)
         window.append(lv)
+        window_parts.append(parts)
         bar.update(1)
         if step % cfg.log_every == 0 or step == cfg.steps:
             log.info(
@@ -362,7 +391,11 @@ def fit(
                 step, cfg.steps, np.mean(window), parts["heat"], parts["size"],
                 parts["offset"], sched.get_last_lr()[0],
             )  # fmt: skip
-            window = []
+            if log_path is not None:
+                lr = float(sched.get_last_lr()[0])
+                rows.append(log_row(step, lr, window, window_parts, time.perf_counter() - t0))
+                write_log(log_path, rows)
+            window, window_parts = [], []
         if last is not None and (step % cfg.checkpoint_every == 0 or step == cfg.steps):
             save_checkpoint(
                 last,
@@ -379,38 +412,26 @@ def fit(
     return net, losses
 
 
-def train_detector(
-    config: dict, config_path: Path, out_dir: Path, resume: bool, device: str
-) -> Path:
-    """Train the detector as the training TOML says; returns the checkpoint path.
+@dataclass(frozen=True)
+class _Split:
+    """Training and evaluation time instants as (dataset index, sample index) pairs."""
 
-    Args:
-        config: the parsed training TOML (``[data]`` and ``[detector]`` tables are used).
-        config_path: the TOML's path (relative data paths are relative to its folder).
-        out_dir: where ``detector_last.pt`` and ``detector.pt`` go.
-        resume: continue from ``out_dir/detector_last.pt`` when it exists.
-        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"`` or ``"auto"``.
+    train: list[tuple[int, int]]
+    eval: list[tuple[int, int]]
 
-    Prints recall at IoU 0.5, the median 3D centre error (mm) on the evaluation set and
-    the CPU frames per second at the end.
+
+def _split_items(train_sets: list, eval_sets: list, cfg: DetectorTrainConfig) -> _Split:
+    """Every labeled instant of ``train_sets`` for training, minus held-out blocks.
+
+    Without ``eval_sets``, ``cfg.eval_fraction`` of each training set is held out as one
+    contiguous block (seeded) so neighbouring frames do not leak into the evaluation.
     """
-    cfg = DetectorTrainConfig.from_dict(config.get("detector"))
-    train_paths, eval_paths, root = _data_paths(config, Path(config_path))
-    if cfg.backbone_weights and not Path(cfg.backbone_weights).is_absolute():
-        bw = Path(config_path).resolve().parent / cfg.backbone_weights
-        cfg = dataclasses.replace(cfg, backbone_weights=str(bw))
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    dev = resolve_device(device)
-    train_sets = _datasets(train_paths, root)
-    eval_sets = _datasets(eval_paths, root) if eval_paths else []
     rng = np.random.default_rng(cfg.seed)
     train_items: list[tuple[int, int]] = []
     eval_items: list[tuple[int, int]] = []
     for d, ds in enumerate(train_sets):
         idx = np.arange(len(ds))
         if not eval_sets and cfg.eval_fraction > 0 and len(idx) > 1:
-            # Hold out whole contiguous blocks so neighbouring frames do not leak.
             n_ev = max(1, round(cfg.eval_fraction * len(idx)))
             start = int(rng.integers(0, len(idx) - n_ev + 1))
             ev = idx[start : start + n_ev]
@@ -419,42 +440,51 @@ def train_detector(
         train_items += [(d, int(i)) for i in idx]
     for d, ds in enumerate(eval_sets):
         eval_items += [(d, int(i)) for i in range(len(ds))]
-    if not train_items:
-        raise ValueError(f"{train_paths}: no labeled time instants to train the detector on")
+    return _Split(train_items, eval_items)
 
-    # Cache the training views (evenly subsampled to max_images).
-    n_views_est = sum(len(train_sets[d].labels.cameras) for d, _ in train_items[:1]) or 1
-    keep = min(len(train_items), max(1, cfg.max_images // n_views_est))
-    sel = np.unique(np.linspace(0, len(train_items) - 1, keep).round().astype(int))
-    views = _collect_items(train_sets, [train_items[i] for i in sel], cfg)
+
+def _training_views(
+    train_sets: list, items: list[tuple[int, int]], cfg: DetectorTrainConfig, n_eval: int
+) -> ViewImages:
+    """Cache the training views of ``items``, evenly subsampled to ``cfg.max_images``."""
+    n_views_est = sum(len(train_sets[d].labels.cameras) for d, _ in items[:1]) or 1
+    keep = min(len(items), max(1, cfg.max_images // n_views_est))
+    sel = np.unique(np.linspace(0, len(items) - 1, keep).round().astype(int))
+    views = _collect_items(train_sets, [items[i] for i in sel], cfg)
     n_neg = int((~np.isfinite(views.boxes).all(-1)).sum())
     log.info(
         "detector: %d training views from %d time instants (%d without the animal), "
-        "%d evaluation time instants", len(views.images), len(sel), n_neg, len(eval_items),
+        "%d evaluation time instants", len(views.images), len(sel), n_neg, n_eval,
     )  # fmt: skip
-    t0 = time.perf_counter()
-    net, losses = fit(views, cfg, dev, out_dir, resume)
-    train_s = time.perf_counter() - t0
-    del views
+    return views
 
-    det = Detector(net, dev)
-    metrics: DetectionMetrics | None = None
-    if eval_items:
-        ev_sets = eval_sets if eval_sets else train_sets
-        if len(eval_items) > cfg.max_eval_instants:
-            pick = np.linspace(0, len(eval_items) - 1, cfg.max_eval_instants).round().astype(int)
-            eval_items = [eval_items[i] for i in np.unique(pick)]
-        metrics = evaluate_source(
-            det,
-            (ev_sets[d][i] for d, i in eval_items),
-            margin=cfg.box_margin,
-            consistency=ConsistencyConfig(cube_size=cfg.cube_size),
-            min_visible=cfg.min_visible,
-        )
-    cpu = Detector(net.to("cpu"), "cpu")
-    fps = measure_fps(cpu)
-    net.to(dev)
-    final = out_dir / FINAL
+
+def _evaluate(
+    det: Detector, sets: list, items: list[tuple[int, int]], cfg: DetectorTrainConfig
+) -> DetectionMetrics | None:
+    """Detection metrics on (at most ``cfg.max_eval_instants``, evenly picked) ``items``."""
+    if not items:
+        return None
+    if len(items) > cfg.max_eval_instants:
+        pick = np.linspace(0, len(items) - 1, cfg.max_eval_instants).round().astype(int)
+        items = [items[i] for i in np.unique(pick)]
+    return evaluate_source(
+        det,
+        (sets[d][i] for d, i in items),
+        margin=cfg.box_margin,
+        consistency=ConsistencyConfig(cube_size=cfg.cube_size),
+        min_visible=cfg.min_visible,
+    )
+
+
+def _final_extra(
+    cfg: DetectorTrainConfig,
+    metrics: DetectionMetrics | None,
+    fps: float,
+    train_s: float,
+    losses: list[float],
+) -> dict[str, Any]:
+    """What ``detector.pt`` stores next to the weights: step, config and metrics."""
     extra: dict[str, Any] = {
         "step": cfg.steps,
         "box_margin": cfg.box_margin,
@@ -469,7 +499,59 @@ def train_detector(
     }
     if metrics is not None:
         extra["metrics"].update(dataclasses.asdict(metrics))
-    save_checkpoint(final, net, extra=extra)
+    return extra
+
+
+def train_detector(
+    config: dict, config_path: Path, out_dir: Path, resume: bool, device: str
+) -> Path:
+    """Train the detector as the training TOML says; returns the checkpoint path.
+
+    Writes ``detector_last.pt``, ``log.csv`` (see :func:`fit`) and ``detector.pt`` into
+    ``out_dir``. Prints recall at IoU 0.5, the median 3D centre error (mm) on the
+    evaluation set and the CPU frames per second at the end.
+
+    Args:
+        config: the parsed training TOML (``[data]`` and ``[detector]`` tables are used).
+        config_path: the TOML's path (relative data paths are relative to its folder).
+        out_dir: where ``detector_last.pt``, ``log.csv`` and ``detector.pt`` go.
+        resume: continue from ``out_dir/detector_last.pt`` when it exists.
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"`` or ``"auto"``.
+
+    Returns:
+        The path of ``detector.pt``.
+
+    Raises:
+        DetectorTrainError: a bad ``[data]`` or ``[detector]`` table, or no labeled instants.
+        InputFileError: a labels file does not exist.
+    """
+    cfg = DetectorTrainConfig.from_dict(config.get("detector"))
+    train_paths, eval_paths, root = _data_paths(config, Path(config_path))
+    if cfg.backbone_weights and not Path(cfg.backbone_weights).is_absolute():
+        bw = Path(config_path).resolve().parent / cfg.backbone_weights
+        cfg = dataclasses.replace(cfg, backbone_weights=str(bw))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dev = resolve_device(device)
+    train_sets = _datasets(train_paths, root)
+    eval_sets = _datasets(eval_paths, root) if eval_paths else []
+    split = _split_items(train_sets, eval_sets, cfg)
+    if not split.train:
+        raise DetectorTrainError(
+            f"{train_paths}: no labeled time instants to train the detector on"
+        )
+    views = _training_views(train_sets, split.train, cfg, len(split.eval))
+    t0 = time.perf_counter()
+    net, losses = fit(views, cfg, dev, out_dir, resume)
+    train_s = time.perf_counter() - t0
+    del views
+
+    metrics = _evaluate(Detector(net, dev), eval_sets or train_sets, split.eval, cfg)
+    cpu = Detector(net.to("cpu"), "cpu")
+    fps = measure_fps(cpu)
+    net.to(dev)
+    final = out_dir / FINAL
+    save_checkpoint(final, net, extra=_final_extra(cfg, metrics, fps, train_s, losses))
     print(f"detector: trained {cfg.steps} steps in {train_s:.0f} s; checkpoint {final}")
     if metrics is not None:
         print(f"detector eval: {metrics.summary()}")
