@@ -36,9 +36,9 @@ def demo(ctx: click.Context, outdir: Path, preset: str, device: str) -> None:
     Example:
       freipose demo                      # -> freipose_demo/report.html
       freipose demo demo_tiny --preset tiny
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
-        from freipose.demo import run_demo
+        from freipose.demo.runner import run_demo
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         report = run_demo(

@@ -10,7 +10,9 @@ import pytest
 from click.testing import CliRunner
 
 from freipose.cli.main import cli
-from freipose.demo import PRESETS, STEPS, study_toml
+from freipose.demo.markers import STEPS
+from freipose.demo.presets import PRESETS
+from freipose.demo.steps.analyze import study_toml
 from freipose.geometry.alignment import align_similarity
 
 
@@ -106,7 +108,7 @@ def test_tiny_demo_rerun_skips_and_refuses_other_preset(tiny_demo):
 
 
 def test_align_similarity_recovers_transform(rng):
-    from freipose.geometry.camera import rodrigues_to_matrix
+    from freipose.geometry.transforms import rodrigues_to_matrix
 
     A = rng.normal(size=(7, 3)) * 500
     R = rodrigues_to_matrix(np.array([0.3, -0.2, 1.1]))
@@ -119,7 +121,7 @@ def test_align_similarity_recovers_transform(rng):
 
 def test_study_manifest_is_valid(tmp_path):
     from freipose.analysis.study import load_study
-    from freipose.demo import DemoContext
+    from freipose.demo.context import DemoContext
 
     ctx = DemoContext(tmp_path, PRESETS["small"])
     path = tmp_path / "analysis" / "study.toml"
@@ -132,7 +134,7 @@ def test_study_manifest_is_valid(tmp_path):
 
 
 def test_unknown_preset_is_a_clear_error(tmp_path):
-    from freipose.demo import run_demo
+    from freipose.demo.runner import run_demo
 
     with pytest.raises(ValueError, match="unknown demo preset"):
         run_demo(tmp_path / "x", "huge")

@@ -1,0 +1,163 @@
+"""The sizes of a demo run: the ``tiny`` and ``small`` presets and their sessions."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from typing import Any
+
+STIM_PART = "Paw Front Right"
+
+
+@dataclass(frozen=True)
+class DemoSession:
+    """One synthetic recording: its name, seed and role in the study."""
+
+    name: str
+    seed: int
+    split: str  # "train" (labels come from it) or "test" (held out: evaluation)
+
+
+@dataclass(frozen=True)
+class DemoPreset:
+    """Sizes of a demo run.
+
+    Attributes:
+        name: preset name.
+        size: image size (width, height) of the 7 cameras.
+        fps: frame rate of the sessions.
+        session_frames: frames of each session.
+        calibration_frames: frames of the board videos.
+        sessions: the recordings (one animal, one condition, train and test splits).
+        stimulation: ``freipose.synth`` stimulation protocol as a dict.
+        label_instants: labeled time instants imported from the train sessions.
+        eval_instants: held-out time instants with true 3D keypoints for ``freipose eval``.
+        pose: ``[model]`` preset and ``[schedule]`` overrides of the voxel network.
+        baseline_steps: training steps of the triangulation baseline.
+        detector: the ``[detector]`` table.
+        analysis: ``AttributionConfig`` fields; ``stft_window``: STFT window in frames.
+        overlay_frames: frames of the overlay clip.
+        batch: time steps per prediction batch.
+        n_cameras: cameras of the rig.
+        detection: how ``predict`` finds the animal: ``"detector"`` (the trained detector)
+            or ``"bgsub"`` (background subtraction; for ``tiny``, whose few-step detector
+            finds nothing).
+    """
+
+    name: str
+    size: tuple[int, int]
+    fps: float
+    session_frames: int
+    calibration_frames: int
+    sessions: tuple[DemoSession, ...]
+    stimulation: dict[str, Any]
+    label_instants: int
+    eval_instants: int
+    pose: dict[str, Any]
+    baseline_steps: int
+    detector: dict[str, Any]
+    analysis: dict[str, Any]
+    stft_window: int
+    overlay_frames: int
+    batch: int = 8
+    n_cameras: int = 7
+    detection: str = "detector"
+
+    def to_dict(self) -> dict[str, Any]:
+        """The preset as JSON-compatible nested dicts and lists (as stored in the markers)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+
+_SESSIONS = (DemoSession("rat1_day1", 1, "train"), DemoSession("rat1_day2", 2, "test"))
+
+PRESETS: dict[str, DemoPreset] = {
+    # End to end in a few minutes (CI): everything tiny, numbers meaningless.
+    "tiny": DemoPreset(
+        name="tiny",
+        size=(320, 256),
+        fps=25.0,
+        session_frames=60,
+        calibration_frames=70,
+        sessions=_SESSIONS,
+        stimulation=dict(
+            body_part=STIM_PART,
+            effect="oscillate",
+            frequency_hz=5.0,
+            amplitude_mm=20.0,
+            duration_s=0.8,
+            spacing_s=2.0,
+            onset_s=0.6,
+        ),  # fmt: skip
+        label_instants=24,
+        eval_instants=8,
+        pose=dict(preset="tiny", steps=6, checkpoint_every=3, eval_every=3, eval_samples=4),
+        baseline_steps=4,
+        detector=dict(
+            input_size=64,
+            width=0.25,
+            neck_channels=8,
+            steps=4,
+            batch_size=4,
+            checkpoint_every=2,
+            log_every=1,
+            max_images=60,
+            max_eval_instants=4,
+            warmup_steps=1,
+            cube_size=320.0,
+        ),  # fmt: skip
+        analysis=dict(onset_delay_s=0.2, margin_s=0.3, pre_s=0.5, post_s=0.5, top=3),
+        stft_window=16,
+        overlay_frames=10,
+        batch=8,
+        detection="bgsub",
+    ),
+    # The default: under 15 minutes on a 2-core CPU.
+    "small": DemoPreset(
+        name="small",
+        size=(320, 256),
+        fps=25.0,
+        session_frames=750,
+        calibration_frames=80,
+        sessions=_SESSIONS,
+        stimulation=dict(
+            body_part=STIM_PART,
+            effect="oscillate",
+            frequency_hz=5.0,
+            amplitude_mm=30.0,
+            duration_s=2.0,
+            spacing_s=2.0,
+            onset_s=1.0,
+        ),  # fmt: skip
+        label_instants=300,
+        eval_instants=60,
+        pose=dict(
+            preset="small",
+            steps=300,
+            lr=1e-3,
+            lr_decay_steps=200,
+            checkpoint_every=50,
+            eval_every=100,
+            eval_samples=16,
+            log_every=10,
+        ),  # fmt: skip
+        baseline_steps=200,
+        detector=dict(
+            input_size=128,
+            width=0.35,
+            neck_channels=24,
+            steps=250,
+            batch_size=8,
+            checkpoint_every=50,
+            log_every=10,
+            max_images=1400,
+            max_eval_instants=40,
+            warmup_steps=20,
+            cube_size=320.0,
+        ),  # fmt: skip
+        analysis=dict(onset_delay_s=0.6, margin_s=0.5, pre_s=1.0, post_s=1.0, top=6),
+        stft_window=32,
+        overlay_frames=50,
+        batch=8,
+    ),
+}
