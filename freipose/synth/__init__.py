@@ -6,8 +6,9 @@ Public API:
   with one video per camera, ``calibration.toml``, ``labels.h5`` (exact 3D keypoints, their
   projections and per-view visibility for every frame), ``events.csv`` and ``scene.toml``;
 * :func:`default_rig`, :func:`load_rig_file`, :class:`ArenaConfig`: camera rigs and the arena;
-* :mod:`freipose.synth.motion`: :func:`simulate_trajectory` (T, 12, 3) keypoint trajectories,
-  :class:`StimulationConfig`;
+* :mod:`freipose.synth.motion`: :func:`simulate_motion` -> :class:`MotionState`,
+  :func:`simulate_trajectory` (T, 12, 3) keypoint trajectories; :class:`StimulationConfig`
+  (:mod:`freipose.synth.stimulation`);
 * :mod:`freipose.synth.board`: :func:`board_poses`, :func:`render_board_frames`,
   :func:`write_board_videos` (calibration videos);
 * :class:`RatBody`, :func:`build_body`: the articulated ellipsoid animal.
@@ -15,14 +16,12 @@ Public API:
 
 from freipose.synth.board import board_poses, default_board, render_board_frames, write_board_videos
 from freipose.synth.body import RAT_KEYPOINTS, BodyGeometry, RatBody, build_body
-from freipose.synth.motion import (
-    MotionState,
-    StimulationConfig,
-    simulate_motion,
-    simulate_trajectory,
-)
-from freipose.synth.rig import ArenaConfig, RigFileError, default_rig, load_rig_file, rig_from_dict
+from freipose.synth.errors import RigFileError, SynthError
+from freipose.synth.motion import simulate_motion, simulate_trajectory
+from freipose.synth.rig import ArenaConfig, default_rig, load_rig_file, rig_from_dict
 from freipose.synth.scene import SceneConfig, SessionPaths, build_scene, generate_session
+from freipose.synth.state import MotionState
+from freipose.synth.stimulation import StimulationConfig
 from freipose.synth.visibility import keypoint_visibility
 
 __all__ = [
@@ -35,6 +34,7 @@ __all__ = [
     "SceneConfig",
     "SessionPaths",
     "StimulationConfig",
+    "SynthError",
     "board_poses",
     "build_body",
     "build_scene",

@@ -23,6 +23,7 @@ import numpy as np
 
 from freipose.geometry import CameraRig, project
 from freipose.synth.rig import ArenaConfig
+from freipose.workers import run_jobs
 
 log = logging.getLogger(__name__)
 
@@ -332,11 +333,10 @@ def write_board_videos(
     import hashlib
     import json
 
-    from freipose.calibration.boards import save_board
+    from freipose.calibration.board_files import save_board
     from freipose.io.atomic import atomic_path, atomic_write_text
     from freipose.io.calibration import save_calibration
     from freipose.io.calibration_toml import rig_to_toml_text
-    from freipose.synth.scene import _run_jobs
 
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
@@ -362,7 +362,7 @@ def write_board_videos(
         if not (same and videos[cam.name].is_file())
     ]
     atomic_write_text(stamp_path, stamp)
-    _run_jobs(_board_camera_job, jobs, max(1, min(workers, len(jobs))), "render board", progress)
+    run_jobs(_board_camera_job, jobs, max(1, min(workers, len(jobs))), "render board", progress)
     return videos, poses
 
 

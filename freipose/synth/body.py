@@ -1,7 +1,7 @@
 """The articulated synthetic rodent: ellipsoid body parts and the 12 rat keypoints.
 
 A :class:`RatBody` holds the animal's dimensions (mm) and appearance; :func:`build_body`
-turns a :class:`~freipose.synth.motion.MotionState` into per-frame ellipsoids
+turns a :class:`~freipose.synth.state.MotionState` into per-frame ellipsoids
 (:class:`BodyGeometry`) and the exact 3D keypoints in the rat skeleton's order. The
 keypoints are points of the model itself (the snout tip, eye centres on the head surface,
 ear centres, paw centres, ankle joints, toe tips, the tail root on the rump), so their
@@ -13,12 +13,11 @@ Body frame: x forward, y left, z up; the world is z up with the floor at z = 0.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:  # pragma: no cover
-    from freipose.synth.motion import MotionState
+from freipose.synth.errors import SynthError
+from freipose.synth.state import MotionState
 
 RAT_KEYPOINTS = (
     "Ear Right", "Eye Right", "Paw Front Right", "Paw Back Right Ankle", "Paw Back Right Tip",
@@ -90,11 +89,11 @@ class RatBody:
 
     def __post_init__(self) -> None:
         if self.appearance not in APPEARANCES:
-            raise ValueError(f"appearance must be one of {APPEARANCES}, got {self.appearance!r}")
+            raise SynthError(f"appearance must be one of {APPEARANCES}, got {self.appearance!r}")
         for name in ("scale", "length", "girth", "tail_length"):
             v = float(getattr(self, name))
             if not (0.3 <= v <= 3.0):
-                raise ValueError(f"RatBody.{name} must be in [0.3, 3], got {v}")
+                raise SynthError(f"RatBody.{name} must be in [0.3, 3], got {v}")
 
     @classmethod
     def random(cls, rng: np.random.Generator, appearance: str = "random") -> RatBody:

@@ -24,7 +24,6 @@ Rig file (TOML), documented in ``docs/formats.md`` (see ``examples/rig.toml``)::
 
 from __future__ import annotations
 
-import difflib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -33,12 +32,9 @@ from typing import Any
 
 import numpy as np
 
-from freipose._compat import tomllib
 from freipose.geometry import Camera, CameraRig
-
-
-class RigFileError(ValueError):
-    """A rig file is malformed; the message names the file, the entry and the problem."""
+from freipose.io.toml import check_keys, read_toml
+from freipose.synth.errors import RigFileError, SynthError
 
 
 @dataclass(frozen=True)
@@ -52,18 +48,19 @@ class ArenaConfig:
         try:
             w, d = (float(v) for v in self.size)
         except (TypeError, ValueError):
-            raise ValueError(
+            raise SynthError(
                 f"arena size must be [width, depth] in mm, got {self.size!r}"
             ) from None
         if not (w >= 300 and d >= 300):
-            raise ValueError(f"arena size must be at least 300 x 300 mm for a rat, got {w} x {d}")
+            raise SynthError(f"arena size must be at least 300 x 300 mm for a rat, got {w} x {d}")
         if not (0 <= float(self.wall_height) <= 2000):
-            raise ValueError(f"arena wall_height must be in [0, 2000] mm, got {self.wall_height}")
+            raise SynthError(f"arena wall_height must be in [0, 2000] mm, got {self.wall_height}")
         object.__setattr__(self, "size", (w, d))
         object.__setattr__(self, "wall_height", float(self.wall_height))
 
     @property
     def half(self) -> np.ndarray:
+        """(2,) half inner size (x, y), mm."""
         return np.asarray(self.size) / 2
 
     def corners(self, z: float = 0.0) -> np.ndarray:
@@ -85,7 +82,7 @@ def _fit_focal(
     pts = np.concatenate([arena.corners(0.0), arena.corners(arena.wall_height)])
     xc = pts @ probe.R.T + probe.t
     if np.any(xc[:, 2] <= 1e-6):
-        raise ValueError("the arena is partly behind the camera; move it or aim it at the arena")
+        raise SynthError("the arena is partly behind the camera; move it or aim it at the arena")
     xy = np.abs(xc[:, :2] / xc[:, 2:3])
     w, h = size
     return float(min(fill * (w / 2) / xy[:, 0].max(), fill * (h / 2) / xy[:, 1].max()))
@@ -116,11 +113,11 @@ def default_rig(
         :class:`CameraRig` with metadata describing the world frame.
     """
     if not 1 <= int(n_cameras) <= 32:
-        raise ValueError(f"n_cameras must be in 1..32, got {n_cameras}")
+        raise SynthError(f"n_cameras must be in 1..32, got {n_cameras}")
     arena = arena or ArenaConfig()
     w, h = (int(v) for v in size)
     if w < 16 or h < 16:
-        raise ValueError(f"image size must be at least 16 x 16 px, got {w} x {h}")
+        raise SynthError(f"image size must be at least 16 x 16 px, got {w} x {h}")
     rng = np.random.default_rng(seed) if seed is not None else None
     n = int(n_cameras)
     top = n >= 5
@@ -176,15 +173,12 @@ _DEFAULT_KEYS = _CAMERA_KEYS - {"name", "position", "look_at"}
 _TOP_KEYS = {"arena", "defaults", "camera"}
 
 
-def _unknown(keys: Any, known: set[str], where: str, src: str) -> None:
-    for k in keys:
-        if k not in known:
-            close = difflib.get_close_matches(k, sorted(known), n=1)
-            hint = f"; did you mean {close[0]!r}?" if close else f"; known keys: {sorted(known)}"
-            raise RigFileError(f"{src}: unknown key {k!r} in {where}{hint}")
-
-
 def _vec(value: Any, n: int, what: str, where: str, src: str) -> np.ndarray:
+    """``value`` as (n,) finite floats.
+
+    Raises:
+        RigFileError: not a list of ``n`` finite numbers.
+    """
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -194,27 +188,196 @@ def _vec(value: Any, n: int, what: str, where: str, src: str) -> np.ndarray:
     return arr
 
 
-def rig_from_dict(
-    data: Mapping[str, Any], source: str = "<rig>", default_size: tuple[int, int] | None = None
-) -> tuple[CameraRig, ArenaConfig]:
-    """Build the rig and arena from a parsed rig file (see the module docstring)."""
-    src = source
-    _unknown(data.keys(), _TOP_KEYS, "the top level", src)
-    arena_d = data.get("arena", {})
-    if not isinstance(arena_d, Mapping):
-        raise RigFileError(f"{src}: [arena] must be a table")
-    _unknown(arena_d.keys(), {"size", "wall_height"}, "[arena]", src)
+def _table(data: Mapping[str, Any], key: str, known: set[str], src: str) -> Mapping[str, Any]:
+    """The optional table ``[key]`` of the rig file (empty when absent), its keys checked.
+
+    Raises:
+        RigFileError: not a table, or a key outside ``known``.
+    """
+    table = data.get(key, {})
+    if not isinstance(table, Mapping):
+        raise RigFileError(f"{src}: [{key}] must be a table")
+    check_keys(table, known, f"{src}: [{key}]", RigFileError)
+    return table
+
+
+def _arena_of(table: Mapping[str, Any], src: str) -> ArenaConfig:
+    """The arena of the ``[arena]`` table (defaults: 600 x 600 mm, walls 100 mm)."""
     try:
-        arena = ArenaConfig(
-            tuple(_vec(arena_d.get("size", (600.0, 600.0)), 2, "size", "[arena]", src)),
-            float(arena_d.get("wall_height", 100.0)),
+        return ArenaConfig(
+            tuple(_vec(table.get("size", (600.0, 600.0)), 2, "size", "[arena]", src)),
+            float(table.get("wall_height", 100.0)),
         )
     except (TypeError, ValueError) as exc:
         raise RigFileError(f"{src}: [arena]: {exc}") from None
-    defaults = data.get("defaults", {})
-    if not isinstance(defaults, Mapping):
-        raise RigFileError(f"{src}: [defaults] must be a table")
-    _unknown(defaults.keys(), _DEFAULT_KEYS, "[defaults]", src)
+
+
+@dataclass(frozen=True, eq=False)
+class _Placement:
+    """Where a camera stands and looks (mm): ``position``, ``look_at`` and ``up``, each (3,)."""
+
+    position: np.ndarray
+    look_at: np.ndarray
+    up: np.ndarray
+
+
+def _placement(e: Mapping[str, Any], where: str, src: str) -> _Placement:
+    """The position, aim point and up vector of the camera entry ``e``.
+
+    Raises:
+        RigFileError: malformed vectors, aim point at the position, position below the floor,
+            or ``up`` along the viewing direction.
+    """
+    pos = _vec(e["position"], 3, "position", where, src)
+    target = _vec(e["look_at"], 3, "look_at", where, src)
+    up = _vec(e.get("up", (0.0, 0.0, 1.0)), 3, "up", where, src)
+    if np.linalg.norm(target - pos) < 1.0:
+        raise RigFileError(f"{src}: {where}: position and look_at coincide")
+    if pos[2] <= 0:
+        raise RigFileError(
+            f"{src}: {where}: position z = {pos[2]} is at or below the floor (z = 0); "
+            "cameras must be above it"
+        )
+    if np.linalg.norm(np.cross(target - pos, up)) < 1e-6 * np.linalg.norm(target - pos):
+        raise RigFileError(
+            f"{src}: {where}: the camera looks straight along 'up'; set up = [0, 1, 0]"
+        )
+    return _Placement(pos, target, up)
+
+
+def _image_size(
+    e: Mapping[str, Any], default_size: tuple[int, int] | None, where: str, src: str
+) -> tuple[int, int]:
+    """The image size (width, height) of the camera entry ``e`` (or ``default_size``)."""
+    size_v = e.get("size", default_size)
+    if size_v is None:
+        raise RigFileError(
+            f"{src}: {where} has no size; set size = [width, height] (or in [defaults])"
+        )
+    sz = _vec(size_v, 2, "size", where, src)
+    if np.any(sz != np.round(sz)) or np.any(sz < 16):
+        raise RigFileError(f"{src}: {where}: size must be two integers >= 16, got {size_v!r}")
+    return int(sz[0]), int(sz[1])
+
+
+def _focal(
+    entry: Mapping[str, Any],
+    defaults: Mapping[str, Any],
+    size: tuple[int, int],
+    place: _Placement,
+    arena: ArenaConfig,
+    where: str,
+    src: str,
+) -> float:
+    """The focal length (px) of a camera: ``fov_deg``, ``focal`` or ``"auto"`` (fit the arena).
+
+    The camera's own ``focal`` or ``fov_deg`` wins over the one in ``[defaults]``.
+    """
+    e = {**defaults, **entry}
+    if "focal" in entry and "fov_deg" in entry:
+        raise RigFileError(f"{src}: {where}: give focal or fov_deg, not both")
+    if "fov_deg" in entry or ("fov_deg" in defaults and "focal" not in entry):
+        fov = e["fov_deg"]
+        if not isinstance(fov, (int, float)) or not 1 <= fov <= 170:
+            raise RigFileError(f"{src}: {where}: fov_deg must be a number in [1, 170], got {fov!r}")
+        return (size[0] / 2) / math.tan(math.radians(fov) / 2)
+    focal_v = e.get("focal", "auto")
+    if focal_v == "auto":
+        try:
+            return _fit_focal(place.position, place.look_at, size, place.up, arena)
+        except ValueError as exc:
+            raise RigFileError(f"{src}: {where}: focal = 'auto': {exc}") from None
+    if isinstance(focal_v, (int, float)) and not isinstance(focal_v, bool) and focal_v > 0:
+        return float(focal_v)
+    raise RigFileError(
+        f"{src}: {where}: focal must be a positive number of pixels or 'auto', got {focal_v!r}"
+    )
+
+
+def _camera_name(e: Mapping[str, Any], names: set[str], where: str, src: str) -> str:
+    """The camera's name, checked: non-empty, no spaces or slashes, not in ``names``."""
+    name = e["name"]
+    if not isinstance(name, str) or not name or any(c in name for c in "/\\ "):
+        raise RigFileError(
+            f"{src}: {where}: name must be a non-empty string without spaces or slashes"
+        )
+    if name in names:
+        raise RigFileError(f"{src}: camera name {name!r} is used twice; names must be unique")
+    return name
+
+
+def _camera(
+    entry: Mapping[str, Any],
+    where: str,
+    defaults: Mapping[str, Any],
+    names: set[str],
+    default_size: tuple[int, int] | None,
+    arena: ArenaConfig,
+    src: str,
+) -> Camera:
+    """The camera of one ``[[camera]]`` entry (``defaults`` fill in what it does not give).
+
+    Raises:
+        RigFileError: an unknown key, a missing name/position/look_at, a name used before
+            (in ``names``) or any malformed value; the message names the entry.
+    """
+    check_keys(entry, _CAMERA_KEYS, f"{src}: {where}", RigFileError)
+    e = {**defaults, **entry}
+    for req in ("name", "position", "look_at"):
+        if req not in e:
+            raise RigFileError(
+                f"{src}: {where} has no {req!r}; every camera needs name, position and look_at"
+            )
+    name = _camera_name(e, names, where, src)
+    names.add(name)
+    place = _placement(e, where, src)
+    size = _image_size(e, default_size, where, src)
+    focal = _focal(entry, defaults, size, place, arena, where, src)
+    dist = _vec(
+        e.get("distortion", (0, 0, 0, 0, 0)), 5, "distortion (k1, k2, p1, p2, k3)", where, src
+    )
+    if np.any(np.abs(dist) > 2):
+        raise RigFileError(
+            f"{src}: {where}: distortion coefficients beyond +-2 are not plausible: {dist.tolist()}"
+        )
+    pp = None
+    if "principal_point" in e:
+        pp = tuple(_vec(e["principal_point"], 2, "principal_point", where, src))
+    try:
+        cam = Camera.look_at(
+            name, place.position, place.look_at, size, focal, up=place.up, dist=dist,
+            principal_point=pp,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise RigFileError(f"{src}: {where}: {exc}") from None
+    xc = cam.R @ np.array([0.0, 0.0, 0.0]) + cam.t
+    if xc[2] <= 0:
+        raise RigFileError(
+            f"{src}: {where}: the arena centre is behind the camera; aim look_at at the arena"
+        )
+    return cam
+
+
+def rig_from_dict(
+    data: Mapping[str, Any], source: str = "<rig>", default_size: tuple[int, int] | None = None
+) -> tuple[CameraRig, ArenaConfig]:
+    """Build the rig and arena from a parsed rig file (see the module docstring).
+
+    Args:
+        data: the parsed file.
+        source: where ``data`` comes from (the file), for messages.
+        default_size: image size for cameras that give none (neither they nor [defaults]).
+
+    Returns:
+        ``(rig, arena)``.
+
+    Raises:
+        RigFileError: malformed content (the message names the entry and the fix).
+    """
+    src = source
+    check_keys(data, _TOP_KEYS, f"{src}: the top level", RigFileError)
+    arena = _arena_of(_table(data, "arena", {"size", "wall_height"}, src), src)
+    defaults = _table(data, "defaults", _DEFAULT_KEYS, src)
     entries = data.get("camera")
     if not entries or not isinstance(entries, list):
         raise RigFileError(
@@ -227,92 +390,7 @@ def rig_from_dict(
         if not isinstance(entry, Mapping):
             raise RigFileError(f"{src}: camera #{i + 1} must be a table")
         where = f"camera #{i + 1} ({entry.get('name', 'unnamed')!r})"
-        _unknown(entry.keys(), _CAMERA_KEYS, where, src)
-        e = {**defaults, **entry}
-        for req in ("name", "position", "look_at"):
-            if req not in e:
-                raise RigFileError(
-                    f"{src}: {where} has no {req!r}; every camera needs name, position and look_at"
-                )
-        name = e["name"]
-        if not isinstance(name, str) or not name or any(c in name for c in "/\\ "):
-            raise RigFileError(
-                f"{src}: {where}: name must be a non-empty string without spaces or slashes"
-            )
-        if name in names:
-            raise RigFileError(f"{src}: camera name {name!r} is used twice; names must be unique")
-        names.add(name)
-        pos = _vec(e["position"], 3, "position", where, src)
-        target = _vec(e["look_at"], 3, "look_at", where, src)
-        up = _vec(e.get("up", (0.0, 0.0, 1.0)), 3, "up", where, src)
-        if np.linalg.norm(target - pos) < 1.0:
-            raise RigFileError(f"{src}: {where}: position and look_at coincide")
-        if pos[2] <= 0:
-            raise RigFileError(
-                f"{src}: {where}: position z = {pos[2]} is at or below the floor (z = 0); "
-                "cameras must be above it"
-            )
-        if np.linalg.norm(np.cross(target - pos, up)) < 1e-6 * np.linalg.norm(target - pos):
-            raise RigFileError(
-                f"{src}: {where}: the camera looks straight along 'up'; set up = [0, 1, 0]"
-            )
-        size_v = e.get("size", default_size)
-        if size_v is None:
-            raise RigFileError(
-                f"{src}: {where} has no size; set size = [width, height] (or in [defaults])"
-            )
-        sz = _vec(size_v, 2, "size", where, src)
-        if np.any(sz != np.round(sz)) or np.any(sz < 16):
-            raise RigFileError(f"{src}: {where}: size must be two integers >= 16, got {size_v!r}")
-        size = (int(sz[0]), int(sz[1]))
-        if "focal" in entry and "fov_deg" in entry:
-            raise RigFileError(f"{src}: {where}: give focal or fov_deg, not both")
-        if "fov_deg" in entry or ("fov_deg" in defaults and "focal" not in entry):
-            fov = e["fov_deg"]
-            if not isinstance(fov, (int, float)) or not 1 <= fov <= 170:
-                raise RigFileError(
-                    f"{src}: {where}: fov_deg must be a number in [1, 170], got {fov!r}"
-                )
-            focal = (size[0] / 2) / math.tan(math.radians(fov) / 2)
-        else:
-            focal_v = e.get("focal", "auto")
-            if focal_v == "auto":
-                try:
-                    focal = _fit_focal(pos, target, size, up, arena)
-                except ValueError as exc:
-                    raise RigFileError(f"{src}: {where}: focal = 'auto': {exc}") from None
-            elif (
-                isinstance(focal_v, (int, float)) and not isinstance(focal_v, bool) and focal_v > 0
-            ):
-                focal = float(focal_v)
-            else:
-                raise RigFileError(
-                    f"{src}: {where}: focal must be a positive number of pixels or 'auto', "
-                    f"got {focal_v!r}"
-                )
-        dist = _vec(
-            e.get("distortion", (0, 0, 0, 0, 0)), 5, "distortion (k1, k2, p1, p2, k3)", where, src
-        )
-        if np.any(np.abs(dist) > 2):
-            raise RigFileError(
-                f"{src}: {where}: distortion coefficients beyond +-2 are not plausible: "
-                f"{dist.tolist()}"
-            )
-        pp = None
-        if "principal_point" in e:
-            pp = tuple(_vec(e["principal_point"], 2, "principal_point", where, src))
-        try:
-            cam = Camera.look_at(
-                name, pos, target, size, focal, up=up, dist=dist, principal_point=pp
-            )
-        except ValueError as exc:
-            raise RigFileError(f"{src}: {where}: {exc}") from None
-        xc = cam.R @ np.array([0.0, 0.0, 0.0]) + cam.t
-        if xc[2] <= 0:
-            raise RigFileError(
-                f"{src}: {where}: the arena centre is behind the camera; aim look_at at the arena"
-            )
-        cams.append(cam)
+        cams.append(_camera(entry, where, defaults, names, default_size, arena, src))
     return CameraRig(tuple(cams), _metadata(arena)), arena
 
 
@@ -326,16 +404,13 @@ def load_rig_file(
         default_size: image size for cameras that give none (neither they nor [defaults]).
         with_arena: also return the file's :class:`ArenaConfig`.
 
+    Returns:
+        The rig, or ``(rig, arena)`` with ``with_arena``.
+
     Raises:
-        FileNotFoundError: no such file.
-        RigFileError: malformed content (the message names the entry and the fix).
+        InputFileError: no such file (a ``FileNotFoundError``).
+        RigFileError: not TOML or malformed content (the message names the entry and the fix).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"rig file {path} does not exist")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise RigFileError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "rig file", RigFileError)
     rig, arena = rig_from_dict(data, str(path), default_size)
     return (rig, arena) if with_arena else rig

@@ -18,26 +18,26 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 from collections.abc import Mapping
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, fields, replace
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import tomli_w
-from tqdm import tqdm
 
 from freipose import __version__
-from freipose._compat import tomllib
 from freipose.geometry import Camera, CameraRig, project
 from freipose.io.atomic import atomic_write_text
 from freipose.io.calibration import save_calibration
+from freipose.io.toml import check_keys, read_toml
+from freipose.synth.board import default_board, write_board_videos
 from freipose.synth.body import APPEARANCES, PART, RAT_KEYPOINTS, BodyGeometry, RatBody, build_body
-from freipose.synth.motion import StimulationConfig, simulate_motion
+from freipose.synth.errors import SynthError
+from freipose.synth.motion import simulate_motion
 from freipose.synth.rig import ArenaConfig, default_rig, load_rig_file
+from freipose.synth.stimulation import StimulationConfig
+from freipose.workers import run_jobs
 
 log = logging.getLogger(__name__)
 
@@ -95,26 +95,26 @@ class SceneConfig:
 
     def __post_init__(self) -> None:
         if not 1 <= int(self.n_cameras) <= 32:
-            raise ValueError(f"n_cameras must be in 1..32, got {self.n_cameras}")
+            raise SynthError(f"n_cameras must be in 1..32, got {self.n_cameras}")
         if int(self.frames) < 1:
-            raise ValueError(f"frames must be >= 1, got {self.frames}")
+            raise SynthError(f"frames must be >= 1, got {self.frames}")
         if not (0 < float(self.fps) <= 1000):
-            raise ValueError(f"fps must be in (0, 1000], got {self.fps}")
+            raise SynthError(f"fps must be in (0, 1000], got {self.fps}")
         w, h = (int(v) for v in self.size)
         if w < 16 or h < 16 or w > 8192 or h > 8192:
-            raise ValueError(f"size must be between 16x16 and 8192x8192 px, got {w}x{h}")
+            raise SynthError(f"size must be between 16x16 and 8192x8192 px, got {w}x{h}")
         if self.appearance not in (*APPEARANCES, "random"):
-            raise ValueError(
+            raise SynthError(
                 f"appearance must be hooded, albino or random, got {self.appearance!r}"
             )
         if self.video_format not in VIDEO_FORMATS:
-            raise ValueError(
+            raise SynthError(
                 f"video_format must be one of {VIDEO_FORMATS}, got {self.video_format!r}"
             )
         if int(self.calibration_frames) < 2:
-            raise ValueError(f"calibration_frames must be >= 2, got {self.calibration_frames}")
+            raise SynthError(f"calibration_frames must be >= 2, got {self.calibration_frames}")
         if not 0 <= int(self.seed) < 2**63:
-            raise ValueError(f"seed must be a non-negative integer, got {self.seed}")
+            raise SynthError(f"seed must be a non-negative integer, got {self.seed}")
         object.__setattr__(self, "size", (w, h))
         object.__setattr__(self, "n_cameras", int(self.n_cameras))
         object.__setattr__(self, "frames", int(self.frames))
@@ -141,10 +141,21 @@ class SceneConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "<dict>") -> SceneConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"{source}: unknown scene settings {unknown}; known: {sorted(known)}")
+        """The config of the plain dict ``d`` (as written by :meth:`to_dict`).
+
+        Args:
+            d: the settings (a ``[scene]`` table).
+            source: where ``d`` comes from, for messages.
+
+        Returns:
+            The config.
+
+        Raises:
+            SynthError: an unknown or invalid setting.
+        """
+        check_keys(
+            d, [f.name for f in fields(cls)], f"{source}: unknown scene settings", SynthError
+        )
         kw = dict(d)
         if isinstance(kw.get("stimulation"), Mapping):
             kw["stimulation"] = StimulationConfig.from_dict(dict(kw["stimulation"]))
@@ -155,13 +166,21 @@ class SceneConfig:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> SceneConfig:
-        """Read the ``[scene]`` table of a ``scene.toml`` written by ``generate_session``."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"scene file {path} does not exist")
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        """Read the ``[scene]`` table of a ``scene.toml`` written by ``generate_session``.
+
+        Args:
+            path: the ``scene.toml``.
+
+        Returns:
+            The config.
+
+        Raises:
+            InputFileError: no such file.
+            SynthError: not TOML, no ``[scene]`` table or an invalid setting.
+        """
+        data = read_toml(path, "scene file", SynthError)
         if "scene" not in data:
-            raise ValueError(
+            raise SynthError(
                 f"{path}: no [scene] table; is this a scene.toml written by freipose synth?"
             )
         return cls.from_dict(data["scene"], str(path))
@@ -294,6 +313,96 @@ def write_labels(scene: Scene, folder: Path, session: str) -> Path:
     return path
 
 
+def _prepare_folder(out: Path, scene_text: str, overwrite: bool) -> None:
+    """Make ``out`` ready for the scene whose ``scene.toml`` is ``scene_text``.
+
+    A folder holding the same scene is kept as it is (resume); the files of a different
+    scene are deleted with ``overwrite``.
+
+    Raises:
+        SynthError: ``out`` is a file, or holds another scene or unrelated files (and not
+            ``overwrite``).
+    """
+    scene_path = out / "scene.toml"
+    if out.exists() and not out.is_dir():
+        raise SynthError(f"{out} exists and is not a folder; choose another output folder")
+    if out.is_dir() and any(out.iterdir()):
+        same = scene_path.is_file() and scene_path.read_text(encoding="utf-8") == scene_text
+        if not same and not overwrite:
+            what = "a different scene" if scene_path.is_file() else "other files"
+            raise SynthError(
+                f"{out} already holds {what}; pass overwrite=True (--overwrite) to replace it, "
+                "or choose an empty folder"
+            )
+        if not same:
+            for p in out.glob("*"):
+                if p.is_file() and (
+                    p.suffix in VIDEO_FORMATS
+                    or p.name in ("labels.h5", "events.csv", "scene.toml", "calibration.toml")
+                ):
+                    p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def _write_events(scene: Scene, out: Path) -> Path | None:
+    """Write ``events.csv`` (the stimulation windows) when the scene is stimulated."""
+    config = scene.config
+    if config.stimulation is None:
+        return None
+    events_path = out / "events.csv"
+    lines = ["start_s,end_s"] + [f"{a:.6f},{b:.6f}" for a, b in scene.events]
+    atomic_write_text(events_path, "\n".join(lines) + "\n")
+    if not scene.events:
+        log.warning(
+            "no stimulation window fits into %.2f s; events.csv is empty",
+            config.frames / config.fps,
+        )
+    return events_path
+
+
+def _render_videos(
+    scene: Scene, videos: Mapping[str, Path], workers: int | None, progress: bool | None
+) -> int:
+    """Render the cameras' videos not yet in place; returns the number of workers used."""
+    config = scene.config
+    palette = scene.body.palette
+    jobs = []
+    for i, cam in enumerate(scene.rig):
+        if videos[cam.name].is_file():
+            log.info("keeping %s (already rendered for this scene)", videos[cam.name])
+            continue
+        jobs.append((cam, scene.arena, scene.geometry, palette, videos[cam.name], config.fps,
+                     _seed(config.seed, 100 + i), _seed(config.seed, 200 + i),
+                     config.motion_blur, config.noise))  # fmt: skip
+    if workers is None:  # processes only pay off for big jobs (each one starts Python anew)
+        pixels = config.frames * len(scene.rig) * config.size[0] * config.size[1]
+        workers = min(2, os.cpu_count() or 1) if pixels > 2e7 else 1
+    n_workers = min(len(jobs), workers)
+    run_jobs(_render_camera, jobs, n_workers, "render cameras", progress)
+    return n_workers
+
+
+def _write_calibration_video(
+    scene: Scene, out: Path, workers: int, progress: bool | None
+) -> tuple[dict[str, Path], Path]:
+    """Render the rig filming the board into ``out/calibration``: (videos, board.toml)."""
+    config = scene.config
+    board = default_board(scene.arena) if config.board is None else _board_from(config.board)
+    cal_videos, _ = write_board_videos(
+        out / "calibration",
+        scene.rig,
+        board,
+        config.calibration_frames,
+        _seed(config.seed, 4),
+        fps=config.fps,
+        fmt=config.video_format,
+        arena=scene.arena,
+        workers=workers,
+        progress=progress,
+    )
+    return cal_videos, out / "calibration" / "board.toml"
+
+
 def generate_session(
     outdir: str | Path,
     config: SceneConfig | None = None,
@@ -315,107 +424,34 @@ def generate_session(
         :class:`SessionPaths`.
 
     Raises:
-        ValueError: ``outdir`` holds another scene or unrelated files (and not ``overwrite``).
+        SynthError: ``outdir`` holds another scene or unrelated files (and not ``overwrite``).
     """
     config = config or SceneConfig()
     out = Path(outdir)
     scene = build_scene(config)
     text = _scene_toml(config, scene)
     scene_path = out / "scene.toml"
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out} exists and is not a folder; choose another output folder")
-    if out.is_dir() and any(out.iterdir()):
-        same = scene_path.is_file() and scene_path.read_text(encoding="utf-8") == text
-        if not same and not overwrite:
-            what = "a different scene" if scene_path.is_file() else "other files"
-            raise ValueError(
-                f"{out} already holds {what}; pass overwrite=True (--overwrite) to replace it, "
-                "or choose an empty folder"
-            )
-        if not same:
-            for p in out.glob("*"):
-                if p.is_file() and (
-                    p.suffix in VIDEO_FORMATS
-                    or p.name in ("labels.h5", "events.csv", "scene.toml", "calibration.toml")
-                ):
-                    p.unlink()
-    out.mkdir(parents=True, exist_ok=True)
+    _prepare_folder(out, text, overwrite)
     atomic_write_text(scene_path, text)
     session = out.resolve().name
-    rig = scene.rig
-    save_calibration(rig, out / "calibration.toml")
-    events_path = None
-    if config.stimulation is not None:
-        events_path = out / "events.csv"
-        lines = ["start_s,end_s"] + [f"{a:.6f},{b:.6f}" for a, b in scene.events]
-        atomic_write_text(events_path, "\n".join(lines) + "\n")
-        if not scene.events:
-            log.warning(
-                "no stimulation window fits into %.2f s; events.csv is empty",
-                config.frames / config.fps,
-            )
+    save_calibration(scene.rig, out / "calibration.toml")
+    events_path = _write_events(scene, out)
     labels_path = write_labels(scene, out, session)
-
-    videos = {c.name: out / f"{c.name}{config.video_format}" for c in rig}
-    palette = scene.body.palette
-    jobs = []
-    for i, cam in enumerate(rig):
-        if videos[cam.name].is_file():
-            log.info("keeping %s (already rendered for this scene)", videos[cam.name])
-            continue
-        jobs.append((cam, scene.arena, scene.geometry, palette, videos[cam.name], config.fps,
-                     _seed(config.seed, 100 + i), _seed(config.seed, 200 + i),
-                     config.motion_blur, config.noise))  # fmt: skip
-    if workers is None:  # processes only pay off for big jobs (each one starts Python anew)
-        pixels = config.frames * len(rig) * config.size[0] * config.size[1]
-        workers = min(2, os.cpu_count() or 1) if pixels > 2e7 else 1
-    n_workers = min(len(jobs), workers)
-    _run_jobs(_render_camera, jobs, n_workers, "render cameras", progress)
-
+    videos = {c.name: out / f"{c.name}{config.video_format}" for c in scene.rig}
+    n_workers = _render_videos(scene, videos, workers, progress)
     cal_videos: dict[str, Path] = {}
     board_path = None
     if config.calibration_video:
-        from freipose.synth.board import default_board, write_board_videos
-
-        board = default_board(scene.arena) if config.board is None else _board_from(config.board)
-        cal_videos, _ = write_board_videos(
-            out / "calibration",
-            rig,
-            board,
-            config.calibration_frames,
-            _seed(config.seed, 4),
-            fps=config.fps,
-            fmt=config.video_format,
-            arena=scene.arena,
-            workers=n_workers or 1,
-            progress=progress,
-        )
-        board_path = out / "calibration" / "board.toml"
+        cal_videos, board_path = _write_calibration_video(scene, out, n_workers or 1, progress)
     return SessionPaths(out, videos, out / "calibration.toml", labels_path, scene_path,
                         events_path, cal_videos, board_path)  # fmt: skip
 
 
-def _board_from(d: Mapping[str, Any]):
-    from freipose.calibration.boards import board_from_dict
+def _board_from(d: Mapping[str, Any]) -> Any:
+    """The calibration board described by the dict ``d`` (``freipose.calibration.boards``)."""
+    from freipose.calibration.board_files import board_from_dict
 
     return board_from_dict(dict(d), "scene board")
-
-
-def _run_jobs(fn, jobs: list, n_workers: int, desc: str, progress: bool | None) -> list:
-    disable = None if progress is None else not progress
-    if not jobs:
-        return []
-    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
-    if n_workers > 1 and (main_file is None or not Path(main_file).exists()):
-        n_workers = 1  # "spawn" cannot start workers from an interactive/stdin __main__
-    if n_workers <= 1:
-        from freipose.io.video import opencv_threads
-
-        # the jobs set one OpenCV thread for themselves: the caller gets its setting back
-        with opencv_threads(1):
-            return [fn(j) for j in tqdm(jobs, desc=desc, disable=disable)]
-    with ProcessPoolExecutor(max_workers=n_workers, mp_context=get_context("spawn")) as ex:
-        return list(tqdm(ex.map(fn, jobs), total=len(jobs), desc=desc, disable=disable))
 
 
 __all__ = [
