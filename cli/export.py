@@ -72,7 +72,7 @@ def export(
       freipose export poses/rec1.poses.h5 --format anipose -o rec1_3d.csv
     """
     with user_errors():
-        from freipose.predict.export import default_output, export_poses
+        from freipose.io.export import default_output, export_poses
 
         kwargs = {}
         if fmt == "nwb":

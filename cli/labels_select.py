@@ -98,7 +98,7 @@ def select(
         from freipose.io.poses import read_poses_h5
         from freipose.predict.network import predict_sessions
         from freipose.predict.run import output_path
-        from freipose.predict.select import extract_frames, select_frames, write_selection_csv
+        from freipose.labels.select import extract_frames, select_frames, write_selection_csv
         from freipose.io.session import discover_sessions
         from freipose.predict.writer import is_complete
 

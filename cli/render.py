@@ -52,9 +52,8 @@ def render(
     with user_errors():
         from freipose.io.calibration import load_calibration
         from freipose.io.poses import read_poses_h5
-        from freipose.io.video import find_camera_videos
+        from freipose.io.video import find_camera_videos, frame_range
         from freipose.predict.render import render_overlay
-        from freipose.io.video import frame_range
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         if tile_width < 32:

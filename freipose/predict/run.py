@@ -23,10 +23,10 @@ from tqdm import tqdm
 
 from freipose import __version__
 from freipose.errors import FreiPoseError
-from freipose.predict.estimator import PoseEstimator, estimate_with_missing
-from freipose.predict.reader import SyncReader
 from freipose.io.session import Session
 from freipose.io.video import frame_range
+from freipose.predict.estimator import PoseEstimator, estimate_with_missing
+from freipose.predict.reader import SyncReader
 from freipose.predict.writer import (
     STATUS_FEW_VIEWS,
     STATUS_NOT_FOUND,

@@ -9,8 +9,8 @@ from click.testing import CliRunner
 from predict_helpers import small_rig
 
 from freipose.cli.main import cli
+from freipose.io import export
 from freipose.io.poses import PoseData, read_poses_h5, write_poses_h5
-from freipose.predict import export
 from freipose.skeleton import load_skeleton
 
 T = 30

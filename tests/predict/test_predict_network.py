@@ -12,6 +12,7 @@ from predict_helpers import TOY_KEYPOINTS, h5_equal, toy_rig, toy_session, toy_t
 
 from freipose.cli.main import cli
 from freipose.io.poses import read_poses_h5
+from freipose.io.session import discover_sessions
 from freipose.predict.merge import merge_shards
 from freipose.predict.network import (
     DetectorSpec,
@@ -21,7 +22,6 @@ from freipose.predict.network import (
     make_box_source,
 )
 from freipose.predict.run import predict_session
-from freipose.io.session import discover_sessions
 from freipose.skeleton import Skeleton
 
 T = 24

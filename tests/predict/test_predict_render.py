@@ -9,9 +9,9 @@ from predict_helpers import BlobEstimator, make_session
 
 from freipose.cli.main import cli
 from freipose.io.poses import read_poses_h5
+from freipose.io.session import discover_sessions
 from freipose.predict.render import confidence_color
 from freipose.predict.run import predict_session
-from freipose.io.session import discover_sessions
 
 
 def test_confidence_colors():

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from freipose.errors import FreiPoseError
 from freipose.geometry.projection import project_rig
 from freipose.io.atomic import atomic_path
 from freipose.io.poses import PoseData, read_poses_h5
@@ -37,7 +38,7 @@ FORMATS = ("csv", "anipose", "dlc3d", "nwb")
 SUFFIXES = {"csv": ".csv", "anipose": ".anipose.csv", "dlc3d": ".dlc3d.csv", "nwb": ".nwb"}
 
 
-class ExportError(ValueError):
+class ExportError(FreiPoseError):
     """An export cannot be written (e.g. a missing optional dependency)."""
 
 
@@ -83,8 +84,10 @@ def read_tidy_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
 
 
 def _reprojection_stats(data: PoseData) -> tuple[np.ndarray, np.ndarray]:
-    """Mean reprojection error (px) against the stored per-view 2D points, and the number
-    of views that contributed, per frame and keypoint; NaN where unknown."""
+    """Mean reprojection error (px) and number of contributing views per frame and keypoint.
+
+    The error is against the stored per-view 2D points; NaN where unknown.
+    """
     T, K = data.poses.shape[:2]
     err = np.full((T, K), np.nan)
     ncams = np.full((T, K), np.nan)
@@ -133,6 +136,7 @@ def anipose_frame(data: PoseData) -> pd.DataFrame:
 
 
 def write_anipose_csv(data: PoseData, path: str | Path) -> Path:
+    """Write the Anipose ``pose-3d`` CSV atomically; returns ``path``."""
     with atomic_path(path) as tmp:
         anipose_frame(data).to_csv(tmp, index=False, float_format="%.9g")
     return Path(path)
@@ -162,6 +166,7 @@ def dlc3d_frame(data: PoseData, scorer: str = "FreiPose") -> pd.DataFrame:
 
 
 def write_dlc3d_csv(data: PoseData, path: str | Path) -> Path:
+    """Write the DeepLabCut-3D style CSV atomically; returns ``path``."""
     with atomic_path(path) as tmp:
         dlc3d_frame(data).to_csv(tmp, float_format="%.9g")
     return Path(path)
@@ -201,9 +206,19 @@ def write_nwb(
     """Write an NWB file with an ndx-pose ``PoseEstimation`` in processing module ``behavior``.
 
     Args:
+        data: the poses.
+        path: the output file.
+        session_description: the NWB session description.
         session_start_time: recording start (timezone-aware); default the Unix epoch in UTC
             (NWB requires a value; pass the real start when known).
         identifier: NWB identifier; default the session name from the provenance.
+        subject: the subject's name in the skeleton.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        ExportError: pynwb or ndx-pose is missing, or a start time without a time zone.
     """
     pynwb, ndx_pose = _require_nwb()
     start = session_start_time or datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc)
@@ -230,7 +245,7 @@ def write_nwb(
     frame_desc = "world frame of the FreiPose calibration, millimetres, up = " + ", ".join(
         f"{u:g}" for u in data.up
     )
-    series = []
+    series: list[Any] = []
     for k, name in enumerate(names):
         series.append(
             ndx_pose.PoseEstimationSeries(

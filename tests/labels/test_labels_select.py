@@ -3,17 +3,22 @@
 from __future__ import annotations
 
 import csv
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from predict_helpers import BlobEstimator, make_session
 
 from freipose.cli.labels_select import select as select_cmd
 from freipose.io.poses import PoseData
-from freipose.predict.run import predict_session
-from freipose.predict.select import read_selection_csv, select_frames
 from freipose.io.session import discover_sessions
+from freipose.labels.select import read_selection_csv, select_frames
+from freipose.predict.run import predict_session
+
+# the synthetic two-blob session and its estimator are the prediction tests' helpers
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "predict"))
+from predict_helpers import BlobEstimator, make_session  # noqa: E402
 
 
 def _data(rng, T=200):

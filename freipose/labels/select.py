@@ -25,10 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
+from freipose.errors import FreiPoseError
 from freipose.io.atomic import atomic_path
 from freipose.io.poses import PoseData
 
 log = logging.getLogger(__name__)
+
+
+class SelectionError(FreiPoseError):
+    """Frames cannot be selected as asked (a bad number of frames or gap)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,12 +82,12 @@ def select_frames(
         session: name for the result (default: the provenance's session).
 
     Raises:
-        ValueError: ``n < 1`` or ``min_gap < 0``.
+        SelectionError: ``n < 1`` or ``min_gap < 0``.
     """
     if n < 1:
-        raise ValueError(f"the number of frames to select must be at least 1, got {n}")
+        raise SelectionError(f"the number of frames to select must be at least 1, got {n}")
     if min_gap < 0:
-        raise ValueError(f"min_gap must be >= 0, got {min_gap}")
+        raise SelectionError(f"min_gap must be >= 0, got {min_gap}")
     name = session or str(data.provenance.get("session", "session"))
     fi = data.frame_index
     T = len(fi)
