@@ -101,7 +101,10 @@ def run_jobs(
         n_workers: worker processes.
         desc: progress bar label.
         progress: show the bar (None: only on a terminal).
-        start_method: how the workers start (see :func:`process_pool`).
+        start_method: how the workers start (see :func:`process_pool`). The default is
+            ``"spawn"``: a process has one forkserver, whose preloaded modules are fixed by
+            the first pool that starts it, so jobs that need no preloading leave it to the
+            pools that do (the demo renders and then detects boards in one process).
 
     Returns:
         The results, in the order of ``jobs``.
