@@ -19,7 +19,7 @@ def analyze() -> None:
       freipose analyze study.toml -o results/
       freipose analyze variables rat1.poses.h5 -o rat1.vars.h5
       freipose analyze floor rat1.poses.h5 rat2.poses.h5 -o floor.toml
-    """
+    """  # noqa: D301 (click needs the \b escape)
 
 
 def _floor_value(value: str) -> str:
@@ -198,7 +198,7 @@ def run(
     \b
     Example:
       freipose analyze study.toml -o results/ --jobs 4
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.analysis.config import AttributionConfig
         from freipose.analysis.report import analyze_study
@@ -260,7 +260,7 @@ def variables(
     \b
     Example:
       freipose analyze variables rat1.poses.h5 -o rat1.vars.h5 --floor auto
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.analysis.io import (
             variables_from_poses,
@@ -300,11 +300,11 @@ def floor(poses: tuple[Path, ...], output: Path, skeleton: str | None) -> None:
     \b
     Example:
       freipose analyze floor day1/*.poses.h5 -o floor.toml
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         import numpy as np
 
-        from freipose.analysis.floor import fit_floor, save_floor
+        from freipose.analysis.floor import FloorError, fit_floor, save_floor
         from freipose.analysis.io import resolve_skeleton
         from freipose.analysis.variables import check_keypoints
         from freipose.io.poses import read_poses_h5
@@ -315,9 +315,9 @@ def floor(poses: tuple[Path, ...], output: Path, skeleton: str | None) -> None:
             skel = resolve_skeleton(data, skeleton)
             check_keypoints(data.keypoints, skel, str(p))
             if not skel.feet:
-                raise ValueError(f"skeleton {skel.name!r} lists no 'feet' to fit the floor to")
+                raise FloorError(f"skeleton {skel.name!r} lists no 'feet' to fit the floor to")
             if up is not None and float(up @ data.up) < 0.999:
-                raise ValueError(f"{p}: up vector {data.up.tolist()} differs from {up.tolist()}")
+                raise FloorError(f"{p}: up vector {data.up.tolist()} differs from {up.tolist()}")
             up = data.up
             feet.append(data.poses[:, list(skel.feet)].reshape(-1, 3))
         plane = fit_floor(np.concatenate(feet), up)

@@ -1,0 +1,1 @@
+"""Behavioral variables from poses and attribution of stimulation effects to body parts."""

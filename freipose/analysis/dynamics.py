@@ -195,7 +195,7 @@ def timecourse_rows(
         return []
     t_rel = trials[0][0]
     allt = np.concatenate([tr for _, tr in trials])  # (N, L, D)
-    rows = []
+    rows: list[dict] = []
     for d, (vname, rank) in enumerate(zip(top["variable"], top["rank"])):
         ms = mean_sem(allt[:, :, d])
         rows.extend(

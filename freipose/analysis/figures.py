@@ -1,4 +1,4 @@
-"""Figures of the attribution analysis (PNG, matplotlib Agg backend).
+"""Figures of the attribution analysis (PNG, made without pyplot).
 
 - ``attribution_<animal>_<condition>.png``: F-score heat maps by body part (rows) and
   variable type (columns), one panel per variable family, dots where significant
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from freipose.io.atomic import atomic_path
+from freipose.io.figures import new_figure, save_figure
 
 PANELS = (
     (
@@ -30,23 +30,17 @@ PANELS = (
 )
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def safe_name(text: str) -> str:
-    """A file-name-safe version of an animal or condition name."""
+    """A file-name-safe version of an animal or condition name.
+
+    Args:
+        text: the name.
+
+    Returns:
+        The name with every run of characters other than letters, digits, ``_``, ``.`` and
+        ``-`` replaced by ``_`` (``x`` when nothing is left).
+    """
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "x"
-
-
-def _save(fig, path: Path) -> None:  # noqa: ANN001
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
 
 
 def attribution_heatmap(
@@ -58,8 +52,8 @@ def attribution_heatmap(
         att: attribution rows of one group (columns variable, f1, significant, type, part).
         kinds: variable -> kind, in the variables' file order (panels, row and column order).
         path: output PNG.
+        title: figure title.
     """
-    plt = _plt()
     order = {name: i for i, name in enumerate(kinds)}
     att = att.assign(kind=att["variable"].map(kinds), _order=att["variable"].map(order))
     att = att.sort_values("_order", kind="stable")
@@ -73,10 +67,10 @@ def attribution_heatmap(
     heights = [sub["part"].nunique() for _, sub in panels]
     fig_w = min(26, 3 + 0.28 * sum(widths))
     fig_h = 2.2 + 0.32 * max(heights)
-    fig, axes = plt.subplots(
+    fig = new_figure((fig_w, fig_h))
+    axes = fig.subplots(
         1,
         len(panels),
-        figsize=(fig_w, fig_h),
         gridspec_kw={"width_ratios": widths, "wspace": 0.12 if len(panels) < 4 else 0.35},
         squeeze=False,
     )
@@ -116,20 +110,22 @@ def attribution_heatmap(
     fig.suptitle(title + "  (F-score; dots: significant)", fontsize=10)
     if im is not None:
         fig.colorbar(im, ax=list(axes[0]), fraction=0.02, pad=0.01, label="F-score (macro)")
-    _save(fig, Path(path))
-    plt.close(fig)
+    save_figure(fig, Path(path), dpi=110, bbox_inches="tight")
 
 
 def classifier_response(dyn: pd.DataFrame, path: str | Path) -> None:
-    """Onset-aligned mean prediction of the full classifier, one panel per group."""
-    plt = _plt()
+    """Onset-aligned mean prediction of the full classifier, one panel per group.
+
+    Args:
+        dyn: ``dynamics.csv`` rows of all groups.
+        path: output PNG.
+    """
     groups = list(dict.fromkeys(zip(dyn["animal"], dyn["condition"])))
     n = max(1, len(groups))
     cols = min(3, n)
     rows = int(np.ceil(n / cols))
-    fig, axes = plt.subplots(
-        rows, cols, figsize=(4.6 * cols, 3.2 * rows), squeeze=False, sharey=True
-    )
+    fig = new_figure((4.6 * cols, 3.2 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False, sharey=True)
     for ax, (animal, cond) in zip(axes.flat, groups):
         g = dyn[(dyn["animal"] == animal) & (dyn["condition"] == cond)]
         first = g[g["evaluated_on"] == g["evaluated_on"].iloc[0]]
@@ -164,14 +160,21 @@ def classifier_response(dyn: pd.DataFrame, path: str | Path) -> None:
         ax.set_visible(False)
     fig.suptitle("Full classifier on held-out recordings, aligned to onset", fontsize=10)
     fig.tight_layout()
-    _save(fig, Path(path))
-    plt.close(fig)
+    save_figure(fig, Path(path), dpi=110, bbox_inches="tight")
 
 
 def top_variables(tc: pd.DataFrame, dyn: pd.DataFrame, path: str | Path, title: str) -> None:
-    """Time courses of the top variables of one group (z-scored with train statistics)."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    """Time courses of the top variables of one group (z-scored with train statistics).
+
+    Args:
+        tc: ``top_variables.csv`` rows of the group.
+        dyn: ``dynamics.csv`` rows of the group's classifier on its own animal (the
+            stimulation is shaded where most trials are stimulated).
+        path: output PNG.
+        title: figure title.
+    """
+    fig = new_figure((7.5, 3.8))
+    ax = fig.subplots()
     if len(dyn):
         t = dyn["time_s"].to_numpy()
         stim = dyn["stimulated_fraction"].to_numpy()
@@ -194,5 +197,4 @@ def top_variables(tc: pd.DataFrame, dyn: pd.DataFrame, path: str | Path, title: 
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
-    _save(fig, Path(path))
-    plt.close(fig)
+    save_figure(fig, Path(path), dpi=110, bbox_inches="tight")

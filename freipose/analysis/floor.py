@@ -18,13 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from freipose._compat import tomllib
+from freipose.errors import FreiPoseError
 from freipose.io.atomic import atomic_write_text
+from freipose.io.toml import check_keys, read_toml
 
 log = logging.getLogger(__name__)
 
 
-class FloorError(ValueError):
+class FloorError(FreiPoseError):
     """A floor file or a floor fit is invalid; the message says why."""
 
 
@@ -43,6 +44,7 @@ class FloorPlane:
     source: str = "world"
 
     def __post_init__(self) -> None:
+        """Check the plane and scale it to a unit normal."""
         n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
         if n.shape != (3,) or not np.isfinite(n).all() or np.linalg.norm(n) < 1e-12:
             raise FloorError(
@@ -57,8 +59,17 @@ class FloorPlane:
 
     @classmethod
     def world(cls, up: np.ndarray) -> FloorPlane:
-        """The plane through the world origin perpendicular to ``up`` (the world z = 0 plane
-        when ``up`` is +z, as set by ``freipose calib --origin-frame``)."""
+        """The plane through the world origin perpendicular to ``up``.
+
+        This is the world z = 0 plane when ``up`` is +z, as set by
+        ``freipose calib --origin-frame``.
+
+        Args:
+            up: (3,) up vector.
+
+        Returns:
+            The plane with ``source = "world"``.
+        """
         return cls(np.asarray(up, dtype=np.float64), 0.0, "world")
 
     def distance(self, points: np.ndarray) -> np.ndarray:
@@ -66,6 +77,7 @@ class FloorPlane:
         return np.asarray(points) @ self.normal - self.offset
 
     def to_toml(self) -> str:
+        """The floor file text (``normal`` and ``offset``, floats written exactly)."""
         n = ", ".join(repr(float(v)) for v in self.normal)
         return (
             "# Floor plane: normal . X = offset (world mm); the normal points up.\n"
@@ -74,19 +86,31 @@ class FloorPlane:
 
 
 def save_floor(floor: FloorPlane, path: str | Path) -> None:
-    """Write a floor TOML file atomically."""
+    """Write a floor TOML file atomically.
+
+    Args:
+        floor: the plane.
+        path: the floor file.
+    """
     atomic_write_text(path, floor.to_toml())
 
 
 def load_floor(path: str | Path) -> FloorPlane:
-    """Read a floor TOML file (``normal = [x, y, z]``, ``offset = mm``)."""
+    """Read a floor TOML file (``normal = [x, y, z]``, ``offset = mm``).
+
+    Args:
+        path: the floor file.
+
+    Returns:
+        The plane, with ``source`` the path.
+
+    Raises:
+        InputFileError: no such file.
+        FloorError: not TOML, an unknown key, or no valid normal and offset.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"floor file not found: {path}")
-    try:
-        data = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise FloorError(f"floor file {path}: not valid TOML ({exc})") from exc
+    data = read_toml(path, "floor file", FloorError)
+    check_keys(data, ("normal", "offset"), f"floor file {path}", FloorError)
     if "normal" not in data:
         raise FloorError(
             f"floor file {path}: missing 'normal'; expected normal = [x, y, z] and offset = mm"
@@ -118,6 +142,10 @@ def fit_floor(
     Args:
         feet: (..., 3) paw positions (world mm), NaN allowed.
         up: (3,) approximate up vector; the fitted normal points to the same side.
+        cell_mm: grid cell size in mm.
+        quantile: per cell, the points at most this height quantile are kept.
+        min_points: the fewest finite paw positions to fit.
+        iterations: rounds of outlier rejection.
 
     Returns:
         The fitted plane with ``source = "auto"``.
@@ -189,6 +217,12 @@ def resolve_floor(
             ``"auto"`` (fit to ``feet``), a floor TOML path, or a plane.
         up: (3,) the poses' up vector.
         feet: (..., 3) paw positions for ``"auto"``.
+
+    Returns:
+        The plane.
+
+    Raises:
+        FloorError: no paws for ``"auto"``, a bad floor file, or a normal far from ``up``.
     """
     if isinstance(spec, FloorPlane):
         return spec

@@ -25,6 +25,7 @@ from freipose.analysis.variables import (
     check_keypoints,
     compute_variables,
 )
+from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path
 from freipose.io.poses import PoseData, read_poses_h5
 from freipose.skeleton import Skeleton, load_skeleton
@@ -35,7 +36,7 @@ SCHEMA = "freipose.variables"
 SCHEMA_VERSION = 1
 
 
-class VariablesFormatError(ValueError):
+class VariablesFormatError(FreiPoseError):
     """A variables file is malformed; the message names the file and the problem."""
 
 
@@ -62,6 +63,8 @@ def write_variables_h5(
     """Write ``VARS.h5`` atomically.
 
     Args:
+        var: the variables.
+        path: the file to write.
         settings: the settings that produced the variables (stored as JSON; used to decide
             whether a cached file can be reused).
         source: the poses file the variables came from.
@@ -108,7 +111,7 @@ def read_variables_h5(path: str | Path) -> Variables:
     """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"variables file not found: {path}")
+        raise InputFileError(f"variables file not found: {path}")
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
@@ -182,6 +185,11 @@ def variables_from_poses(
         data: the poses (their ``up`` vector defines the default floor).
         skeleton: name, TOML path or Skeleton; default: the poses' own skeleton, else ``rat``.
         floor: ``"world"``, ``"auto"``, a floor TOML path, or a plane.
+        config: gap filling and STFT settings.
+        source: the poses' origin, for messages.
+
+    Returns:
+        The variables.
     """
     skel = resolve_skeleton(data, skeleton)
     check_keypoints(data.keypoints, skel, source)
@@ -220,8 +228,22 @@ def cached_variables(
     floor: str | Path | FloorPlane = "world",
     config: VariableConfig = VariableConfig(),
 ) -> Variables:
-    """Variables of a poses file, reusing ``cache_path`` when it was made from the same file
-    with the same settings (so an interrupted study analysis resumes where it stopped)."""
+    """Variables of a poses file, reusing ``cache_path`` when it is up to date.
+
+    The cache is reused when it was made from the same file with the same settings, so an
+    interrupted study analysis resumes where it stopped; else the variables are computed
+    and written to ``cache_path``.
+
+    Args:
+        poses_path: the poses file.
+        cache_path: the cached ``VARS.h5``.
+        skeleton: name, TOML path or Skeleton; default: the poses' own skeleton, else ``rat``.
+        floor: ``"world"``, ``"auto"``, a floor TOML path, or a plane.
+        config: gap filling and STFT settings.
+
+    Returns:
+        The variables.
+    """
     poses_path, cache_path = Path(poses_path), Path(cache_path)
     settings = variables_settings(skeleton, floor, config)
     if cache_path.is_file():

@@ -85,6 +85,13 @@ def analyze_study(
         outdir: output folder (created).
         skeleton: overrides the study's ``skeleton`` and the poses files' own.
         floor: default floor (``world``, ``auto`` or a file) for recordings without ``floor``.
+        variable_config: gap filling and STFT settings.
+        config: the attribution settings.
+        make_figures: also write the PNG figures.
+        say: progress messages (default: this module's logger).
+
+    Returns:
+        The result tables.
     """
     say = say or log.info
     study = load_study(study_path)

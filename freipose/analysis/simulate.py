@@ -69,9 +69,23 @@ def stimulation_windows(
     jitter_s: float = 0.0,
     seed: int = 0,
 ) -> np.ndarray:
-    """(N, 2) start/end seconds of stimulation windows inside ``duration_s``: one every
-    ``period_s`` on average, each interval varied uniformly by up to ``±jitter_s`` (as real
-    protocols vary the inter-stimulus interval), at least 1 s before the end."""
+    """Stimulation windows inside a recording of ``duration_s`` seconds.
+
+    One window every ``period_s`` on average, each interval varied uniformly by up to
+    ``±jitter_s`` (as real protocols vary the inter-stimulus interval), the last ending at
+    least 1 s before the end.
+
+    Args:
+        duration_s: length of the recording.
+        first_s: start of the first window.
+        period_s: mean interval between starts.
+        length_s: length of every window.
+        jitter_s: largest change of an interval.
+        seed: random seed of the jitter.
+
+    Returns:
+        (N, 2) start/end seconds.
+    """
     rng = np.random.default_rng(seed)
     starts = []
     t = first_s
@@ -97,10 +111,14 @@ def simulate_rat(
 
     Args:
         duration_s: length of the recording.
+        fps: frame rate.
         windows: (N, 2) stimulation windows in seconds from the first frame.
         effect: how stimulation changes the pose.
         seed: random seed (starting position on the circle, gait phase, noise).
         noise_mm: standard deviation of the white noise added to every coordinate.
+        speed_mm_s: walking speed.
+        radius_mm: radius of the circle the rat walks on.
+        gait_hz: step frequency.
 
     Returns:
         PoseData with poses (T, 12, 3), T = round(duration_s * fps).

@@ -27,17 +27,19 @@ from pathlib import Path
 
 import numpy as np
 
-from freipose._compat import tomllib
+from freipose.errors import FreiPoseError, InputFileError
+from freipose.io.toml import check_keys, read_toml
 
 log = logging.getLogger(__name__)
 
 RECORDING_KEYS = ("name", "poses", "events", "animal", "condition", "split", "floor")
+TOP_KEYS = ("recordings", "skeleton", "name", "description")
 REQUIRED_KEYS = ("name", "poses", "events", "animal", "condition", "split")
 SPLITS = ("train", "test")
 STIMULATED, NOT_STIMULATED, IGNORED = 1, 0, -1
 
 
-class StudyError(ValueError):
+class StudyError(FreiPoseError):
     """A study manifest or events file is invalid; the message says what and how to fix it."""
 
 
@@ -71,6 +73,16 @@ class Study:
         return list(seen)
 
     def select(self, animal: str, condition: str, split: str) -> list[Recording]:
+        """The recordings of one group in one split, in study order.
+
+        Args:
+            animal: the animal.
+            condition: the condition.
+            split: ``"train"`` or ``"test"``.
+
+        Returns:
+            The matching recordings.
+        """
         return [
             r
             for r in self.recordings
@@ -84,69 +96,64 @@ def _floor_entry(value: object, base: Path) -> str | None:
     return str(value) if str(value) in ("world", "auto") else str(base / str(value))
 
 
-def load_study(path: str | Path, check_files: bool = True) -> Study:
-    """Read and validate ``STUDY.toml``.
+def _recording(r: object, where: str, base: Path, check_files: bool) -> Recording:
+    """One ``[[recordings]]`` table as a recording (paths resolved against ``base``).
 
-    Every (animal, condition) group needs at least one train and one test recording.
+    Args:
+        r: the table.
+        where: the study file and the table's position, for messages.
+        base: the study file's folder.
+        check_files: whether the poses and events files must exist.
+
+    Returns:
+        The recording.
+
+    Raises:
+        StudyError: not a table, a missing or unknown key, or a bad split.
+        InputFileError: a poses or events file does not exist (with ``check_files``).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"study file not found: {path}")
-    try:
-        data = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise StudyError(f"study file {path}: not valid TOML ({exc})") from exc
-    unknown = sorted(set(data) - {"recordings", "skeleton", "name", "description"})
-    if unknown:
-        raise StudyError(
-            f"study file {path}: unknown top-level keys {unknown}; allowed: recordings, "
-            f"skeleton, name, description"
-        )
-    recs = data.get("recordings")
-    if not isinstance(recs, list) or not recs:
-        raise StudyError(
-            f"study file {path}: no recordings; add [[recordings]] tables with keys "
-            f"{list(REQUIRED_KEYS)}"
-        )
-    base = path.parent
-    out: list[Recording] = []
-    for i, r in enumerate(recs):
-        where = f"study file {path}: recording {i + 1}"
-        if not isinstance(r, dict):
-            raise StudyError(f"{where}: expected a [[recordings]] table")
-        missing = [k for k in REQUIRED_KEYS if k not in r]
-        if missing:
-            raise StudyError(f"{where} ({r.get('name', '?')}): missing keys {missing}")
-        extra = sorted(set(r) - set(RECORDING_KEYS))
-        if extra:
-            raise StudyError(f"{where}: unknown keys {extra}; allowed: {list(RECORDING_KEYS)}")
-        split = str(r["split"])
-        if split not in SPLITS:
-            raise StudyError(
-                f"{where} ({r['name']}): split must be 'train' or 'test', not {split!r}"
-            )
-        rec = Recording(
-            name=str(r["name"]),
-            poses=base / str(r["poses"]),
-            events=base / str(r["events"]),
-            animal=str(r["animal"]),
-            condition=str(r["condition"]),
-            split=split,
-            floor=_floor_entry(r.get("floor"), base),
-        )
-        if check_files:
-            for what, p in (("poses", rec.poses), ("events", rec.events)):
-                if not p.is_file():
-                    raise FileNotFoundError(
-                        f"{where} ({rec.name}): {what} file not found: {p} (paths are relative "
-                        f"to the study file's folder {base})"
-                    )
-        out.append(rec)
-    names = [r.name for r in out]
+    if not isinstance(r, dict):
+        raise StudyError(f"{where}: expected a [[recordings]] table")
+    missing = [k for k in REQUIRED_KEYS if k not in r]
+    if missing:
+        raise StudyError(f"{where} ({r.get('name', '?')}): missing keys {missing}")
+    check_keys(r, RECORDING_KEYS, where, StudyError)
+    split = str(r["split"])
+    if split not in SPLITS:
+        raise StudyError(f"{where} ({r['name']}): split must be 'train' or 'test', not {split!r}")
+    rec = Recording(
+        name=str(r["name"]),
+        poses=base / str(r["poses"]),
+        events=base / str(r["events"]),
+        animal=str(r["animal"]),
+        condition=str(r["condition"]),
+        split=split,
+        floor=_floor_entry(r.get("floor"), base),
+    )
+    if check_files:
+        for what, p in (("poses", rec.poses), ("events", rec.events)):
+            if not p.is_file():
+                raise InputFileError(
+                    f"{where} ({rec.name}): {what} file not found: {p} (paths are relative "
+                    f"to the study file's folder {base})"
+                )
+    return rec
+
+
+def _check_groups(study: Study) -> None:
+    """Raise unless recording names are unique and every group has train and test recordings.
+
+    Args:
+        study: the study read so far.
+
+    Raises:
+        StudyError: a repeated name, or a group without a train or test recording.
+    """
+    path = study.path
+    names = [r.name for r in study.recordings]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
         raise StudyError(f"study file {path}: recording names must be unique; repeated: {dupes}")
-    study = Study(path, tuple(out), None if "skeleton" not in data else str(data["skeleton"]))
     for animal, cond in study.groups:
         for split in SPLITS:
             if not study.select(animal, cond, split):
@@ -155,18 +162,60 @@ def load_study(path: str | Path, check_files: bool = True) -> Study:
                     f"{split} recording; every group needs at least one recording with "
                     f"split = 'train' and one with split = 'test'"
                 )
+
+
+def load_study(path: str | Path, check_files: bool = True) -> Study:
+    """Read and validate ``STUDY.toml``.
+
+    Every (animal, condition) group needs at least one train and one test recording.
+
+    Args:
+        path: the study file.
+        check_files: whether the poses and events files must exist.
+
+    Returns:
+        The study.
+
+    Raises:
+        InputFileError: the study file (or, with ``check_files``, a recording's file) does
+            not exist.
+        StudyError: the file is not valid TOML or breaks a rule above.
+    """
+    path = Path(path)
+    data = read_toml(path, "study file", StudyError)
+    check_keys(data, TOP_KEYS, f"study file {path}", StudyError)
+    recs = data.get("recordings")
+    if not isinstance(recs, list) or not recs:
+        raise StudyError(
+            f"study file {path}: no recordings; add [[recordings]] tables with keys "
+            f"{list(REQUIRED_KEYS)}"
+        )
+    base = path.parent
+    out = tuple(
+        _recording(r, f"study file {path}: recording {i + 1}", base, check_files)
+        for i, r in enumerate(recs)
+    )
+    study = Study(path, out, None if "skeleton" not in data else str(data["skeleton"]))
+    _check_groups(study)
     return study
 
 
 def read_events(path: str | Path) -> np.ndarray:
-    """Read ``events.csv`` -> (N, 2) float start/end seconds, sorted by start.
+    """Read ``events.csv``.
+
+    Args:
+        path: the events file.
+
+    Returns:
+        (N, 2) float start/end seconds, sorted by start.
 
     Raises:
+        InputFileError: no such file.
         StudyError: missing columns, non-numeric values, end <= start, overlapping windows.
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"events file not found: {path}")
+        raise InputFileError(f"events file not found: {path}")
     with path.open(newline="") as fh:
         reader = csv.DictReader(fh)
         cols = [c.strip() for c in (reader.fieldnames or [])]
@@ -208,7 +257,16 @@ def read_events(path: str | Path) -> np.ndarray:
 
 
 def check_windows(windows: np.ndarray, duration_s: float, source: str) -> None:
-    """Raise when a window lies outside ``[0, duration_s]`` (seconds from the first frame)."""
+    """Raise when a window lies outside ``[0, duration_s]`` (seconds from the first frame).
+
+    Args:
+        windows: (N, 2) start/end seconds.
+        duration_s: the recording's duration in seconds.
+        source: the events file and recording, for messages.
+
+    Raises:
+        StudyError: a window lies outside the recording.
+    """
     win = np.asarray(windows).reshape(-1, 2)
     tol = 1e-6
     bad = np.flatnonzero((win[:, 0] < -tol) | (win[:, 1] > duration_s + tol))
@@ -233,9 +291,14 @@ def label_frames(
     Args:
         times: (T,) seconds from the first frame.
         windows: (N, 2) sorted, non-overlapping start/end seconds.
+        onset_delay_s: seconds after a window's start before frames count as stimulated.
+        margin_s: seconds around a window whose frames are ignored.
 
     Returns:
         (T,) int8 labels.
+
+    Raises:
+        StudyError: a negative delay or margin.
     """
     if onset_delay_s < 0 or margin_s < 0:
         raise StudyError("onset delay and margin must be >= 0 seconds")

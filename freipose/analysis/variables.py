@@ -60,6 +60,7 @@ import numpy as np
 
 from freipose._frozen import PicklableFrozen
 from freipose.analysis.floor import FloorPlane
+from freipose.errors import FreiPoseError
 from freipose.skeleton import PointRef, Skeleton
 
 log = logging.getLogger(__name__)
@@ -80,7 +81,7 @@ KIND_UNITS = {
 }
 
 
-class VariablesError(ValueError):
+class VariablesError(FreiPoseError):
     """Poses or a skeleton cannot give behavioral variables; the message says why."""
 
 
@@ -158,6 +159,7 @@ class Variables(PicklableFrozen):
 
     @property
     def num_frames(self) -> int:
+        """Number of frames T."""
         return self.values.shape[0]
 
     @property
@@ -267,6 +269,7 @@ def stft_amplitude(
     Args:
         signals: (T, S) real signals, NaN allowed (a window touching NaN gives NaN).
         window: even window length in frames.
+        chunk_frames: frames per block of the batched FFT (bounds the memory).
         out: optional (T, S, F) float32 array to fill.
 
     Returns:
@@ -318,6 +321,7 @@ def body_frame(
 
     Args:
         poses: (T, K, 3) world mm.
+        skeleton: defines the body frame (``[frame]`` origin and toward).
         up: (3,) unit up vector.
 
     Returns:
@@ -354,6 +358,7 @@ def skeleton_angles(poses: np.ndarray, skeleton: Skeleton, up: np.ndarray) -> np
 
     Args:
         poses: (T, K, 3).
+        skeleton: defines the angles.
         up: (3,) unit up vector.
 
     Returns:
@@ -459,6 +464,137 @@ def check_keypoints(keypoints: tuple[str, ...], skeleton: Skeleton, source: str 
         )
 
 
+@dataclass(frozen=True)
+class PreparedPoses:
+    """Poses on a regular time axis with short gaps filled (input of the variables).
+
+    Attributes:
+        poses: (T, K, 3) float64 world mm, NaN = missing keypoint.
+        frame_index: (T,) int64 contiguous video frames.
+        fps: frames per second.
+        missing: keypoint positions missing before the interpolation.
+        interpolated: keypoint positions filled by the interpolation.
+        max_gap: longest filled gap in frames.
+    """
+
+    poses: np.ndarray
+    frame_index: np.ndarray
+    fps: float
+    missing: int
+    interpolated: int
+    max_gap: int
+
+
+def prepare_poses(
+    poses: np.ndarray,
+    frame_index: np.ndarray,
+    fps: float,
+    skeleton: Skeleton,
+    config: VariableConfig,
+    keypoints: tuple[str, ...] | None = None,
+) -> PreparedPoses:
+    """Check the poses, put them on a regular time axis and fill short gaps.
+
+    Args:
+        poses: (T, K, 3) world mm, NaN = missing; K = the skeleton's keypoints.
+        frame_index: (T,) strictly increasing video frames (gaps are filled with NaN rows).
+        fps: frames per second.
+        skeleton: defines the keypoint order.
+        config: the longest filled gap and the STFT window (the shortest recording).
+        keypoints: the poses' keypoint names, checked against the skeleton when given.
+
+    Returns:
+        The prepared poses (T' = frame_index[-1] - frame_index[0] + 1 frames).
+
+    Raises:
+        VariablesError: keypoints, shape or fps do not fit, or the recording is too short.
+    """
+    if keypoints is not None:
+        check_keypoints(tuple(keypoints), skeleton)
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (skeleton.num_keypoints, 3):
+        raise VariablesError(
+            f"poses must be (T, {skeleton.num_keypoints}, 3) for skeleton {skeleton.name!r}, "
+            f"got {poses.shape}"
+        )
+    fps = float(fps)
+    if not (np.isfinite(fps) and fps > 0):
+        raise VariablesError(f"fps must be positive, got {fps}")
+    poses, fidx = regular_time_axis(poses, frame_index)
+    t = poses.shape[0]
+    if t <= config.stft_window // 2:
+        raise VariablesError(
+            f"recording too short: {t} frames; the {config.stft_window}-frame STFT needs more "
+            f"than {config.stft_window // 2}"
+        )
+    # A keypoint with any NaN coordinate is missing as a whole.
+    poses[np.isnan(poses).any(axis=2)] = np.nan
+    missing_before = int(np.isnan(poses[..., 0]).sum())
+    max_gap = int(np.floor(config.max_gap_s * fps + 1e-9))
+    poses, n_filled = interpolate_gaps(poses, max_gap)
+    return PreparedPoses(poses, fidx, fps, missing_before, n_filled // 3, max_gap)
+
+
+def fill_point_variables(
+    out: np.ndarray,
+    layout: VariableLayout,
+    prep: PreparedPoses,
+    skeleton: Skeleton,
+    floor: FloorPlane,
+    config: VariableConfig,
+) -> None:
+    """Write the keypoint variables (body frame, distances, velocities, STFTs) into ``out``.
+
+    Args:
+        out: (T, V) float32 values, filled in place at the kinds' offsets in ``layout``.
+        layout: the variables' layout.
+        prep: the prepared poses.
+        skeleton: defines the body frame.
+        floor: floor plane; its normal is the up vector.
+        config: STFT window and block size.
+    """
+    poses, fps = prep.poses, prep.fps
+    t, k, _ = poses.shape
+    off = layout.offsets
+    origin, rot = body_frame(poses, skeleton, floor.normal)
+    local = np.einsum("tij,tkj->tki", rot, poses - origin[:, None, :])  # (T, K, 3)
+    out[:, off["local"] : off["local"] + 3 * k] = local.reshape(t, 3 * k)
+    vel = time_derivative(local, fps)
+    out[:, off["local_vel"] : off["local_vel"] + 3 * k] = vel.reshape(t, 3 * k)
+    odist = np.linalg.norm(local, axis=2)  # (T, K)
+    out[:, off["origin_dist"] : off["origin_dist"] + k] = odist
+    out[:, off["origin_dist_vel"] : off["origin_dist_vel"] + k] = time_derivative(odist, fps)
+    fdist = floor.distance(poses)  # (T, K)
+    out[:, off["floor_dist"] : off["floor_dist"] + k] = fdist
+    spec = stft_amplitude(
+        np.concatenate([odist, fdist], axis=1), config.stft_window, config.chunk_frames
+    )  # (T, 2K, F)
+    nf = spec.shape[2]
+    out[:, off["origin_dist_stft"] : off["origin_dist_stft"] + k * nf] = spec[:, :k].reshape(t, -1)
+    out[:, off["floor_dist_stft"] : off["floor_dist_stft"] + k * nf] = spec[:, k:].reshape(t, -1)
+
+
+def fill_angle_variables(
+    out: np.ndarray, layout: VariableLayout, prep: PreparedPoses, skeleton: Skeleton, up: np.ndarray
+) -> None:
+    """Write the skeleton's angles and their velocities into ``out``.
+
+    Args:
+        out: (T, V) float32 values, filled in place at the kinds' offsets in ``layout``.
+        layout: the variables' layout.
+        prep: the prepared poses.
+        skeleton: defines the angles.
+        up: (3,) unit up vector.
+    """
+    na = len(skeleton.angles)
+    if not na:
+        return
+    off = layout.offsets
+    ang = skeleton_angles(prep.poses, skeleton, up)
+    out[:, off["angle"] : off["angle"] + na] = ang
+    out[:, off["angle_vel"] : off["angle_vel"] + na] = time_derivative(ang, prep.fps)
+
+
 def compute_variables(
     poses: np.ndarray,
     frame_index: np.ndarray,
@@ -476,70 +612,29 @@ def compute_variables(
         fps: frames per second.
         skeleton: defines the body frame, the angles and the keypoint order.
         floor: floor plane; its normal is the up vector.
+        config: gap filling and STFT settings.
         keypoints: the poses' keypoint names, checked against the skeleton when given.
 
     Returns:
         Variables with values (T', V) float32, T' = frame_index[-1] - frame_index[0] + 1.
-    """
-    if keypoints is not None:
-        check_keypoints(tuple(keypoints), skeleton)
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (skeleton.num_keypoints, 3):
-        raise VariablesError(
-            f"poses must be (T, {skeleton.num_keypoints}, 3) for skeleton {skeleton.name!r}, "
-            f"got {poses.shape}"
-        )
-    fps = float(fps)
-    if not (np.isfinite(fps) and fps > 0):
-        raise VariablesError(f"fps must be positive, got {fps}")
-    poses, fidx = regular_time_axis(poses, frame_index)
-    t, k, _ = poses.shape
-    if t <= config.stft_window // 2:
-        raise VariablesError(
-            f"recording too short: {t} frames; the {config.stft_window}-frame STFT needs more "
-            f"than {config.stft_window // 2}"
-        )
-    # A keypoint with any NaN coordinate is missing as a whole.
-    poses[np.isnan(poses).any(axis=2)] = np.nan
-    missing_before = int(np.isnan(poses[..., 0]).sum())
-    max_gap = int(np.floor(config.max_gap_s * fps + 1e-9))
-    poses, n_filled = interpolate_gaps(poses, max_gap)
-    n_filled //= 3
-    up = floor.normal
-    freqs = stft_frequencies(config.stft_window, fps)
-    layout = variable_layout(skeleton, freqs)
-    nf = len(freqs)
-    out = np.empty((t, len(layout.names)), dtype=np.float32)
-    off = layout.offsets
 
-    origin, rot = body_frame(poses, skeleton, up)
-    local = np.einsum("tij,tkj->tki", rot, poses - origin[:, None, :])  # (T, K, 3)
-    out[:, off["local"] : off["local"] + 3 * k] = local.reshape(t, 3 * k)
-    vel = time_derivative(local, fps)
-    out[:, off["local_vel"] : off["local_vel"] + 3 * k] = vel.reshape(t, 3 * k)
-    odist = np.linalg.norm(local, axis=2)  # (T, K)
-    out[:, off["origin_dist"] : off["origin_dist"] + k] = odist
-    out[:, off["origin_dist_vel"] : off["origin_dist_vel"] + k] = time_derivative(odist, fps)
-    fdist = floor.distance(poses)  # (T, K)
-    out[:, off["floor_dist"] : off["floor_dist"] + k] = fdist
-    spec = stft_amplitude(
-        np.concatenate([odist, fdist], axis=1), config.stft_window, config.chunk_frames
-    )  # (T, 2K, F)
-    out[:, off["origin_dist_stft"] : off["origin_dist_stft"] + k * nf] = spec[:, :k].reshape(t, -1)
-    out[:, off["floor_dist_stft"] : off["floor_dist_stft"] + k * nf] = spec[:, k:].reshape(t, -1)
-    del spec
-    na = len(skeleton.angles)
-    if na:
-        ang = skeleton_angles(poses, skeleton, up)
-        out[:, off["angle"] : off["angle"] + na] = ang
-        out[:, off["angle_vel"] : off["angle_vel"] + na] = time_derivative(ang, fps)
+    Raises:
+        VariablesError: the poses do not fit the skeleton or are too short.
+    """
+    prep = prepare_poses(poses, frame_index, fps, skeleton, config, keypoints)
+    t = prep.poses.shape[0]
+    freqs = stft_frequencies(config.stft_window, prep.fps)
+    layout = variable_layout(skeleton, freqs)
+    out = np.empty((t, len(layout.names)), dtype=np.float32)
+    fill_point_variables(out, layout, prep, skeleton, floor, config)
+    fill_angle_variables(out, layout, prep, skeleton, floor.normal)
     nan_frames = int(np.isnan(out).any(axis=1).sum())
     info = {
-        "keypoints_missing": missing_before,
-        "keypoints_interpolated": n_filled,
+        "keypoints_missing": prep.missing,
+        "keypoints_interpolated": prep.interpolated,
         "frames_with_nan": nan_frames,
         "max_gap_s": config.max_gap_s,
-        "max_gap_frames": max_gap,
+        "max_gap_frames": prep.max_gap,
         "stft_window": config.stft_window,
         "skeleton": skeleton.name,
     }
@@ -549,7 +644,7 @@ def compute_variables(
             "and the STFT windows around them)",
             nan_frames,
             t,
-            max_gap,
+            prep.max_gap,
         )
     return Variables(
         values=out,
@@ -559,8 +654,8 @@ def compute_variables(
         parts=layout.parts,
         involved=layout.involved,
         keypoints=tuple(skeleton.keypoints),
-        frame_index=fidx,
-        fps=fps,
+        frame_index=prep.frame_index,
+        fps=prep.fps,
         frequencies=freqs,
         floor=floor,
         info=info,
