@@ -3,18 +3,18 @@
 The evaluation session has a different seed *and* a different camera layout (another
 number of cameras, so other positions, focal lengths and distortions); the rat's coat
 (``--appearance``) is the same, as when a lab trains on its own strain. A third session
-with the other coat shows how far the detector generalises to an unseen appearance. Prints, for the
-trained detector and for the background-subtraction baseline measured in the same run:
+with the other coat shows how far the detector generalises to an unseen appearance. Prints,
+for the trained detector and for the background-subtraction baseline measured in the same run:
 recall at IoU 0.5 over the views that show the animal, the median 3D centre error (mm)
 against the triangulated ground-truth box centres, the rate of time instants with a 3D
 centre, and CPU images per second.
 
-Usage (CPU, about 20-30 minutes on one core with the defaults)::
+Usage (CPU)::
 
     python benchmarks/detector.py --workdir /tmp/fp_bench_detector
     python benchmarks/detector.py --steps 300 --train-frames 60 --eval-frames 30   # quick look
 
-Targets (issue 6): recall >= 0.95 and median 3D centre error < 10 mm.
+Targets: recall >= 0.95 and median 3D centre error < 10 mm.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import torch
 
 
 def main() -> None:
+    """Render the sessions, train the detector, evaluate it and the baseline, print a table."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--workdir", type=Path, default=None, help="keeps sessions and the run")
     ap.add_argument("--train-frames", type=int, default=200)
@@ -128,6 +129,7 @@ def main() -> None:
 
 
 def _fps_bg(bg, frames: dict, names: list[str], n: int = 64) -> float:
+    """Images per second of the background subtractor ``bg`` on ``n`` frames."""
     imgs = [frames[names[i % len(names)]][i % len(frames[names[0]])] for i in range(n)]
     cams = [names[i % len(names)] for i in range(n)]
     t = time.perf_counter()
