@@ -140,9 +140,9 @@ def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, 
 
     Only the networks in ``kinds`` are trained; a network left out is still evaluated when
     its model already exists (another process trained it: ``--kinds``)."""
-    from freipose.labels.dataset import MultiViewDataset
+    from freipose.nn.dataset import MultiViewDataset
     from freipose.nn.evaluate import jpe, predict_dataset
-    from freipose.nn.model import load_checkpoint
+    from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.train import train_pose
     from freipose.skeleton import load_skeleton
 

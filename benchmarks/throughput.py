@@ -1,6 +1,6 @@
 """Inference throughput of the voxel network (multi-view samples per second).
 
-Times :func:`freipose.nn.model.predict_batch` (crops from full frames + network, inference
+Times :func:`freipose.nn.inference.predict_batch` (crops from full frames + network, inference
 mode, autocast on GPU) and the network's forward pass alone, for the voxel network and for
 the triangulation baseline of the same preset in the same run (whose 3D step is the robust
 triangulation on the CPU). Weights are random unless ``--ckpt`` is given (speed does not
@@ -42,7 +42,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from freipose.nn.config import config_from_dict
     from freipose.nn.data import collate_prepared, prepare_sample, to_device
-    from freipose.nn.model import build_model, load_checkpoint, predict_batch
+    from freipose.nn.checkpoint import load_checkpoint
+    from freipose.nn.inference import predict_batch
+    from freipose.nn.model import build_model
     from freipose.synth import default_rig
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))

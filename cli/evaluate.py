@@ -59,9 +59,9 @@ def evaluate(
         import numpy as np
 
         from freipose.io.labels import read_labels_h5
-        from freipose.labels.dataset import MultiViewDataset
+        from freipose.nn.dataset import MultiViewDataset
         from freipose.nn.evaluate import jpe, predict_dataset, write_report
-        from freipose.nn.model import load_checkpoint
+        from freipose.nn.checkpoint import load_checkpoint
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         lab = read_labels_h5(labels)

@@ -1,2 +1,2 @@
-"""Labels: importers from other tools, triangulation, checks, merge/split/export and the
-training-set reader (:mod:`freipose.labels.dataset`)."""
+"""Labels: importers from other tools, triangulation, checks, merge/split/export (the
+training-set reader is :mod:`freipose.nn.dataset`)."""

@@ -1,4 +1,4 @@
-"""From multi-view samples (``freipose.labels.dataset.MultiViewDataset``) to network input.
+"""From multi-view samples (``freipose.nn.dataset.MultiViewDataset``) to network input.
 
 For every view the voxel cube around the sample's centre (or its middle part,
 ``model.crop_fraction``) is projected into the full
@@ -14,20 +14,22 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from typing import Any
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import torch
 
+from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.geometry.crops import crop_affine, crop_camera, cube_crop_boxes
 from freipose.nn.config import AugmentConfig, ModelConfig
+from freipose.nn.types import Batch, PreparedSample, Sample
 
 BORDER = 128
 
 
-class SampleError(ValueError):
+class SampleError(FreiPoseError):
     """A sample cannot be turned into network input (the message says why)."""
 
 
@@ -82,49 +84,34 @@ def _color_augment(img: np.ndarray, rng: np.random.Generator, aug: AugmentConfig
     return np.clip(f, 0, 255).astype(np.uint8)
 
 
-def prepare_sample(
-    sample: dict[str, Any],
-    model: ModelConfig,
-    augment: AugmentConfig | None = None,
-    rng: np.random.Generator | None = None,
-    center: np.ndarray | None = None,
-) -> dict[str, Any]:
-    """Crop one multi-view sample around its centre.
-
-    Args:
-        sample: a ``MultiViewDataset`` sample (``rig``, ``images``, optional labels).
-        model: gives the crop size and the cube size.
-        augment: training augmentation (None or ``enabled=False``: none).
-        rng: random generator for the augmentation (required with augmentation).
-        center: (3,) cube centre in mm; default the mean of the labeled 3D points
-            (plus jitter when augmenting).
-
-    Returns:
-        A dict of numpy arrays: ``images`` (V, 3, S, S) float32 (BGR / 255 - 0.5), ``K``
-        (V, 3, 3) affine crop intrinsics, ``R`` (V, 3, 3), ``t`` (V, 3), ``dist`` (V, 5),
-        ``affine`` (V, 3, 3) full-image -> crop pixels, ``view_valid`` (V,) bool, ``center``
-        (3,), ``grid_rotation`` (3, 3) orientation of the voxel grid (identity unless
-        augmenting), ``points3d`` (K, 3) (NaN unknown), ``mask3d`` (K,), ``points2d`` (V, K, 2) crop
-        px, ``visible2d`` (V, K), with augmentation ``p0_jitter`` (K, 3) mm (training noise on
-        P0 before the refinement); plus ``rig`` (the original cameras) and ``index``.
+def _sample_rig(sample: Sample) -> CameraRig:
+    """The sample's cameras.
 
     Raises:
-        SampleError: no rig, no centre, or images that do not match the cameras.
+        SampleError: the sample has no calibration.
     """
-    rig: CameraRig | None = sample.get("rig")
+    rig = sample.get("rig")
     if rig is None:
         raise SampleError(
             f"sample {sample.get('index')} (session {sample.get('session')!r}) has no calibration; "
             "the pose network needs calibrated cameras"
         )
-    S = model.crop_size
-    aug = augment if augment is not None and augment.enabled else None
-    if aug is not None and rng is None:
-        raise ValueError("prepare_sample: augmentation needs an rng")
-    V = len(rig)
-    p3 = sample.get("points3d")
-    nk = None if p3 is None else np.asarray(p3).shape[0]
+    return rig
+
+
+def _cube_center(
+    sample: Sample,
+    aug: AugmentConfig | None,
+    rng: np.random.Generator | None,
+    center: np.ndarray | None,
+) -> np.ndarray:
+    """The (3,) cube centre: ``center``, or the labels' mean plus jitter when augmenting.
+
+    Raises:
+        SampleError: no ``center`` and no 3D label.
+    """
     if center is None:
+        p3 = sample.get("points3d")
         if p3 is None:
             raise SampleError("prepare_sample needs a centre or 3D labels")
         center = label_center(p3, sample.get("mask3d"))
@@ -135,16 +122,77 @@ def prepare_sample(
             )
         if aug is not None and aug.center_jitter > 0:
             center = center + rng.normal(0.0, aug.center_jitter, size=3)
-    center = np.asarray(center, dtype=np.float64).reshape(3)
-    grid_rot = np.eye(3)
-    if aug is not None and aug.grid_rotation > 0:
-        a = math.radians(rng.uniform(-aug.grid_rotation, aug.grid_rotation))
-        grid_rot = np.array(
-            [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]]
-        )
-    images = sample.get("images") or []
-    if images and len(images) != V:
-        raise SampleError(f"sample has {len(images)} images for {V} cameras")
+    return np.asarray(center, dtype=np.float64).reshape(3)
+
+
+def _grid_rotation(aug: AugmentConfig | None, rng: np.random.Generator | None) -> np.ndarray:
+    """(3, 3) voxel grid orientation: a random turn about the world z axis when augmenting."""
+    if aug is None or aug.grid_rotation <= 0:
+        return np.eye(3)
+    a = math.radians(rng.uniform(-aug.grid_rotation, aug.grid_rotation))
+    return np.array(
+        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]]
+    )
+
+
+@dataclass(frozen=True)
+class ViewCrops:
+    """The crops of the V views of a sample.
+
+    Attributes:
+        images: (V, 3, S, S) float32 crops, BGR / 255 - 0.5 (0 for views without a crop).
+        K: (V, 3, 3) affine crop intrinsics.
+        affine: (V, 3, 3) full-image to crop pixels.
+        valid: (V,) bool, the cube centre is in front of the camera.
+    """
+
+    images: np.ndarray
+    K: np.ndarray
+    affine: np.ndarray
+    valid: np.ndarray
+
+
+def _crop_image(
+    img: np.ndarray,
+    A: np.ndarray,
+    size: int,
+    aug: AugmentConfig | None,
+    rng: np.random.Generator | None,
+) -> np.ndarray:
+    """Warp a full frame into its (3, S, S) float32 crop (BGR / 255 - 0.5), augmented."""
+    crop = cv2.warpAffine(
+        img,
+        A[:2],
+        (size, size),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(BORDER, BORDER, BORDER),
+    )
+    if crop.ndim == 2:
+        crop = np.repeat(crop[..., None], 3, axis=-1)
+    if aug is not None:
+        crop = _color_augment(crop, rng, aug)
+    return crop.transpose(2, 0, 1).astype(np.float32) / 255.0 - 0.5
+
+
+def _crop_views(
+    rig: CameraRig,
+    images: list[np.ndarray],
+    center: np.ndarray,
+    model: ModelConfig,
+    aug: AugmentConfig | None,
+    rng: np.random.Generator | None,
+) -> ViewCrops:
+    """Cut every view's crop around the cube and derive its crop camera.
+
+    The random generator is drawn view by view (the view's geometric augmentation, then
+    its colour augmentation), so a sample is a function of the generator's seed.
+
+    Raises:
+        SampleError: an image's size differs from its camera's.
+    """
+    S = model.crop_size
+    V = len(rig)
     boxes = cube_crop_boxes(rig, center, model.crop_cube)  # (V, 4)
     out_img = np.zeros((V, 3, S, S), np.float32)
     Ks = np.tile(np.eye(3), (V, 1, 1))
@@ -166,66 +214,123 @@ def prepare_sample(
                     f"camera {cam.name!r}: image is {img.shape[1]}x{img.shape[0]} but the "
                     f"calibration says {cam.width}x{cam.height}"
                 )
-            crop = cv2.warpAffine(
-                img,
-                A[:2],
-                (S, S),
-                flags=cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=(BORDER, BORDER, BORDER),
-            )
-            if crop.ndim == 2:
-                crop = np.repeat(crop[..., None], 3, axis=-1)
-            if aug is not None:
-                crop = _color_augment(crop, rng, aug)
-            out_img[v] = crop.transpose(2, 0, 1).astype(np.float32) / 255.0 - 0.5
-    res: dict[str, Any] = {
-        "images": out_img,
-        "K": Ks,
+            out_img[v] = _crop_image(img, A, S, aug, rng)
+    return ViewCrops(out_img, Ks, affines, valid)
+
+
+@dataclass(frozen=True)
+class CropLabels:
+    """The labels of a sample in its crops.
+
+    Attributes:
+        points3d: (K, 3) mm, NaN where unknown.
+        mask3d: (K,) bool, labeled 3D points.
+        points2d: (V, K, 2) crop pixels.
+        visible2d: (V, K) bool, visible labels inside the crop of a valid view.
+    """
+
+    points3d: np.ndarray
+    mask3d: np.ndarray
+    points2d: np.ndarray
+    visible2d: np.ndarray
+
+
+def _crop_labels(sample: Sample, crops: ViewCrops, size: int) -> CropLabels:
+    """The sample's 3D labels and its 2D labels mapped into the crops."""
+    p3 = np.asarray(sample["points3d"], np.float64)
+    nk = p3.shape[0]
+    V = len(crops.valid)
+    m3 = np.isfinite(p3).all(-1)
+    if sample.get("mask3d") is not None:
+        m3 &= np.asarray(sample["mask3d"], bool)
+    p2 = np.asarray(sample.get("points2d", np.full((V, nk, 2), np.nan)), np.float64)
+    vis = sample.get("visible2d")
+    finite2 = np.isfinite(p2).all(-1)
+    vis = finite2 if vis is None else np.asarray(vis, bool) & finite2
+    hom = np.concatenate([p2, np.ones(p2.shape[:-1] + (1,))], -1)
+    p2c = np.einsum("vij,vkj->vki", crops.affine, hom)[..., :2]
+    inside = (p2c >= -0.5).all(-1) & (p2c <= size - 0.5).all(-1)
+    return CropLabels(p3, m3, p2c, vis & inside & crops.valid[:, None])
+
+
+def prepare_sample(
+    sample: Sample,
+    model: ModelConfig,
+    augment: AugmentConfig | None = None,
+    rng: np.random.Generator | None = None,
+    center: np.ndarray | None = None,
+) -> PreparedSample:
+    """Crop one multi-view sample around its centre.
+
+    The stages: the cube centre (:func:`_cube_center`), the voxel grid's orientation
+    (:func:`_grid_rotation`), the view crops and crop cameras (:func:`_crop_views`) and the
+    labels in the crops (:func:`_crop_labels`); with augmentation they draw from ``rng`` in
+    that order, then the P0 jitter.
+
+    Args:
+        sample: a ``MultiViewDataset`` sample (``rig``, ``images``, optional labels).
+        model: gives the crop size and the cube size.
+        augment: training augmentation (None or ``enabled=False``: none).
+        rng: random generator for the augmentation (required with augmentation).
+        center: (3,) cube centre in mm; default the mean of the labeled 3D points
+            (plus jitter when augmenting).
+
+    Returns:
+        The :class:`~freipose.nn.types.PreparedSample` (labels only for a sample with
+        ``points3d``; ``p0_jitter`` only when augmenting with ``refine_jitter``).
+
+    Raises:
+        SampleError: no rig, no centre, or images that do not match the cameras.
+        ValueError: augmentation without ``rng``.
+    """
+    rig = _sample_rig(sample)
+    aug = augment if augment is not None and augment.enabled else None
+    if aug is not None and rng is None:
+        raise ValueError("prepare_sample: augmentation needs an rng")
+    center = _cube_center(sample, aug, rng, center)
+    grid_rot = _grid_rotation(aug, rng)
+    images = sample.get("images") or []
+    if images and len(images) != len(rig):
+        raise SampleError(f"sample has {len(images)} images for {len(rig)} cameras")
+    crops = _crop_views(rig, images, center, model, aug, rng)
+    res: PreparedSample = {
+        "images": crops.images,
+        "K": crops.K,
         "R": np.asarray(rig.R, np.float64),
         "t": np.asarray(rig.t, np.float64),
         "dist": np.asarray(rig.dist, np.float64),
-        "affine": affines,
-        "view_valid": valid,
+        "affine": crops.affine,
+        "view_valid": crops.valid,
         "center": center,
         "grid_rotation": grid_rot,
         "rig": rig,
         "index": int(sample.get("index", -1)),
     }
-    if nk is not None:
-        p3 = np.asarray(p3, np.float64)
-        m3 = np.isfinite(p3).all(-1)
-        if sample.get("mask3d") is not None:
-            m3 &= np.asarray(sample["mask3d"], bool)
-        p2 = np.asarray(sample.get("points2d", np.full((V, nk, 2), np.nan)), np.float64)
-        vis = sample.get("visible2d")
-        vis = (
-            np.isfinite(p2).all(-1)
-            if vis is None
-            else np.asarray(vis, bool) & np.isfinite(p2).all(-1)
+    if sample.get("points3d") is not None:
+        lab = _crop_labels(sample, crops, model.crop_size)
+        res.update(
+            points3d=lab.points3d, mask3d=lab.mask3d, points2d=lab.points2d, visible2d=lab.visible2d
         )
-        hom = np.concatenate([p2, np.ones(p2.shape[:-1] + (1,))], -1)
-        p2c = np.einsum("vij,vkj->vki", affines, hom)[..., :2]
-        inside = (p2c >= -0.5).all(-1) & (p2c <= S - 0.5).all(-1)
-        res.update(points3d=p3, mask3d=m3, points2d=p2c, visible2d=vis & inside & valid[:, None])
         if aug is not None and aug.refine_jitter > 0:
-            res["p0_jitter"] = rng.normal(0.0, aug.refine_jitter, size=(nk, 3))
+            res["p0_jitter"] = rng.normal(0.0, aug.refine_jitter, size=(lab.points3d.shape[0], 3))
     return res
 
 
-def collate_prepared(items: list[dict[str, Any]]) -> dict[str, Any]:
+def collate_prepared(items: list[PreparedSample]) -> Batch:
     """Stack prepared samples into tensors, padding the view axis.
 
-    Padding views get identity intrinsics, a camera 1 m in front of the cube and ``view_mask``
-    False. Returns float32 tensors ``images`` (B, V, 3, S, S), ``K``, ``R``, ``t``, ``dist``,
-    ``affine``, ``center`` (B, 3), ``grid_rotation`` (B, 3, 3), ``view_mask`` (B, V) and, when
-    labeled, ``points3d`` (B, K, 3) (0 where unknown), ``mask3d`` (B, K), ``points2d`` (B, V, K, 2),
-    ``visible2d`` (B, V, K); plus the lists ``rigs`` and ``index``.
+    Args:
+        items: B prepared samples (:func:`prepare_sample`); the labels are stacked when
+            every sample has them, ``p0_jitter`` when every sample has one.
+
+    Returns:
+        The :class:`~freipose.nn.types.Batch` (padding views: identity intrinsics, a camera
+        1 m in front of the cube, ``view_mask`` False).
     """
     B = len(items)
     V = max(len(it["view_valid"]) for it in items)
     S = items[0]["images"].shape[-1]
-    out: dict[str, Any] = {
+    out: Batch = {
         "images": torch.zeros(B, V, 3, S, S),
         "K": torch.eye(3).repeat(B, V, 1, 1),
         "R": torch.eye(3).repeat(B, V, 1, 1),
@@ -289,8 +394,16 @@ TENSOR_KEYS = (
 )
 
 
-def to_device(batch: dict[str, Any], device: torch.device | str) -> dict[str, Any]:
-    """Move the tensors of a collated batch to ``device``."""
+def to_device(batch: Batch, device: torch.device | str) -> Batch:
+    """Move the tensors of a collated batch to ``device``.
+
+    Args:
+        batch: from :func:`collate_prepared`.
+        device: the target device.
+
+    Returns:
+        The batch with its tensors on ``device`` (``rigs`` and ``index`` as they are).
+    """
     return {
         k: (v.to(device, non_blocking=True) if k in TENSOR_KEYS else v) for k, v in batch.items()
     }
@@ -306,7 +419,7 @@ class TrainSamples(torch.utils.data.Dataset):
 
     def __init__(
         self,
-        source: Sequence[dict[str, Any]],
+        source: Sequence[Sample],
         model: ModelConfig,
         augment: AugmentConfig | None,
         seed: int,
@@ -319,7 +432,7 @@ class TrainSamples(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.source)
 
-    def __getitem__(self, key: tuple[int, int]) -> dict[str, Any]:
+    def __getitem__(self, key: tuple[int, int]) -> PreparedSample:
         index, step = key
         rng = np.random.default_rng([self.seed, int(step), int(index)])
         return prepare_sample(self.source[int(index)], self.model, self.augment, rng)
@@ -344,9 +457,9 @@ class StepBatchSampler(torch.utils.data.Sampler):
         world: int = 1,
     ):
         if not len(indices):
-            raise ValueError("no training samples (no labeled time instant with 3D labels)")
+            raise SampleError("no training samples (no labeled time instant with 3D labels)")
         if batch_size % world:
-            raise ValueError(
+            raise SampleError(
                 f"schedule.batch_size ({batch_size}) must be divisible by the number of "
                 f"processes ({world})"
             )

@@ -17,16 +17,27 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from freipose.io.atomic import atomic_path, atomic_write_text
+from freipose.io.atomic import atomic_write_text
+from freipose.io.figures import new_figure, save_figure
+from freipose.nn.data import collate_prepared, label_center, prepare_sample
+from freipose.nn.inference import predict_prepared
+from freipose.nn.types import Sample
 
 log = logging.getLogger(__name__)
 
 PCK_THRESHOLDS = np.linspace(0.0, 20.0, 41)
 
 
-def usable_indices(source: Sequence[dict[str, Any]]) -> np.ndarray:
-    """Indices of samples with at least one 3D label (from a MultiViewDataset's labels if it
-    has them, else by reading the samples)."""
+def usable_indices(source: Sequence[Sample]) -> np.ndarray:
+    """Indices of samples with at least one 3D label.
+
+    Args:
+        source: a :class:`~freipose.nn.dataset.MultiViewDataset` (its labels are read, and
+            sessions without a calibration skipped) or any sequence of samples (read one by one).
+
+    Returns:
+        (N,) int64 indices.
+    """
     labels = getattr(source, "labels", None)
     if labels is not None:
         p3 = labels.points3d
@@ -46,7 +57,7 @@ def usable_indices(source: Sequence[dict[str, Any]]) -> np.ndarray:
 
 def predict_dataset(
     model: Any,
-    source: Sequence[dict[str, Any]],
+    source: Sequence[Sample],
     indices: Sequence[int] | None = None,
     batch_size: int = 4,
     center_noise: float = 0.0,
@@ -55,13 +66,19 @@ def predict_dataset(
 ) -> dict[str, np.ndarray]:
     """Predict every (usable) sample of ``source`` with the cube on its label centre.
 
+    Args:
+        model: a network from :func:`freipose.nn.checkpoint.load_checkpoint`.
+        source: labeled samples.
+        indices: the samples to predict (default: :func:`usable_indices`).
+        batch_size: samples per forward pass.
+        center_noise: std (mm) of Gaussian noise added to each cube centre.
+        seed: seed of that noise.
+        progress: show a progress bar.
+
     Returns:
         ``P0``, ``P1`` (N, K, 3), ``confidence`` (N, K), ``gt`` (N, K, 3) (NaN unknown) and
         ``index`` (N,).
     """
-    from freipose.nn.data import collate_prepared, label_center, prepare_sample
-    from freipose.nn.model import predict_prepared
-
     cfg = model.cfg
     idx = usable_indices(source) if indices is None else np.asarray(indices, dtype=np.int64)
     rng = np.random.default_rng(seed)
@@ -90,10 +107,17 @@ def predict_dataset(
 
 
 def jpe(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """Joint position errors (N, K) in mm; NaN where the label is unknown.
+    """Joint position errors in mm; NaN where the label is unknown.
 
     A missing prediction (NaN) where a label exists counts as an infinite error (it fails
     every PCK threshold and pushes medians up), so methods that give up are not flattered.
+
+    Args:
+        pred: (N, K, 3) predictions (mm), NaN where missing.
+        gt: (N, K, 3) labels (mm), NaN where unknown.
+
+    Returns:
+        (N, K) errors.
     """
     e = np.linalg.norm(pred - gt, axis=-1)
     labeled = np.isfinite(gt).all(-1)
@@ -102,7 +126,15 @@ def jpe(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
 
 
 def jpe_summary(errors: np.ndarray, keypoints: Sequence[str]) -> dict[str, Any]:
-    """Median and 30/70 % percentiles overall and per keypoint, and the PCK curve 0-20 mm."""
+    """Median and 30/70 % percentiles overall and per keypoint, and the PCK curve 0-20 mm.
+
+    Args:
+        errors: (N, K) joint position errors (mm), NaN where unlabeled, inf where missing.
+        keypoints: the K keypoint names.
+
+    Returns:
+        ``overall``, ``per_keypoint`` (name -> statistics) and ``pck``.
+    """
 
     def stats(e: np.ndarray) -> dict[str, float]:
         e = e[~np.isnan(e)]
@@ -127,45 +159,11 @@ def jpe_summary(errors: np.ndarray, keypoints: Sequence[str]) -> dict[str, Any]:
     }
 
 
-def write_report(
-    out_dir: str | Path,
-    results: Mapping[str, np.ndarray],
-    keypoints: Sequence[str],
-) -> dict[str, Any]:
-    """Write the evaluation outputs for one or more methods.
-
-    Args:
-        results: method name -> JPE array (N, K) in mm.
-
-    Writes ``metrics.json`` (summaries), ``jpe_per_keypoint.csv`` (median/p30/p70 per method
-    and keypoint), ``pck.csv`` and ``pck.png`` (PCK 0-20 mm), ``jpe_boxplot.png`` (box plots
-    per keypoint, whiskers 1.5 IQR). Returns the summaries.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    summary = {name: jpe_summary(e, keypoints) for name, e in results.items()}
-    atomic_write_text(out / "metrics.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
-    rows = ["method,keypoint,median_mm,p30_mm,p70_mm,n"]
-    for name, s in summary.items():
-        for k in [*keypoints, "ALL"]:
-            st = s["overall"] if k == "ALL" else s["per_keypoint"][k]
-            rows.append(f"{name},{k},{st['median']:.4f},{st['p30']:.4f},{st['p70']:.4f},{st['n']}")
-    atomic_write_text(out / "jpe_per_keypoint.csv", "\n".join(rows) + "\n")
-    names = list(summary)
-    lines = ["threshold_mm," + ",".join(names)]
-    for i, t in enumerate(PCK_THRESHOLDS):
-        lines.append(
-            f"{t:.2f}," + ",".join(f"{summary[n]['pck']['fraction'][i]:.5f}" for n in names)
-        )
-    atomic_write_text(out / "pck.csv", "\n".join(lines) + "\n")
-
-    fig, ax = plt.subplots(figsize=(5, 4))
-    for n in names:
+def _pck_figure(out: Path, summary: Mapping[str, Any]) -> None:
+    """``pck.png``: the PCK curves of the methods in ``summary``."""
+    fig = new_figure((5, 4))
+    ax = fig.subplots()
+    for n in summary:
         ax.plot(PCK_THRESHOLDS, summary[n]["pck"]["fraction"], label=n)
     ax.set_xlabel("error threshold (mm)")
     ax.set_ylabel("fraction of keypoints (PCK)")
@@ -173,11 +171,16 @@ def write_report(
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    with atomic_path(out / "pck.png") as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, out / "pck.png", dpi=120, format="png")
 
-    fig, ax = plt.subplots(figsize=(max(6, 0.9 * len(keypoints) * len(names)), 4))
+
+def _boxplot_figure(
+    out: Path, results: Mapping[str, np.ndarray], keypoints: Sequence[str]
+) -> None:
+    """``jpe_boxplot.png``: box plots of the errors per keypoint and method."""
+    names = list(results)
+    fig = new_figure((max(6, 0.9 * len(keypoints) * len(names)), 4))
+    ax = fig.subplots()
     width = 0.8 / len(names)
     for j, n in enumerate(names):
         e = results[n]
@@ -199,7 +202,45 @@ def write_report(
     ax.set_ylabel("joint position error (mm)")
     ax.legend()
     fig.tight_layout()
-    with atomic_path(out / "jpe_boxplot.png") as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, out / "jpe_boxplot.png", dpi=120, format="png")
+
+
+def write_report(
+    out_dir: str | Path,
+    results: Mapping[str, np.ndarray],
+    keypoints: Sequence[str],
+) -> dict[str, Any]:
+    """Write the evaluation outputs for one or more methods.
+
+    Writes ``metrics.json`` (summaries), ``jpe_per_keypoint.csv`` (median/p30/p70 per method
+    and keypoint), ``pck.csv`` and ``pck.png`` (PCK 0-20 mm), ``jpe_boxplot.png`` (box plots
+    per keypoint, whiskers 1.5 IQR).
+
+    Args:
+        out_dir: the output folder (created).
+        results: method name -> JPE array (N, K) in mm.
+        keypoints: the K keypoint names.
+
+    Returns:
+        The summaries (method name -> :func:`jpe_summary`).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {name: jpe_summary(e, keypoints) for name, e in results.items()}
+    atomic_write_text(out / "metrics.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
+    rows = ["method,keypoint,median_mm,p30_mm,p70_mm,n"]
+    for name, s in summary.items():
+        for k in [*keypoints, "ALL"]:
+            st = s["overall"] if k == "ALL" else s["per_keypoint"][k]
+            rows.append(f"{name},{k},{st['median']:.4f},{st['p30']:.4f},{st['p70']:.4f},{st['n']}")
+    atomic_write_text(out / "jpe_per_keypoint.csv", "\n".join(rows) + "\n")
+    names = list(summary)
+    lines = ["threshold_mm," + ",".join(names)]
+    for i, t in enumerate(PCK_THRESHOLDS):
+        lines.append(
+            f"{t:.2f}," + ",".join(f"{summary[n]['pck']['fraction'][i]:.5f}" for n in names)
+        )
+    atomic_write_text(out / "pck.csv", "\n".join(lines) + "\n")
+    _pck_figure(out, summary)
+    _boxplot_figure(out, results, keypoints)
     return summary

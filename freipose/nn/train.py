@@ -15,11 +15,13 @@ averaged by DistributedDataParallel (gloo on CPU, NCCL on GPU).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 import os
 import random
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,21 +29,19 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from freipose import __version__
+from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path, atomic_write_text
-from freipose.nn.config import TrainConfig, config_to_dict
+from freipose.io.figures import new_figure, save_figure
+from freipose.io.labels import read_labels_h5
+from freipose.nn.checkpoint import read_checkpoint, serialize_checkpoint, training_checkpoint
+from freipose.nn.config import TrainConfig, config_to_dict, load_config
 from freipose.nn.data import StepBatchSampler, TrainSamples, collate_prepared, to_device
+from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.evaluate import jpe, predict_dataset, usable_indices
 from freipose.nn.losses import baseline_losses, voxel_losses
-from freipose.nn.model import (
-    CHECKPOINT_FORMAT,
-    CHECKPOINT_VERSION,
-    build_model,
-    optimizer_groups,
-    read_checkpoint,
-    serialize_checkpoint,
-    state_hash,
-)
+from freipose.nn.model import build_model, optimizer_groups
+from freipose.nn.types import Batch, Sample
+from freipose.skeleton import Skeleton, load_skeleton
 
 log = logging.getLogger(__name__)
 
@@ -61,59 +61,105 @@ LOG_COLUMNS = [
 ]
 
 
+class TrainError(FreiPoseError):
+    """A training run cannot start or continue (the message says why and what to do)."""
+
+
+class DivergedError(TrainError, FloatingPointError):
+    """The training loss is not finite (the message suggests a lower learning rate)."""
+
+
 def _toml_text(data: dict[str, Any]) -> str:
+    """``data`` as TOML text."""
     import tomli_w
 
     return tomli_w.dumps(data)
 
 
-def _distributed(device: str) -> tuple[int, int, torch.device]:
-    """Join the process group when launched by torchrun; returns (rank, world, device)."""
+@dataclass(frozen=True)
+class Processes:
+    """This process's place in a (possibly distributed) run.
+
+    Attributes:
+        rank: this process's rank (0 writes the outputs).
+        world: the number of processes.
+        device: the device this process trains on.
+    """
+
+    rank: int
+    world: int
+    device: torch.device
+
+
+def _distributed(device: str) -> Processes:
+    """Join the process group when launched by torchrun.
+
+    Args:
+        device: ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Returns:
+        The rank, the world size and this process's device.
+
+    Raises:
+        TrainError: CUDA was asked for but there is none.
+    """
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(
+        raise TrainError(
             "--device cuda was asked for but no CUDA GPU is available; use --device cpu"
         )
     if world <= 1:
-        return 0, 1, torch.device(device)
+        return Processes(0, 1, torch.device(device))
     if not dist.is_initialized():
         dist.init_process_group(backend="nccl" if device.startswith("cuda") else "gloo")
     rank = dist.get_rank()
     if device.startswith("cuda"):
         local = int(os.environ.get("LOCAL_RANK", "0"))
         torch.cuda.set_device(local)
-        return rank, world, torch.device("cuda", local)
-    return rank, world, torch.device(device)
+        return Processes(rank, world, torch.device("cuda", local))
+    return Processes(rank, world, torch.device(device))
 
 
 def _read_log(path: Path, upto: int) -> list[dict[str, str]]:
+    """The rows of the log file ``path`` up to step ``upto`` (none without the file)."""
     if not path.exists():
         return []
     with path.open(newline="") as f:
         return [r for r in csv.DictReader(f) if r.get("step") and int(r["step"]) <= upto]
 
 
+def _log_line(row: dict[str, Any]) -> str:
+    """One log row as a CSV line of :data:`LOG_COLUMNS` (empty where the row has no value)."""
+    return ",".join(str(row.get(c, "")) for c in LOG_COLUMNS)
+
+
 def _write_log(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Write the header and ``rows`` to the log file ``path`` (atomically)."""
     lines = [",".join(LOG_COLUMNS)]
-    for r in rows:
-        lines.append(",".join(str(r.get(c, "")) for c in LOG_COLUMNS))
+    lines.extend(_log_line(r) for r in rows)
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
+def _log_values(rows: list[dict[str, str]], column: str) -> np.ndarray:
+    """The values of ``column`` in ``rows`` (NaN where empty)."""
+    return np.array([float(r[column]) if r.get(column) not in (None, "") else np.nan for r in rows])
+
+
 def plot_log(csv_path: str | Path, png_path: str | Path) -> None:
-    """Plot the training log: losses (log scale) and validation JPE against the step."""
-    import matplotlib
+    """Plot the training log: losses (log scale) and validation JPE against the step.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    Args:
+        csv_path: the run's ``log.csv``.
+        png_path: the PNG to write (nothing is written for an empty log).
+    """
     rows = _read_log(Path(csv_path), 1 << 62)
     if not rows:
         return
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+    fig = new_figure((10, 4))
+    a1, a2 = fig.subplots(1, 2)
     steps = np.array([int(r["step"]) for r in rows])
     for c in ("loss", "p0", "aux", "vol", "2d", "conf", "p1"):
-        v = np.array([float(r[c]) if r.get(c) not in (None, "") else np.nan for r in rows])
+        v = _log_values(rows, c)
         if np.isfinite(v).any():
             a1.plot(steps, v, label=c)
     a1.set_yscale("log")
@@ -121,7 +167,7 @@ def plot_log(csv_path: str | Path, png_path: str | Path) -> None:
     a1.set_title("training losses")
     a1.legend(fontsize=8)
     for c in ("val_jpe_p0", "val_jpe_p1"):
-        v = np.array([float(r[c]) if r.get(c) not in (None, "") else np.nan for r in rows])
+        v = _log_values(rows, c)
         ok = np.isfinite(v)
         if ok.any():
             a2.plot(steps[ok], v[ok], "o-", label=c)
@@ -131,12 +177,11 @@ def plot_log(csv_path: str | Path, png_path: str | Path) -> None:
     if a2.get_legend_handles_labels()[0]:
         a2.legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(png_path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, png_path, dpi=100, format="png")
 
 
 def _rng_state() -> dict[str, Any]:
+    """The states of the torch, numpy, Python (and CUDA) random generators."""
     st = {
         "torch": torch.get_rng_state(),
         "numpy": np.random.get_state(),
@@ -148,6 +193,7 @@ def _rng_state() -> dict[str, Any]:
 
 
 def _set_rng_state(st: dict[str, Any]) -> None:
+    """Restore the random generators from :func:`_rng_state`."""
     torch.set_rng_state(st["torch"])
     np.random.set_state(st["numpy"])
     random.setstate(st["python"])
@@ -156,9 +202,19 @@ def _set_rng_state(st: dict[str, Any]) -> None:
 
 
 def validate(
-    model: torch.nn.Module, source: Sequence[dict[str, Any]], indices: np.ndarray, batch_size: int
+    model: torch.nn.Module, source: Sequence[Sample], indices: np.ndarray, batch_size: int
 ) -> dict[str, float]:
-    """Median JPE (mm) of P0 and P1 on the given samples."""
+    """Median JPE (mm) of P0 and P1 on the given samples.
+
+    Args:
+        model: the network.
+        source: labeled samples.
+        indices: (N,) the samples to evaluate.
+        batch_size: samples per forward pass (at least 1).
+
+    Returns:
+        ``val_jpe_p0`` and ``val_jpe_p1``.
+    """
     pred = predict_dataset(model, source, indices, batch_size=max(batch_size, 1))
     return {
         "val_jpe_p0": float(np.nanmedian(jpe(pred["P0"], pred["gt"]))),
@@ -166,12 +222,309 @@ def validate(
     }
 
 
+@dataclass(frozen=True)
+class RunFiles:
+    """The files of a run folder.
+
+    Attributes:
+        out: the run folder.
+        checkpoint: ``checkpoint.pt``, the latest state.
+        log: ``log.csv``.
+    """
+
+    out: Path
+
+    @property
+    def checkpoint(self) -> Path:
+        """The latest state (``checkpoint.pt``)."""
+        return self.out / "checkpoint.pt"
+
+    @property
+    def log(self) -> Path:
+        """The losses and validation metrics (``log.csv``)."""
+        return self.out / "log.csv"
+
+
+def _check_run_folder(files: RunFiles, resume: bool) -> None:
+    """A new run needs a folder without a checkpoint, a resumed one a checkpoint.
+
+    Raises:
+        TrainError: a new run in a folder that holds a checkpoint.
+        InputFileError: ``resume`` without a checkpoint.
+    """
+    if not resume and files.checkpoint.exists():
+        raise TrainError(
+            f"{files.out} already holds a training run (checkpoint.pt); pass --resume to "
+            "continue it or choose another output folder with --out"
+        )
+    if resume and not files.checkpoint.exists():
+        raise InputFileError(f"nothing to resume: {files.checkpoint} does not exist")
+
+
+@dataclass(frozen=True)
+class SampleSelection:
+    """The samples a run trains and validates on.
+
+    Attributes:
+        train: (N,) indices of the training samples.
+        eval: (M,) indices of the validation samples (empty without validation data).
+    """
+
+    train: np.ndarray
+    eval: np.ndarray
+
+
+def select_samples(
+    train_source: Sequence[Sample],
+    eval_source: Sequence[Sample] | None,
+    train_indices: Sequence[int] | None,
+    eval_indices: Sequence[int] | None,
+    eval_samples: int,
+) -> SampleSelection:
+    """The training samples and up to ``eval_samples`` evenly spread validation samples.
+
+    Args:
+        train_source: the training samples.
+        eval_source: the validation samples (or None).
+        train_indices: restrict training to these (default: every sample with 3D labels).
+        eval_indices: restrict validation to these (default: every sample with 3D labels).
+        eval_samples: the most validation samples.
+
+    Returns:
+        The selected indices.
+    """
+    idx = usable_indices(train_source) if train_indices is None else np.asarray(train_indices)
+    ev = np.zeros(0, np.int64)
+    if eval_source is not None:
+        ev = usable_indices(eval_source) if eval_indices is None else np.asarray(eval_indices)
+        if len(ev) > eval_samples:
+            ev = ev[np.linspace(0, len(ev) - 1, eval_samples).round().astype(int)]
+    return SampleSelection(idx, ev)
+
+
+def _resume(
+    files: RunFiles, config: TrainConfig, model: torch.nn.Module, opt: torch.optim.Optimizer
+) -> int:
+    """Restore the weights, the optimizer and the random generators of ``checkpoint.pt``.
+
+    Returns:
+        The step the run continues at.
+
+    Raises:
+        TrainError: the checkpoint was trained with another model config, seed or batch
+            size, or its optimizer state is of an older FreiPose.
+    """
+    path = files.checkpoint
+    ckpt = read_checkpoint(path)
+    stored = ckpt["config"]
+    mine = config_to_dict(config)
+    sched = config.schedule
+    for table in ("model",):
+        if stored[table] != mine[table]:
+            raise TrainError(
+                f"{path}: the checkpoint was trained with another [{table}] config; "
+                f"stored {stored[table]}, now {mine[table]}"
+            )
+    if (
+        stored["schedule"]["seed"] != sched.seed
+        or stored["schedule"]["batch_size"] != sched.batch_size
+    ):
+        raise TrainError(
+            f"{path}: schedule.seed and schedule.batch_size must not change on resume"
+        )
+    model.load_state_dict(ckpt["model"])
+    groups = ckpt["optimizer"]["param_groups"]
+    if len(groups) != len(opt.param_groups) or any("lr_scale" not in g for g in groups):
+        raise TrainError(
+            f"{path}: the checkpoint was written by an older FreiPose (its optimizer "
+            f"has {len(groups)} parameter group(s) without learning-rate scales, this "
+            f"version uses {len(opt.param_groups)}); it cannot be resumed: start a new run "
+            "in another folder (its model.pt still works for eval and predict)"
+        )
+    opt.load_state_dict(ckpt["optimizer"])
+    start = int(ckpt["step"])
+    _set_rng_state(ckpt["rng"])
+    log.info("resuming %s at step %d of %d", files.out, start, sched.steps)
+    return start
+
+
+def _start_outputs(files: RunFiles, config: TrainConfig, start: int) -> None:
+    """Write ``config.toml`` and the log of the steps before ``start``."""
+    files.out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(files.out / "config.toml", _toml_text(config_to_dict(config)))
+    _write_log(files.log, _read_log(files.log, start))
+
+
+def _loader(
+    source: Sequence[Sample],
+    config: TrainConfig,
+    indices: np.ndarray,
+    start: int,
+    procs: Processes,
+) -> torch.utils.data.DataLoader:
+    """The batches of steps ``start ..`` for this process (deterministic in seed and step)."""
+    sched = config.schedule
+    sampler = StepBatchSampler(
+        indices, sched.batch_size, sched.steps, sched.seed, start, procs.rank, procs.world
+    )
+    aug = config.augment if config.augment.enabled else None
+    return torch.utils.data.DataLoader(
+        TrainSamples(source, config.model, aug, sched.seed),
+        batch_sampler=sampler,
+        collate_fn=collate_prepared,
+        num_workers=sched.num_workers,
+    )
+
+
+@dataclass(frozen=True)
+class TrainRun:
+    """Everything the steps of a run use.
+
+    Attributes:
+        config: the resolved config.
+        skeleton: the keypoints (stored in the checkpoints).
+        model: the network.
+        net: the network as trained (``model`` wrapped by DDP with several processes).
+        opt: the optimizer.
+        procs: this process's rank, world and device.
+        files: the run folder.
+        eval_source: the validation samples (or None).
+        eval_indices: the validation samples used.
+    """
+
+    config: TrainConfig
+    skeleton: Skeleton
+    model: torch.nn.Module
+    net: torch.nn.Module
+    opt: torch.optim.Optimizer
+    procs: Processes
+    files: RunFiles
+    eval_source: Sequence[Sample] | None
+    eval_indices: np.ndarray
+
+
+def _optimizer_step(run: TrainRun, batch: Batch, step: int) -> dict[str, float]:
+    """One optimizer step on ``batch``.
+
+    Returns:
+        The loss parts of the step and their weighted sum ``loss``.
+
+    Raises:
+        DivergedError: the loss is not finite.
+    """
+    sched, mcfg, dev = run.config.schedule, run.config.model, run.procs.device
+    lr = sched.lr_at(step)
+    for g in run.opt.param_groups:
+        g["lr"] = lr * g["lr_scale"]
+    run.net.train()
+    b = to_device(batch, dev)
+    amp = sched.amp and dev.type == "cuda"
+    with torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=amp):
+        out = run.net(b)
+    if mcfg.kind == "voxel":
+        loss, parts = voxel_losses(out, b, mcfg, sched, sched.refine_active(step))
+    else:
+        loss, parts = baseline_losses(out, b, mcfg, sched)
+    if not torch.isfinite(loss):
+        raise DivergedError(
+            f"training diverged at step {step} (loss {float(loss)}); lower schedule.lr"
+        )
+    run.opt.zero_grad(set_to_none=True)
+    loss.backward()
+    run.opt.step()
+    parts["loss"] = float(loss.detach())
+    return parts
+
+
+def _save(run: TrainRun, step: int, final: bool) -> None:
+    """Write ``checkpoint.pt`` (and ``model.pt`` when ``final``) and replot the log."""
+    ckpt = training_checkpoint(
+        run.model, run.config, run.skeleton, run.opt, _rng_state(), step, final
+    )
+    data = serialize_checkpoint(ckpt)
+    with atomic_path(run.files.checkpoint) as tmp:
+        tmp.write_bytes(data)
+    if final:
+        with atomic_path(run.files.out / "model.pt") as tmp:
+            tmp.write_bytes(data)
+    plot_log(run.files.log, run.files.out / "log.png")
+
+
+def _step_row(done: int, lr: float, t0: float) -> dict[str, Any]:
+    """The start of a log row: step, learning rate and seconds since ``t0``."""
+    return {"step": done, "lr": f"{lr:.3g}", "seconds": f"{time.perf_counter() - t0:.1f}"}
+
+
+def _train_steps(
+    run: TrainRun,
+    loader: torch.utils.data.DataLoader,
+    start: int,
+    stop_after: int | None,
+    progress: bool,
+) -> int:
+    """Train from step ``start`` to the schedule's end or ``stop_after``.
+
+    On the way, rank 0 logs, validates and writes checkpoints as the schedule says.
+
+    Returns:
+        The number of steps done.
+    """
+    from tqdm import tqdm
+
+    sched, rank = run.config.schedule, run.procs.rank
+    pbar = tqdm(
+        total=sched.steps,
+        initial=start,
+        desc=f"train {run.config.model.kind}",
+        unit="step",
+        disable=(rank != 0 or not progress) or None,
+        dynamic_ncols=True,
+    )
+    acc: dict[str, float] = {}
+    nacc = 0
+    t0 = time.perf_counter()
+    done = start
+    for step, batch in zip(range(start, sched.steps), loader):
+        for k, v in _optimizer_step(run, batch, step).items():
+            acc[k] = acc.get(k, 0.0) + v
+        nacc += 1
+        done = step + 1
+        lr = sched.lr_at(step)
+        last = done == sched.steps or (stop_after is not None and done >= stop_after)
+        row: dict[str, Any] | None = None
+        if done % sched.log_every == 0 or last:
+            row = _step_row(done, lr, t0)
+            row.update({k: f"{v / nacc:.6g}" for k, v in acc.items()})
+            acc, nacc = {}, 0
+        if (
+            rank == 0
+            and run.eval_source is not None
+            and len(run.eval_indices)
+            and (done % sched.eval_every == 0 or last)
+        ):
+            metrics = validate(run.model, run.eval_source, run.eval_indices, sched.batch_size)
+            row = row or _step_row(done, lr, t0)
+            row.update({k: f"{v:.4f}" for k, v in metrics.items()})
+            pbar.set_postfix(jpe=f"{metrics['val_jpe_p1']:.1f}mm")
+        if rank == 0 and row is not None:
+            with run.files.log.open("a") as f:
+                f.write(_log_line(row) + "\n")
+            pbar.set_postfix(loss=row.get("loss"), refresh=False)
+        if rank == 0 and (done % sched.checkpoint_every == 0 or last):
+            _save(run, done, done == sched.steps)
+        pbar.update(1)
+        if last:
+            break
+    pbar.close()
+    return done
+
+
 def train_pose(
     config: TrainConfig,
     out_dir: str | Path,
-    train_source: Sequence[dict[str, Any]],
-    skeleton: Any,
-    eval_source: Sequence[dict[str, Any]] | None = None,
+    train_source: Sequence[Sample],
+    skeleton: Skeleton,
+    eval_source: Sequence[Sample] | None = None,
     *,
     train_indices: Sequence[int] | None = None,
     eval_indices: Sequence[int] | None = None,
@@ -188,7 +541,8 @@ def train_pose(
         train_source: samples as ``MultiViewDataset`` gives them.
         skeleton: the :class:`freipose.skeleton.Skeleton` (stored in the checkpoints).
         eval_source: optional validation samples (median JPE every ``eval_every`` steps).
-        train_indices / eval_indices: restrict to these samples (default: all with 3D labels).
+        train_indices: restrict training to these samples (default: all with 3D labels).
+        eval_indices: restrict validation to these samples (default: all with 3D labels).
         resume: continue from ``out_dir/checkpoint.pt``.
         device: ``cpu``, ``cuda`` or ``cuda:N``.
         progress: show a progress bar with ETA.
@@ -196,175 +550,38 @@ def train_pose(
 
     Returns:
         The path of the newest checkpoint (``model.pt`` once the run is complete).
-    """
-    from tqdm import tqdm
 
-    out = Path(out_dir)
-    sched, mcfg = config.schedule, config.model
-    nk = len(skeleton.keypoints)
-    rank, world, dev = _distributed(device)
-    ckpt_path, log_path = out / "checkpoint.pt", out / "log.csv"
-    if not resume and ckpt_path.exists():
-        raise ValueError(
-            f"{out} already holds a training run (checkpoint.pt); pass --resume to continue it "
-            "or choose another output folder with --out"
-        )
-    if resume and not ckpt_path.exists():
-        raise FileNotFoundError(f"nothing to resume: {ckpt_path} does not exist")
-    idx = usable_indices(train_source) if train_indices is None else np.asarray(train_indices)
-    if eval_source is not None:
-        ev = usable_indices(eval_source) if eval_indices is None else np.asarray(eval_indices)
-        if len(ev) > sched.eval_samples:
-            ev = ev[np.linspace(0, len(ev) - 1, sched.eval_samples).round().astype(int)]
+    Raises:
+        TrainError: the run folder, the device or the checkpoint to resume does not fit.
+        DivergedError: the loss became infinite or NaN.
+    """
+    files = RunFiles(Path(out_dir))
+    sched = config.schedule
+    procs = _distributed(device)
+    _check_run_folder(files, resume)
+    samples = select_samples(
+        train_source, eval_source, train_indices, eval_indices, sched.eval_samples
+    )
     torch.manual_seed(sched.seed)
-    model = build_model(mcfg, nk).to(dev)
+    model = build_model(config.model, len(skeleton.keypoints)).to(procs.device)
     opt = torch.optim.Adam(optimizer_groups(model), lr=sched.lr)
-    start = 0
-    if resume:
-        ckpt = read_checkpoint(ckpt_path)
-        stored = ckpt["config"]
-        mine = config_to_dict(config)
-        for table in ("model",):
-            if stored[table] != mine[table]:
-                raise ValueError(
-                    f"{ckpt_path}: the checkpoint was trained with another [{table}] config; "
-                    f"stored {stored[table]}, now {mine[table]}"
-                )
-        if (
-            stored["schedule"]["seed"] != sched.seed
-            or stored["schedule"]["batch_size"] != sched.batch_size
-        ):
-            raise ValueError(
-                f"{ckpt_path}: schedule.seed and schedule.batch_size must not change on resume"
-            )
-        model.load_state_dict(ckpt["model"])
-        groups = ckpt["optimizer"]["param_groups"]
-        if len(groups) != len(opt.param_groups) or any("lr_scale" not in g for g in groups):
-            raise ValueError(
-                f"{ckpt_path}: the checkpoint was written by an older FreiPose (its optimizer "
-                f"has {len(groups)} parameter group(s) without learning-rate scales, this "
-                f"version uses {len(opt.param_groups)}); it cannot be resumed: start a new run "
-                "in another folder (its model.pt still works for eval and predict)"
-            )
-        opt.load_state_dict(ckpt["optimizer"])
-        start = int(ckpt["step"])
-        _set_rng_state(ckpt["rng"])
-        log.info("resuming %s at step %d of %d", out, start, sched.steps)
-    rows: list[dict[str, Any]] = []
-    if rank == 0:
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / "config.toml", _toml_text(config_to_dict(config)))
-        rows = _read_log(log_path, start)
-        _write_log(log_path, rows)
+    start = _resume(files, config, model, opt) if resume else 0
+    if procs.rank == 0:
+        _start_outputs(files, config, start)
     net = model
-    if world > 1:
+    if procs.world > 1:
+        dev = procs.device
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[dev.index] if dev.type == "cuda" else None
         )
-    sampler = StepBatchSampler(idx, sched.batch_size, sched.steps, sched.seed, start, rank, world)
-    aug = config.augment if config.augment.enabled else None
-    loader = torch.utils.data.DataLoader(
-        TrainSamples(train_source, mcfg, aug, sched.seed),
-        batch_sampler=sampler,
-        collate_fn=collate_prepared,
-        num_workers=sched.num_workers,
+    run = TrainRun(
+        config, skeleton, model, net, opt, procs, files, eval_source, samples.eval
     )
-    amp = sched.amp and dev.type == "cuda"
-
-    def save(step: int, final: bool) -> None:
-        state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-        ckpt = {
-            "format": CHECKPOINT_FORMAT,
-            "version": CHECKPOINT_VERSION,
-            "freipose_version": __version__,
-            "kind": mcfg.kind,
-            "step": step,
-            "complete": final,
-            "config": config_to_dict(config),
-            "skeleton": skeleton.to_dict(),
-            "model": state,
-            "weights_sha256": state_hash(state),
-            "optimizer": opt.state_dict(),
-            "rng": _rng_state(),
-        }
-        data = serialize_checkpoint(ckpt)
-        with atomic_path(ckpt_path) as tmp:
-            tmp.write_bytes(data)
-        if final:
-            with atomic_path(out / "model.pt") as tmp:
-                tmp.write_bytes(data)
-        plot_log(log_path, out / "log.png")
-
-    pbar = tqdm(
-        total=sched.steps,
-        initial=start,
-        desc=f"train {mcfg.kind}",
-        unit="step",
-        disable=(rank != 0 or not progress) or None,
-        dynamic_ncols=True,
-    )
-    acc: dict[str, float] = {}
-    nacc = 0
-    t0 = time.perf_counter()
-    done = start
-    for step, batch in zip(range(start, sched.steps), loader):
-        lr = sched.lr_at(step)
-        for g in opt.param_groups:
-            g["lr"] = lr * g["lr_scale"]
-        net.train()
-        b = to_device(batch, dev)
-        with torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=amp):
-            out_ = net(b)
-        if mcfg.kind == "voxel":
-            loss, parts = voxel_losses(out_, b, mcfg, sched, sched.refine_active(step))
-        else:
-            loss, parts = baseline_losses(out_, b, mcfg, sched)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(
-                f"training diverged at step {step} (loss {float(loss)}); lower schedule.lr"
-            )
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        parts["loss"] = float(loss.detach())
-        for k, v in parts.items():
-            acc[k] = acc.get(k, 0.0) + v
-        nacc += 1
-        done = step + 1
-        last = done == sched.steps or (stop_after is not None and done >= stop_after)
-        row: dict[str, Any] | None = None
-        if done % sched.log_every == 0 or last:
-            row = {"step": done, "lr": f"{lr:.3g}", "seconds": f"{time.perf_counter() - t0:.1f}"}
-            row.update({k: f"{v / nacc:.6g}" for k, v in acc.items()})
-            acc, nacc = {}, 0
-        if (
-            rank == 0
-            and eval_source is not None
-            and len(ev)
-            and (done % sched.eval_every == 0 or last)
-        ):
-            metrics = validate(model, eval_source, ev, sched.batch_size)
-            row = row or {
-                "step": done,
-                "lr": f"{lr:.3g}",
-                "seconds": f"{time.perf_counter() - t0:.1f}",
-            }
-            row.update({k: f"{v:.4f}" for k, v in metrics.items()})
-            pbar.set_postfix(jpe=f"{metrics['val_jpe_p1']:.1f}mm")
-        if rank == 0 and row is not None:
-            rows.append(row)
-            with log_path.open("a") as f:
-                f.write(",".join(str(row.get(c, "")) for c in LOG_COLUMNS) + "\n")
-            pbar.set_postfix(loss=row.get("loss"), refresh=False)
-        if rank == 0 and (done % sched.checkpoint_every == 0 or last):
-            save(done, done == sched.steps)
-        pbar.update(1)
-        if last:
-            break
-    pbar.close()
-    if world > 1:
+    loader = _loader(train_source, config, samples.train, start, procs)
+    done = _train_steps(run, loader, start, stop_after, progress)
+    if procs.world > 1:
         dist.barrier()
-    return out / ("model.pt" if done >= sched.steps else "checkpoint.pt")
+    return files.out / ("model.pt" if done >= sched.steps else "checkpoint.pt")
 
 
 def train_from_config(
@@ -381,13 +598,6 @@ def train_from_config(
     ``model.kind`` (``voxel`` or ``baseline``). The default run folder is the config file's
     name without suffix, next to it.
     """
-    import dataclasses
-
-    from freipose.io.labels import read_labels_h5
-    from freipose.labels.dataset import MultiViewDataset
-    from freipose.nn.config import load_config
-    from freipose.skeleton import Skeleton, load_skeleton
-
     config_path = Path(config_path)
     config = load_config(config_path)
     if kind is not None:
@@ -399,7 +609,7 @@ def train_from_config(
         return q if q.is_absolute() else base / q
 
     if not config.data.labels:
-        raise ValueError(f"{config_path}: [data] labels is required (path of a labels.h5 file)")
+        raise TrainError(f"{config_path}: [data] labels is required (path of a labels.h5 file)")
     if config.model.pretrained:
         config = dataclasses.replace(
             config,
@@ -416,7 +626,7 @@ def train_from_config(
             read_labels_h5(ev_path), root=root or ev_path.parent, cameras=cams
         )
         if eval_ds.labels.keypoints != labels.keypoints:
-            raise ValueError(
+            raise TrainError(
                 f"eval labels keypoints {list(eval_ds.labels.keypoints)} differ from the training "
                 f"labels keypoints {list(labels.keypoints)}"
             )
@@ -424,7 +634,7 @@ def train_from_config(
         sk_src = config.data.skeleton
         skeleton = load_skeleton(sk_src if sk_src in ("rat", "mouse", "paw") else rel(sk_src))
         if tuple(skeleton.keypoints) != tuple(labels.keypoints):
-            raise ValueError(
+            raise TrainError(
                 f"skeleton {skeleton.name!r} keypoints {list(skeleton.keypoints)} do not match the "
                 f"labels keypoints {list(labels.keypoints)} (same names, same order needed)"
             )

@@ -2,7 +2,7 @@
 
 Per time step, the box source (trained detector, background subtraction or fixed boxes)
 proposes boxes in every view; :func:`freipose.detect.detect_multiview_batch` turns them
-into a consistent 3D centre; the voxel network (:func:`freipose.nn.model.predict_batch`,
+into a consistent 3D centre; the voxel network (:func:`freipose.nn.inference.predict_batch`,
 inference mode, bfloat16 autocast on CUDA) predicts the pose in a cube around it. A time
 step without a centre gives NaN poses with confidence 0.
 """
@@ -90,7 +90,7 @@ class NetworkEstimator:
     """Detector + voxel network for one session (see the module docstring).
 
     Args:
-        model, config, skeleton: from :func:`freipose.nn.model.load_checkpoint`.
+        model, config, skeleton: from :func:`freipose.nn.checkpoint.load_checkpoint`.
         source: a box source (``propose(images, cameras) -> list[Candidates]``).
         refine: report the refined pose P1 (default) or the 3D network's P0.
         provenance: facts stored in the output (model hash, detection settings).
@@ -123,7 +123,7 @@ class NetworkEstimator:
         import torch
 
         from freipose.detect.multiview import detect_multiview_batch
-        from freipose.nn.model import predict_batch
+        from freipose.nn.inference import predict_batch
 
         C = len(rig)
         if len(images) != C:
@@ -153,7 +153,7 @@ def load_model(model_path: str | Path, device: str = "cpu") -> tuple[Any, Any, S
         FileNotFoundError: no such file.
         ValueError: not a FreiPose pose checkpoint (e.g. a detector checkpoint), corrupt.
     """
-    from freipose.nn.model import load_checkpoint
+    from freipose.nn.checkpoint import load_checkpoint
 
     path = Path(model_path)
     try:

@@ -72,7 +72,7 @@ def test_bgsub_on_a_synthetic_session(tmp_path):
     """The rendered rat (fur, shadow, motion blur, noise) is found without any training."""
     synth = pytest.importorskip("freipose.synth")
     from freipose.detect.evaluate import evaluate_source
-    from freipose.labels.dataset import MultiViewDataset
+    from freipose.nn.dataset import MultiViewDataset
 
     cfg = synth.SceneConfig(frames=32, fps=8, seed=4, n_cameras=4, size=(192, 160),
                             video_format=".mkv")  # fmt: skip

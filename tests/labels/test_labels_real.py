@@ -117,7 +117,7 @@ def test_sleap_multiview_session_exact(shared_data, tmp_path):
     assert np.isfinite(err).sum() == 504
     assert 3.5 < np.nanmean(err) < 5.0 and 2.5 < np.nanmedian(err) < 3.5  # reference 4.35 / 3.02
     # the training reader opens those videos
-    from freipose.labels.dataset import MultiViewDataset
+    from freipose.nn.dataset import MultiViewDataset
 
     s = MultiViewDataset(out, cache_size=2)[0]
     assert len(s["images"]) == 8 and s["images"][0].shape == (1024, 1280, 3)

@@ -445,7 +445,7 @@ def test_dlc_multi_animal_rows_per_individual(tmp_path):
 def test_dlc_export_import_cli_gives_usable_training_set(tmp_path, rng):
     # labels.h5 with videos -> export --format dlc -> import the labeled-data folders without
     # videos: the image folders become the cameras' frame sources (frame = image position)
-    from freipose.labels.dataset import MultiViewDataset
+    from freipose.nn.dataset import MultiViewDataset
 
     rig = make_circle_rig(3, size=(64, 48), focal=60)
     n_frames, fi = 12, np.array([2, 5, 9])

@@ -14,13 +14,9 @@ from nn_toydata import toy_samples, toy_skeleton, write_toy_labels
 
 from freipose.nn.config import ConfigError, config_from_dict, load_config
 from freipose.nn.evaluate import jpe, predict_dataset
-from freipose.nn.model import (
-    CheckpointError,
-    build_model,
-    load_checkpoint,
-    predict_batch,
-    read_checkpoint,
-)
+from freipose.nn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
+from freipose.nn.inference import predict_batch
+from freipose.nn.model import build_model
 from freipose.nn.train import train_pose
 
 
@@ -140,7 +136,8 @@ def test_checkpoint_hash_and_predict_batch(tmp_path):
 def test_fusion_weights_per_keypoint_learn_faster_and_old_checkpoints_load(tmp_path):
     from dataclasses import replace
 
-    from freipose.nn.model import FUSION_LR_SCALE, optimizer_groups, serialize_checkpoint
+    from freipose.nn.checkpoint import serialize_checkpoint, state_hash
+    from freipose.nn.model import FUSION_LR_SCALE, optimizer_groups
 
     src = toy_samples(3)
     cfg = _cfg(steps=4, refine_start=0.0, lr=1e-3)
@@ -154,10 +151,13 @@ def test_fusion_weights_per_keypoint_learn_faster_and_old_checkpoints_load(tmp_p
     assert [g["lr_scale"] for g in groups] == [1.0, FUSION_LR_SCALE]
     assert sum(len(g["params"]) for g in groups) == len(list(model.parameters()))
     assert len(optimizer_groups(build_model(replace(cfg.model, kind="baseline"), 5))) == 1
-    # a checkpoint with one weight for all keypoints (before 2026-11-22) still loads
+    # a version 2 checkpoint with one weight for all keypoints still loads
     ck = torch.load(path, weights_only=False)
     ck["model"]["prior_log_weight"] = torch.tensor(0.5)
-    model.load_state_dict(ck["model"])
+    ck["version"] = 2
+    ck["weights_sha256"] = state_hash(ck["model"])
+    (tmp_path / "v2.pt").write_bytes(serialize_checkpoint(ck))
+    model, _, _ = load_checkpoint(tmp_path / "v2.pt")
     torch.testing.assert_close(model.prior_log_weight.detach(), torch.full((5,), 0.5))
     # ... but its optimizer state cannot be resumed
     ck = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)

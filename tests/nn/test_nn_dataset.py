@@ -11,7 +11,7 @@ import torch.utils.data
 
 from freipose.io.labels import LabelSet, SessionInfo, write_labels_h5
 from freipose.io.video import VideoWriter
-from freipose.labels.dataset import LabelsDataError, MultiViewDataset, list_collate
+from freipose.nn.dataset import LabelsDataError, MultiViewDataset, list_collate
 from freipose.testing import make_circle_rig
 
 W, H = 64, 48

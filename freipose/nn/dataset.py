@@ -1,21 +1,9 @@
 """A PyTorch ``Dataset`` over ``labels.h5``: one sample per labeled time instant.
 
-Each sample holds the frames of all of the session's cameras (read from the session
-videos with :class:`freipose.io.video.FrameSource`: random access and an LRU cache of
-decoded frames), the session's cameras, and the 2D/3D labels with masks::
-
-    {
-      "session": str, "frame_index": int, "index": int,
-      "rig": CameraRig | None,      # the session's cameras used here, in this order
-                                    # (None for a 2D-only session without calibration)
-      "camera_names": tuple[str],   # the names of those views (also for 2D-only sessions)
-      "images": list[np.ndarray],   # per view BGR uint8 (H, W, 3) full original frames;
-                                    # [] with load_images=False
-      "points2d": (V, K, 2) float64 original-image pixels, NaN = unlabeled,
-      "visible2d": (V, K) bool,     # labeled and visible
-      "points3d": (K, 3) float64 mm, NaN = unknown,
-      "mask3d": (K,) bool,          # finite points3d
-    }
+Each sample (:class:`freipose.nn.types.Sample`) holds the frames of all of the session's
+cameras (read from the session videos with :class:`freipose.io.video.FrameSource`: random
+access and an LRU cache of decoded frames), the session's cameras, and the 2D/3D labels
+with masks; :func:`labeled_sample` builds it.
 
 The views of a session are the cameras of its calibration (in calibration order) that
 have a video, optionally restricted to ``cameras``; with ``load_images=False`` a session
@@ -38,20 +26,75 @@ from typing import Any
 import numpy as np
 import torch.utils.data
 
+from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.io.labels import LabelSet, read_labels_h5
 from freipose.io.video import FrameSource, MediaError
+from freipose.nn.types import Sample
 
 log = logging.getLogger(__name__)
 
 
-class LabelsDataError(ValueError):
+class LabelsDataError(FreiPoseError):
     """A sample cannot be assembled (missing video, frame past a video's end, ...)."""
 
 
-def list_collate(batch: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Collate function for samples with variable numbers of views: the list itself."""
+def list_collate(batch: list[Sample]) -> list[Sample]:
+    """Collate function for samples with variable numbers of views: the list itself.
+
+    Args:
+        batch: samples from :class:`MultiViewDataset`.
+
+    Returns:
+        The samples as a list.
+    """
     return list(batch)
+
+
+def labeled_sample(
+    rig: CameraRig | None,
+    images: list[np.ndarray],
+    points2d: np.ndarray,
+    points3d: np.ndarray,
+    *,
+    visible2d: np.ndarray | None = None,
+    camera_names: tuple[str, ...] | None = None,
+    session: str = "",
+    frame_index: int = 0,
+    index: int = 0,
+) -> Sample:
+    """One multi-view sample (:class:`~freipose.nn.types.Sample`) from its labels.
+
+    Args:
+        rig: the V cameras (None without a calibration).
+        images: V BGR uint8 (H, W, 3) full frames (``[]`` without images).
+        points2d: (V, K, 2) full-image pixels, NaN where unlabeled.
+        points3d: (K, 3) mm, NaN where unknown.
+        visible2d: (V, K) bool visibility of the 2D labels (default: every finite label).
+        camera_names: the names of the V views (default: the rig's).
+        session: the session's name.
+        frame_index: the frame of the session's videos.
+        index: the sample's index in its dataset.
+
+    Returns:
+        The sample; ``visible2d`` is False and ``mask3d`` False where a label is not finite.
+    """
+    finite2 = np.isfinite(points2d).all(-1)
+    vis = finite2 if visible2d is None else (visible2d & finite2)
+    if camera_names is None:
+        camera_names = tuple(rig.names) if rig is not None else ()
+    return {
+        "session": session,
+        "frame_index": frame_index,
+        "index": index,
+        "rig": rig,
+        "camera_names": camera_names,
+        "images": images,
+        "points2d": points2d,
+        "visible2d": vis,
+        "points3d": points3d,
+        "mask3d": np.isfinite(points3d).all(-1),
+    }
 
 
 class MultiViewDataset(torch.utils.data.Dataset):
@@ -103,10 +146,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             videos = dict(info.videos) if info is not None else {}
             rig = info.calibration if info is not None else None
             order = list(rig.names) if rig is not None else list(all_cams)
-            if self.load_images or videos:
-                names = [c for c in order if c in videos]
-            else:
-                names = order
+            names = [c for c in order if c in videos] if self.load_images or videos else order
             if wanted is not None:
                 names = [c for c in names if c in wanted]
             if not names:
@@ -161,7 +201,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             self._sources[key] = src
         return src
 
-    def __getitem__(self, i: int) -> dict[str, Any]:
+    def __getitem__(self, i: int) -> Sample:
         n = len(self)
         if not -n <= int(i) < n:
             raise IndexError(f"sample {i} is outside 0..{n - 1}")
@@ -171,8 +211,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
         fi = int(lab.frame_index[i])
         names, cols, rig = self._views[s]
         p2 = lab.points2d[i, cols].copy()
-        finite2 = np.isfinite(p2).all(-1)
-        vis = finite2 if lab.visible2d is None else (lab.visible2d[i, cols] & finite2)
+        vis = None if lab.visible2d is None else lab.visible2d[i, cols]
         p3 = lab.points3d[i].copy()
         images: list[np.ndarray] = []
         if self.load_images:
@@ -189,18 +228,17 @@ class MultiViewDataset(torch.utils.data.Dataset):
                     ) from exc
                 except MediaError as exc:
                     raise LabelsDataError(f"session {s!r}, camera {c!r}: {exc}") from exc
-        return {
-            "session": s,
-            "frame_index": fi,
-            "index": i,
-            "rig": rig,
-            "camera_names": names,
-            "images": images,
-            "points2d": p2,
-            "visible2d": vis,
-            "points3d": p3,
-            "mask3d": np.isfinite(p3).all(-1),
-        }
+        return labeled_sample(
+            rig,
+            images,
+            p2,
+            p3,
+            visible2d=vis,
+            camera_names=names,
+            session=s,
+            frame_index=fi,
+            index=i,
+        )
 
     def validate(self) -> None:
         """Open every video once and check every labeled frame index lies inside it.
