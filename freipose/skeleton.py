@@ -15,13 +15,22 @@ from typing import Any
 
 import numpy as np
 
-from freipose._compat import tomllib
 from freipose._frozen import PicklableFrozen
+from freipose.errors import FreiPoseError, InputFileError
+from freipose.io.toml import parse_toml
 
 # A limb end or an analysis point: one keypoint index, or a tuple of indices (their mean).
 PointRef = tuple[int, ...]
 
 BUILTIN_SKELETONS = ("rat", "mouse", "paw")
+
+
+class SkeletonError(FreiPoseError):
+    """A skeleton definition is malformed; the message names the file and the field."""
+
+
+class UnknownKeypointError(SkeletonError, KeyError):
+    """A keypoint name that the skeleton does not have."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,10 +59,10 @@ class Skeleton(PicklableFrozen):
     def __post_init__(self) -> None:
         kps = tuple(self.keypoints)
         if not kps:
-            raise ValueError(f"skeleton {self.name!r} has no keypoints")
+            raise SkeletonError(f"skeleton {self.name!r} has no keypoints")
         dupes = sorted({k for k in kps if kps.count(k) > 1})
         if dupes:
-            raise ValueError(f"skeleton {self.name!r}: repeated keypoint names {dupes}")
+            raise SkeletonError(f"skeleton {self.name!r}: repeated keypoint names {dupes}")
         object.__setattr__(self, "keypoints", kps)
         object.__setattr__(self, "frame", MappingProxyType(dict(self.frame)))
         object.__setattr__(self, "angles", MappingProxyType(dict(self.angles)))
@@ -61,17 +70,23 @@ class Skeleton(PicklableFrozen):
         for limb in self.limbs:
             for end in limb:
                 if not end or any(not 0 <= i < n for i in end):
-                    raise ValueError(f"skeleton {self.name!r}: limb end {end} out of range")
+                    raise SkeletonError(f"skeleton {self.name!r}: limb end {end} out of range")
 
     @property
     def num_keypoints(self) -> int:
+        """The number of keypoints K."""
         return len(self.keypoints)
 
     def index(self, name: str) -> int:
+        """The index of keypoint ``name``.
+
+        Raises:
+            UnknownKeypointError: the skeleton has no such keypoint (a ``KeyError`` too).
+        """
         try:
             return self.keypoints.index(name)
         except ValueError:
-            raise KeyError(
+            raise UnknownKeypointError(
                 f"skeleton {self.name!r} has no keypoint {name!r}; it has {list(self.keypoints)}"
             ) from None
 
@@ -124,7 +139,7 @@ def _ref(names: Sequence[str], value: Any, where: str, skel: str) -> PointRef:
     out = []
     for v in items:
         if not isinstance(v, str) or v not in names:
-            raise ValueError(
+            raise SkeletonError(
                 f"skeleton {skel!r}: {where} names unknown keypoint {v!r}; known: {list(names)}"
             )
         out.append(names.index(v))
@@ -135,22 +150,24 @@ def skeleton_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Skele
     """Build a ``Skeleton`` from the TOML structure documented in ``docs/formats.md``."""
     for key in ("name", "keypoints"):
         if key not in data:
-            raise ValueError(f"skeleton file {source}: missing required field {key!r}")
+            raise SkeletonError(f"skeleton file {source}: missing required field {key!r}")
     name = str(data["name"])
     if isinstance(data["keypoints"], str) or not isinstance(data["keypoints"], Sequence):
-        raise ValueError(
+        raise SkeletonError(
             f"skeleton file {source}: keypoints must be a list of names, got {data['keypoints']!r}"
         )
     kps = [str(k) for k in data["keypoints"]]
     limbs = []
     for i, limb in enumerate(data.get("limbs", [])):
         if len(limb) != 2:
-            raise ValueError(f"skeleton file {source}: limb {i} must have two ends, got {limb!r}")
+            raise SkeletonError(
+                f"skeleton file {source}: limb {i} must have two ends, got {limb!r}"
+            )
         limbs.append((_ref(kps, limb[0], f"limb {i}", name), _ref(kps, limb[1], f"limb {i}", name)))
     sym = []
     for pair in data.get("symmetry", []):
         if isinstance(pair, str) or len(pair) != 2:
-            raise ValueError(
+            raise SkeletonError(
                 f"skeleton file {source}: a symmetry entry must be two names, got {pair!r}"
             )
         a, b = (_ref(kps, p, "symmetry", name) for p in pair)
@@ -160,7 +177,7 @@ def skeleton_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Skele
     angles = {}
     for aname, pair in dict(data.get("angles", {})).items():
         if isinstance(pair, str) or len(pair) != 2:
-            raise ValueError(
+            raise SkeletonError(
                 f"skeleton file {source}: angle {aname!r} must be two vectors [A, B], got {pair!r}"
             )
         va, vb = pair
@@ -169,7 +186,7 @@ def skeleton_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Skele
             if list(v) == ["g"]:
                 return ("g",)
             if len(v) != 2:
-                raise ValueError(
+                raise SkeletonError(
                     f"skeleton file {source}: angle {aname!r} vector must be ['g'] or [FROM, TO]"
                 )
             return (
@@ -190,13 +207,9 @@ def load_skeleton(name_or_path: str | Path) -> Skeleton:
     else:
         path = Path(name_or_path)
         if not path.is_file():
-            raise FileNotFoundError(
+            raise InputFileError(
                 f"skeleton {source!r} is neither a shipped skeleton {list(BUILTIN_SKELETONS)} "
                 f"nor an existing TOML file"
             )
         text = path.read_text()
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"skeleton file {source}: not valid TOML ({exc})") from exc
-    return skeleton_from_dict(data, source)
+    return skeleton_from_dict(parse_toml(text, source, "skeleton file", SkeletonError), source)

@@ -22,10 +22,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from freipose._compat import tomllib
 from freipose.detect.base import Candidates
+from freipose.errors import FreiPoseError, InputFileError
+from freipose.io.toml import read_toml
 
 log = logging.getLogger(__name__)
+
+
+class FallbackBoxesError(FreiPoseError):
+    """Fixed boxes or a background model that do not fit the session (message says why)."""
+
+
+class NoBackgroundError(FallbackBoxesError, KeyError):
+    """A camera has no background model."""
 
 
 class BackgroundSubtractor:
@@ -55,7 +64,7 @@ class BackgroundSubtractor:
         merge_gap: float = 0.25,
     ):
         if not backgrounds:
-            raise ValueError("BackgroundSubtractor needs at least one camera's background")
+            raise FallbackBoxesError("BackgroundSubtractor needs at least one camera's background")
         self.threshold = threshold
         self.min_area = min_area
         self.margin = margin
@@ -80,6 +89,13 @@ class BackgroundSubtractor:
                 :class:`freipose.io.video.FrameSource`) or a sequence of images.
             n_samples: frames per camera for the median.
             frames: restrict the sampling to these frame indices.
+            **kwargs: the subtractor's settings (see the class).
+
+        Returns:
+            The fitted subtractor.
+
+        Raises:
+            FallbackBoxesError: a camera has no frames in ``frames``.
         """
         bgs = {}
         for name, src in sources.items():
@@ -87,7 +103,9 @@ class BackgroundSubtractor:
             rng = frames if frames is not None else range(n)
             rng = range(max(rng.start, 0), min(rng.stop, n), rng.step)
             if len(rng) == 0:
-                raise ValueError(f"camera {name}: no frames to estimate the background from")
+                raise FallbackBoxesError(
+                    f"camera {name}: no frames to estimate the background from"
+                )
             idx = np.unique(
                 np.linspace(0, len(rng) - 1, min(n_samples, len(rng))).round().astype(int)
             )
@@ -98,10 +116,7 @@ class BackgroundSubtractor:
         return cls(bgs, **kwargs)
 
     def _prep(self, img: np.ndarray) -> tuple[np.ndarray, float]:
-        if img.ndim == 3:
-            img = img.astype(np.float32)
-        else:
-            img = img.astype(np.float32)[..., None]
+        img = img.astype(np.float32) if img.ndim == 3 else img.astype(np.float32)[..., None]
         h, w = img.shape[:2]
         s = min(1.0, self.work_size / max(h, w))
         if s < 1:
@@ -113,11 +128,11 @@ class BackgroundSubtractor:
     def foreground(self, image: np.ndarray, camera: str) -> tuple[np.ndarray, float]:
         """The foreground mask (uint8 0/255, work size) of ``image`` and its scale factor."""
         if camera not in self._bg:
-            raise KeyError(f"no background for camera {camera!r}; have {sorted(self._bg)}")
+            raise NoBackgroundError(f"no background for camera {camera!r}; have {sorted(self._bg)}")
         img, s = self._prep(np.asarray(image))
         bg = self._bg[camera]
         if img.shape != bg.shape:
-            raise ValueError(
+            raise FallbackBoxesError(
                 f"camera {camera}: image of shape {np.asarray(image).shape} does not match the "
                 f"background's size {self._full_size[camera]}"
             )
@@ -212,7 +227,7 @@ class FixedBoxes:
                 or arr[2] <= arr[0]
                 or arr[3] <= arr[1]
             ):
-                raise ValueError(
+                raise FallbackBoxesError(
                     f"fixed box of camera {name!r} must be [x0, y0, x1, y1] with x1 > x0 and "
                     f"y1 > y0, got {b!r}"
                 )
@@ -220,24 +235,32 @@ class FixedBoxes:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> FixedBoxes:
-        """Read ``[boxes] camera = [x0, y0, x1, y1]`` from a TOML file."""
+        """Read ``[boxes] camera = [x0, y0, x1, y1]`` from a TOML file.
+
+        Args:
+            path: the fixed-boxes file.
+
+        Returns:
+            The fixed boxes.
+
+        Raises:
+            InputFileError: no such file.
+            FallbackBoxesError: not TOML, no ``[boxes]`` table, or a malformed box.
+        """
         p = Path(path)
         if not p.is_file():
-            raise FileNotFoundError(f"{p}: fixed-boxes file not found")
-        try:
-            data = tomllib.loads(p.read_text())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{p}: not valid TOML ({exc})") from exc
+            raise InputFileError(f"{p}: fixed-boxes file not found")
+        data = read_toml(p, "fixed-boxes file", FallbackBoxesError)
         boxes = data.get("boxes")
         if not isinstance(boxes, dict) or not boxes:
-            raise ValueError(
+            raise FallbackBoxesError(
                 f"{p}: expected a [boxes] table with one `camera = [x0, y0, x1, y1]` entry "
                 "per camera"
             )
         try:
             return cls(boxes)
         except ValueError as exc:
-            raise ValueError(f"{p}: {exc}") from exc
+            raise FallbackBoxesError(f"{p}: {exc}") from exc
 
     def propose(self, images: Sequence[np.ndarray], cameras: Sequence[str]) -> list[Candidates]:
         """The camera's fixed box with score 1 (no box for cameras not in the file)."""
@@ -248,9 +271,9 @@ class FixedBoxes:
         return out
 
     def check_cameras(self, cameras: Sequence[str]) -> None:
-        """Raise ValueError when the file names no camera of ``cameras``."""
+        """Raise FallbackBoxesError when the file names no camera of ``cameras``."""
         if not set(self.boxes) & set(cameras):
-            raise ValueError(
+            raise FallbackBoxesError(
                 f"the fixed boxes name cameras {sorted(self.boxes)}, none of the session's "
                 f"{list(cameras)}"
             )

@@ -23,19 +23,20 @@ import numpy as np
 import tomli_w
 
 from freipose import __version__
-from freipose._compat import tomllib
 from freipose._frozen import PicklableFrozen
+from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
 from freipose.io.hdf5 import decode_strings, open_h5, str_array
+from freipose.io.toml import parse_toml
 from freipose.skeleton import Skeleton, skeleton_from_dict
 
 SCHEMA = "freipose.poses"
 SCHEMA_VERSION = 1
 
 
-class PosesFormatError(ValueError):
+class PosesFormatError(FreiPoseError):
     """A poses file is malformed; the message names the file and the problem."""
 
 
@@ -111,6 +112,7 @@ class PoseData(PicklableFrozen):
 
     @property
     def num_frames(self) -> int:
+        """The number of frames T."""
         return self.poses.shape[0]
 
     @property
@@ -182,7 +184,11 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
             )
             skel = None
             if "skeleton" in f.attrs:
-                skel = skeleton_from_dict(tomllib.loads(f.attrs["skeleton"]), f"{path}:skeleton")
+                where = f"{path}:skeleton"
+                text = f.attrs["skeleton"]
+                skel = skeleton_from_dict(
+                    parse_toml(text, where, "skeleton", PosesFormatError), where
+                )
             prov = json.loads(f.attrs["provenance"]) if "provenance" in f.attrs else {}
             extra = {k: f["extra"][k][()] for k in f["extra"]} if "extra" in f else {}
             return PoseData(
