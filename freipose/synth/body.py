@@ -308,29 +308,43 @@ def body_dims(body: RatBody) -> _Dims:
     return _Dims(body)
 
 
-def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) -> BodyGeometry:
-    """Ellipsoids and keypoints of ``body`` in every frame of ``state``.
+# A placed part: centre (T, 3), axes (T, 3, 3) (columns: local axes in world) and radii
+# ((3,) or (T, 3)), mm.
+_Part = tuple[np.ndarray, np.ndarray, np.ndarray]
 
-    Args:
-        body: the animal.
-        state: its motion (T frames).
-        floor_clearance: the torso and head are lifted so that they stay at least this far
-            (mm) above the floor.
 
-    Returns:
-        :class:`BodyGeometry` with T frames.
+@dataclass(frozen=True, eq=False)
+class _Frames:
+    """The torso's and head's joints and rotations over T frames (lifted off the floor).
+
+    Attributes:
+        Ryaw: (T, 3, 3) heading rotation.
+        Rt: (T, 3, 3) haunch (heading and pitch).
+        Rc: (T, 3, 3) chest (haunch and bend).
+        Rh: (T, 3, 3) head (chest and head yaw, pitch, roll).
+        P: (T, 3) haunch pivot, mm.
+        B: (T, 3) bend point between haunch and chest, mm.
+        N: (T, 3) neck point (origin of the head frame), mm.
+        fwd: (T, 3) the heading's forward direction.
     """
-    D = _Dims(body)
+
+    Ryaw: np.ndarray
+    Rt: np.ndarray
+    Rc: np.ndarray
+    Rh: np.ndarray
+    P: np.ndarray
+    B: np.ndarray
+    N: np.ndarray
+    fwd: np.ndarray
+
+
+def _body_frames(D: _Dims, state: MotionState, floor_clearance: float) -> _Frames:
+    """Chain heading, pitch, bend and head angles; lift the upper body off the floor.
+
+    The torso and head are lifted so that none of their ellipsoids comes closer than
+    ``floor_clearance`` mm to the floor (deep rearing, head down).
+    """
     T = len(state.yaw)
-    n_parts = len(PART_NAMES)
-    C = np.zeros((T, n_parts, 3))
-    A = np.zeros((T, n_parts, 3, 3))
-    Rd = np.zeros((T, n_parts, 3))
-
-    def put(name: str, c: np.ndarray, ax: np.ndarray, r: np.ndarray) -> None:
-        i = PART[name]
-        C[:, i], A[:, i], Rd[:, i] = c, ax, r
-
     root = np.concatenate([state.root_xy, np.zeros((T, 1))], axis=1)
     Ryaw = rot_z(state.yaw)
     pitch = state.pitch
@@ -341,7 +355,6 @@ def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) 
     N = B + _apply(Rc, D.neck - D.bend)
     Rh = Rc @ rot_z(state.head_yaw) @ rot_y(-state.head_pitch) @ rot_x(state.head_roll)
 
-    # lift the upper body so that nothing of it touches the floor (deep rearing, head down)
     def lowest(c: np.ndarray, R: np.ndarray, r: np.ndarray) -> np.ndarray:
         return c[:, 2] - np.sqrt(np.sum((R[:, 2, :] * r) ** 2, axis=-1))
 
@@ -352,25 +365,63 @@ def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) 
         lowest(N + _apply(Rh, D.snout_c), Rh, D.snout_r),
     ])  # fmt: skip
     lift = np.maximum(0.0, floor_clearance - low)[:, None] * np.array([0.0, 0, 1])
-    P, B, N = P + lift, B + lift, N + lift
+    fwd = _apply(Ryaw, np.array([1.0, 0, 0]))
+    return _Frames(Ryaw, Rt, Rc, Rh, P + lift, B + lift, N + lift, fwd)
 
-    put("haunch", P + _apply(Rt, D.haunch_c - D.pivot), Rt, D.haunch_r)
-    put("chest", B + _apply(Rc, D.chest_c - D.bend), Rc, D.chest_r)
-    put("neck", N, Rh, D.neck_r)
-    put("head", N + _apply(Rh, D.head_c), Rh, D.head_r)
-    put("snout", N + _apply(Rh, D.snout_c), Rh, D.snout_r)
-    put("nose", N + _apply(Rh, D.nose_c), Rh, np.full(3, D.nose_radius))
+
+@dataclass(frozen=True, eq=False)
+class _TorsoHead:
+    """The torso and head parts and their keypoints.
+
+    Attributes:
+        parts: part name -> placed part.
+        eyes: (right, left) eye centres, (T, 3) each.
+        ears: (right, left) ear centres, (T, 3) each.
+        nose_tip: (T, 3) the snout tip.
+    """
+
+    parts: dict[str, _Part]
+    eyes: tuple[np.ndarray, np.ndarray]
+    ears: tuple[np.ndarray, np.ndarray]
+    nose_tip: np.ndarray
+
+
+def _torso_and_head(D: _Dims, fr: _Frames) -> _TorsoHead:
+    """Haunch, chest, neck, head, snout, nose, eyes and ears."""
+    P, B, N, Rt, Rc, Rh = fr.P, fr.B, fr.N, fr.Rt, fr.Rc, fr.Rh
+    T = len(P)
+    parts: dict[str, _Part] = {
+        "haunch": (P + _apply(Rt, D.haunch_c - D.pivot), Rt, D.haunch_r),
+        "chest": (B + _apply(Rc, D.chest_c - D.bend), Rc, D.chest_r),
+        "neck": (N, Rh, D.neck_r),
+        "head": (N + _apply(Rh, D.head_c), Rh, D.head_r),
+        "snout": (N + _apply(Rh, D.snout_c), Rh, D.snout_r),
+        "nose": (N + _apply(Rh, D.nose_c), Rh, np.full(3, D.nose_radius)),
+    }
     eyes = [N + _apply(Rh, e) for e in D.eye]
     ears = [N + _apply(Rh, e) for e in D.ear]
     for side, sgn, k in (("r", -1, 0), ("l", 1, 1)):
-        put(f"eye_{side}", eyes[k], Rh, np.full(3, D.eye_radius))
+        parts[f"eye_{side}"] = (eyes[k], Rh, np.full(3, D.eye_radius))
         ear_rot = Rh @ rot_z(np.full(T, sgn * 0.6)) @ rot_x(np.full(T, sgn * 0.35))
-        put(f"ear_{side}", ears[k], ear_rot, D.ear_r)
+        parts[f"ear_{side}"] = (ears[k], ear_rot, D.ear_r)
+    nose_tip = N + _apply(Rh, D.nose_tip)
+    return _TorsoHead(parts, (eyes[0], eyes[1]), (ears[0], ears[1]), nose_tip)
 
-    # front legs
-    fwd = _apply(Ryaw, np.array([1.0, 0, 0]))
+
+@dataclass(frozen=True, eq=False)
+class _FrontLegs:
+    """Upper arms, forearms and front paws, and the paw centres (T, 2, 3) (right, left)."""
+
+    parts: dict[str, _Part]
+    paws: np.ndarray
+
+
+def _front_legs(D: _Dims, fr: _Frames, state: MotionState) -> _FrontLegs:
+    """Front legs from the shoulders to the paws (on the floor, or at the chest when rearing)."""
+    B, Rc, fwd = fr.B, fr.Rc, fr.fwd
     w = state.rear_weight[:, None]
-    paws = np.zeros((T, 2, 3))
+    paws = np.zeros((len(B), 2, 3))
+    parts: dict[str, _Part] = {}
     for side, k in (("r", 0), ("l", 1)):
         sh = B + _apply(Rc, D.shoulder[k] - D.bend)
         floor_paw = state.feet[:, k] + state.foot_offsets[:, k]
@@ -379,15 +430,32 @@ def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) 
         paw[:, 2] = np.maximum(paw[:, 2], D.paw_r[2] + 0.3)
         paws[:, k] = paw
         elbow = two_link_ik(sh, paw, *D.arm, hint=-fwd + np.array([0, 0, 0.2]))
-        put(f"upper_arm_{side}", *segment_ellipsoid(sh, elbow, D.arm_radius[0]))
-        put(f"forearm_{side}", *segment_ellipsoid(elbow, paw, D.arm_radius[1]))
+        parts[f"upper_arm_{side}"] = segment_ellipsoid(sh, elbow, D.arm_radius[0])
+        parts[f"forearm_{side}"] = segment_ellipsoid(elbow, paw, D.arm_radius[1])
         paw_dir = _unit(fwd + np.array([0, 0, 0.0]))
         v = _unit(np.cross([0.0, 0, 1], paw_dir))
-        put(f"paw_front_{side}", paw, np.stack([paw_dir, v, np.cross(paw_dir, v)], -1), D.paw_r)
+        parts[f"paw_front_{side}"] = (
+            paw, np.stack([paw_dir, v, np.cross(paw_dir, v)], -1), D.paw_r
+        )  # fmt: skip
+    return _FrontLegs(parts, paws)
 
-    # hind legs
+
+@dataclass(frozen=True, eq=False)
+class _HindLegs:
+    """Thighs, shins and feet, the ankles and the toe tips (T, 2, 3) (right, left)."""
+
+    parts: dict[str, _Part]
+    ankles: np.ndarray
+    tips: np.ndarray
+
+
+def _hind_legs(D: _Dims, fr: _Frames, state: MotionState) -> _HindLegs:
+    """Hind legs from the hips to the toe tips, the heels raised by ``state.heel_angle``."""
+    P, Rt, fwd = fr.P, fr.Rt, fr.fwd
+    T = len(P)
     ankles = np.zeros((T, 2, 3))
     tips = np.zeros((T, 2, 3))
+    parts: dict[str, _Part] = {}
     for side, k in (("r", 0), ("l", 1)):
         hip = P + _apply(Rt, D.hip[k] - D.pivot)
         tip = state.feet[:, 2 + k] + state.foot_offsets[:, 2 + k]
@@ -398,17 +466,32 @@ def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) 
         ankle[:, 2] += D.foot_len * np.sin(ang)
         knee = two_link_ik(hip, ankle, *D.leg, hint=fwd + np.array([0, 0, 0.3]))
         knee[:, 2] = np.maximum(knee[:, 2], D.leg_radius[0] + 1.0)
-        put(f"thigh_{side}", *segment_ellipsoid(hip, knee, D.leg_radius[0], overlap=0.3))
-        put(f"shin_{side}", *segment_ellipsoid(knee, ankle, D.leg_radius[1]))
+        parts[f"thigh_{side}"] = segment_ellipsoid(hip, knee, D.leg_radius[0], overlap=0.3)
+        parts[f"shin_{side}"] = segment_ellipsoid(knee, ankle, D.leg_radius[1])
         u = _unit(tip - ankle)
         v = _unit(np.cross([0.0, 0, 1], u))
         ax = np.stack([u, v, np.cross(u, v)], -1)
         half = np.linalg.norm(tip - ankle, axis=-1) / 2
         rad = np.stack([half, np.full(T, D.foot_width), np.full(T, D.foot_height)], -1)
-        put(f"foot_{side}", (tip + ankle) / 2, ax, rad)
+        parts[f"foot_{side}"] = ((tip + ankle) / 2, ax, rad)
         ankles[:, k], tips[:, k] = ankle, tip
+    return _HindLegs(parts, ankles, tips)
 
-    # tail: from the rump, down to the floor, then trailing with a sway
+
+@dataclass(frozen=True, eq=False)
+class _Tail:
+    """The tail segments and the tail root on the rump (T, 3)."""
+
+    parts: dict[str, _Part]
+    root: np.ndarray
+
+
+def _tail(D: _Dims, fr: _Frames, state: MotionState) -> _Tail:
+    """The tail: from the rump, down to the floor, then trailing with a sway.
+
+    Its points stay above the floor and, with ``state.arena_half``, inside the arena.
+    """
+    P, Rt = fr.P, fr.Rt
     root_pt = P + _apply(Rt, D.tail_root - D.pivot)
     pts = [root_pt]
     back = -_apply(Rt, np.array([1.0, 0, 0]))
@@ -427,16 +510,48 @@ def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) 
             lim = np.asarray(state.arena_half) - D.tail_radius[i] - 1.0
             nxt[:, :2] = np.clip(nxt[:, :2], -lim, lim)
         pts.append(nxt)
+    parts: dict[str, _Part] = {}
     for i in range(N_TAIL):
         c, ax, r = segment_ellipsoid(pts[i], pts[i + 1], D.tail_radius[i], overlap=0.9)
         low = c[:, 2] - np.sqrt(np.sum((ax[:, 2, :] * r) ** 2, axis=-1))
         c[:, 2] += np.maximum(0.0, 0.2 - low)  # a sloping segment's rounded end stays up
-        put(f"tail_{i}", c, ax, r)
+        parts[f"tail_{i}"] = (c, ax, r)
+    return _Tail(parts, root_pt)
 
+
+def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) -> BodyGeometry:
+    """Ellipsoids and keypoints of ``body`` in every frame of ``state``.
+
+    Args:
+        body: the animal.
+        state: its motion (T frames).
+        floor_clearance: the torso and head are lifted so that they stay at least this far
+            (mm) above the floor.
+
+    Returns:
+        :class:`BodyGeometry` with T frames: (T, N, 3) centres, (T, N, 3, 3) axes,
+        (T, N, 3) radii and (T, 12, 3) keypoints.
+    """
+    D = _Dims(body)
+    fr = _body_frames(D, state, floor_clearance)
+    head = _torso_and_head(D, fr)
+    front = _front_legs(D, fr, state)
+    hind = _hind_legs(D, fr, state)
+    tail = _tail(D, fr, state)
+    T = len(state.yaw)
+    n_parts = len(PART_NAMES)
+    C = np.zeros((T, n_parts, 3))
+    A = np.zeros((T, n_parts, 3, 3))
+    Rd = np.zeros((T, n_parts, 3))
+    for parts in (head.parts, front.parts, hind.parts, tail.parts):
+        for name, (c, ax, r) in parts.items():
+            i = PART[name]
+            C[:, i], A[:, i], Rd[:, i] = c, ax, r
+    ears, eyes, paws, ankles, tips = head.ears, head.eyes, front.paws, hind.ankles, hind.tips
     kp = np.stack(
         [ears[0], eyes[0], paws[:, 0], ankles[:, 0], tips[:, 0],
          ears[1], eyes[1], paws[:, 1], ankles[:, 1], tips[:, 1],
-         N + _apply(Rh, D.nose_tip), root_pt],
+         head.nose_tip, tail.root],
         axis=1,
     )  # fmt: skip
     return BodyGeometry(C, A, Rd, kp)

@@ -48,6 +48,7 @@ class CameraLook:
 
     @classmethod
     def random(cls, rng: np.random.Generator) -> CameraLook:
+        """A random look: gain, white balance, noise and vignetting drawn from ``rng``."""
         return cls(
             gain=float(rng.uniform(0.82, 1.15)),
             white_balance=tuple(float(v) for v in rng.uniform(0.94, 1.06, size=3)),
@@ -107,6 +108,37 @@ def _floor_texture(rng: np.random.Generator, extent: float, ppm: float) -> np.nd
         small = rng.normal(size=(cells, cells)).astype(np.float32)
         tex += amp * cv2.resize(small, (size, size), interpolation=cv2.INTER_CUBIC)
     return tex
+
+
+@dataclass(frozen=True, eq=False)
+class _AnimalBox:
+    """Where the animal and its shadow can be seen in one frame.
+
+    Attributes:
+        boxes: (N + S, 4) integer boxes x0, y0, x1, y1 (exclusive) of the N parts and the S
+            shadow blobs.
+        valid: (N + S,) the box is not empty.
+        shadow_centres: (S, 3) floor centres of the shadow blobs, mm.
+        box: (x0, y0, x1, y1) the union of the valid boxes.
+    """
+
+    boxes: np.ndarray
+    valid: np.ndarray
+    shadow_centres: np.ndarray
+    box: tuple[int, int, int, int]
+
+
+@dataclass(frozen=True, eq=False)
+class _Hits:
+    """The animal's ray hits in a box of h x w pixels.
+
+    Attributes:
+        pid: (h, w) id of the part seen, -1 where the background is seen.
+        loc: (3, h, w) float32 hit points in the unit-sphere frame of the part.
+    """
+
+    pid: np.ndarray
+    loc: np.ndarray
 
 
 class CameraRenderer:
@@ -245,19 +277,13 @@ class CameraRenderer:
         boxes[bad] = 0
         return boxes
 
-    def render_animal(
-        self, geom: BodyGeometry, f: int, palette: np.ndarray, blur_px: np.ndarray | None = None
-    ) -> tuple[tuple[int, int, int, int], np.ndarray, np.ndarray] | None:
-        """Render frame ``f`` of the animal: ``(box, rgb_linear (h, w, 3), part_id (h, w))``.
+    def _animal_box(self, C: np.ndarray, rmax: np.ndarray) -> _AnimalBox | None:
+        """Image boxes of the parts and of their shadow blobs (None: none is in the image).
 
-        ``part_id`` is -1 where the background is seen. Returns None when nothing of the
-        animal (or its shadow) is in the image.
+        Args:
+            C: (N, 3) part centres, mm.
+            rmax: (N,) bounding radii of the parts, mm.
         """
-        C = geom.centers[f]
-        A = geom.axes[f]
-        Rr = geom.radii[f]
-        rmax = Rr.max(axis=1)
-        # shadow footprints: floor blobs under the big parts, shifted along the light
         sh_idx = np.array(_SHADOW_PARTS + _CONTACT_PARTS)
         shift = -LIGHT[:2] / LIGHT[2]
         sh_c = np.concatenate(
@@ -271,10 +297,19 @@ class CameraRenderer:
             return None
         x0, y0 = boxes[valid, 0].min(), boxes[valid, 1].min()
         x1, y1 = boxes[valid, 2].max(), boxes[valid, 3].max()
+        return _AnimalBox(boxes, valid, sh_c, (x0, y0, x1, y1))
+
+    def _intersect(self, C: np.ndarray, A: np.ndarray, Rr: np.ndarray, ab: _AnimalBox) -> _Hits:
+        """The first part each pixel's ray hits in front of the background, and where.
+
+        All (pixel, part) candidate pairs (the pixels inside each part's box) are
+        intersected at once with the parts' ellipsoids (centres ``C`` (N, 3), axes
+        ``A`` (N, 3, 3), radii ``Rr`` (N, 3)).
+        """
+        x0, y0, x1, y1 = ab.box
         bh, bw = y1 - y0, x1 - x0
-        # all (pixel, part) candidate pairs at once: pixels inside each part's box
-        parts = np.flatnonzero(valid[: len(C)])
-        pb = boxes[parts]
+        parts = np.flatnonzero(ab.valid[: len(C)])
+        pb = ab.boxes[parts]
         counts = (pb[:, 2] - pb[:, 0]) * (pb[:, 3] - pb[:, 1])
         rows = [(np.arange(b[1], b[3]) - y0)[:, None] * bw for b in pb]
         cols = [(np.arange(b[0], b[2]) - x0)[None, :] for b in pb]
@@ -305,87 +340,159 @@ class CameraRenderer:
         loc[0, pix[win]] = opr[win, 0] + sw * dpx[win]
         loc[1, pix[win]] = opr[win, 1] + sw * dpy[win]
         loc[2, pix[win]] = opr[win, 2] + sw * dpz[win]
-        pid = pid_flat.reshape(bh, bw)
-        loc = loc.reshape(3, bh, bw)
-        # shading
-        rgb = np.zeros((bh, bw, 3), np.float32)
+        return _Hits(pid_flat.reshape(bh, bw), loc.reshape(3, bh, bw))
+
+    def _shade(
+        self,
+        materials: np.ndarray,
+        A: np.ndarray,
+        Rr: np.ndarray,
+        palette: np.ndarray,
+        hits: _Hits,
+        box: tuple[int, int, int, int],
+    ) -> np.ndarray:
+        """(h, w, 3) linear BGR of the hit pixels (zero elsewhere).
+
+        Lambert shading plus a view term, fur texture moving with each part, the hooded
+        rat's fur pattern and specular eyes and nose, times the camera's exposure map.
+        """
+        x0, y0, x1, y1 = box
+        pid, loc = hits.pid, hits.loc
+        rgb = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
         m = pid >= 0
-        if m.any():
-            ids = pid[m]
-            p = loc[:, m].T.astype(np.float64)  # (m, 3) unit-sphere coordinates
-            mats = geom.materials[ids]
-            u = p / Rr[ids]
-            Ag = A[ids]
-            n = (Ag * u[:, None, :]).sum(-1)
-            n /= np.linalg.norm(n, axis=1, keepdims=True)
-            d = self.rays_soa[:, y0:y1, x0:x1][:, m].T.astype(np.float64)
-            q = (p * Rr[ids]).astype(np.float32)  # local mm: texture moves with the part
-            fur = value_noise3(self.fur_noise, q / 1.7)
-            # fur pattern: secondary colour where the pattern says so (hooded rat)
-            second = np.zeros(len(ids), bool)
-            wob = 0.12 * value_noise3(self.fur_noise, q / 12.0 + 7.1)
-            hm = mats == MAT["haunch"]
-            second[hm] = (p[hm, 2] + wob[hm] > 0.8) & (np.abs(p[hm, 1]) < 0.45)
-            cm = mats == MAT["chest"]
-            second[cm] = ((p[cm, 2] + wob[cm] > 0.78) & (np.abs(p[cm, 1]) < 0.5)) | (
-                (p[cm, 0] + wob[cm] > 0.4) & (p[cm, 2] > -0.4)
-            )
-            alb = palette[mats, second.astype(np.int64)]
-            furry = np.isin(
-                mats, (MAT["haunch"], MAT["chest"], MAT["head"], MAT["snout"], MAT["limb"])
-            )
-            alb = alb * (1.0 + np.where(furry, 0.13, 0.05) * fur)[:, None]
-            ndl = np.clip(n @ LIGHT, 0, 1)
-            ndv = np.clip(-(n * d).sum(1), 0, 1)
-            lum = 0.32 + 0.68 * ndl + 0.12 * ndv
-            col = alb * lum[:, None]
-            shiny = np.isin(mats, (MAT["eye"], MAT["nose"]))
-            if shiny.any():
-                hv = LIGHT - d[shiny]
-                hv /= np.linalg.norm(hv, axis=1, keepdims=True)
-                spec = np.clip((n[shiny] * hv).sum(1), 0, 1) ** 25
-                col[shiny] += 0.7 * spec[:, None]
-            rgb[m] = (col * self.shade[y0:y1, x0:x1][m]).astype(np.float32)
-        # composite over the (shadowed) background with motion blur
-        bg = self.bg_lin[y0:y1, x0:x1]
+        if not m.any():
+            return rgb
+        ids = pid[m]
+        p = loc[:, m].T.astype(np.float64)  # (m, 3) unit-sphere coordinates
+        mats = materials[ids]
+        u = p / Rr[ids]
+        Ag = A[ids]
+        n = (Ag * u[:, None, :]).sum(-1)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        d = self.rays_soa[:, y0:y1, x0:x1][:, m].T.astype(np.float64)
+        q = (p * Rr[ids]).astype(np.float32)  # local mm: texture moves with the part
+        fur = value_noise3(self.fur_noise, q / 1.7)
+        # fur pattern: secondary colour where the pattern says so (hooded rat)
+        second = np.zeros(len(ids), bool)
+        wob = 0.12 * value_noise3(self.fur_noise, q / 12.0 + 7.1)
+        hm = mats == MAT["haunch"]
+        second[hm] = (p[hm, 2] + wob[hm] > 0.8) & (np.abs(p[hm, 1]) < 0.45)
+        cm = mats == MAT["chest"]
+        second[cm] = ((p[cm, 2] + wob[cm] > 0.78) & (np.abs(p[cm, 1]) < 0.5)) | (
+            (p[cm, 0] + wob[cm] > 0.4) & (p[cm, 2] > -0.4)
+        )
+        alb = palette[mats, second.astype(np.int64)]
+        furry = np.isin(mats, (MAT["haunch"], MAT["chest"], MAT["head"], MAT["snout"], MAT["limb"]))
+        alb = alb * (1.0 + np.where(furry, 0.13, 0.05) * fur)[:, None]
+        ndl = np.clip(n @ LIGHT, 0, 1)
+        ndv = np.clip(-(n * d).sum(1), 0, 1)
+        lum = 0.32 + 0.68 * ndl + 0.12 * ndv
+        col = alb * lum[:, None]
+        shiny = np.isin(mats, (MAT["eye"], MAT["nose"]))
+        if shiny.any():
+            hv = LIGHT - d[shiny]
+            hv /= np.linalg.norm(hv, axis=1, keepdims=True)
+            spec = np.clip((n[shiny] * hv).sum(1), 0, 1) ** 25
+            col[shiny] += 0.7 * spec[:, None]
+        rgb[m] = (col * self.shade[y0:y1, x0:x1][m]).astype(np.float32)
+        return rgb
+
+    def _shadow(self, C: np.ndarray, A: np.ndarray, Rr: np.ndarray, ab: _AnimalBox) -> np.ndarray:
+        """(h, w) float32 shadow factor of the floor in the box.
+
+        Soft Gaussian blobs under the big parts and the feet, shifted along the light and
+        fading with their height.
+        """
+        x0, y0, x1, y1 = ab.box
+        sh_idx = np.array(_SHADOW_PARTS + _CONTACT_PARTS)
         fxy = self.floor_xy[y0:y1, x0:x1]
-        shadow = np.ones((bh, bw), np.float32)
-        fl = np.isfinite(fxy[..., 0])
-        if fl.any():
-            for k, i in enumerate(sh_idx):
-                bx0, by0, bx1, by1 = boxes[len(C) + k]
-                if bx1 <= bx0 or by1 <= by0:
-                    continue
-                sub = (slice(by0 - y0, by1 - y0), slice(bx0 - x0, bx1 - x0))
-                gx, gy = fxy[sub][..., 0], fxy[sub][..., 1]
-                cov = (A[i] * Rr[i] ** 2) @ A[i].T
-                sxx, sxy, syy = cov[0, 0], cov[0, 1], cov[1, 1]
-                sc = (1.15 + 0.004 * C[i, 2]) ** 2
-                det = (sxx * syy - sxy * sxy) * sc * sc
-                ia, ib, ic = syy * sc / det, -sxy * sc / det, sxx * sc / det
-                dx, dy = gx - np.float32(sh_c[k, 0]), gy - np.float32(sh_c[k, 1])
-                qf = (
-                    np.float32(ia) * dx * dx
-                    + np.float32(2 * ib) * dx * dy
-                    + np.float32(ic) * dy * dy
-                )
-                strength = (0.5 if k < len(_SHADOW_PARTS) else 0.4) * math.exp(-C[i, 2] / 150.0)
-                blob = 1.0 - np.float32(strength) * np.exp(np.float32(-2.0) * qf)
-                shadow[sub] *= np.where(np.isfinite(blob), blob, np.float32(1.0))
-        out = bg * shadow[..., None]
-        if m.any():
-            kernel = _blur_kernel(blur_px)
-            r = kernel.shape[0] // 2 + 1
-            rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
-            sy = slice(max(0, rows[0] - r), min(bh, rows[-1] + r + 1))
-            sx = slice(max(0, cols[0] - r), min(bw, cols[-1] + r + 1))
-            alpha = m[sy, sx].astype(np.float32)
-            A_ = cv2.filter2D(
-                rgb[sy, sx] * alpha[..., None], -1, kernel, borderType=cv2.BORDER_CONSTANT
-            )
-            a_ = cv2.filter2D(alpha, -1, kernel, borderType=cv2.BORDER_CONSTANT)
-            out[sy, sx] = A_ + (1.0 - a_)[..., None] * out[sy, sx]
-        return (int(x0), int(y0), int(x1), int(y1)), out, pid
+        shadow = np.ones((y1 - y0, x1 - x0), np.float32)
+        if not np.isfinite(fxy[..., 0]).any():
+            return shadow
+        for k, i in enumerate(sh_idx):
+            bx0, by0, bx1, by1 = ab.boxes[len(C) + k]
+            if bx1 <= bx0 or by1 <= by0:
+                continue
+            sub = (slice(by0 - y0, by1 - y0), slice(bx0 - x0, bx1 - x0))
+            gx, gy = fxy[sub][..., 0], fxy[sub][..., 1]
+            cov = (A[i] * Rr[i] ** 2) @ A[i].T
+            sxx, sxy, syy = cov[0, 0], cov[0, 1], cov[1, 1]
+            sc = (1.15 + 0.004 * C[i, 2]) ** 2
+            det = (sxx * syy - sxy * sxy) * sc * sc
+            ia, ib, ic = syy * sc / det, -sxy * sc / det, sxx * sc / det
+            dx = gx - np.float32(ab.shadow_centres[k, 0])
+            dy = gy - np.float32(ab.shadow_centres[k, 1])
+            qf = np.float32(ia) * dx * dx + np.float32(2 * ib) * dx * dy + np.float32(ic) * dy * dy
+            strength = (0.5 if k < len(_SHADOW_PARTS) else 0.4) * math.exp(-C[i, 2] / 150.0)
+            blob = 1.0 - np.float32(strength) * np.exp(np.float32(-2.0) * qf)
+            shadow[sub] *= np.where(np.isfinite(blob), blob, np.float32(1.0))
+        return shadow
+
+    def _composite(
+        self,
+        rgb: np.ndarray,
+        mask: np.ndarray,
+        shadow: np.ndarray,
+        box: tuple[int, int, int, int],
+        blur_px: np.ndarray | None,
+    ) -> np.ndarray:
+        """(h, w, 3) linear BGR of the box: the animal motion-blurred over its background.
+
+        Args:
+            rgb: (h, w, 3) the animal's colours (where ``mask``).
+            mask: (h, w) pixels that show the animal.
+            shadow: (h, w) shadow factor of the background.
+            box: (x0, y0, x1, y1) the box in the image.
+            blur_px: (2,) image motion during the exposure, px, or None.
+        """
+        x0, y0, x1, y1 = box
+        bh, bw = mask.shape
+        out = self.bg_lin[y0:y1, x0:x1] * shadow[..., None]
+        if not mask.any():
+            return out
+        kernel = _blur_kernel(blur_px)
+        r = kernel.shape[0] // 2 + 1
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        sy = slice(max(0, rows[0] - r), min(bh, rows[-1] + r + 1))
+        sx = slice(max(0, cols[0] - r), min(bw, cols[-1] + r + 1))
+        alpha = mask[sy, sx].astype(np.float32)
+        A_ = cv2.filter2D(
+            rgb[sy, sx] * alpha[..., None], -1, kernel, borderType=cv2.BORDER_CONSTANT
+        )
+        a_ = cv2.filter2D(alpha, -1, kernel, borderType=cv2.BORDER_CONSTANT)
+        out[sy, sx] = A_ + (1.0 - a_)[..., None] * out[sy, sx]
+        return out
+
+    def render_animal(
+        self, geom: BodyGeometry, f: int, palette: np.ndarray, blur_px: np.ndarray | None = None
+    ) -> tuple[tuple[int, int, int, int], np.ndarray, np.ndarray] | None:
+        """Render frame ``f`` of the animal: ``(box, rgb_linear (h, w, 3), part_id (h, w))``.
+
+        ``box`` is (x0, y0, x1, y1) in the image (exclusive ends); ``part_id`` is -1 where
+        the background is seen.
+
+        Args:
+            geom: the animal's ellipsoids over all frames.
+            f: the frame.
+            palette: (n_materials, 2, 3) BGR albedo (``RatBody.palette``).
+            blur_px: (2,) image motion during the exposure, px (None: no motion blur).
+
+        Returns:
+            The rendering, or None when nothing of the animal (or its shadow) is in the
+            image.
+        """
+        C = geom.centers[f]
+        A = geom.axes[f]
+        Rr = geom.radii[f]
+        ab = self._animal_box(C, Rr.max(axis=1))
+        if ab is None:
+            return None
+        hits = self._intersect(C, A, Rr, ab)
+        rgb = self._shade(geom.materials, A, Rr, palette, hits, ab.box)
+        shadow = self._shadow(C, A, Rr, ab)
+        out = self._composite(rgb, hits.pid >= 0, shadow, ab.box, blur_px)
+        x0, y0, x1, y1 = ab.box
+        return (int(x0), int(y0), int(x1), int(y1)), out, hits.pid
 
     def finish(
         self,
