@@ -19,22 +19,17 @@ Conventions (stated once, here and in ``docs/formats.md``):
   as zeros. A result that cannot be computed (fewer than two views, a point behind a
   camera) is NaN.
 
-Modules: :mod:`.camera` (``Camera``, ``CameraRig``), :mod:`.projection` (NumPy
-projection, undistortion, rays), :mod:`.triangulation` (DLT, weighted, robust),
-:mod:`.torch_ops` (differentiable PyTorch versions for the network).
+Modules: :mod:`.camera` (``Camera``, ``CameraRig``), :mod:`.transforms` (rotation
+vectors, 4x4 transforms), :mod:`.distortion` (the lens distortion, its derivatives and
+inverse), :mod:`.pinhole` (intrinsics and projection on arrays), :mod:`.projection`
+(projection, undistortion and rays of cameras), :mod:`.triangulation` (DLT, weighted,
+robust), :mod:`.torch_ops` (differentiable PyTorch versions for the network).
 """
 
 from freipose.geometry.camera import Camera, CameraRig
-from freipose.geometry.projection import (
-    apply_intrinsics,
-    distort_normalized,
-    pixel_to_ray,
-    project,
-    project_rig,
-    remove_intrinsics,
-    undistort_normalized,
-    undistort_pixels,
-)
+from freipose.geometry.distortion import distort_normalized, undistort_normalized
+from freipose.geometry.pinhole import apply_intrinsics, remove_intrinsics
+from freipose.geometry.projection import pixel_to_ray, project, project_rig, undistort_pixels
 from freipose.geometry.triangulation import (
     reprojection_errors,
     triangulate,

@@ -7,10 +7,12 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
-import cv2
 import numpy as np
 
 from freipose._frozen import PicklableFrozen
+from freipose.geometry._checks import check_last
+from freipose.geometry.pinhole import project_points
+from freipose.geometry.transforms import matrix_to_rodrigues, rodrigues_to_matrix, transform
 
 
 def _frozen_array(value: Any, shape: tuple[int, ...], what: str, owner: str) -> np.ndarray:
@@ -27,18 +29,6 @@ def _frozen_array(value: Any, shape: tuple[int, ...], what: str, owner: str) -> 
         raise ValueError(f"camera {owner!r}: {what} contains NaN or infinite values")
     arr.setflags(write=False)
     return arr
-
-
-def rodrigues_to_matrix(rvec: np.ndarray) -> np.ndarray:
-    """Rotation vector (3,) to rotation matrix (3, 3)."""
-    R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
-    return R
-
-
-def matrix_to_rodrigues(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) to rotation vector (3,)."""
-    rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
-    return rvec.reshape(3)
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,10 +88,12 @@ class Camera:
     # -- derived quantities -------------------------------------------------------
     @property
     def width(self) -> int:
+        """Image width in pixels."""
         return self.size[0]
 
     @property
     def height(self) -> int:
+        """Image height in pixels."""
         return self.size[1]
 
     @property
@@ -117,10 +109,7 @@ class Camera:
     @property
     def extrinsics(self) -> np.ndarray:
         """World→camera 4x4 homogeneous transform."""
-        T = np.eye(4)
-        T[:3, :3] = self.R
-        T[:3, 3] = self.t
-        return T
+        return transform(self.R, self.t)
 
     @property
     def P(self) -> np.ndarray:
@@ -129,6 +118,7 @@ class Camera:
 
     @property
     def has_distortion(self) -> bool:
+        """Whether any distortion coefficient is non-zero."""
         return bool(np.any(self.dist != 0))
 
     @classmethod
@@ -228,6 +218,7 @@ class CameraRig(PicklableFrozen):
 
     @property
     def names(self) -> list[str]:
+        """The camera names, in rig order."""
         return [c.name for c in self.cameras]
 
     def __len__(self) -> int:
@@ -261,6 +252,7 @@ class CameraRig(PicklableFrozen):
         return CameraRig(tuple(self[n] for n in names), self.metadata)
 
     def with_metadata(self, **metadata: Any) -> CameraRig:
+        """A copy whose metadata is updated with ``metadata``."""
         md = dict(self.metadata)
         md.update(metadata)
         return CameraRig(self.cameras, md)
@@ -268,22 +260,22 @@ class CameraRig(PicklableFrozen):
     # -- stacked parameters (camera axis first) ------------------------------------
     @property
     def K(self) -> np.ndarray:
-        """(C, 3, 3)"""
+        """Intrinsic matrices, (C, 3, 3)."""
         return np.stack([c.K for c in self.cameras])
 
     @property
     def dist(self) -> np.ndarray:
-        """(C, 5)"""
+        """Distortion coefficients, (C, 5)."""
         return np.stack([c.dist for c in self.cameras])
 
     @property
     def R(self) -> np.ndarray:
-        """(C, 3, 3)"""
+        """World→camera rotations, (C, 3, 3)."""
         return np.stack([c.R for c in self.cameras])
 
     @property
     def t(self) -> np.ndarray:
-        """(C, 3)"""
+        """World→camera translations in mm, (C, 3)."""
         return np.stack([c.t for c in self.cameras])
 
     @property
@@ -297,15 +289,31 @@ class CameraRig(PicklableFrozen):
         return np.array([c.size for c in self.cameras], dtype=np.int64)
 
     def allclose(self, other: CameraRig, rtol: float = 1e-9, atol: float = 1e-9) -> bool:
+        """True when both rigs have the same cameras in the same order (see Camera.allclose)."""
         return len(self) == len(other) and all(
             a.allclose(b, rtol=rtol, atol=atol) for a, b in zip(self, other)
         )
 
     def project(self, points: np.ndarray, distort: bool = True) -> np.ndarray:
-        """Project world points (..., P, 3) into every camera: (..., C, P, 2)."""
-        from freipose.geometry.projection import project_rig
+        """Project world points into every camera.
 
-        return project_rig(points, self, distort=distort)
+        Args:
+            points: (..., P, 3) world points in mm (NaN allowed).
+            distort: apply the lens distortion (True) or the pure pinhole model (False).
+
+        Returns:
+            (..., C, P, 2) pixel coordinates; NaN for NaN input or points behind a camera.
+        """
+        X = check_last(points, 3, "points")
+        if X.ndim < 2:
+            raise ValueError(f"points must have shape (..., P, 3), got shape {X.shape}")
+        return np.stack(
+            [
+                project_points(X, c.K, c.R, c.t, c.dist if distort and c.has_distortion else None)
+                for c in self.cameras
+            ],
+            axis=-3,
+        )
 
     def __repr__(self) -> str:
         return f"CameraRig({len(self)} cameras: {', '.join(self.names)})"

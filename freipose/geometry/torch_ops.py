@@ -8,6 +8,8 @@ batch and a camera axis: ``K`` (B, C, 3, 3), ``dist`` (B, C, 5), ``R`` (B, C, 3,
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
@@ -24,15 +26,80 @@ def rig_to_tensors(
     }
 
 
-def distort_normalized(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
-    """OpenCV distortion of normalized coords. xy (..., 2), dist broadcastable (..., 5)."""
-    k1, k2, p1, p2, k3 = dist.unbind(-1)
-    x, y = xy.unbind(-1)
+def _distortion(
+    x: torch.Tensor, y: torch.Tensor, coeffs: Sequence[torch.Tensor], distorted: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The OpenCV distortion polynomial at normalized points, in PyTorch.
+
+    The same polynomial as :func:`freipose.geometry.distortion.distortion_terms`. The
+    tangential terms are built lazily so that the operations are recorded in one fixed
+    order for each use (autograd sums gradients in the order the operations were made).
+
+    Args:
+        x: (...,) normalized x.
+        y: (...,) normalized y.
+        coeffs: ``dist.unbind(-1)``: the coefficients ``(k1, k2, p1, p2, k3)``, each
+            broadcastable to ``x``.
+        distorted: return the distorted coordinates ``(xd, yd)`` (True) or only the
+            tangential shifts ``(xd - x radial, yd - y radial)`` (False).
+
+    Returns:
+        ``(xd, yd, radial)`` or ``(dx, dy, radial)``, each (...,).
+    """
+    k1, k2, p1, p2, k3 = coeffs
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    tangential = (
+        (x, lambda: 2 * p1 * x * y, lambda: p2 * (r2 + 2 * x * x)),
+        (y, lambda: p1 * (r2 + 2 * y * y), lambda: 2 * p2 * x * y),
+    )
+    out = []
+    for v, by_p1, by_p2 in tangential:
+        if distorted:
+            s = v * radial + by_p1()
+            out.append(s + by_p2())
+        else:
+            out.append(by_p1() + by_p2())
+    return out[0], out[1], radial
+
+
+def distort_normalized(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """OpenCV distortion of normalized coordinates (differentiable).
+
+    Args:
+        xy: (..., 2) normalized coordinates ``(x/z, y/z)``.
+        dist: (..., 5) coefficients ``(k1, k2, p1, p2, k3)``, broadcastable to ``xy``.
+
+    Returns:
+        (..., 2) distorted normalized coordinates.
+    """
+    coeffs = dist.unbind(-1)
+    x, y = xy.unbind(-1)
+    xd, yd, _ = _distortion(x, y, coeffs, distorted=True)
     return torch.stack([xd, yd], dim=-1)
+
+
+def undistort_normalized(
+    xy_d: torch.Tensor, dist: torch.Tensor, iterations: int = 10
+) -> torch.Tensor:
+    """Invert OpenCV distortion by fixed-point iteration (differentiable).
+
+    Args:
+        xy_d: (..., 2) distorted normalized coordinates.
+        dist: (..., 5) coefficients, broadcastable to ``xy_d``.
+        iterations: fixed-point iterations.
+
+    Returns:
+        (..., 2) undistorted normalized coordinates.
+    """
+    coeffs = dist.unbind(-1)
+    x0, y0 = xy_d.unbind(-1)
+    x, y = x0, y0
+    for _ in range(iterations):
+        dx, dy, radial = _distortion(x, y, coeffs, distorted=False)
+        x = (x0 - dx) / radial
+        y = (y0 - dy) / radial
+    return torch.stack([x, y], dim=-1)
 
 
 def project(
@@ -90,7 +157,10 @@ def triangulate_weighted(
     Args:
         points2d: (B, C, P, 2) pixels.
         weights: (B, C, P) non-negative confidences (0 skips the view).
-        K, R, t: cameras, (B, C, 3, 3), (B, C, 3, 3), (B, C, 3).
+        K: (B, C, 3, 3) intrinsics.
+        R: (B, C, 3, 3) world→camera rotations.
+        t: (B, C, 3) world→camera translations (mm).
+        eps: ridge added to the normal matrix (keeps it invertible).
 
     Returns:
         (B, P, 3) world points in mm.

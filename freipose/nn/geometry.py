@@ -12,32 +12,10 @@ from __future__ import annotations
 
 import torch
 
-from freipose.geometry.torch_ops import project
+from freipose.geometry.torch_ops import project, undistort_normalized
 
 # Projection with a general affine K is the project-wide torch projection.
 project_affine = project
-
-
-def undistort_normalized(
-    xy_d: torch.Tensor, dist: torch.Tensor, iterations: int = 10
-) -> torch.Tensor:
-    """Invert OpenCV distortion by fixed-point iteration (differentiable).
-
-    Args:
-        xy_d: (..., 2) distorted normalized coordinates.
-        dist: (..., 5) broadcastable coefficients.
-    """
-    k1, k2, p1, p2, k3 = dist.unbind(-1)
-    x0, y0 = xy_d.unbind(-1)
-    x, y = x0, y0
-    for _ in range(iterations):
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        x = (x0 - dx) / radial
-        y = (y0 - dy) / radial
-    return torch.stack([x, y], dim=-1)
 
 
 def pixels_to_normalized(
@@ -46,8 +24,9 @@ def pixels_to_normalized(
     """Undistorted normalized coordinates of crop pixels.
 
     Args:
-        uv: (B, C, P, 2) pixels of cameras with affine intrinsics ``K`` (B, C, 3, 3).
-        dist: (B, C, 5) or None.
+        uv: (B, C, P, 2) pixels of cameras with affine intrinsics ``K``.
+        K: (B, C, 3, 3) affine intrinsics (last row ``0 0 1``).
+        dist: (B, C, 5) distortion coefficients, or None.
 
     Returns:
         (B, C, P, 2) ideal pinhole coordinates ``(x/z, y/z)``.
@@ -61,12 +40,24 @@ def pixels_to_normalized(
 
 
 def voxel_offsets(
-    grid_size: int, cube_size: float, device=None, dtype=torch.float32
+    grid_size: int,
+    cube_size: float,
+    device: str | torch.device | None = None,
+    dtype: torch.dtype = torch.float32,
 ) -> torch.Tensor:
-    """Offsets (G**3, 3) in mm of the voxel centres from the cube centre.
+    """Offsets in mm of the voxel centres from the cube centre.
 
     Voxel ``(i, j, k)`` (x, y, z indices, flat index ``i*G*G + j*G + k``) sits at
     ``centre + (index - (G - 1) / 2) * cube_size / (G - 1)``.
+
+    Args:
+        grid_size: voxels ``G`` per cube edge.
+        cube_size: cube edge length in mm.
+        device: the tensor's device.
+        dtype: the tensor's dtype.
+
+    Returns:
+        (G**3, 3) offsets in mm.
     """
     s = cube_size / (grid_size - 1)
     ax = (torch.arange(grid_size, device=device, dtype=dtype) - (grid_size - 1) / 2) * s

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from freipose.geometry import Camera, CameraRig, project
-from freipose.geometry.camera import matrix_to_rodrigues, rodrigues_to_matrix
 from freipose.geometry.crops import (
     crop_affine,
     crop_camera,
@@ -14,6 +13,7 @@ from freipose.geometry.crops import (
     cube_corners,
     cube_crop_boxes,
 )
+from freipose.geometry.transforms import matrix_to_rodrigues, rodrigues_to_matrix
 
 K0 = [[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]]
 
