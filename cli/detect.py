@@ -85,7 +85,7 @@ def detect(
       freipose detect session1/ --model runs/detector/detector.pt -o session1/boxes.h5
       freipose detect session1/ --method bgsub --frames 0:500 -o boxes.h5
       freipose detect session1/ --fixed-boxes boxes.toml -o boxes.h5
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.detect.multiview import ConsistencyConfig
         from freipose.detect.pipeline import detect_session, make_source, open_sources

@@ -70,7 +70,7 @@ def export(
       freipose export poses/rec1.poses.h5 --format csv
       freipose export poses/*.poses.h5 --format nwb -o nwb/ --start-time 2024-05-01T10:00:00+02:00
       freipose export poses/rec1.poses.h5 --format anipose -o rec1_3d.csv
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.export import default_output, export_poses
 

@@ -59,7 +59,7 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
       freipose analyze study.toml -o results/
 
     Units are millimetres; see docs/formats.md for every file format.
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     ctx.ensure_object(dict)
     ctx.obj["quiet"] = quiet
     setup_logging(verbose, quiet)

@@ -30,7 +30,7 @@ def merge(shards: tuple[Path, ...], outdir: Path | None, remove_shards: bool) ->
     Example:
       # SLURM array job, 8 tasks: freipose predict rec1/ --model m.pt -o out/ --shard $ID/8
       freipose merge out/ --remove-shards
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.predict.merge import merge_outputs
 

@@ -92,11 +92,11 @@ def predict(
       freipose predict rec1/ --model model.pt --detector det.pt -o poses/ \\
           --shard $SLURM_ARRAY_TASK_ID/8
       freipose merge poses/
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
+        from freipose.io.session import discover_sessions
         from freipose.predict.network import predict_sessions
         from freipose.predict.run import parse_shard
-        from freipose.io.session import discover_sessions
         from freipose.skeleton import load_skeleton
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))

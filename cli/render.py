@@ -48,7 +48,7 @@ def render(
     Examples:
       freipose render rec1/ poses/rec1.poses.h5 -o rec1_overlay.mp4 --frames 0:300
       freipose render rec1/ poses/rec1.poses.h5 -o clip.mkv --cameras cam0,cam3 --no-3d
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.calibration import load_calibration
         from freipose.io.poses import read_poses_h5

@@ -15,8 +15,11 @@ def make_circle_rig(
     focal: float = 800.0,
     distortion: bool = False,
 ) -> CameraRig:
-    """``n`` cameras evenly spaced on a circle of ``radius`` mm at ``height`` mm, looking at
-    the origin, z up. With ``distortion`` each camera gets a mild, different lens distortion."""
+    """``n`` cameras evenly spaced on a circle of ``radius`` mm at ``height`` mm.
+
+    The cameras look at the origin, z up. With ``distortion`` each camera gets a mild,
+    different lens distortion.
+    """
     cams = []
     for i in range(n):
         a = 2 * np.pi * i / n

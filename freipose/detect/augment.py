@@ -115,10 +115,7 @@ def augment(
         borderValue=fill,
     )
     out = _photometric(out, cfg, rng)
-    if has_box:
-        b = clip_boxes(transform_boxes(box, A), (size, size))
-    else:
-        b = np.full(4, np.nan)
+    b = clip_boxes(transform_boxes(box, A), (size, size)) if has_box else np.full(4, np.nan)
     return out, b
 
 

@@ -39,6 +39,7 @@ class Candidates:
 
     @staticmethod
     def empty() -> Candidates:
+        """No candidates: boxes (0, 4), scores (0,)."""
         return Candidates(np.zeros((0, 4)), np.zeros(0))
 
 
@@ -50,4 +51,6 @@ class BoxSource(Protocol):
     camera names (same order) and returns one :class:`Candidates` per image.
     """
 
-    def propose(self, images: Sequence[np.ndarray], cameras: Sequence[str]) -> list[Candidates]: ...
+    def propose(self, images: Sequence[np.ndarray], cameras: Sequence[str]) -> list[Candidates]:
+        """One :class:`Candidates` per image (see the class docstring)."""
+        ...

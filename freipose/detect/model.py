@@ -53,6 +53,7 @@ class DetectorConfig:
             raise ValueError(f"neck_channels must be >= 8, got {self.neck_channels}")
 
     def to_dict(self) -> dict:
+        """The settings as a plain dict (stored in checkpoints)."""
         return asdict(self)
 
 
@@ -62,6 +63,8 @@ def _ch(c: float) -> int:
 
 
 class ConvBN(nn.Sequential):
+    """Convolution, batch norm and (with ``act``) ReLU6; "same" padding."""
+
     def __init__(
         self, cin: int, cout: int, k: int = 3, stride: int = 1, groups: int = 1, act: bool = True
     ):
@@ -89,6 +92,7 @@ class InvertedResidual(nn.Module):
         self.residual = stride == 1 and cin == cout
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The block's output (plus ``x`` when residual): (B, C, H, W) -> (B, C', H', W')."""
         y = self.block(x)
         return x + y if self.residual else y
 
@@ -118,6 +122,7 @@ class Backbone(nn.Module):
         self.blocks = nn.ModuleList(blocks)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The feature maps at the tapped blocks (strides 4, 8, 16) of images (B, 3, H, W)."""
         x = self.stem(x)
         feats = []
         for i, b in enumerate(self.blocks):
@@ -154,6 +159,7 @@ class DetectorNet(nn.Module):
         nn.init.constant_(self.heat[-1].bias, -math.log((1 - 0.01) / 0.01))
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Heat map logits (B, 1, H/4, W/4), sizes (B, 2, H/4, W/4), offsets (B, 2, H/4, W/4)."""
         f4, f8, f16 = self.backbone(x)
         p = self.lateral[2](f16)
         p = self.smooth[0](self.lateral[1](f8) + F.interpolate(p, scale_factor=2.0, mode="nearest"))

@@ -222,7 +222,8 @@ def read_mjson(path: str | Path) -> CameraRig:
                 t=-R @ center_mm,
             )
         )
-    extra = data.get("metadata") if isinstance(data.get("metadata"), dict) else {}
+    stored = data.get("metadata")
+    extra: dict[str, Any] = stored if isinstance(stored, dict) else {}
     facts = (
         {}
         if extra
@@ -325,7 +326,7 @@ def _jarvis_values(fs: Any, path: Path) -> dict[str, Any]:
                 f"transposed), distortionCoefficients, R (transposed) and T (mm)"
             )
         vals[key] = np.asarray(mat, dtype=np.float64)
-    size = None
+    size: tuple[int, ...] | None = None
     w, h = fs.getNode("image_width"), fs.getNode("image_height")
     if not w.empty() and not h.empty():
         size = (int(w.real()), int(h.real()))

@@ -52,6 +52,10 @@ def rig_to_toml_dict(rig: CameraRig) -> dict[str, Any]:
 
 
 def toml_value(v: Any) -> Any:
+    """``v`` as a TOML value: arrays and NumPy scalars as Python values, paths as strings.
+
+    ``None`` entries of dicts are left out (TOML has no null).
+    """
     if isinstance(v, np.ndarray):
         return v.tolist()
     if isinstance(v, (np.floating, np.integer)):
@@ -156,4 +160,5 @@ def rig_from_toml_text(text: str, source: str = "<embedded calibration>") -> Cam
     Raises:
         CalibrationFormatError: not TOML or not a calibration.
     """
-    return rig_from_toml_dict(parse_toml(text, source, "calibration", CalibrationFormatError), source)
+    data = parse_toml(text, source, "calibration", CalibrationFormatError)
+    return rig_from_toml_dict(data, source)

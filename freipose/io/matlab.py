@@ -82,7 +82,7 @@ def _from_scipy(v: Any) -> Any:
             return [_from_scipy(x) for x in v.ravel(order="F")]
         if v.dtype.kind == "U":  # char array
             strs = [str(s) for s in v.ravel(order="F")]
-            return strs[0] if len(strs) == 1 else ("" if not strs else strs)
+            return strs[0] if len(strs) == 1 else (strs if strs else "")
         if v.ndim < 2:
             return np.atleast_2d(v)
         return v

@@ -34,8 +34,10 @@ class MediaError(ValueError):
 
 @contextlib.contextmanager
 def opencv_threads(n: int) -> Iterator[None]:
-    """Run the block with ``n`` OpenCV threads and give the caller's setting back after it
-    (the setting is process-wide: work spread over processes wants one thread each)."""
+    """Run the block with ``n`` OpenCV threads and give the caller's setting back after it.
+
+    The setting is process-wide: work spread over processes wants one thread each.
+    """
     before = cv2.getNumThreads()
     cv2.setNumThreads(int(n))
     try:
@@ -80,8 +82,10 @@ def frame_range(spec: str | None, num_frames: int) -> range:
 
 
 def find_video(stem: str, folders: Sequence[str | Path]) -> Path | None:
-    """The first ``folder/<stem><suffix>`` video file (folders in order, then
-    :data:`VIDEO_SUFFIXES` in order), or None."""
+    """The first ``folder/<stem><suffix>`` video file, or None.
+
+    Folders are tried in order, and in each the suffixes in :data:`VIDEO_SUFFIXES` order.
+    """
     for folder in folders:
         for sfx in VIDEO_SUFFIXES:
             p = Path(folder) / f"{stem}{sfx}"
@@ -159,7 +163,7 @@ class FrameSource:
 
     @property
     def size(self) -> tuple[int, int]:
-        """(width, height)"""
+        """The frame size ``(width, height)``."""
         return self.width, self.height
 
     def _open(self) -> None:
@@ -225,6 +229,7 @@ class FrameSource:
         return self.read(index)
 
     def close(self) -> None:
+        """Release the video file (a later read opens it again)."""
         if self._cap is not None:
             self._cap.release()
             self._cap = None
@@ -255,8 +260,9 @@ class VideoWriter:
             )
         self._tmp = self.path.with_name(f".{self.path.stem}.partial{sfx}")
         self.size = (int(size[0]), int(size[1]))
-        self._w = cv2.VideoWriter(
-            str(self._tmp), cv2.VideoWriter_fourcc(*FOURCC[sfx]), float(fps), self.size
+        fourcc = cv2.VideoWriter.fourcc(*FOURCC[sfx])
+        self._w: cv2.VideoWriter | None = cv2.VideoWriter(
+            str(self._tmp), fourcc, float(fps), self.size
         )
         if not self._w.isOpened():
             raise MediaError(f"{self.path}: OpenCV cannot open a {FOURCC[sfx]} writer")
@@ -269,16 +275,20 @@ class VideoWriter:
             f = cv2.cvtColor(f, cv2.COLOR_GRAY2BGR)
         if (f.shape[1], f.shape[0]) != self.size or f.dtype != np.uint8:
             raise ValueError(f"frame must be uint8 of size {self.size}, got {f.dtype} {f.shape}")
+        if self._w is None:
+            raise MediaError(f"{self.path}: the writer is closed")
         self._w.write(np.ascontiguousarray(f))
         self.frames += 1
 
     def close(self) -> None:
+        """Finish the video and move it to its name."""
         if self._w is not None:
             self._w.release()
             self._w = None
             os.replace(self._tmp, self.path)
 
     def abort(self) -> None:
+        """Stop writing and remove the partial file (nothing appears under the name)."""
         if self._w is not None:
             self._w.release()
             self._w = None

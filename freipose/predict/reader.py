@@ -184,6 +184,7 @@ class SyncReader:
             yield FrameBatch(np.arange(a, b, dtype=np.int64), images, valid)
 
     def close(self) -> None:
+        """Stop the decoding threads and wait for them (up to 5 s each)."""
         self._stop_event.set()
         for t in self._threads:
             if t.is_alive():

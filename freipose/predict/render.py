@@ -1,5 +1,6 @@
-"""Overlay videos of predicted poses: every camera view with the projected skeleton, plus a
-3D skeleton panel, tiled in a grid.
+"""Overlay videos of predicted poses, tiled in a grid.
+
+Every camera view shows the projected skeleton; a 3D skeleton panel shows the pose.
 
 Keypoints and limbs are coloured by confidence (red = 0, yellow = 0.5, green = 1); a time
 step without a pose says "not found"; a frame that could not be decoded is a grey tile. The
@@ -125,6 +126,7 @@ class Panel3D:
         limbs: Sequence[tuple[tuple[int, ...], tuple[int, ...]]],
         label: str = "3D",
     ) -> np.ndarray:
+        """The 3D panel image (H, W, 3) BGR of ``pose`` (K, 3) with confidences (K,)."""
         w, h = self.size
         img = np.full((h, w, 3), 30, np.uint8)
         # floor grid in the plane through the lowest keypoints
@@ -173,6 +175,10 @@ def render_overlay(
         frames: video frame range [start, stop) to render; default all rows of ``data``.
         tile_width: width in pixels of each view tile.
         show_3d: add the 3D panel.
+        progress: show a progress bar.
+
+    Returns:
+        ``output``.
 
     Raises:
         ValueError: the frame range holds no predicted frame.

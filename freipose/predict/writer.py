@@ -78,21 +78,26 @@ class OutputHeader:
 
     @property
     def num_frames(self) -> int:
+        """Rows of this output (``stop - start``)."""
         return self.stop - self.start
 
     @property
     def run_range(self) -> tuple[int, int]:
+        """The frame range ``(start, stop)`` of the whole run (all shards)."""
         a = self.start if self.run_start is None else self.run_start
         b = self.stop if self.run_stop is None else self.run_stop
         return a, b
 
     def calibration_text(self) -> str:
+        """The rig as ``calibration.toml`` text."""
         return rig_to_toml_text(self.rig)
 
     def skeleton_text(self) -> str | None:
+        """The skeleton as TOML text, or None."""
         return tomli_w.dumps(self.skeleton.to_dict()) if self.skeleton is not None else None
 
     def provenance_text(self) -> str:
+        """The provenance as JSON text (sorted keys)."""
         return json.dumps(dict(self.provenance), default=str, sort_keys=True)
 
     def run_key(self) -> str:
@@ -109,6 +114,7 @@ class OutputHeader:
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
     def shard_text(self) -> str:
+        """``"I/N"``, or ``""`` for an unsharded run."""
         return "" if self.shard is None else f"{self.shard[0]}/{self.shard[1]}"
 
 
@@ -236,7 +242,7 @@ class IncrementalPosesWriter:
         if (
             key != self.header.run_key()
             or shard != self.header.shard_text()
-            or T != self.header.num_frames
+            or self.header.num_frames != T
         ):
             log.warning(
                 "%s was written with other settings (model, calibration, frames or shard); "

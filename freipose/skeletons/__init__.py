@@ -1,0 +1,1 @@
+"""The skeletons shipped with FreiPose (``rat``, ``mouse``, ``paw``) as TOML files."""
