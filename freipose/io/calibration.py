@@ -7,8 +7,9 @@ other tools' formats are :mod:`freipose.io.calibration_formats`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import MappingProxyType
 
 from freipose.errors import InputFileError
 from freipose.geometry.camera import CameraRig
@@ -23,10 +24,12 @@ Reader = Callable[[Path], CameraRig]
 Writer = Callable[[CameraRig, Path], None]
 
 # Format name -> reader / writer.
-READERS: dict[str, Reader] = {"toml": read_calibration_toml, **formats.READERS}
-WRITERS: dict[str, Writer] = {"toml": write_calibration_toml, **formats.WRITERS}
+READERS: Mapping[str, Reader] = MappingProxyType({"toml": read_calibration_toml, **formats.READERS})
+WRITERS: Mapping[str, Writer] = MappingProxyType(
+    {"toml": write_calibration_toml, **formats.WRITERS}
+)
 # Suffix (lower case) -> format name; the key "/" names the format of an existing folder.
-SUFFIXES: dict[str, str] = {".toml": "toml", **formats.SUFFIXES}
+SUFFIXES: Mapping[str, str] = MappingProxyType({".toml": "toml", **formats.SUFFIXES})
 
 
 def detect_format(path: str | Path, fmt: str | None = None) -> str:

@@ -28,8 +28,9 @@ from __future__ import annotations
 import json
 import logging
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -526,18 +527,24 @@ def with_image_sizes(rig: CameraRig, sizes: Mapping[str | None, tuple[int, int]]
 
 
 # Format name -> reader / writer, and suffix (lower case) -> format name ("/": a folder).
-READERS = {
-    "mjson": read_mjson,
-    "anipose": read_anipose_calibration,
-    "jarvis": read_jarvis_calibration,
-    "dannce": read_dannce_calibration,
-}
-WRITERS = {
-    "mjson": write_mjson,
-    "anipose": write_anipose_calibration,
-    "jarvis": write_jarvis_calibration,
-}
-SUFFIXES = {".json": "mjson", ".yaml": "jarvis", ".yml": "jarvis", ".mat": "dannce", "/": "jarvis"}
+READERS: Mapping[str, Callable[[Path], CameraRig]] = MappingProxyType(
+    {
+        "mjson": read_mjson,
+        "anipose": read_anipose_calibration,
+        "jarvis": read_jarvis_calibration,
+        "dannce": read_dannce_calibration,
+    }
+)
+WRITERS: Mapping[str, Callable[[CameraRig, Path], None]] = MappingProxyType(
+    {
+        "mjson": write_mjson,
+        "anipose": write_anipose_calibration,
+        "jarvis": write_jarvis_calibration,
+    }
+)
+SUFFIXES: Mapping[str, str] = MappingProxyType(
+    {".json": "mjson", ".yaml": "jarvis", ".yml": "jarvis", ".mat": "dannce", "/": "jarvis"}
+)
 
 __all__ = [
     "ESTIMATED_KEY",

@@ -139,9 +139,7 @@ class FrameSource:
             self.num_frames = len(imgs)
             self.fps = float("nan")
         else:
-            self._open()
-            cap = self._cap
-            assert cap is not None
+            cap = self._open()
             ok, first = cap.read()
             if not ok or first is None:
                 raise MediaError(
@@ -166,11 +164,13 @@ class FrameSource:
         """The frame size ``(width, height)``."""
         return self.width, self.height
 
-    def _open(self) -> None:
-        self._cap = cv2.VideoCapture(str(self.path))
-        if not self._cap.isOpened():
+    def _open(self) -> cv2.VideoCapture:
+        cap = cv2.VideoCapture(str(self.path))
+        self._cap = cap
+        if not cap.isOpened():
             raise MediaError(f"{self.path}: OpenCV cannot open this file as a video")
         self._next = 0
+        return cap
 
     def _count_frames(self) -> int:
         cap = cv2.VideoCapture(str(self.path))
@@ -207,18 +207,16 @@ class FrameSource:
             if frame is None:
                 raise MediaError(f"{self._images[index]}: cannot be read as an image")
         else:
-            if self._cap is None:
-                self._open()
-            assert self._cap is not None
+            cap = self._cap if self._cap is not None else self._open()
             if index != self._next:
                 if index < self._next or index - self._next > 32:
-                    self._cap.set(cv2.CAP_PROP_POS_FRAMES, index)
+                    cap.set(cv2.CAP_PROP_POS_FRAMES, index)
                     self._next = index
                 while self._next < index:  # short forward skips: grab is exact and cheap
-                    if not self._cap.grab():
+                    if not cap.grab():
                         break
                     self._next += 1
-            ok, frame = self._cap.read()
+            ok, frame = cap.read()
             if not ok or frame is None:
                 raise MediaError(f"{self.path}: frame {index} cannot be decoded (truncated file?)")
             self._next = index + 1
