@@ -23,18 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
+from freipose.errors import InputFileError
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path, atomic_write_text
 from freipose.io.video import find_video
-from freipose.labels.importing import (
-    LabelImportError,
-    SourceLabels,
-    ViewTable,
-    camera_from_name,
-    combine_views,
-    frame_from_name,
-)
+from freipose.labels.importing import LabelImportError, SourceLabels
 from freipose.labels.mapping import NameMapping
+from freipose.labels.views import ViewTable, camera_from_name, combine_views, frame_from_name
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +38,14 @@ HEADER_NAMES = ("scorer", "individuals", "bodyparts", "coords")
 
 @dataclass(frozen=True, eq=False)
 class DlcTable:
-    """A DLC table: row names (N,), column tuples (scorer, [individual,] bodypart, coord),
-    values (N, C) float64 (NaN = missing)."""
+    """A DLC table.
+
+    Attributes:
+        path: the file read.
+        index: (N,) row names.
+        columns: (C,) column tuples (scorer, [individual,] bodypart, coord).
+        values: (N, C) float64 (NaN = missing).
+    """
 
     path: Path
     index: list[str]
@@ -134,7 +135,8 @@ def _read_h5_table(path: Path) -> DlcTable:
 def _from_frame(path: Path, df: object) -> DlcTable:
     import pandas as pd
 
-    assert isinstance(df, pd.DataFrame)
+    if not isinstance(df, pd.DataFrame):
+        raise LabelImportError(f"{path}: the HDF5 file holds no DeepLabCut table (a DataFrame)")
     idx = ["/".join(str(x) for x in i) if isinstance(i, tuple) else str(i) for i in df.index]
     cols = [tuple(str(x) for x in c) for c in df.columns]
     levels = tuple(str(n) for n in df.columns.names)
@@ -188,7 +190,7 @@ def read_dlc_table(path: str | Path) -> DlcTable:
     """Read a DLC ``.h5`` or ``.csv`` table (labels or predictions)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"DeepLabCut table not found: {path}")
+        raise InputFileError(f"DeepLabCut table not found: {path}")
     if path.suffix.lower() in (".h5", ".hdf5"):
         return _read_h5_table(path)
     if path.suffix.lower() == ".csv":
@@ -247,7 +249,7 @@ def _expand(sources: Sequence[Path]) -> list[Path]:
     for s in sources:
         s = Path(s)
         if not s.exists():
-            raise FileNotFoundError(f"DeepLabCut source not found: {s}")
+            raise InputFileError(f"DeepLabCut source not found: {s}")
         if s.is_file():
             out.append(s)
         elif (s / "labeled-data").is_dir():

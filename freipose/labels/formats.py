@@ -1,8 +1,8 @@
-"""Label importers for DANNCE/Label3D, the original FreiPose, Anipose, JARVIS and SLEAP.
+"""Label importers for DANNCE/Label3D, the original FreiPose, Anipose and JARVIS.
 
 Each ``read_<format>(sources, calibration, mapping, session)`` returns a list of
 :class:`~freipose.labels.importing.SourceLabels`; :data:`IMPORTERS` maps ``--format`` names
-to them (``dlc`` lives in :mod:`freipose.labels.dlc`).
+to them (``dlc`` lives in :mod:`freipose.labels.dlc`, ``sleap`` in :mod:`freipose.labels.sleap`).
 """
 
 from __future__ import annotations
@@ -14,30 +14,24 @@ from pathlib import Path
 
 import numpy as np
 
-from freipose.geometry.camera import Camera, CameraRig
+from freipose.geometry.camera import CameraRig
 from freipose.io.video import VIDEO_SUFFIXES, find_video
 from freipose.labels.dlc import read_dlc, read_dlc_table, table_points
-from freipose.labels.importing import (
-    LabelImportError,
-    SourceLabels,
+from freipose.labels.importing import LabelImportError, SourceLabels
+from freipose.labels.mapping import NameMapping
+from freipose.labels.sleap import read_sleap
+from freipose.labels.views import (
     ViewTable,
     camera_from_name,
     combine_views,
+    existing_path,
     frame_from_name,
     match_camera,
 )
-from freipose.labels.mapping import NameMapping
 
 log = logging.getLogger(__name__)
 
 Importer = Callable[[Sequence[Path], CameraRig | None, NameMapping, str | None], list[SourceLabels]]
-
-
-def _exists(p: Path, what: str) -> Path:
-    p = Path(p)
-    if not p.exists():
-        raise FileNotFoundError(f"{what} not found: {p}")
-    return p
 
 
 # -- DANNCE / Label3D -------------------------------------------------------------------
@@ -60,7 +54,7 @@ def read_dannce(
 
     out = []
     for src in sources:
-        path = _exists(Path(src), "DANNCE label file")
+        path = existing_path(Path(src), "DANNCE label file")
         if path.is_dir():
             cands = sorted(path.glob("*dannce*.mat")) or sorted(path.glob("*.mat"))
             if not cands:
@@ -145,10 +139,10 @@ def read_freipose_json(
     mapping: NameMapping,
     session: str | None = None,
 ) -> list[SourceLabels]:
-    """Original FreiPose ``anno.json`` (``{"%08d.png": {"camK": {"kp_uv", "vis"}, "xyz",
-    "vis3d"}}``, xyz in metres) with ``M.json`` next to it or in the parent folder.
+    """Original FreiPose ``anno.json`` with ``M.json`` next to it or in the parent folder.
 
-    The key's digits are the video frame; ``xyz`` with ``vis3d > 0.5`` is kept as the 3D
+    The file is ``{"%08d.png": {"camK": {"kp_uv", "vis"}, "xyz", "vis3d"}}``, xyz in
+    metres. The key's digits are the video frame; ``xyz`` with ``vis3d > 0.5`` is kept as the 3D
     label (converted to mm), other keypoints are triangulated. Keypoints are named
     ``kp0..`` (use ``--skeleton`` with the original's keypoint order, e.g. ``rat``).
     """
@@ -156,10 +150,10 @@ def read_freipose_json(
 
     out = []
     for src in sources:
-        path = _exists(Path(src), "FreiPose anno.json")
+        path = existing_path(Path(src), "FreiPose anno.json")
         if path.is_dir():
             path = path / "anno.json"
-            _exists(path, "FreiPose anno.json")
+            existing_path(path, "FreiPose anno.json")
         try:
             data = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -240,18 +234,18 @@ def read_anipose(
     session: str | None = None,
     min_likelihood: float = 0.5,
 ) -> list[SourceLabels]:
-    """Anipose 2D pose tables (``pose-2d/<session>_<camera>.h5`` or ``.csv``, DLC layout,
-    one row per video frame) with its ``calibration.toml``.
+    """Anipose 2D pose tables with its ``calibration.toml``.
 
-    Sources are files or folders of them; a ``calibration.toml`` among the sources, in the
-    folder or its parent is used when ``--calibration`` is not given. Points below
-    ``min_likelihood`` are unlabeled; rows without points are skipped.
+    The tables are ``pose-2d/<session>_<camera>.h5`` or ``.csv`` (DLC layout, one row per
+    video frame). Sources are files or folders of them; a ``calibration.toml`` among the
+    sources, in the folder or its parent is used when ``--calibration`` is not given. Points
+    below ``min_likelihood`` are unlabeled; rows without points are skipped.
     """
     from freipose.io.calibration import load_calibration
 
     files: list[Path] = []
     for s in sources:
-        s = _exists(Path(s), "Anipose pose file or folder")
+        s = existing_path(Path(s), "Anipose pose file or folder")
         if s.is_dir():
             files += sorted(p for p in s.iterdir() if p.suffix.lower() in (".h5", ".csv"))
         elif s.suffix.lower() == ".toml":
@@ -310,9 +304,11 @@ def read_jarvis(
     mapping: NameMapping,
     session: str | None = None,
 ) -> list[SourceLabels]:
-    """JARVIS training sets: ``annotations/instances_<set>.json`` (COCO keypoints; images
-    ``<recording>/<camera>/Frame_<n>.jpg``; (0, 0) = unlabeled) with the calibrations the
-    file lists (OpenCV YAML per camera, relative to the dataset folder).
+    """JARVIS training sets with the calibrations their files list.
+
+    A set is ``annotations/instances_<set>.json`` (COCO keypoints; images
+    ``<recording>/<camera>/Frame_<n>.jpg``; (0, 0) = unlabeled); the calibrations are
+    OpenCV YAML per camera, relative to the dataset folder.
 
     Sources are JSON files or dataset folders (all ``annotations/instances_*.json``).
     """
@@ -320,7 +316,7 @@ def read_jarvis(
 
     files: list[Path] = []
     for s in sources:
-        s = _exists(Path(s), "JARVIS annotation file or dataset folder")
+        s = existing_path(Path(s), "JARVIS annotation file or dataset folder")
         if s.is_dir():
             files += sorted((s / "annotations").glob("instances_*.json")) or sorted(
                 s.glob("instances_*.json")
@@ -394,171 +390,6 @@ def read_jarvis(
         if rig is None:
             rig = next((r for r in rigs.values() if {v.camera for v in vts} <= set(r.names)), None)
         out.append(combine_views(sess.replace("/", "_"), vts, rig))
-    return out
-
-
-# -- SLEAP ------------------------------------------------------------------------------
-def _sleap_rig(session: object) -> CameraRig | None:
-    cg = getattr(session, "camera_group", None)
-    cams = []
-    for c in getattr(cg, "cameras", []) or []:
-        if c.size is None:
-            return None
-        cams.append(
-            Camera.from_rvec(
-                str(c.name),
-                tuple(int(x) for x in c.size),
-                np.asarray(c.matrix, dtype=np.float64),
-                np.asarray(c.dist, dtype=np.float64).ravel()[:5],
-                np.asarray(c.rvec, dtype=np.float64),
-                np.asarray(c.tvec, dtype=np.float64),
-            )
-        )
-    return CameraRig(tuple(cams), {"source_format": "SLEAP session"}) if cams else None
-
-
-def _resolve_video(filename: str, near: Path) -> Path | None:
-    base = Path(str(filename).replace("\\", "/")).name
-    for d in (near, near / "videos", near.parent / "videos"):
-        if (d / base).is_file():
-            return d / base
-    return None
-
-
-def read_sleap(
-    sources: Sequence[Path],
-    calibration: CameraRig | None,
-    mapping: NameMapping,
-    session: str | None = None,
-) -> list[SourceLabels]:
-    """SLEAP ``.slp`` files, read with sleap-io (``pip install 'freipose[sleap]'``).
-
-    A multi-camera file (with a recording session) gives one session: cameras from the
-    session's video-to-camera map, cross-view identity from its instance groups when present,
-    else from tracks. Otherwise each ``.slp`` is one camera (its name from ``--camera-map``,
-    a calibration camera in the file name, or the file stem). Only user-labeled instances
-    are imported (predictions are not labels). Videos are found by base name next to the
-    file or in a ``videos`` folder.
-    """
-    try:
-        import sleap_io as sio
-    except ImportError as exc:
-        raise LabelImportError(
-            "reading SLEAP files needs sleap-io: pip install 'freipose[sleap]'"
-        ) from exc
-    single: dict[str, list[ViewTable]] = {}
-    single_videos: dict[str, dict[str, Path]] = {}
-    out = []
-    for src in sources:
-        path = _exists(Path(src), "SLEAP file")
-        try:
-            labels = sio.load_slp(str(path))
-        except Exception as exc:  # sleap-io raises many kinds for bad files
-            raise LabelImportError(f"{path}: not a readable SLEAP .slp file ({exc})") from exc
-        if not labels.skeletons:
-            raise LabelImportError(f"{path}: the file has no skeleton")
-        kps = list(labels.skeletons[0].node_names)
-        user = [
-            (lf, inst)
-            for lf in labels.labeled_frames
-            for inst in lf.instances
-            if type(inst).__name__ == "Instance"
-        ]
-        if not user:
-            raise LabelImportError(
-                f"{path}: no user-labeled instances (only predictions); label frames in SLEAP "
-                f"or promote predictions to user instances first"
-            )
-        sessions = list(getattr(labels, "sessions", []) or [])
-        if sessions:
-            rs = sessions[0]
-            rig = calibration or _sleap_rig(rs)
-            cam_of = {}
-            for vid in labels.videos:
-                cam = rs.get_camera(vid)
-                if cam is None:
-                    continue
-                cam_of[id(vid)] = str(cam.name)
-                stem = Path(str(vid.filename).replace("\\", "/")).stem
-                if match_camera(stem, [cam.name]) is None:
-                    log.warning("%s: video %s is mapped to camera %s", path, stem, cam.name)
-            groups = []
-            fgs = getattr(rs, "frame_groups", {}) or {}
-            for fidx, fg in sorted(fgs.items()):
-                for g, ig in enumerate(fg.instance_groups):
-                    by_cam = {str(c.name): inst for c, inst in ig.instance_by_camera.items()}
-                    groups.append((int(fidx), f"group{g}", by_cam))
-            if not groups:  # identity from tracks
-                tmp: dict[tuple[int, str], dict[str, object]] = {}
-                for lf, inst in user:
-                    cam = cam_of.get(id(lf.video))
-                    if cam is None:
-                        continue
-                    tr = inst.track.name if inst.track is not None else ""
-                    d = tmp.setdefault((int(lf.frame_idx), tr), {})
-                    if cam in d:
-                        raise LabelImportError(
-                            f"{path}: frame {lf.frame_idx} of camera {cam} has several "
-                            f"instances of track {tr!r}; cross-view identity is ambiguous"
-                        )
-                    d[cam] = inst
-                groups = [(f, tr, d) for (f, tr), d in sorted(tmp.items())]
-            cams = sorted(
-                set(cam_of.values()),
-                key=lambda c: list(rig.names).index(c) if rig and c in rig.names else 1e9,
-            )
-            vts = []
-            for cam in cams:
-                rows = [(f, ind, d[cam]) for f, ind, d in groups if cam in d]
-                vts.append(
-                    ViewTable(
-                        str(path),
-                        cam,
-                        kps,
-                        np.array([r[0] for r in rows], dtype=np.int64),
-                        np.array(
-                            [np.asarray(r[2].numpy(), dtype=np.float64) for r in rows]
-                        ).reshape(len(rows), len(kps), 2),
-                        [f"frame {r[0]} {r[1]}" for r in rows],
-                        [r[1] for r in rows],
-                    )
-                )
-            videos = {}
-            for vid in labels.videos:
-                if id(vid) in cam_of:
-                    p = _resolve_video(vid.filename, path.parent)
-                    if p is not None:
-                        videos[cam_of[id(vid)]] = p
-            out.append(combine_views(session or path.stem, vts, rig, videos))
-            continue
-        # one camera per file
-        cam, sess = camera_from_name(path.stem, path, calibration, mapping)
-        if len(labels.videos) > 1:
-            raise LabelImportError(
-                f"{path}: {len(labels.videos)} videos but no recording session linking them to "
-                f"cameras; use one .slp per camera or a SLEAP multi-view session"
-            )
-        rows = sorted(
-            ((int(lf.frame_idx), inst.track.name if inst.track else "", inst) for lf, inst in user),
-            key=lambda r: (r[0], r[1]),
-        )
-        sname = session or sess or "session"
-        single.setdefault(sname, []).append(
-            ViewTable(
-                str(path),
-                cam,
-                kps,
-                np.array([r[0] for r in rows], dtype=np.int64),
-                np.array([np.asarray(r[2].numpy(), dtype=np.float64) for r in rows]),
-                [f"frame {r[0]} {r[1]}".strip() for r in rows],
-                [r[1] for r in rows] if any(r[1] for r in rows) else None,
-            )
-        )
-        p = _resolve_video(labels.videos[0].filename, path.parent)
-        if p is not None:
-            single_videos.setdefault(sname, {})[cam] = p
-    for sname, vts in single.items():
-        out.append(combine_views(sname, vts, calibration, single_videos.get(sname, {})))
     return out
 
 

@@ -1,22 +1,24 @@
 """From other tools' labels to a :class:`~freipose.io.labels.LabelSet`.
 
 Every format reader produces :class:`SourceLabels` (one recording session of one source,
-in the source's own keypoint and camera names); :func:`build_labelset` maps names onto the
+in the source's own keypoint and camera names; per-camera formats join their tables with
+:func:`freipose.labels.views.combine_views`); :func:`build_labelset` maps names onto the
 skeleton, checks cameras against the calibration, validates frame indices against the
 videos and triangulates 2D labels seen in at least two views.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.geometry.triangulation import triangulate_robust
 from freipose.io.labels import LabelSet, SessionInfo
@@ -25,7 +27,7 @@ from freipose.labels.mapping import NameMapping, resolve_keypoints
 log = logging.getLogger(__name__)
 
 
-class LabelImportError(ValueError):
+class LabelImportError(FreiPoseError):
     """Labels cannot be imported; the message names the file and the problem."""
 
 
@@ -89,68 +91,6 @@ class ImportOptions:
     skip_empty: bool = False
     threshold: float = 20.0
     triangulate: bool = True
-
-
-_DIGITS = re.compile(r"(\d+)")
-
-
-def frame_from_name(name: str, source: str) -> int:
-    """The frame index in an image file name: the last digit run of its stem (img0123 -> 123)."""
-    stem = Path(str(name).replace("\\", "/")).stem
-    runs = _DIGITS.findall(stem)
-    if not runs:
-        raise LabelImportError(
-            f"{source}: cannot tell the frame index of {name!r}; image names must contain the "
-            f"video frame number (e.g. img0123.png)"
-        )
-    return int(runs[-1])
-
-
-def match_camera(name: str, cameras: Sequence[str]) -> tuple[str, str] | None:
-    """Find a camera name inside a folder/file name: exact, or a ``_ - .`` separated token.
-
-    Returns ``(camera, rest)`` (rest: the name without the camera token, e.g. the session),
-    the longest match winning; None when no camera matches.
-    """
-    best: tuple[str, str] | None = None
-    for cam in cameras:
-        if name == cam:
-            return cam, ""
-        pat = re.compile(rf"(^|[_\-. ]){re.escape(cam)}($|[_\-. ])")
-        m = pat.search(name)
-        if m and (best is None or len(cam) > len(best[0])):
-            rest = (name[: m.start()] + m.group(1) + name[m.end() :]).strip("_-. ")
-            rest = re.sub(r"[_\-. ]{2,}", "_", rest)
-            best = (cam, rest)
-    return best
-
-
-def camera_from_name(
-    name: str,
-    source: object,
-    calibration: CameraRig | None,
-    mapping: NameMapping,
-    kind: str = "file",
-) -> tuple[str, str]:
-    """``(camera, session)`` of a per-camera source file/folder called ``name``.
-
-    A name in ``--camera-map`` is kept as the camera; else, with a calibration, the
-    calibration camera inside the name (``run1_cam0`` -> ``("cam0", "run1")``); else the
-    name itself. The session is ``""`` when the name does not tell it.
-
-    Raises:
-        LabelImportError: with a calibration, the name contains none of its cameras.
-    """
-    if name in mapping.cameras or calibration is None:
-        return name, ""
-    m = match_camera(name, calibration.names)
-    if m is None:
-        raise LabelImportError(
-            f"{source}: {kind} {name!r} names none of the calibration cameras "
-            f"{list(calibration.names)}; name {kind}s <session>_<camera> or pass "
-            f"--camera-map {name}=CAMERA"
-        )
-    return m
 
 
 def _check_rows(src: SourceLabels, skip_empty: bool) -> SourceLabels:
@@ -233,10 +173,231 @@ def _relpath(path: Path, base: Path) -> str:
     return os.path.relpath(Path(path).resolve(), Path(base).resolve())
 
 
+def _named_keypoints(src: SourceLabels, options: ImportOptions) -> SourceLabels:
+    """The source with unnamed (positional) keypoints named by the skeleton, as a copy.
+
+    Args:
+        src: the source labels (not changed).
+        options: the skeleton keypoints and the mapping.
+
+    Returns:
+        ``src`` itself, or a copy with the skeleton's keypoint names.
+
+    Raises:
+        LabelImportError: the skeleton has another number of keypoints.
+    """
+    sk = options.skeleton_keypoints
+    if (
+        not src.positional
+        or sk is None
+        or any(k in options.mapping.keypoints for k in src.keypoints)
+    ):
+        return src
+    if len(sk) != len(src.keypoints):
+        raise LabelImportError(
+            f"{src.source}: the file has {len(src.keypoints)} unnamed keypoints but the "
+            f'skeleton has {len(sk)}; name them with a mapping file (kp0 = "NAME", ...)'
+        )
+    return dataclasses.replace(src, keypoints=list(sk))
+
+
+def _source_rig(src: SourceLabels, cams: Sequence[str], options: ImportOptions) -> CameraRig | None:
+    """The cameras of a source's session: the calibration's (or the source's) cameras it uses.
+
+    Args:
+        src: the source labels.
+        cams: (V,) its cameras after renaming.
+        options: the calibration and the mapping.
+
+    Returns:
+        The rig of the source's cameras in calibration order, or None without cameras.
+
+    Raises:
+        LabelImportError: a camera is missing from the calibration.
+    """
+    mapping = options.mapping
+    rig = options.calibration if options.calibration is not None else src.calibration
+    if rig is None:
+        return None
+    if options.calibration is None and mapping.cameras:
+        rig = CameraRig(tuple(c.replace(name=mapping.camera(c.name)) for c in rig), rig.metadata)
+    where = options.calibration_source if options.calibration is not None else src.source
+    missing = [c for c in cams if c not in rig.names]
+    if missing:
+        raise LabelImportError(
+            f"{src.source}: cameras {missing} are not in the calibration {where} (its "
+            f"cameras: {list(rig.names)}); rename them with --camera-map SOURCE=CAMERA "
+            f"or use the matching calibration"
+        )
+    return rig.subset([c for c in rig.names if c in cams])
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedSource:
+    """A source checked against the options, with its names mapped to the targets.
+
+    Attributes:
+        src: the source labels (rows checked, keypoints named).
+        keypoints: the target keypoints.
+        kidx: per source keypoint its target index (None: dropped).
+        cameras: (V,) the source's cameras after renaming.
+        rig: the cameras of its session, or None.
+        videos: camera -> video path.
+    """
+
+    src: SourceLabels
+    keypoints: tuple[str, ...]
+    kidx: list[int | None]
+    cameras: list[str]
+    rig: CameraRig | None
+    videos: dict[str, Path]
+
+
+def prepare_source(
+    src: SourceLabels, options: ImportOptions, keypoints: tuple[str, ...] | None
+) -> PreparedSource:
+    """Check one source's rows, keypoints, cameras and frames.
+
+    Args:
+        src: the source labels (not changed).
+        options: the import options.
+        keypoints: the target keypoints so far (None: this source's names decide).
+
+    Returns:
+        The prepared source.
+
+    Raises:
+        LabelImportError / MappingError: empty rows, unknown keypoints, keypoints that
+            differ from the first source's, cameras missing from the calibration or
+            repeated, frames past a video's end.
+    """
+    mapping = options.mapping
+    src = _named_keypoints(_check_rows(src, options.skip_empty), options)
+    target, kidx = resolve_keypoints(
+        src.keypoints, mapping, keypoints, src.source, options.ignore_unknown
+    )
+    if keypoints is not None and target != keypoints:  # a later source without --skeleton
+        raise LabelImportError(
+            f"{src.source}: keypoints {list(target)} differ from those of the first source "
+            f"{list(keypoints)}; pass --skeleton to import sources with different keypoints"
+        )
+    cams = [mapping.camera(c) for c in src.cameras]
+    rig = _source_rig(src, cams, options)
+    if len(set(cams)) != len(cams):
+        raise LabelImportError(f"{src.source}: cameras {cams} repeat after renaming")
+    videos = {mapping.camera(c): Path(p) for c, p in src.videos.items()}
+    check_frames_in_videos(src.session, src.frame_index, videos)
+    return PreparedSource(src, target, kidx, cams, rig, videos)
+
+
+@dataclass(frozen=True)
+class SourceArrays:
+    """One source's labels in the labels set's camera and keypoint order.
+
+    Attributes:
+        points2d: (N, V, K, 2) pixels, NaN = unlabeled.
+        visible2d: (N, V, K) bool.
+        points3d: (N, K, 3) mm: the source's, else triangulated where possible.
+    """
+
+    points2d: np.ndarray
+    visible2d: np.ndarray
+    points3d: np.ndarray
+
+
+def source_arrays(
+    p: PreparedSource, all_cams: Sequence[str], options: ImportOptions
+) -> SourceArrays:
+    """Place a source's labels in the target order and triangulate its missing 3D points.
+
+    Args:
+        p: the prepared source.
+        all_cams: (V,) the cameras of the labels set.
+        options: triangulation switch and threshold.
+
+    Returns:
+        The source's arrays.
+    """
+    src, kidx = p.src, p.kidx
+    n, v, k = len(src.frame_index), len(all_cams), len(p.keypoints)
+    p2 = np.full((n, v, k, 2), np.nan)
+    vis = np.zeros((n, v, k), dtype=bool)
+    p3 = np.full((n, k, 3), np.nan)
+    src_keep = [i for i, t in enumerate(kidx) if t is not None]
+    tgt = [kidx[i] for i in src_keep]
+    for j, cam in enumerate(p.cameras):
+        col = list(all_cams).index(cam)
+        block = src.points2d[:, j][:, src_keep]
+        p2[:, col, tgt] = block
+        finite = np.isfinite(block).all(-1)
+        vis[:, col, tgt] = (
+            finite if src.visible2d is None else (src.visible2d[:, j][:, src_keep] & finite)
+        )
+    if src.points3d is not None:
+        p3[:, tgt] = src.points3d[:, src_keep]
+    if p.rig is not None and options.triangulate:
+        cols = [list(all_cams).index(c) for c in p.rig.names]
+        todo = ~np.isfinite(p3).all(-1)  # (n, K): no 3D from the source
+        if np.any(todo):
+            X, _ = triangulate_labels(p2[:, cols], p.rig, options.threshold)
+            p3 = np.where(todo[..., None], X, p3)
+            n2 = int((np.isfinite(p2[:, cols]).all(-1).sum(1) >= 2)[todo].sum())
+            got = int(np.isfinite(X).all(-1)[todo].sum())
+            log.info(
+                "%s: triangulated %d of %d keypoints labeled in >= 2 views", src.source, got, n2
+            )
+    return SourceArrays(p2, vis, p3)
+
+
+def _session_info(info: SessionInfo | None, p: PreparedSource, out_dir: Path) -> SessionInfo:
+    """The session of a source, merged with what earlier sources gave for the same name.
+
+    Args:
+        info: the session so far (None: the first source of this session).
+        p: the prepared source.
+        out_dir: the folder video paths are made relative to.
+
+    Returns:
+        The session's cameras, videos (relative paths) and frame rate.
+
+    Raises:
+        LabelImportError: an earlier source of the session has other cameras.
+    """
+    rig, src = p.rig, p.src
+    videos = {c: _relpath(path, out_dir) for c, path in p.videos.items()}
+    if info is None:
+        return SessionInfo(rig, videos, src.fps)
+    same_rig = (info.calibration is None) == (rig is None) and (
+        rig is None
+        or (
+            set(info.calibration.names) == set(rig.names)
+            and all(info.calibration[c].allclose(rig[c]) for c in rig.names)
+        )
+    )
+    if not same_rig:
+        raise LabelImportError(
+            f"{src.source}: session {src.session!r} also comes from another source with other "
+            f"cameras; give the sources different session names (--session)"
+        )
+    merged_videos = dict(info.videos)
+    merged_videos.update(videos)
+    return SessionInfo(info.calibration, merged_videos, info.fps or src.fps)
+
+
 def build_labelset(
     sources: Sequence[SourceLabels], options: ImportOptions, output: str | Path
 ) -> LabelSet:
     """Merge source labels into one labels set (video paths relative to ``output``'s folder).
+
+    The sources are not changed.
+
+    Args:
+        sources: the labels read from the sources, one per session and source.
+        options: the import options.
+        output: the labels file to be written (its folder anchors the video paths).
+
+    Returns:
+        The labels set: rows of all sources in order, cameras in order of appearance.
 
     Raises:
         LabelImportError / MappingError: unknown keypoints, cameras missing from the
@@ -245,218 +406,30 @@ def build_labelset(
     if not sources:
         raise LabelImportError("no labels found in the given sources")
     out_dir = Path(output).resolve().parent
-    mapping = options.mapping
-    prepared = []
-    keypoints: tuple[str, ...] | None = options.skeleton_keypoints
+    prepared: list[PreparedSource] = []
+    keypoints = options.skeleton_keypoints
     for src in sources:
-        src = _check_rows(src, options.skip_empty)
-        sk = options.skeleton_keypoints
-        if (
-            src.positional
-            and sk is not None
-            and not any(k in mapping.keypoints for k in src.keypoints)
-        ):
-            if len(sk) != len(src.keypoints):
-                raise LabelImportError(
-                    f"{src.source}: the file has {len(src.keypoints)} unnamed keypoints but the "
-                    f'skeleton has {len(sk)}; name them with a mapping file (kp0 = "NAME", ...)'
-                )
-            src.keypoints = list(sk)
-        target, kidx = resolve_keypoints(
-            src.keypoints, mapping, keypoints, src.source, options.ignore_unknown
-        )
-        if keypoints is None:
-            keypoints = target
-        elif target != keypoints:  # a later source without --skeleton: must agree
-            raise LabelImportError(
-                f"{src.source}: keypoints {list(target)} differ from those of the first source "
-                f"{list(keypoints)}; pass --skeleton to import sources with different keypoints"
-            )
-        cams = [mapping.camera(c) for c in src.cameras]
-        rig = options.calibration if options.calibration is not None else src.calibration
-        if rig is not None:
-            if options.calibration is None and mapping.cameras:
-                rig = CameraRig(
-                    tuple(c.replace(name=mapping.camera(c.name)) for c in rig), rig.metadata
-                )
-            where = options.calibration_source if options.calibration is not None else src.source
-            missing = [c for c in cams if c not in rig.names]
-            if missing:
-                raise LabelImportError(
-                    f"{src.source}: cameras {missing} are not in the calibration {where} (its "
-                    f"cameras: {list(rig.names)}); rename them with --camera-map SOURCE=CAMERA "
-                    f"or use the matching calibration"
-                )
-            rig = rig.subset([c for c in rig.names if c in cams])
-        if len(set(cams)) != len(cams):
-            raise LabelImportError(f"{src.source}: cameras {cams} repeat after renaming")
-        videos = {mapping.camera(c): Path(p) for c, p in src.videos.items()}
-        check_frames_in_videos(src.session, src.frame_index, videos)
-        prepared.append((src, kidx, cams, rig, videos))
-    assert keypoints is not None
+        prepared.append(prepare_source(src, options, keypoints))
+        keypoints = prepared[-1].keypoints
     all_cams: list[str] = []
-    for _, _, cams, rig, _ in prepared:
-        order = list(rig.names) if rig is not None else cams
+    for p in prepared:
+        order = list(p.rig.names) if p.rig is not None else p.cameras
         all_cams += [c for c in order if c not in all_cams]
-    k = len(keypoints)
-    v = len(all_cams)
     sessions: dict[str, SessionInfo] = {}
-    parts_sess, parts_fi, parts_p2, parts_p3, parts_vis = [], [], [], [], []
-    any_vis = any(s.visible2d is not None for s, *_ in prepared)
-    for src, kidx, cams, rig, videos in prepared:
-        n = len(src.frame_index)
-        p2 = np.full((n, v, k, 2), np.nan)
-        vis = np.zeros((n, v, k), dtype=bool)
-        p3 = np.full((n, k, 3), np.nan)
-        src_keep = [i for i, t in enumerate(kidx) if t is not None]
-        tgt = [kidx[i] for i in src_keep]
-        for j, cam in enumerate(cams):
-            col = all_cams.index(cam)
-            block = src.points2d[:, j][:, src_keep]
-            p2[:, col, tgt] = block
-            finite = np.isfinite(block).all(-1)
-            vis[:, col, tgt] = (
-                finite if src.visible2d is None else (src.visible2d[:, j][:, src_keep] & finite)
-            )
-        if src.points3d is not None:
-            p3[:, tgt] = src.points3d[:, src_keep]
-        if rig is not None and options.triangulate:
-            cols = [all_cams.index(c) for c in rig.names]
-            todo = ~np.isfinite(p3).all(-1)  # (n, K): no 3D from the source
-            if np.any(todo):
-                X, _ = triangulate_labels(p2[:, cols], rig, options.threshold)
-                p3 = np.where(todo[..., None], X, p3)
-                n2 = int((np.isfinite(p2[:, cols]).all(-1).sum(1) >= 2)[todo].sum())
-                got = int(np.isfinite(X).all(-1)[todo].sum())
-                log.info(
-                    "%s: triangulated %d of %d keypoints labeled in >= 2 views",
-                    src.source,
-                    got,
-                    n2,
-                )
-        name = src.session
-        if name in sessions:
-            info = sessions[name]
-            same_rig = (info.calibration is None) == (rig is None) and (
-                rig is None
-                or (
-                    set(info.calibration.names) == set(rig.names)
-                    and all(info.calibration[c].allclose(rig[c]) for c in rig.names)
-                )
-            )
-            if not same_rig:
-                raise LabelImportError(
-                    f"{src.source}: session {name!r} also comes from another source with other "
-                    f"cameras; give the sources different session names (--session)"
-                )
-            merged_videos = dict(info.videos)
-            merged_videos.update({c: _relpath(p, out_dir) for c, p in videos.items()})
-            sessions[name] = SessionInfo(info.calibration, merged_videos, info.fps or src.fps)
-        else:
-            sessions[name] = SessionInfo(
-                rig, {c: _relpath(p, out_dir) for c, p in videos.items()}, src.fps
-            )
-        parts_sess.append(np.array([name] * n, dtype=object))
-        parts_fi.append(np.asarray(src.frame_index, dtype=np.int64))
-        parts_p2.append(p2)
-        parts_p3.append(p3)
-        parts_vis.append(vis)
+    arrays = []
+    for p in prepared:
+        arrays.append(source_arrays(p, all_cams, options))
+        sessions[p.src.session] = _session_info(sessions.get(p.src.session), p, out_dir)
+    any_vis = any(p.src.visible2d is not None for p in prepared)
     return LabelSet(
-        np.concatenate(parts_sess),
-        np.concatenate(parts_fi),
-        np.concatenate(parts_p2),
-        np.concatenate(parts_p3),
+        np.concatenate(
+            [np.array([p.src.session] * len(p.src.frame_index), dtype=object) for p in prepared]
+        ),
+        np.concatenate([np.asarray(p.src.frame_index, dtype=np.int64) for p in prepared]),
+        np.concatenate([a.points2d for a in arrays]),
+        np.concatenate([a.points3d for a in arrays]),
         tuple(all_cams),
-        keypoints,
+        prepared[0].keypoints,
         sessions,
-        np.concatenate(parts_vis) if any_vis else None,
-    )
-
-
-@dataclass(eq=False)
-class ViewTable:
-    """2D labels of one camera: rows keyed by (frame, individual)."""
-
-    source: str
-    camera: str
-    keypoints: list[str]
-    frame_index: np.ndarray  # (N,)
-    points2d: np.ndarray  # (N, K, 2)
-    row_names: list[str]
-    individual: list[str] | None = None
-    visible2d: np.ndarray | None = None  # (N, K)
-
-
-def combine_views(
-    session: str,
-    views: Sequence[ViewTable],
-    calibration: CameraRig | None = None,
-    videos: Mapping[str, Path] | None = None,
-    fps: float | None = None,
-) -> SourceLabels:
-    """Join per-camera tables of one session into rows keyed by (frame, individual).
-
-    Raises:
-        LabelImportError: two tables for one camera, or tables with different keypoints.
-    """
-    cams = [vt.camera for vt in views]
-    dup = sorted({c for c in cams if cams.count(c) > 1})
-    if dup:
-        srcs = [vt.source for vt in views if vt.camera in dup]
-        raise LabelImportError(
-            f"session {session!r}: several sources {srcs} map to camera(s) {dup}; name "
-            f"folders/files <session>_<camera> or map them with --camera-map"
-        )
-    kps = list(views[0].keypoints)
-    for vt in views[1:]:
-        if list(vt.keypoints) != kps:
-            raise LabelImportError(
-                f"{vt.source}: keypoints {list(vt.keypoints)} differ from {kps} in "
-                f"{views[0].source}; all cameras of a session must label the same keypoints"
-            )
-    keys: dict[tuple[int, str], int] = {}
-    names: list[str] = []
-    for vt in views:
-        for r, f in enumerate(vt.frame_index):
-            ind = vt.individual[r] if vt.individual is not None else ""
-            key = (int(f), ind)
-            if key not in keys:
-                keys[key] = len(keys)
-                names.append(vt.row_names[r])
-    order = sorted(keys, key=lambda kv: (kv[0], kv[1]))
-    pos = {key: i for i, key in enumerate(order)}
-    n, v, k = len(order), len(views), len(kps)
-    p2 = np.full((n, v, k, 2), np.nan)
-    any_vis = any(vt.visible2d is not None for vt in views)
-    vis = np.zeros((n, v, k), dtype=bool)
-    for j, vt in enumerate(views):
-        seen = set()
-        for r, f in enumerate(vt.frame_index):
-            ind = vt.individual[r] if vt.individual is not None else ""
-            i = pos[(int(f), ind)]
-            if i in seen:
-                raise LabelImportError(
-                    f"{vt.source}: frame {int(f)}"
-                    + (f" of {ind!r}" if ind else "")
-                    + f" is labeled twice ({vt.row_names[r]})"
-                )
-            seen.add(i)
-            p2[i, j] = vt.points2d[r]
-            fin = np.isfinite(vt.points2d[r]).all(-1)
-            vis[i, j] = fin if vt.visible2d is None else (vt.visible2d[r] & fin)
-    row_names = [names[keys[key]] for key in order]
-    has_ind = any(vt.individual is not None for vt in views)
-    return SourceLabels(
-        source=", ".join(dict.fromkeys(vt.source for vt in views)),
-        session=session,
-        cameras=cams,
-        keypoints=kps,
-        frame_index=np.array([key[0] for key in order], dtype=np.int64),
-        points2d=p2,
-        visible2d=vis if any_vis else None,
-        calibration=calibration,
-        videos=dict(videos or {}),
-        fps=fps,
-        row_names=row_names,
-        individual=[key[1] for key in order] if has_ind else None,
+        np.concatenate([a.visible2d for a in arrays]) if any_vis else None,
     )
