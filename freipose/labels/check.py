@@ -28,8 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
+from freipose.errors import FreiPoseError
 from freipose.geometry.triangulation import reprojection_errors, triangulate_robust
 from freipose.io.atomic import atomic_path, atomic_write_text
+from freipose.io.figures import new_figure, save_figure
 from freipose.io.labels import LabelSet
 from freipose.skeleton import Skeleton
 
@@ -68,12 +70,18 @@ class Suspicious:
 
 @dataclass(frozen=True, eq=False)
 class CheckResult:
-    """Errors (N, V, K) px (NaN: no label or no 3D), the 3D points used (N, K, 3) and the
-    suspicious labels, worst first."""
+    """The result of :func:`check_labels`.
+
+    Attributes:
+        errors: (N, V, K) reprojection errors in px (NaN: no label or no 3D point).
+        points3d: (N, K, 3) the 3D points used.
+        projections: (N, V, K, 2) their projections.
+        suspicious: the suspicious labels, worst first.
+    """
 
     errors: np.ndarray
     points3d: np.ndarray
-    projections: np.ndarray  # (N, V, K, 2)
+    projections: np.ndarray
     suspicious: list[Suspicious]
 
 
@@ -81,8 +89,17 @@ _LR = [("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT"), ("_l", "_r"), ("
 
 
 def infer_symmetry(keypoints: Sequence[str]) -> list[tuple[int, int]]:
-    """Left/right pairs from names (``Ear Left``/``Ear Right``, ``leftear``/``rightear``,
-    ``Haunch_left``/``Haunch_right``, ``EarL``/``EarR``)."""
+    """Left/right pairs from the keypoint names.
+
+    Names such as ``Ear Left``/``Ear Right``, ``leftear``/``rightear``,
+    ``Haunch_left``/``Haunch_right`` and ``EarL``/``EarR`` pair up.
+
+    Args:
+        keypoints: (K,) keypoint names.
+
+    Returns:
+        (left, right) index pairs.
+    """
     names = list(keypoints)
     pairs = []
     for i, a in enumerate(names):
@@ -98,6 +115,215 @@ def infer_symmetry(keypoints: Sequence[str]) -> list[tuple[int, int]]:
                 pairs.append((i, names.index(b)))
                 break
     return pairs
+
+
+class LabelCheckError(FreiPoseError):
+    """Labels cannot be checked with the given skeleton; the message says why."""
+
+
+@dataclass(frozen=True)
+class Reprojection:
+    """Labels reprojected from their robust 3D points.
+
+    Attributes:
+        errors: (N, V, K) reprojection errors in px (NaN: no label or no 3D point).
+        projections: (N, V, K, 2) projections of the 3D points.
+        points3d: (N, K, 3) the 3D points: re-triangulated, else the stored ones.
+    """
+
+    errors: np.ndarray
+    projections: np.ndarray
+    points3d: np.ndarray
+
+
+def reproject_labels(labels: LabelSet, threshold: float = 20.0) -> Reprojection:
+    """Re-triangulate every session's labels robustly and reproject them.
+
+    Where fewer than two views agree, the stored 3D point is used; sessions without
+    cameras keep NaN errors.
+
+    Args:
+        labels: the labels.
+        threshold: RANSAC inlier threshold (px).
+
+    Returns:
+        The errors, projections and 3D points.
+    """
+    n, v, k = labels.points2d.shape[:3]
+    errors = np.full((n, v, k), np.nan)
+    proj = np.full((n, v, k, 2), np.nan)
+    X = labels.points3d.copy()
+    for sess in sorted(set(labels.session)):
+        rig = labels.rig_for(sess)
+        if rig is None:
+            continue
+        rows = np.flatnonzero(labels.session == sess)
+        cols = [labels.cameras.index(c) for c in rig.names]
+        obs = np.moveaxis(labels.points2d[rows][:, cols], 1, 2)  # (n, K, C, 2)
+        Xr, _ = triangulate_robust(obs, rig, threshold=threshold, refine=True)
+        Xs = np.where(np.isfinite(Xr).all(-1, keepdims=True), Xr, X[rows])
+        X[rows] = Xs
+        pr = rig.project(Xs)  # (n, C, K, 2)
+        proj[np.ix_(rows, cols)] = pr
+        errors[np.ix_(rows, cols)] = np.moveaxis(reprojection_errors(Xs, obs, rig), 2, 1)
+    return Reprojection(errors, proj, X)
+
+
+def _finding(
+    labels: LabelSet,
+    kind: str,
+    severity: float,
+    i: int,
+    c: int | None,
+    keypoint: str,
+    value: float,
+    threshold: float,
+    detail: str,
+) -> Suspicious:
+    """A suspicious label of row ``i`` and camera ``c`` (None: a 3D finding)."""
+    return Suspicious(
+        kind,
+        float(severity),
+        int(i),
+        str(labels.session[i]),
+        int(labels.frame_index[i]),
+        labels.cameras[c] if c is not None else "",
+        keypoint,
+        float(value),
+        float(threshold),
+        detail,
+    )
+
+
+@dataclass(frozen=True)
+class SwapFindings:
+    """Left/right pairs that fit better swapped.
+
+    Attributes:
+        found: one finding per swapped pair in one view.
+        labels: (row, camera, keypoint) of every label in a swapped pair.
+    """
+
+    found: list[Suspicious]
+    labels: frozenset[tuple[int, int, int]]
+
+
+def swapped_pairs(
+    labels: LabelSet, symmetry: Sequence[tuple[int, int]], rep: Reprojection, max_error: float
+) -> SwapFindings:
+    """Find left/right pairs whose labels fit the other keypoint's projection much better.
+
+    Args:
+        labels: the labels.
+        symmetry: (left, right) keypoint index pairs.
+        rep: the labels' reprojection.
+        max_error: reprojection error (px) above which a label is suspicious.
+
+    Returns:
+        The findings and the labels they cover.
+    """
+    errors, proj = rep.errors, rep.projections
+    found: list[Suspicious] = []
+    swapped = set()
+    for a, b in symmetry:
+        ea, eb = errors[:, :, a], errors[:, :, b]
+        sw_a = np.linalg.norm(labels.points2d[:, :, a] - proj[:, :, b], axis=-1)
+        sw_b = np.linalg.norm(labels.points2d[:, :, b] - proj[:, :, a], axis=-1)
+        own, other = ea + eb, sw_a + sw_b
+        hit = (own > max_error) & (other < 0.5 * own)
+        for i, c in np.argwhere(hit):
+            swapped.update({(i, c, a), (i, c, b)})
+            pair = f"{labels.keypoints[a]} <-> {labels.keypoints[b]}"
+            found.append(
+                _finding(
+                    labels,
+                    "swapped",
+                    (own[i, c] - other[i, c]) / max_error,
+                    i,
+                    c,
+                    pair,
+                    own[i, c],
+                    max_error,
+                    f"left/right swapped? errors {own[i, c]:.1f} px as labeled, "
+                    f"{other[i, c]:.1f} px swapped",
+                )
+            )
+    return SwapFindings(found, frozenset(swapped))
+
+
+def reprojection_findings(
+    labels: LabelSet, errors: np.ndarray, max_error: float, skip: frozenset
+) -> list[Suspicious]:
+    """Labels further than ``max_error`` px from the reprojection of their 3D point.
+
+    Args:
+        labels: the labels.
+        errors: (N, V, K) reprojection errors in px.
+        max_error: the threshold in px.
+        skip: (row, camera, keypoint) already reported (as swapped).
+
+    Returns:
+        One finding per label above the threshold, in row, camera, keypoint order.
+    """
+    found = []
+    for i, c, kk in np.argwhere(errors > max_error):
+        if (i, c, kk) in skip:
+            continue
+        e = errors[i, c, kk]
+        found.append(
+            _finding(
+                labels,
+                "reprojection",
+                e / max_error,
+                i,
+                c,
+                labels.keypoints[kk],
+                e,
+                max_error,
+                f"label is {e:.1f} px from the reprojection of its 3D point",
+            )
+        )
+    return found
+
+
+def limb_findings(
+    labels: LabelSet, skeleton: Skeleton, points3d: np.ndarray, limb_tolerance: float
+) -> list[Suspicious]:
+    """Limbs far (relative and robust z-score > 4) from their median length.
+
+    Args:
+        labels: the labels (at least five rows, else nothing is found).
+        skeleton: the limbs.
+        points3d: (N, K, 3) the labels' 3D points.
+        limb_tolerance: relative deviation above which a limb is suspicious.
+
+    Returns:
+        One finding per suspicious limb and row.
+    """
+    if not skeleton.limbs or len(points3d) < 5:
+        return []
+    L = skeleton.limb_lengths(points3d)  # (N, L)
+    med = np.nanmedian(L, axis=0)
+    mad = 1.4826 * np.nanmedian(np.abs(L - med), axis=0) + 1e-9
+    rel = np.abs(L - med) / np.maximum(med, 1e-9)
+    z = np.abs(L - med) / mad
+    found = []
+    for i, li in np.argwhere((rel > limb_tolerance) & (z > 4)):
+        ends = ["+".join(skeleton.keypoints[j] for j in end) for end in skeleton.limbs[li]]
+        found.append(
+            _finding(
+                labels,
+                "limb_length",
+                rel[i, li] / limb_tolerance,
+                i,
+                None,
+                f"{ends[0]} - {ends[1]}",
+                L[i, li],
+                med[li],
+                f"limb {L[i, li]:.1f} mm vs median {med[li]:.1f} mm ({100 * rel[i, li]:.0f}% off)",
+            )
+        )
+    return found
 
 
 def check_labels(
@@ -117,109 +343,37 @@ def check_labels(
         max_error: reprojection error (px) above which a label is suspicious.
         limb_tolerance: relative limb length deviation above which a limb is suspicious.
         threshold: RANSAC inlier threshold (px) for re-triangulation.
+
+    Returns:
+        The errors, 3D points, projections and suspicious labels, worst first.
+
+    Raises:
+        LabelCheckError: the skeleton's keypoints are not the labels' keypoints.
     """
-    n, v, k = labels.points2d.shape[:3]
     if skeleton is not None and tuple(skeleton.keypoints) != tuple(labels.keypoints):
-        raise ValueError(
+        raise LabelCheckError(
             f"skeleton {skeleton.name!r} keypoints {list(skeleton.keypoints)} differ from the "
             f"labels' keypoints {list(labels.keypoints)}; import the labels with this skeleton"
         )
     sym = list(skeleton.symmetry) if skeleton is not None else infer_symmetry(labels.keypoints)
-    errors = np.full((n, v, k), np.nan)
-    proj = np.full((n, v, k, 2), np.nan)
-    X = labels.points3d.copy()
-    for sess in sorted(set(labels.session)):
-        rig = labels.rig_for(sess)
-        if rig is None:
-            continue
-        rows = np.flatnonzero(labels.session == sess)
-        cols = [labels.cameras.index(c) for c in rig.names]
-        obs = np.moveaxis(labels.points2d[rows][:, cols], 1, 2)  # (n, K, C, 2)
-        Xr, _ = triangulate_robust(obs, rig, threshold=threshold, refine=True)
-        Xs = np.where(np.isfinite(Xr).all(-1, keepdims=True), Xr, X[rows])
-        X[rows] = Xs
-        pr = rig.project(Xs)  # (n, C, K, 2)
-        proj[np.ix_(rows, cols)] = pr
-        errors[np.ix_(rows, cols)] = np.moveaxis(reprojection_errors(Xs, obs, rig), 2, 1)
-    found: list[Suspicious] = []
-
-    def add(
-        kind: str, sev: float, i: int, c: int | None, kp: str, val: float, thr: float, det: str
-    ):
-        found.append(
-            Suspicious(
-                kind,
-                float(sev),
-                int(i),
-                str(labels.session[i]),
-                int(labels.frame_index[i]),
-                labels.cameras[c] if c is not None else "",
-                kp,
-                float(val),
-                float(thr),
-                det,
-            )
-        )
-
-    bad = np.argwhere(errors > max_error)
-    swapped = set()
-    for a, b in sym:
-        ea, eb = errors[:, :, a], errors[:, :, b]
-        sw_a = np.linalg.norm(labels.points2d[:, :, a] - proj[:, :, b], axis=-1)
-        sw_b = np.linalg.norm(labels.points2d[:, :, b] - proj[:, :, a], axis=-1)
-        own, other = ea + eb, sw_a + sw_b
-        hit = (own > max_error) & (other < 0.5 * own)
-        for i, c in np.argwhere(hit):
-            swapped.update({(i, c, a), (i, c, b)})
-            pair = f"{labels.keypoints[a]} <-> {labels.keypoints[b]}"
-            add(
-                "swapped",
-                (own[i, c] - other[i, c]) / max_error,
-                i,
-                c,
-                pair,
-                own[i, c],
-                max_error,
-                f"left/right swapped? errors {own[i, c]:.1f} px as labeled, "
-                f"{other[i, c]:.1f} px swapped",
-            )
-    for i, c, kk in bad:
-        if (i, c, kk) in swapped:
-            continue
-        e = errors[i, c, kk]
-        add(
-            "reprojection",
-            e / max_error,
-            i,
-            c,
-            labels.keypoints[kk],
-            e,
-            max_error,
-            f"label is {e:.1f} px from the reprojection of its 3D point",
-        )
-    if skeleton is not None and skeleton.limbs and n >= 5:
-        L = skeleton.limb_lengths(X)  # (N, L)
-        med = np.nanmedian(L, axis=0)
-        mad = 1.4826 * np.nanmedian(np.abs(L - med), axis=0) + 1e-9
-        rel = np.abs(L - med) / np.maximum(med, 1e-9)
-        z = np.abs(L - med) / mad
-        for i, li in np.argwhere((rel > limb_tolerance) & (z > 4)):
-            ends = ["+".join(skeleton.keypoints[j] for j in end) for end in skeleton.limbs[li]]
-            add(
-                "limb_length",
-                rel[i, li] / limb_tolerance,
-                i,
-                None,
-                f"{ends[0]} - {ends[1]}",
-                L[i, li],
-                med[li],
-                f"limb {L[i, li]:.1f} mm vs median {med[li]:.1f} mm ({100 * rel[i, li]:.0f}% off)",
-            )
+    rep = reproject_labels(labels, threshold)
+    swaps = swapped_pairs(labels, sym, rep, max_error)
+    found = swaps.found + reprojection_findings(labels, rep.errors, max_error, swaps.labels)
+    if skeleton is not None:
+        found += limb_findings(labels, skeleton, rep.points3d, limb_tolerance)
     found.sort(key=lambda s: -s.severity)
-    return CheckResult(errors, X, proj, found)
+    return CheckResult(rep.errors, rep.points3d, rep.projections, found)
 
 
 def suspicious_csv_text(items: Sequence[Suspicious]) -> str:
+    """The text of ``suspicious.csv`` (columns :data:`CSV_COLUMNS`, rank 1 first).
+
+    Args:
+        items: the suspicious labels, worst first.
+
+    Returns:
+        The CSV text.
+    """
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
@@ -243,6 +397,15 @@ def suspicious_csv_text(items: Sequence[Suspicious]) -> str:
 
 
 def errors_csv_text(labels: LabelSet, errors: np.ndarray) -> str:
+    """The text of ``reprojection_errors.csv``: one row per finite error.
+
+    Args:
+        labels: the labels.
+        errors: (N, V, K) reprojection errors in px.
+
+    Returns:
+        The CSV text.
+    """
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["index", "session", "frame_index", "camera", "keypoint", "error_px"])
@@ -261,11 +424,16 @@ def errors_csv_text(labels: LabelSet, errors: np.ndarray) -> str:
 
 
 def _figures(labels: LabelSet, errors: np.ndarray, out: Path) -> list[Path]:
-    import matplotlib
+    """Box plots of the reprojection errors per keypoint and per camera.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Args:
+        labels: the labels.
+        errors: (N, V, K) reprojection errors in px.
+        out: the report folder.
 
+    Returns:
+        The written PNG files.
+    """
     written = []
     for axis, names, fname in (
         (2, labels.keypoints, "errors_by_keypoint.png"),
@@ -275,17 +443,15 @@ def _figures(labels: LabelSet, errors: np.ndarray, out: Path) -> list[Path]:
         for j in range(len(names)):
             e = np.take(errors, j, axis=axis).ravel()
             data.append(e[np.isfinite(e)])
-        fig, ax = plt.subplots(figsize=(max(4, 0.6 * len(names) + 2), 4))
+        fig = new_figure((max(4, 0.6 * len(names) + 2), 4))
+        ax = fig.subplots()
         ax.boxplot([d if len(d) else [np.nan] for d in data], showfliers=True)
         ax.set_xticks(range(1, len(names) + 1), list(names), rotation=60, ha="right")
         ax.set_ylabel("reprojection error (px)")
         ax.set_yscale("symlog", linthresh=1.0)
         ax.set_title(f"label reprojection error per {'keypoint' if axis == 2 else 'camera'}")
         fig.tight_layout()
-        with atomic_path(out / fname) as tmp:
-            fig.savefig(tmp, dpi=80, format="png")
-        plt.close(fig)
-        written.append(out / fname)
+        written.append(save_figure(fig, out / fname, dpi=80, format="png"))
     return written
 
 
@@ -365,9 +531,21 @@ def _pt(p: np.ndarray) -> tuple[int, int]:
 def write_report(
     labels: LabelSet, result: CheckResult, out: str | Path, root: str | Path, n_crops: int = 20
 ) -> list[Path]:
-    """Write ``suspicious.csv``, ``reprojection_errors.csv``, the figures and the crops of
-    the worst labels (red circle: label, green cross: reprojection) into folder ``out``.
-    ``root`` is the folder the labels' video paths are relative to."""
+    """Write the report of a check into folder ``out``.
+
+    The report is ``suspicious.csv``, ``reprojection_errors.csv``, the figures and the
+    crops of the worst labels (red circle: label, green cross: reprojection).
+
+    Args:
+        labels: the labels.
+        result: the check result.
+        out: the report folder.
+        root: the folder the labels' video paths are relative to.
+        n_crops: the most crops to write.
+
+    Returns:
+        The written files.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "suspicious.csv", suspicious_csv_text(result.suspicious))
