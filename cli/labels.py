@@ -30,7 +30,7 @@ def labels() -> None:
       freipose labels import --format dlc project/ --calibration calibration.toml -o labels.h5
       freipose labels check labels.h5 --report check/
       freipose labels split labels.h5 --eval 0.3 -o train.h5 eval.h5
-    """
+    """  # noqa: D301 (click needs the \b escape)
 
 
 def _load_skeleton(spec: str | None):  # noqa: ANN202
@@ -113,7 +113,7 @@ def import_labels(
           --calibration calibration.toml --skeleton rat --map snout=Nose -o labels.h5
       freipose labels import --format dannce label3d_dannce.mat -o labels.h5
       freipose labels import --format sleap session.slp -o labels.h5
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.io.calibration import load_calibration
         from freipose.io.labels import write_labels_h5
@@ -192,7 +192,7 @@ def check(
     \b
     Example:
       freipose labels check labels.h5 --skeleton rat --report check/
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         import numpy as np
 
@@ -229,7 +229,7 @@ def merge(inputs: tuple[Path, ...], output: Path) -> None:
     \b
     Example:
       freipose labels merge a.h5 b.h5 -o all.h5
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.io.labels import read_labels_h5, write_labels_h5
         from freipose.labels.ops import merge_labels, rebase_videos
@@ -277,7 +277,7 @@ def split(
     \b
     Example:
       freipose labels split labels.h5 --by session --eval 0.3 -o train.h5 eval.h5
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.io.labels import read_labels_h5, write_labels_h5
         from freipose.labels.ops import rebase_videos, split_labels
@@ -320,7 +320,7 @@ def export(labels_file: Path, fmt: str, output: Path, scorer: str) -> None:
     \b
     Example:
       freipose labels export labels.h5 --format dlc -o dlc_labels/
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.io.labels import read_labels_h5
         from freipose.labels.ops import export_labels

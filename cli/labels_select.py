@@ -92,14 +92,14 @@ def select(
     Examples:
       freipose labels select rec1/ rec2/ --model model.pt --detector det.pt --n 50
       freipose labels select rec1/ --poses-dir poses/ --labels labels.h5 --extract to_label/
-    """
+    """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.io.labels import read_labels_h5
         from freipose.io.poses import read_poses_h5
+        from freipose.io.session import discover_sessions
+        from freipose.labels.select import extract_frames, select_frames, write_selection_csv
         from freipose.predict.network import predict_sessions
         from freipose.predict.run import output_path
-        from freipose.labels.select import extract_frames, select_frames, write_selection_csv
-        from freipose.io.session import discover_sessions
         from freipose.predict.writer import is_complete
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))

@@ -1,2 +1,4 @@
-"""Labels: importers from other tools, triangulation, checks, merge/split/export (the
-training-set reader is :mod:`freipose.nn.dataset`)."""
+"""Labels: importers from other tools, triangulation, checks, merge/split/export.
+
+The training-set reader is :mod:`freipose.nn.dataset`.
+"""

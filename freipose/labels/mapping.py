@@ -14,23 +14,19 @@ A mapping file is TOML (documented in ``docs/formats.md``)::
 from __future__ import annotations
 
 import logging
-import sys
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
 from freipose._frozen import PicklableFrozen
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from freipose.errors import FreiPoseError
+from freipose.io.toml import did_you_mean, read_toml
 
 log = logging.getLogger(__name__)
 
 
-class MappingError(ValueError):
+class MappingError(FreiPoseError):
     """A mapping option or file is malformed, or names do not fit the skeleton."""
 
 
@@ -42,22 +38,43 @@ class NameMapping(PicklableFrozen):
     cameras: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        """Freeze the tables."""
         object.__setattr__(self, "keypoints", MappingProxyType(dict(self.keypoints)))
         object.__setattr__(self, "cameras", MappingProxyType(dict(self.cameras)))
 
     def merged(self, other: NameMapping) -> NameMapping:
-        """This mapping updated by ``other`` (``other`` wins on conflicts)."""
+        """This mapping updated by ``other`` (``other`` wins on conflicts).
+
+        Args:
+            other: the mapping whose entries win.
+
+        Returns:
+            The merged mapping.
+        """
         return NameMapping({**self.keypoints, **other.keypoints}, {**self.cameras, **other.cameras})
 
     def keypoint(self, name: str) -> str:
+        """The new name of source keypoint ``name`` (itself when not mapped; "" drops it)."""
         return self.keypoints.get(name, name)
 
     def camera(self, name: str) -> str:
+        """The new name of source camera ``name`` (itself when not mapped)."""
         return self.cameras.get(name, name)
 
 
 def parse_map_options(items: Iterable[str], what: str = "--map") -> dict[str, str]:
-    """``["old=new", ...]`` -> ``{old: new}``; ``old=`` drops ``old``."""
+    """Parse ``--map`` options: ``["old=new", ...]`` -> ``{old: new}``; ``old=`` drops ``old``.
+
+    Args:
+        items: the option values.
+        what: the option's name, for messages.
+
+    Returns:
+        Old name -> new name.
+
+    Raises:
+        MappingError: an item without ``=`` or with an empty old name.
+    """
     out: dict[str, str] = {}
     for item in items:
         if "=" not in item:
@@ -71,24 +88,31 @@ def parse_map_options(items: Iterable[str], what: str = "--map") -> dict[str, st
 
 
 def load_mapping_file(path: str | Path) -> NameMapping:
-    """Read a TOML mapping file (``[keypoints]`` and ``[cameras]`` tables of strings)."""
+    """Read a TOML mapping file (``[keypoints]`` and ``[cameras]`` tables of strings).
+
+    Args:
+        path: the mapping file.
+
+    Returns:
+        The mapping.
+
+    Raises:
+        InputFileError: no such file.
+        MappingError: not TOML, unknown tables, or values that are not strings.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"mapping file not found: {path}")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise MappingError(f"{path}: not valid TOML ({exc})") from exc
+    data = read_toml(path, "mapping file", MappingError)
     unknown = sorted(set(data) - {"keypoints", "cameras"})
     if unknown:
+        hint = did_you_mean(unknown[0], ("keypoints", "cameras"))
         raise MappingError(
-            f"{path}: unknown tables {unknown}; a mapping file has [keypoints] and [cameras] "
-            f"tables of 'source name = \"new name\"' entries"
+            f"{path}: unknown tables {unknown}{hint} (a mapping file has [keypoints] and "
+            f"[cameras] tables of 'source name = \"new name\"' entries)"
         )
     tables = {}
     for key in ("keypoints", "cameras"):
         t = data.get(key, {})
-        bad = {k: v for k, v in t.items() if not isinstance(v, str)}
+        bad = {k: v for k, v in t.items() if not isinstance(v, str)} if isinstance(t, dict) else t
         if not isinstance(t, dict) or bad:
             raise MappingError(f"{path}: [{key}] values must be strings (new names), got {bad}")
         tables[key] = dict(t)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from freipose.errors import FreiPoseError
 from freipose.io.atomic import atomic_write_text
 from freipose.io.labels import LabelSet, SessionInfo
 
@@ -25,7 +26,7 @@ log = logging.getLogger(__name__)
 EXPORT_FORMATS = ("dlc", "anipose", "freipose")
 
 
-class LabelsOpError(ValueError):
+class LabelsOpError(FreiPoseError):
     """A merge/split/export cannot be done; the message says why and how to fix it."""
 
 
@@ -221,8 +222,9 @@ def _check_empty_dir(out: Path) -> None:
 def export_labels(
     labels: LabelSet, out: str | Path, fmt: str, labels_dir: str | Path, scorer: str = "freipose"
 ) -> list[Path]:
-    """Write labels in another tool's format into folder ``out`` (atomically: the folder
-    appears complete or not at all).
+    """Write labels in another tool's format into folder ``out``.
+
+    The folder is written atomically: it appears complete or not at all.
 
     * ``dlc``: ``labeled-data/<session>_<camera>/CollectedData_<scorer>.csv`` (+ ``.h5``
       with PyTables), rows ``labeled-data/<folder>/img<frame:05d>.png``; the frames (all
