@@ -120,8 +120,9 @@ def errors(centers, rotations, focals, truth):
 def run_freipose(videos, board, out: Path, jobs: int | None):
     """What ``calibrate`` does (detection in ``jobs`` processes, then the solver), timed in
     two parts. Returns centres, rotations, focals, detection s, solver s."""
-    from freipose.calibration.detect import detect_cameras
-    from freipose.calibration.pipeline import CalibrationOptions, calibrate_detections
+    from freipose.calibration.detect_videos import detect_cameras
+    from freipose.calibration.options import CalibrationOptions
+    from freipose.calibration.pipeline import calibrate_detections
 
     t0 = time.perf_counter()
     dets = detect_cameras(videos, board, cache_dir=None, jobs=jobs, progress=False)
@@ -138,7 +139,8 @@ def noise_floor(dets, board, truth, poses, sigma: float, draws: int, seed: int) 
     plus independent Gaussian noise of ``sigma`` px per axis: what the detector's noise alone
     leaves on this recording (its board views, image coverage and tilts)."""
     from freipose.calibration.detect import CameraDetections
-    from freipose.calibration.pipeline import CalibrationOptions, calibrate_detections
+    from freipose.calibration.options import CalibrationOptions
+    from freipose.calibration.pipeline import calibrate_detections
     from freipose.geometry import project
 
     rng = np.random.default_rng(seed)

@@ -8,34 +8,30 @@ Every board is a frozen dataclass with
   maps it onto the board plane;
 * ``object_points`` -> ``(P, 3)`` float64 board-frame coordinates (mm, z = 0) of every detectable
   corner, in id order;
-* ``to_dict()`` which round-trips through :func:`board_from_dict`.
+* ``to_dict()`` which round-trips through
+  :func:`freipose.calibration.board_files.board_from_dict`.
 
 Board frame: the board plane is z = 0, x runs along the texture's columns (right), y along its
 rows (down); board point ``(x, y, 0)`` mm is texture pixel ``(x * px_per_mm - 0.5,
 y * px_per_mm - 0.5)`` (pixel-centre convention), i.e. the texture's top-left pixel *edge* is the
 origin. z = x × y points into the board, away from a camera that sees the printed side.
+
+Board files (TOML, JSON, FreiCalib marker JSON) are read and written by
+:mod:`freipose.calibration.board_files`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import logging
 import math
-import sys
-from collections.abc import Callable, Mapping
-from dataclasses import MISSING, asdict, dataclass, fields
-from pathlib import Path
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
-logger = logging.getLogger(__name__)
+from freipose.errors import FreiPoseError
 
 __all__ = [
     "AprilGridBoard",
@@ -43,15 +39,13 @@ __all__ = [
     "BoardError",
     "CharucoBoard",
     "ChessboardBoard",
-    "board_from_dict",
+    "board_dictionary",
     "board_hash",
     "get_dictionary",
-    "load_board",
-    "save_board",
 ]
 
 
-class BoardError(ValueError):
+class BoardError(FreiPoseError):
     """A board description is missing a field, has an invalid value or cannot be read."""
 
 
@@ -94,15 +88,21 @@ def get_dictionary(name: str):
 
 
 def board_dictionary(name: str, num_markers: int):
-    """The first ``num_markers`` markers of a named dictionary (those a board with ids
-    0..num_markers-1 uses) as a ``cv2.aruco.Dictionary`` with the named one's error correction.
+    """The first ``num_markers`` markers of a named dictionary, as a ``cv2.aruco.Dictionary``.
 
-    OpenCV identifies a marker candidate as the *first* dictionary entry within its error
-    correction, so a detector with this dictionary reports exactly the board's markers that one
-    with the whole dictionary reports, and drops the markers of other boards. It is faster:
-    most candidates are not markers (a ChArUco board's black squares), and each of them is
-    compared with every entry before it is rejected (DICT_4X4_50 on the 5 x 4 benchmark board:
-    10 entries instead of 50, marker search ~2x faster).
+    They are the markers a board with ids 0..num_markers-1 uses, with the named dictionary's
+    error correction. OpenCV identifies a marker candidate as the *first* dictionary entry
+    within its error correction, so a detector with this dictionary reports exactly the
+    board's markers that one with the whole dictionary reports, and drops the markers of other
+    boards. It is faster: most candidates are not markers (a ChArUco board's black squares),
+    and each of them is compared with every entry before it is rejected.
+
+    Args:
+        name: the dictionary's name (see :func:`get_dictionary`).
+        num_markers: how many of its first markers to keep.
+
+    Returns:
+        the smaller dictionary.
     """
     import cv2
 
@@ -162,7 +162,12 @@ def _all_marker_bits(dictionary_name: str, count: int, border_bits: int) -> np.n
     return np.stack([_marker_bits(dictionary_name, i, border_bits) for i in range(count)])
 
 
-def _require_positive_int(name: str, value: Any, minimum: int = 1) -> int:
+def require_positive_int(name: str, value: Any, minimum: int = 1) -> int:
+    """``value`` as an int, when it is a whole number >= ``minimum``; ``name`` is for messages.
+
+    Raises:
+        BoardError: ``value`` is no whole number or is below ``minimum``.
+    """
     if isinstance(value, bool) or not isinstance(value, (int, np.integer, float)):
         raise BoardError(f"{name} must be an integer >= {minimum}, got {value!r}")
     if float(value) != int(value) or int(value) < minimum:
@@ -170,7 +175,12 @@ def _require_positive_int(name: str, value: Any, minimum: int = 1) -> int:
     return int(value)
 
 
-def _require_positive(name: str, value: Any) -> float:
+def require_positive(name: str, value: Any) -> float:
+    """``value`` as a float, when it is a finite positive number; ``name`` is for messages.
+
+    Raises:
+        BoardError: ``value`` is no positive finite number.
+    """
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
         raise BoardError(f"{name} must be a positive number (mm), got {value!r}")
     if not (float(value) > 0 and math.isfinite(float(value))):
@@ -200,10 +210,10 @@ class CharucoBoard:
     legacy_pattern: bool = False
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "squares_x", _require_positive_int("squares_x", self.squares_x, 2))
-        object.__setattr__(self, "squares_y", _require_positive_int("squares_y", self.squares_y, 2))
-        object.__setattr__(self, "square_size", _require_positive("square_size", self.square_size))
-        object.__setattr__(self, "marker_size", _require_positive("marker_size", self.marker_size))
+        object.__setattr__(self, "squares_x", require_positive_int("squares_x", self.squares_x, 2))
+        object.__setattr__(self, "squares_y", require_positive_int("squares_y", self.squares_y, 2))
+        object.__setattr__(self, "square_size", require_positive("square_size", self.square_size))
+        object.__setattr__(self, "marker_size", require_positive("marker_size", self.marker_size))
         if self.marker_size >= self.square_size:
             raise BoardError(
                 f"marker_size ({self.marker_size} mm) must be smaller than square_size "
@@ -223,10 +233,12 @@ class CharucoBoard:
 
     @property
     def size_mm(self) -> tuple[float, float]:
+        """(width, height) mm of the printed pattern."""
         return (self.squares_x * self.square_size, self.squares_y * self.square_size)
 
     @property
     def n_markers(self) -> int:
+        """Number of markers (ids 0..n_markers-1)."""
         return (self.squares_x * self.squares_y) // 2
 
     @property
@@ -235,18 +247,20 @@ class CharucoBoard:
         return not (self.legacy_pattern and self.squares_y % 2 == 0)
 
     def square_is_black(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        """Whether square (col, row) is black, elementwise."""
         even = (np.asarray(col) + np.asarray(row)) % 2 == 0
         return even if self.first_square_black else ~even
 
     def marker_squares(self) -> np.ndarray:
         """(M, 2) int (col, row) of the square holding marker id m, in id order."""
-        cols, rows = np.meshgrid(np.arange(self.squares_x), np.arange(self.squares_y))
-        cols, rows = cols.ravel(), rows.ravel()  # row-major
+        grid_cols, grid_rows = np.meshgrid(np.arange(self.squares_x), np.arange(self.squares_y))
+        cols, rows = grid_cols.ravel(), grid_rows.ravel()  # row-major
         white = ~self.square_is_black(cols, rows)
         return np.stack([cols[white], rows[white]], axis=1)
 
     @property
     def object_points(self) -> np.ndarray:
+        """(P, 3) board-frame coordinates (mm, z = 0) of the inner corners, in id order."""
         s = self.square_size
         gx, gy = np.meshgrid(np.arange(1, self.squares_x), np.arange(1, self.squares_y))
         pts = np.stack([gx.ravel() * s, gy.ravel() * s, np.zeros(gx.size)], axis=1)
@@ -296,13 +310,20 @@ class CharucoBoard:
         return np.where(inside, vals, out & inb)
 
     def texture(self, px_per_mm: float) -> np.ndarray:
+        """(H, W) uint8 image of the pattern at ``px_per_mm`` (white background, anti-aliased)."""
         w, h = self.size_mm
         return _rasterize(w, h, px_per_mm, self._black)
 
     def cv_board(self, *, board_markers_only: bool = False):
-        """The equivalent ``cv2.aruco.CharucoBoard`` (lengths in mm); with
-        ``board_markers_only`` its dictionary holds only the board's markers (for detection:
-        the same detections, faster; see :func:`board_dictionary`)."""
+        """The equivalent ``cv2.aruco.CharucoBoard`` (lengths in mm).
+
+        Args:
+            board_markers_only: its dictionary holds only the board's markers (for
+                detection: the same detections, faster; see :func:`board_dictionary`).
+
+        Returns:
+            the OpenCV board.
+        """
         import cv2
 
         if board_markers_only:
@@ -319,6 +340,7 @@ class CharucoBoard:
         return b
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields, with ``type``, that ``board_from_dict`` reads back."""
         d = {"type": "charuco", **asdict(self)}
         return d
 
@@ -343,18 +365,20 @@ class ChessboardBoard:
     kind = "chessboard"
 
     def __post_init__(self) -> None:
-        n = _require_positive_int("inner_corners_x", self.inner_corners_x, 2)
+        n = require_positive_int("inner_corners_x", self.inner_corners_x, 2)
         object.__setattr__(self, "inner_corners_x", n)
-        n = _require_positive_int("inner_corners_y", self.inner_corners_y, 2)
+        n = require_positive_int("inner_corners_y", self.inner_corners_y, 2)
         object.__setattr__(self, "inner_corners_y", n)
-        object.__setattr__(self, "square_size", _require_positive("square_size", self.square_size))
+        object.__setattr__(self, "square_size", require_positive("square_size", self.square_size))
 
     @property
     def margin_mm(self) -> float:
+        """Width (mm) of the white quiet zone around the squares."""
         return self.square_size
 
     @property
     def size_mm(self) -> tuple[float, float]:
+        """(width, height) mm of the printed pattern, quiet zone included."""
         s = self.square_size
         return (
             (self.inner_corners_x + 1) * s + 2 * self.margin_mm,
@@ -363,6 +387,7 @@ class ChessboardBoard:
 
     @property
     def object_points(self) -> np.ndarray:
+        """(P, 3) board-frame coordinates (mm, z = 0) of the inner corners, in id order."""
         s, m = self.square_size, self.margin_mm
         gx, gy = np.meshgrid(
             np.arange(1, self.inner_corners_x + 1), np.arange(1, self.inner_corners_y + 1)
@@ -379,10 +404,12 @@ class ChessboardBoard:
         return inside & ((col + row) % 2 == 0)
 
     def texture(self, px_per_mm: float) -> np.ndarray:
+        """(H, W) uint8 image of the pattern at ``px_per_mm`` (white background, anti-aliased)."""
         w, h = self.size_mm
         return _rasterize(w, h, px_per_mm, self._black)
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields, with ``type``, that ``board_from_dict`` reads back."""
         return {"type": "chessboard", **asdict(self)}
 
 
@@ -412,10 +439,10 @@ class AprilGridBoard:
     kind = "aprilgrid"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "tags_x", _require_positive_int("tags_x", self.tags_x, 1))
-        object.__setattr__(self, "tags_y", _require_positive_int("tags_y", self.tags_y, 1))
-        object.__setattr__(self, "tag_size", _require_positive("tag_size", self.tag_size))
-        sp = _require_positive("tag_spacing", self.tag_spacing)
+        object.__setattr__(self, "tags_x", require_positive_int("tags_x", self.tags_x, 1))
+        object.__setattr__(self, "tags_y", require_positive_int("tags_y", self.tags_y, 1))
+        object.__setattr__(self, "tag_size", require_positive("tag_size", self.tag_size))
+        sp = require_positive("tag_spacing", self.tag_spacing)
         if sp >= 2.0:
             raise BoardError(
                 f"tag_spacing is a fraction of tag_size (FreiCalib default 0.25), got {sp}"
@@ -431,7 +458,7 @@ class AprilGridBoard:
                 f"{', '.join(_APRILTAG_FAMILIES)}"
             )
         object.__setattr__(self, "family", fam)
-        object.__setattr__(self, "border", _require_positive_int("border", self.border, 1))
+        object.__setattr__(self, "border", require_positive_int("border", self.border, 1))
         available = get_dictionary(self.dictionary).bytesList.shape[0]
         if self.tags_x * self.tags_y > available:
             raise BoardError(
@@ -440,19 +467,23 @@ class AprilGridBoard:
 
     @property
     def dictionary(self) -> str:
+        """The OpenCV dictionary name of the tag family."""
         return _APRILTAG_FAMILIES[self.family]
 
     @property
     def spacing_mm(self) -> float:
+        """Gap (mm) between neighbouring tags."""
         return self.tag_spacing * self.tag_size
 
     @property
     def size_mm(self) -> tuple[float, float]:
+        """(width, height) mm of the printed pattern."""
         sp = self.spacing_mm
         return (self.tags_x * (self.tag_size + sp) + sp, self.tags_y * (self.tag_size + sp) + sp)
 
     @property
     def n_tags(self) -> int:
+        """Number of tags (ids 0..n_tags-1)."""
         return self.tags_x * self.tags_y
 
     def tag_origins(self) -> np.ndarray:
@@ -485,6 +516,7 @@ class AprilGridBoard:
 
     @property
     def object_points(self) -> np.ndarray:
+        """The fields, with ``type``, that ``board_from_dict`` reads back."""
         return self.tag_corners_mm().reshape(-1, 3).astype(np.float64)
 
     def _black(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -508,128 +540,16 @@ class AprilGridBoard:
         return np.where(inside, vals, out)
 
     def texture(self, px_per_mm: float) -> np.ndarray:
+        """(H, W) uint8 image of the pattern at ``px_per_mm`` (white background, anti-aliased)."""
         w, h = self.size_mm
         return _rasterize(w, h, px_per_mm, self._black)
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields, with ``type``, that ``board_from_dict`` reads back."""
         return {"type": "aprilgrid", **asdict(self)}
 
 
 Board = CharucoBoard | ChessboardBoard | AprilGridBoard
-
-_TYPES: dict[str, type] = {
-    "charuco": CharucoBoard,
-    "chessboard": ChessboardBoard,
-    "checkerboard": ChessboardBoard,
-    "aprilgrid": AprilGridBoard,
-}
-
-
-def _from_freicalib_marker(d: Mapping[str, Any], source: str) -> AprilGridBoard:
-    """FreiCalib marker JSON ``{family, border, double, tsize, tspace, n_x, n_y, offset}``.
-
-    ``tsize`` is in metres; ``tspace`` is the gap in metres (a value >= ``tsize`` is read as a
-    fraction of the tag size instead, as ``create_marker.py --tspace`` takes it).
-    """
-    missing = [k for k in ("tsize", "tspace", "n_x", "n_y") if k not in d]
-    if missing:
-        raise BoardError(f"{source}: FreiCalib marker file lacks {', '.join(missing)}")
-    tsize = _require_positive("tsize", d["tsize"])
-    tspace = _require_positive("tspace", d["tspace"])
-    frac = tspace / tsize if tspace < tsize else tspace
-    if d.get("double"):
-        logger.warning("%s: double-sided FreiCalib board; only the front side is used", source)
-    fam = str(d.get("family", "36h11"))
-    return AprilGridBoard(
-        tags_x=d["n_x"],
-        tags_y=d["n_y"],
-        tag_size=tsize * 1000.0,
-        tag_spacing=frac,
-        family=fam,
-        border=d.get("border", 2),
-    )
-
-
-def board_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> Board:
-    """Build a board from a mapping with ``type`` = ``charuco`` | ``chessboard`` | ``aprilgrid``.
-
-    A FreiCalib marker JSON (``tsize``/``tspace``/``n_x``/``n_y``, no ``type``) is also accepted.
-    A ``[board]`` table is unwrapped. Raises :class:`BoardError` naming missing/unknown fields.
-    """
-    if not isinstance(d, Mapping):
-        raise BoardError(f"{source}: expected a table of board fields, got {type(d).__name__}")
-    if "type" not in d and isinstance(d.get("board"), Mapping):
-        d = d["board"]
-    if "type" not in d:
-        if "tsize" in d and "n_x" in d:
-            return _from_freicalib_marker(d, source)
-        raise BoardError(
-            f'{source}: missing field \'type\'; expected type = "charuco", "chessboard" or '
-            f'"aprilgrid"'
-        )
-    kind = str(d["type"]).strip().lower()
-    if kind not in _TYPES:
-        raise BoardError(
-            f"{source}: unknown board type {d['type']!r}; expected charuco, chessboard or aprilgrid"
-        )
-    cls = _TYPES[kind]
-    names = [f.name for f in fields(cls)]
-    required = [f.name for f in fields(cls) if f.default is MISSING]
-    missing = [n for n in required if n not in d]
-    if missing:
-        raise BoardError(
-            f"{source}: {kind} board lacks required field(s) {', '.join(missing)} "
-            f"(a {kind} board needs {', '.join(required)})"
-        )
-    unknown = sorted(set(d) - set(names) - {"type"})
-    if unknown:
-        raise BoardError(
-            f"{source}: unknown field(s) {', '.join(unknown)} for a {kind} board "
-            f"(known: {', '.join(names)})"
-        )
-    try:
-        return cls(**{k: d[k] for k in names if k in d})
-    except BoardError as exc:
-        raise BoardError(f"{source}: {exc}") from None
-
-
-def load_board(path: str | Path) -> Board:
-    """Read a board from TOML or JSON (including FreiCalib marker JSON)."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"board file {p} does not exist")
-    text = p.read_text(encoding="utf-8")
-    if p.suffix.lower() == ".json":
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise BoardError(f"{p}: not valid JSON ({exc})") from None
-    else:
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            if p.suffix.lower() == ".toml":
-                raise BoardError(f"{p}: not valid TOML ({exc})") from None
-            try:
-                data = json.loads(text)
-            except json.JSONDecodeError:
-                raise BoardError(f"{p}: neither valid TOML nor JSON ({exc})") from None
-    return board_from_dict(data, source=str(p))
-
-
-def save_board(board: Board, path: str | Path) -> None:
-    """Write a board as TOML (or JSON for a ``.json`` suffix), atomically."""
-    from freipose.io.atomic import atomic_write_text
-
-    p = Path(path)
-    d = board.to_dict()
-    if p.suffix.lower() == ".json":
-        atomic_write_text(p, json.dumps(d, indent=2) + "\n")
-    else:
-        import tomli_w
-
-        atomic_write_text(p, tomli_w.dumps(d))
-
 
 def board_hash(board: Board) -> str:
     """Short stable hash of the board's definition (for detection caches)."""

@@ -33,7 +33,7 @@ def _paste(image: np.ndarray, patch: np.ndarray, x: int, y: int) -> np.ndarray:
 
 
 def test_charuco_detector_with_board_markers_only_matches_full_dictionary():
-    from freipose.calibration.detect import _charuco_detector
+    from freipose.calibration.detect import charuco_detector as _charuco_detector
 
     _rig, board, _poses, images = rendered_view(1, 40, 5, slice(4, None, 3))
     # a marker of another board (same dictionary, id beyond this board's) in every frame
@@ -68,7 +68,7 @@ def test_charuco_detector_with_board_markers_only_matches_full_dictionary():
 
 def test_aprilgrid_detector_with_board_tags_only_matches_full_dictionary():
     from freipose.calibration.boards import AprilGridBoard, get_dictionary
-    from freipose.calibration.detect import _aruco_detector
+    from freipose.calibration.detect import aruco_detector as _aruco_detector
 
     board = AprilGridBoard(tags_x=3, tags_y=2, tag_size=30.0, tag_spacing=0.3)
     tex = board.texture(3.0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from freipose.calibration.detect import plan_chunks
+from freipose.calibration.detect_videos import plan_chunks
 
 
 @pytest.mark.parametrize(
@@ -37,7 +37,7 @@ def test_plan_chunks_edge_cases():
 def test_parallel_detection_equals_serial_detection(tmp_path):
     """The chunks do not depend on the process count, so neither do the detections (the
     progress bar's queue is in use: progress on)."""
-    from freipose.calibration.detect import detect_cameras
+    from freipose.calibration.detect_videos import detect_cameras
     from freipose.geometry import CameraRig
     from freipose.synth.board import default_board, write_board_videos
     from freipose.synth.rig import default_rig
@@ -58,7 +58,7 @@ def test_detect_chunk_reports_progress(tmp_path):
     import cv2
 
     from freipose.calibration.boards import ChessboardBoard
-    from freipose.calibration.detect import _detect_chunk
+    from freipose.calibration.detect_videos import _detect_chunk
 
     board = ChessboardBoard(4, 3, 20.0)
     img = cv2.resize(board.texture(2.0), None, fx=1.0, fy=1.0)

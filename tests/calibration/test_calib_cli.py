@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from freipose.calibration.boards import CharucoBoard, load_board
+from freipose.calibration.board_files import load_board
+from freipose.calibration.boards import CharucoBoard
 from freipose.cli.main import cli
 
 
@@ -126,7 +127,7 @@ def test_unreadable_video_and_empty_folder(tmp_path):
 
 @pytest.mark.parametrize("name", ["board.toml", "board.json"])
 def test_board_files_roundtrip(tmp_path, name):
-    from freipose.calibration.boards import save_board
+    from freipose.calibration.board_files import save_board
 
     b = load_board("examples/board.toml")
     save_board(b, tmp_path / name)

@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 
 from freipose.calibration.boards import CharucoBoard, ChessboardBoard
-from freipose.calibration.detect import detect_cameras, detect_image, diagnose_board
-from freipose.calibration.pipeline import CalibrationOptions, calibrate
+from freipose.calibration.detect import detect_image
+from freipose.calibration.detect_videos import detect_cameras
+from freipose.calibration.diagnose import diagnose_board
+from freipose.calibration.options import CalibrationOptions
+from freipose.calibration.pipeline import calibrate
 
 
 @pytest.fixture
@@ -57,7 +60,7 @@ def test_detection_cache_is_reused(stereo_folders, tmp_path, monkeypatch):
     board = ChessboardBoard(9, 6, 30.0)
     srcs = [stereo_folders["left"]]
     first = detect_cameras(srcs, board, cache_dir=tmp_path / "c", jobs=1, progress=False)
-    import freipose.calibration.detect as det
+    import freipose.calibration.detect_videos as det
 
     def boom(*a, **k):
         raise AssertionError("re-detected despite the cache")

@@ -10,8 +10,9 @@ from calib_helpers import rig_errors
 @pytest.mark.slow
 def test_rendered_charuco_rig(tmp_path):
     synth_board = pytest.importorskip("freipose.synth.board")
-    from freipose.calibration.boards import load_board
-    from freipose.calibration.pipeline import CalibrationOptions, calibrate
+    from freipose.calibration.board_files import load_board
+    from freipose.calibration.options import CalibrationOptions
+    from freipose.calibration.pipeline import calibrate
     from freipose.io.calibration import load_calibration
     from freipose.synth.rig import default_rig
 

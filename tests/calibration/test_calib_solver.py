@@ -11,7 +11,8 @@ from freipose.calibration.bundle import bundle_adjust
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.extrinsics import connected_groups
 from freipose.calibration.intrinsics import CalibrationError, calibrate_intrinsics, select_views
-from freipose.calibration.pipeline import CalibrationOptions, calibrate_detections
+from freipose.calibration.options import CalibrationOptions
+from freipose.calibration.pipeline import calibrate_detections
 from freipose.testing import make_circle_rig
 
 BOARD = CharucoBoard(8, 6, 40.0, 30.0, "DICT_4X4_50")

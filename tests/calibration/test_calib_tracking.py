@@ -8,7 +8,8 @@ from calib_helpers import rendered_view
 
 
 def test_tracked_detection_matches_whole_image_detection(tmp_path):
-    from freipose.calibration.detect import _Detector, detect_cameras
+    from freipose.calibration.detect_videos import detect_cameras
+    from freipose.calibration.tracking import BoardTracker as _Detector
     from freipose.geometry import CameraRig
     from freipose.io.video import FrameSource
     from freipose.synth.board import default_board, write_board_videos
@@ -63,7 +64,8 @@ class _DropsMarker:
     """A ChArUco detector that loses one marker (and the corners it supports)."""
 
     def __init__(self, board, marker_id):
-        from freipose.calibration.detect import CHARUCO_FAST_WINDOW, _charuco_detector
+        from freipose.calibration.detect import charuco_detector as _charuco_detector
+        from freipose.calibration.tracking import CHARUCO_FAST_WINDOW
 
         w = CHARUCO_FAST_WINDOW
         self.det = _charuco_detector(board, (w, w))
@@ -80,7 +82,7 @@ class _DropsMarker:
 
 
 def test_one_window_search_falls_back_when_an_expected_marker_is_missing():
-    from freipose.calibration.detect import _Detector
+    from freipose.calibration.tracking import BoardTracker as _Detector
 
     _rig, board, _poses, frames = rendered_view(1, 60, 3, slice(16))  # whole board in view
     whole = _Detector(board)

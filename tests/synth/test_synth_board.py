@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from freipose.calibration.boards import CharucoBoard, load_board
+from freipose.calibration.board_files import load_board
+from freipose.calibration.boards import CharucoBoard
 from freipose.geometry import Camera, CameraRig, project
 from freipose.synth import board_poses, default_board, render_board_frames, write_board_videos
 
