@@ -5,18 +5,30 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 
+from freipose.calibration.detect import CameraDetections
 from freipose.calibration.pipeline import CalibrationResult
+from freipose.io.figures import new_figure, save_figure
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["summary_dict", "write_report"]
 
 
-def summary_dict(result: CalibrationResult) -> dict:
-    """The content of ``summary.json``."""
+def summary_dict(result: CalibrationResult) -> dict[str, Any]:
+    """The content of ``summary.json``.
+
+    Args:
+        result: the calibration.
+
+    Returns:
+        the board, frame count, per-camera figures and parameters, world frame, camera
+        graph, warnings and the bundle adjustment's statistics.
+    """
     cams = {}
     for s, cam in zip(result.stats, result.rig):
         d = s.to_dict()
@@ -26,7 +38,7 @@ def summary_dict(result: CalibrationResult) -> dict:
         d["distortion"] = [round(float(x), 6) for x in cam.dist]
         d["center_mm"] = [round(float(x), 3) for x in cam.center]
         cams[s.name] = d
-    out: dict = {
+    out: dict[str, Any] = {
         "board": result.board.to_dict(),
         "frames": int(result.detections[0].num_frames) if result.detections else 0,
         "cameras": cams,
@@ -50,64 +62,44 @@ def summary_dict(result: CalibrationResult) -> dict:
     return out
 
 
-def write_report(result: CalibrationResult, outdir: str | Path) -> list[Path]:
-    """Write ``summary.json``, ``errors_<cam>.png``, ``coverage_<cam>.png`` and ``rig_3d.png``.
+def _error_histogram(result: CalibrationResult, i: int, name: str) -> Figure:
+    """Histogram of camera ``i``'s reprojection errors after the bundle adjustment."""
+    e = result.camera_errors(i)
+    fig = new_figure(figsize=(5, 3.5))
+    ax = fig.subplots()
+    if e.size:
+        bins = np.linspace(0, max(2.0, float(np.percentile(e, 99.5))), 40)
+        ax.hist(e, bins=list(bins))
+        ax.axvline(float(np.sqrt(np.mean(e**2))), color="r", label="RMS")
+        ax.legend()
+    ax.set_xlabel("reprojection error (px)")
+    ax.set_ylabel("detections")
+    ax.set_title(f"{name}: reprojection errors after bundle adjustment")
+    fig.tight_layout()
+    return fig
 
-    Returns the written paths.
-    """
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def _coverage_map(det: CameraDetections) -> Figure:
+    """Where in the image a camera's corners were detected (2D histogram)."""
+    w, h = det.size
+    pts = det.points[det.mask]
+    fig = new_figure(figsize=(5, 5 * h / max(w, 1) + 0.6))
+    ax = fig.subplots()
+    if len(pts):
+        H, _xe, _ye = np.histogram2d(
+            pts[:, 0], pts[:, 1], bins=(32, max(1, int(32 * h / w))), range=[[0, w], [0, h]]
+        )
+        ax.imshow(H.T, extent=(0, w, h, 0), cmap="viridis", interpolation="nearest")
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    ax.set_title(f"{det.name}: detected corners ({len(pts)}) over the image")
+    fig.tight_layout()
+    return fig
 
-    from freipose.io.atomic import atomic_path, atomic_write_text
 
-    out = Path(outdir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    p = out / "summary.json"
-    atomic_write_text(p, json.dumps(summary_dict(result), indent=2) + "\n")
-    paths.append(p)
-
-    def save(fig, name: str) -> None:
-        path = out / name
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=80)
-        plt.close(fig)
-        paths.append(path)
-
-    for i, det in enumerate(result.detections):
-        name = det.name
-        # reprojection-error histogram
-        if result.bundle is not None:
-            e = result.camera_errors(i)
-            fig, ax = plt.subplots(figsize=(5, 3.5))
-            if e.size:
-                ax.hist(e, bins=np.linspace(0, max(2.0, float(np.percentile(e, 99.5))), 40))
-                ax.axvline(float(np.sqrt(np.mean(e**2))), color="r", label="RMS")
-                ax.legend()
-            ax.set_xlabel("reprojection error (px)")
-            ax.set_ylabel("detections")
-            ax.set_title(f"{name}: reprojection errors after bundle adjustment")
-            fig.tight_layout()
-            save(fig, f"errors_{name}.png")
-        # coverage map
-        w, h = det.size
-        pts = det.points[det.mask]
-        fig, ax = plt.subplots(figsize=(5, 5 * h / max(w, 1) + 0.6))
-        if len(pts):
-            H, _xe, _ye = np.histogram2d(
-                pts[:, 0], pts[:, 1], bins=(32, max(1, int(32 * h / w))), range=[[0, w], [0, h]]
-            )
-            ax.imshow(H.T, extent=(0, w, h, 0), cmap="viridis", interpolation="nearest")
-        ax.set_xlim(0, w)
-        ax.set_ylim(h, 0)
-        ax.set_title(f"{name}: detected corners ({len(pts)}) over the image")
-        fig.tight_layout()
-        save(fig, f"coverage_{name}.png")
-
-    # 3D rig and board poses
-    fig = plt.figure(figsize=(6, 6))
+def _rig_figure(result: CalibrationResult) -> Figure:
+    """The cameras (centres and optical axes) and the board centres in 3D."""
+    fig = new_figure(figsize=(6, 6))
     ax = fig.add_subplot(projection="3d")
     B = result.board_poses
     ok = np.isfinite(B[:, 0, 0])
@@ -127,5 +119,31 @@ def write_report(result: CalibrationResult, outdir: str | Path) -> list[Path]:
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
     ax.set_title("cameras (red, optical axis) and board poses")
-    save(fig, "rig_3d.png")
+    return fig
+
+
+def write_report(result: CalibrationResult, outdir: str | Path) -> list[Path]:
+    """Write ``summary.json``, ``errors_<cam>.png``, ``coverage_<cam>.png`` and ``rig_3d.png``.
+
+    Args:
+        result: the calibration.
+        outdir: the report folder (made when missing).
+
+    Returns:
+        the written paths.
+    """
+    from freipose.io.atomic import atomic_write_text
+
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    p = out / "summary.json"
+    atomic_write_text(p, json.dumps(summary_dict(result), indent=2) + "\n")
+    paths.append(p)
+    for i, det in enumerate(result.detections):
+        if result.bundle is not None:
+            fig = _error_histogram(result, i, det.name)
+            paths.append(save_figure(fig, out / f"errors_{det.name}.png", dpi=80))
+        paths.append(save_figure(_coverage_map(det), out / f"coverage_{det.name}.png", dpi=80))
+    paths.append(save_figure(_rig_figure(result), out / "rig_3d.png", dpi=80))
     return paths
