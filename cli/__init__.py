@@ -1,1 +1,1 @@
-"""The ``freipose`` command line (installed as ``freipose.cli``)."""
+"""Installed as ``freipose.cli`` (the top-level ``cli/``, see package-dir): the command line."""

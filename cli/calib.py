@@ -23,4 +23,4 @@ def calib() -> None:
       freipose calib cams/cam0.mp4 cams/cam1.mp4 --board board.toml -o calibration.toml
       freipose calib show calibration.toml
       freipose calib convert calibration.toml M.json
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker

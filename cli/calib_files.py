@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from freipose.cli._common import user_errors
+from freipose.errors import FreiPoseError
 
 FORMATS_HELP = (
     "toml (native), anipose, mjson (FreiPose/FreiCalib M.json), jarvis (folder of "
@@ -86,16 +87,16 @@ def convert(
       freipose calib convert calibration.toml calib_jarvis/ --format jarvis
       freipose calib convert label3d_dannce.mat calibration.toml --size 1152x1024
       freipose calib convert anipose/calibration.toml calibration.toml --format-in anipose --units m
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     size_map = _parse_sizes(sizes)
     with user_errors():
         from freipose.io import calibration as cal
         from freipose.io import calibration_formats as cf
 
         if output_path.exists() and output_path.resolve() == input_path.resolve():
-            raise ValueError(f"OUT is the same as IN ({input_path}); choose another output path")
+            raise FreiPoseError(f"OUT is the same as IN ({input_path}); choose another output path")
         if output_path.exists() and not overwrite:
-            raise ValueError(f"{output_path} already exists; pass --overwrite to replace it")
+            raise FreiPoseError(f"{output_path} already exists; pass --overwrite to replace it")
         fin = cal.detect_format(input_path, format_in)
         fout = cal.detect_format(output_path, format_out)
         if fin == "anipose":
@@ -218,7 +219,7 @@ def show(file: Path, fmt: str | None, units: str) -> None:
       freipose calib show M.json
       freipose calib show calib_jarvis/
       freipose calib show label3d_dannce.mat
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io import calibration as cal
         from freipose.io import calibration_formats as cf

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from freipose.cli._common import user_errors
+from freipose.errors import FreiPoseError, InputFileError
 
 BOARD_OPTIONS = [
     click.option(
@@ -68,7 +69,8 @@ def _board_field_options(f):
 
 def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
     """Board from a file, overridden or completed by command-line fields."""
-    from freipose.calibration.boards import BoardError, board_from_dict, load_board
+    from freipose.calibration.board_files import board_from_dict, load_board
+    from freipose.calibration.boards import BoardError
 
     fields = {k: kw[k] for k in _FIELD_OPTIONS if kw.get(k) is not None}
     if board_file is None and board_type is None and not fields:
@@ -193,27 +195,24 @@ def run(
           -o calibration.toml --origin-frame 0 --report calib_report/
       freipose calib left/ right/ --board-type chessboard --inner-corners-x 9 \\
           --inner-corners-y 6 --square-size 30 -o stereo.toml
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     import logging
     import shutil
 
     with user_errors():
-        from freipose.calibration.pipeline import (
-            CalibrationOptions,
-            calibrate,
-            detection_cache_dir,
-        )
+        from freipose.calibration.options import CalibrationOptions
+        from freipose.calibration.pipeline import calibrate, detection_cache_dir
         from freipose.calibration.report import write_report
         from freipose.io.calibration import load_calibration, save_calibration
 
         if not inputs:
-            raise ValueError(
+            raise FreiPoseError(
                 "no INPUT given: pass one video file or image folder per camera, e.g. "
                 "freipose calib cams/*.mp4 --board board.toml -o calibration.toml"
             )
         for p in inputs:
             if not p.exists():
-                raise FileNotFoundError(f"input {p} does not exist (expected a video or folder)")
+                raise InputFileError(f"input {p} does not exist (expected a video or folder)")
         board = _resolve_board(board_file, board_type, board_fields)
         fixed = load_calibration(fix_intrinsics) if fix_intrinsics is not None else None
         if no_cache:
@@ -270,7 +269,7 @@ def board(board_file, board_type, output, dpi, **board_fields) -> None:
     \b
     Example:
       freipose calib board examples/board.toml -o board.png --dpi 300
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         import cv2
 
@@ -278,14 +277,14 @@ def board(board_file, board_type, output, dpi, **board_fields) -> None:
 
         b = _resolve_board(board_file, board_type, board_fields)
         if not dpi > 0:
-            raise ValueError(f"--dpi must be positive, got {dpi}")
+            raise FreiPoseError(f"--dpi must be positive, got {dpi}")
         img = b.texture(dpi / 25.4)
         with atomic_path(output) as tmp:
             params = []
             if output.suffix.lower() == ".png":
                 params = [cv2.IMWRITE_PNG_COMPRESSION, 9]
             if not cv2.imwrite(str(tmp), img, params):
-                raise ValueError(f"cannot write {output}: use a .png, .tif or .bmp file name")
+                raise FreiPoseError(f"cannot write {output}: use a .png, .tif or .bmp file name")
         w, h = b.size_mm
         click.echo(
             f"wrote {output}: {img.shape[1]}x{img.shape[0]} px = {w:.1f} x {h:.1f} mm at "
