@@ -20,6 +20,7 @@ from freipose.labels.formats import IMPORTERS
 from freipose.labels.importing import (
     ImportOptions,
     LabelImportError,
+    SourceLabels,
     build_labelset,
     triangulate_labels,
 )
@@ -491,3 +492,16 @@ def test_dlc_export_import_cli_gives_usable_training_set(tmp_path, rng):
         for c in range(len(rig.names)):  # lossless video -> PNG: the very same pixels
             np.testing.assert_array_equal(sample["images"][c], frames[c, fi[i]])
     ds.close()
+
+
+def test_build_labelset_leaves_its_sources_unchanged(tmp_path, rng):
+    # positional keypoints named by the skeleton: the names go on a copy, not the caller's source
+    rig = make_circle_rig(3)
+    uv = rig.project(_truth(rng, 4))
+    src = SourceLabels(
+        "s.json", "s", list(rig.names), [f"kp{i}" for i in range(len(KPS))], np.arange(4),
+        uv, calibration=rig, positional=True,
+    )  # fmt: skip
+    lab = build_labelset([src], ImportOptions(skeleton_keypoints=tuple(KPS)), tmp_path / "l.h5")
+    assert lab.keypoints == tuple(KPS)
+    assert src.keypoints == [f"kp{i}" for i in range(len(KPS))]
