@@ -92,7 +92,7 @@ def synth(outdir, n_cameras, rig_file, frames, fps, size, seed, appearance, stim
       freipose synth demo/session1 --frames 300 --cameras 7 --seed 1
       freipose synth demo/stim --stimulation 'body_part=Paw Front Right,duration_s=2'
       freipose synth demo/rig_test --rig examples/rig.toml --calibration-video
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.synth import SceneConfig, StimulationConfig, generate_session
 
@@ -112,7 +112,7 @@ def synth(outdir, n_cameras, rig_file, frames, fps, size, seed, appearance, stim
         }
         changes: dict = {k: v for k, v in given.items() if v is not None}
         if board_file is not None:
-            from freipose.calibration.boards import load_board
+            from freipose.calibration.board_files import load_board
 
             changes["board"] = load_board(board_file).to_dict()
         cfg = SceneConfig.from_dict({**base.to_dict(), **changes})

@@ -14,25 +14,28 @@ side faces -z. A pose is the 4 x 4 board->world transform.
 
 from __future__ import annotations
 
-import logging
 import math
+from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from freipose.geometry import CameraRig, project
+from freipose.geometry import Camera, CameraRig, project
+from freipose.synth.errors import SynthError
 from freipose.synth.rig import ArenaConfig
 from freipose.workers import run_jobs
 
-log = logging.getLogger(__name__)
+if TYPE_CHECKING:  # render imports OpenCV: loaded where frames are rendered
+    from freipose.synth.render import CameraRenderer
 
 PAPER = 0.86  # reflectance of the white paper
 INK = 0.06  # reflectance of the black print
 BACK = 0.45  # reflectance of the board's back
 
 
-def default_board(arena: ArenaConfig | None = None):
+def default_board(arena: ArenaConfig | None = None) -> Any:
     """A ChArUco board sized for the arena (5 x 4 squares of ~70 mm, DICT_4X4_50)."""
     from freipose.calibration.boards import CharucoBoard
 
@@ -80,7 +83,7 @@ def board_poses(
     """
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     if n_frames < 1:
-        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+        raise SynthError(f"n_frames must be >= 1, got {n_frames}")
     bw, bh = (float(v) for v in board_size_mm)
     half = np.asarray(arena_size_mm, dtype=np.float64) / 2
     nf = max(1, n_frames // 20) if floor_frames is None else int(floor_frames)
@@ -141,7 +144,11 @@ def _smooth01(x: float) -> float:
     return x * x * (3 - 2 * x)
 
 
-def _board_box(cam, corners_world: np.ndarray) -> tuple[int, int, int, int]:
+def _board_box(cam: Camera, corners_world: np.ndarray) -> tuple[int, int, int, int]:
+    """Image box x0, y0, x1, y1 (exclusive) of the board with world corners (4, 3).
+
+    The whole image when a corner is behind the camera.
+    """
     w, h = cam.size
     depth = corners_world @ cam.R[2] + cam.t[2]
     if np.any(depth <= 1.0):
@@ -173,7 +180,11 @@ class _BoardTexture:
 
 
 def _render_board_on(
-    renderer, tex: _BoardTexture, pose: np.ndarray, samples: int = 3, blur_sigma: float = 0.45
+    renderer: CameraRenderer,
+    tex: _BoardTexture,
+    pose: np.ndarray,
+    samples: int = 3,
+    blur_sigma: float = 0.45,
 ) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
     """Linear BGR of the board region composited over the background, or None if not seen."""
     import cv2
@@ -190,16 +201,14 @@ def _render_board_on(
     x0, y0, x1, y1 = _board_box(cam, corners)
     if x1 <= x0 or y1 <= y0:
         return None
-    if renderer._ray_du is None:
-        renderer._ray_du = np.gradient(renderer.rays_soa, axis=2).astype(np.float32)
-        renderer._ray_dv = np.gradient(renderer.rays_soa, axis=1).astype(np.float32)
+    ray_du, ray_dv = renderer.ray_derivatives()
     Rt = R.T.astype(np.float32)
 
     def to_board(field: np.ndarray) -> list[np.ndarray]:
         f = field[:, y0:y1, x0:x1]
         return [Rt[i, 0] * f[0] + Rt[i, 1] * f[1] + Rt[i, 2] * f[2] for i in range(3)]
 
-    d0, du, dv = (to_board(f) for f in (renderer.rays_soa, renderer._ray_du, renderer._ray_dv))
+    d0, du, dv = (to_board(f) for f in (renderer.rays_soa, ray_du, ray_dv))
     o_b = R.T @ (renderer.origin - t)
     front = o_b[2] < 0  # the camera sees the printed side
     nrm = R[:, 2] * (1.0 if not front else -1.0)  # normal facing the camera
@@ -219,6 +228,7 @@ def _render_board_on(
             by = oy_ + s * (d0[1] + fx * du[1] + fy * dv[1])
             on = (s > 0) & (s < depth_bg) & (bx >= -m) & (bx <= bw + m)
             on &= (by >= -m) & (by <= bh + m)
+            val: np.ndarray | np.float32
             if front:
                 mx = bx * np.float32(tex.ppm) - np.float32(0.5)
                 my = by * np.float32(tex.ppm) - np.float32(0.5)
@@ -266,15 +276,23 @@ def render_board_frames(
     }
 
 
-def _iter_board_camera(cam, ci, tex, poses, seed, noise, blur, arena):
-    from dataclasses import replace
-
+def _iter_board_camera(
+    cam: Camera,
+    ci: int,
+    tex: _BoardTexture,
+    poses: np.ndarray,
+    seed: int,
+    noise: bool,
+    blur: bool,
+    arena: ArenaConfig | None,
+) -> Iterator[np.ndarray]:
+    """The board frames (H, W, 3) BGR uint8 of camera number ``ci`` at ``poses`` (F, 4, 4)."""
     from freipose.synth.render import CameraLook, CameraRenderer
 
     arena = arena or ArenaConfig()
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"poses must have shape (F, 4, 4), got {poses.shape}")
+        raise SynthError(f"poses must have shape (F, 4, 4), got {poses.shape}")
     cam_seed = int(np.random.SeedSequence([int(seed), 7, ci]).generate_state(1)[0])
     look = CameraLook.random(np.random.default_rng(cam_seed))
     if not noise:
@@ -296,7 +314,8 @@ def _auto_ppm(rig: CameraRig) -> float:
     return float(np.clip(3.0 * f / 600.0, 1.0, 8.0))
 
 
-def _board_camera_job(args: tuple) -> str:
+def _board_camera_job(args: tuple[Any, ...]) -> str:
+    """Worker: render and write one camera's board video (module level so it can be pickled)."""
     import cv2
 
     from freipose.io.video import VideoWriter
@@ -367,6 +386,7 @@ def write_board_videos(
 
 
 def _arena_from(rig: CameraRig) -> ArenaConfig:
+    """The arena recorded in the rig's metadata (default arena when none is)."""
     md = rig.metadata
     if "arena_size" in md:
         return ArenaConfig(tuple(md["arena_size"]), float(md.get("arena_wall_height", 100.0)))

@@ -12,9 +12,13 @@ Body frame: x forward, y left, z up; the world is z up with the floor at z = 0.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from freipose.synth.errors import SynthError
 from freipose.synth.state import MotionState
@@ -33,11 +37,11 @@ PART_NAMES: tuple[str, ...] = (
     "upper_arm_r", "upper_arm_l", "forearm_r", "forearm_l", "paw_front_r", "paw_front_l",
     "thigh_r", "thigh_l", "shin_r", "shin_l", "foot_r", "foot_l",
 ) + tuple(f"tail_{i}" for i in range(N_TAIL))  # fmt: skip
-PART = {n: i for i, n in enumerate(PART_NAMES)}
+PART: Mapping[str, int] = MappingProxyType({n: i for i, n in enumerate(PART_NAMES)})
 
 # Materials (index into the appearance palette).
 MATERIALS = ("haunch", "chest", "head", "snout", "nose", "eye", "ear", "limb", "paw", "tail")
-MAT = {n: i for i, n in enumerate(MATERIALS)}
+MAT: Mapping[str, int] = MappingProxyType({n: i for i, n in enumerate(MATERIALS)})
 PART_MATERIAL = np.array(
     [MAT[m] for m in (
         "haunch", "chest", "head", "head", "snout", "nose", "eye", "eye", "ear", "ear",
@@ -46,6 +50,7 @@ PART_MATERIAL = np.array(
     )] + [MAT["tail"]] * N_TAIL,
     dtype=np.int64,
 )  # fmt: skip
+PART_MATERIAL.setflags(write=False)
 
 # Parts a keypoint belongs to (ignored when testing whether the keypoint is occluded).
 KEYPOINT_OWNERS: tuple[tuple[int, ...], ...] = (
@@ -106,7 +111,10 @@ class RatBody:
             girth=float(rng.uniform(0.94, 1.06)),
             tail_length=float(rng.uniform(0.9, 1.1)),
             appearance=appearance,
-            tint=tuple(float(v) for v in rng.uniform(0.94, 1.0, size=3)),
+            tint=cast(
+                "tuple[float, float, float]",
+                tuple(float(v) for v in rng.uniform(0.94, 1.0, size=3)),
+            ),
         )
 
     @property
@@ -244,7 +252,7 @@ def two_link_ik(a: np.ndarray, c: np.ndarray, l1: float, l2: float, hint: np.nda
     return a + u * along + perp * h
 
 
-def _surface_point(center: np.ndarray, radii: np.ndarray, direction: np.ndarray) -> np.ndarray:
+def _surface_point(center: np.ndarray, radii: np.ndarray, direction: ArrayLike) -> np.ndarray:
     """Point of an axis-aligned ellipsoid surface in ``direction`` (unit-sphere direction)."""
     dirn = np.asarray(direction, dtype=np.float64)
     dirn = dirn / np.linalg.norm(dirn)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +35,7 @@ from freipose.synth.stimulation import (
 )
 
 
-def _smoothstep(x: np.ndarray | float) -> np.ndarray | float:
+def _smoothstep(x: Any) -> Any:
     x = np.clip(x, 0.0, 1.0)
     return x * x * (3 - 2 * x)
 

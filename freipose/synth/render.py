@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -31,6 +32,7 @@ from freipose.synth.body import MAT, PART, BodyGeometry
 from freipose.synth.rig import ArenaConfig
 
 LIGHT = np.array([0.35, -0.25, 1.0]) / np.linalg.norm([0.35, -0.25, 1.0])
+LIGHT.setflags(write=False)
 _SHADOW_PARTS = (PART["haunch"], PART["chest"], PART["head"], PART["neck"])
 _CONTACT_PARTS = (PART["paw_front_r"], PART["paw_front_l"], PART["foot_r"], PART["foot_l"])
 
@@ -51,7 +53,10 @@ class CameraLook:
         """A random look: gain, white balance, noise and vignetting drawn from ``rng``."""
         return cls(
             gain=float(rng.uniform(0.82, 1.15)),
-            white_balance=tuple(float(v) for v in rng.uniform(0.94, 1.06, size=3)),
+            white_balance=cast(
+                "tuple[float, float, float]",
+                tuple(float(v) for v in rng.uniform(0.94, 1.06, size=3)),
+            ),
             noise_sigma=float(rng.uniform(1.5, 3.5)),
             vignetting=float(rng.uniform(0.1, 0.3)),
         )
@@ -86,7 +91,7 @@ def value_noise3(table: np.ndarray, p: np.ndarray) -> np.ndarray:
     w = w * w * (3 - 2 * w)
     i = f.astype(np.int64) % n
     j = (i + 1) % n
-    out = 0.0
+    out: Any = 0.0
     for dx in (0, 1):
         ix = j[..., 0] if dx else i[..., 0]
         wx = w[..., 0] if dx else 1 - w[..., 0]
@@ -182,6 +187,16 @@ class CameraRenderer:
         self.pad = pad
         self._ray_du: np.ndarray | None = None  # ray derivatives (board anti-aliasing)
         self._ray_dv: np.ndarray | None = None
+
+    def ray_derivatives(self) -> tuple[np.ndarray, np.ndarray]:
+        """(3, H, W) float32 change of the pixel rays per pixel along u and along v.
+
+        Computed on first use and kept (the calibration board's anti-aliasing needs them).
+        """
+        if self._ray_du is None or self._ray_dv is None:
+            self._ray_du = np.gradient(self.rays_soa, axis=2).astype(np.float32)
+            self._ray_dv = np.gradient(self.rays_soa, axis=1).astype(np.float32)
+        return self._ray_du, self._ray_dv
 
     # -- static background -------------------------------------------------------------------
     def _background(self, rng: np.random.Generator, dirs: np.ndarray) -> None:
@@ -552,5 +567,5 @@ def _blur_kernel(blur_px: np.ndarray | None, sigma: float = 0.55) -> np.ndarray:
         ):
             if 0 <= xi + ddx < k and 0 <= yi + ddy < k:
                 ker[yi + ddy, xi + ddx] += wgt
-    ker = cv2.GaussianBlur(ker, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
-    return ker / ker.sum()
+    blurred = cv2.GaussianBlur(ker, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    return blurred / blurred.sum()

@@ -28,7 +28,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -167,10 +167,10 @@ def _metadata(arena: ArenaConfig) -> dict[str, Any]:
     }
 
 
-_CAMERA_KEYS = {"name", "position", "look_at", "size", "focal", "fov_deg", "distortion",
-                "principal_point", "up"}  # fmt: skip
+_CAMERA_KEYS = frozenset({"name", "position", "look_at", "size", "focal", "fov_deg", "distortion",
+                          "principal_point", "up"})  # fmt: skip
 _DEFAULT_KEYS = _CAMERA_KEYS - {"name", "position", "look_at"}
-_TOP_KEYS = {"arena", "defaults", "camera"}
+_TOP_KEYS = frozenset({"arena", "defaults", "camera"})
 
 
 def _vec(value: Any, n: int, what: str, where: str, src: str) -> np.ndarray:
@@ -188,7 +188,7 @@ def _vec(value: Any, n: int, what: str, where: str, src: str) -> np.ndarray:
     return arr
 
 
-def _table(data: Mapping[str, Any], key: str, known: set[str], src: str) -> Mapping[str, Any]:
+def _table(data: Mapping[str, Any], key: str, known: frozenset[str], src: str) -> Mapping[str, Any]:
     """The optional table ``[key]`` of the rig file (empty when absent), its keys checked.
 
     Raises:
@@ -376,7 +376,7 @@ def rig_from_dict(
     """
     src = source
     check_keys(data, _TOP_KEYS, f"{src}: the top level", RigFileError)
-    arena = _arena_of(_table(data, "arena", {"size", "wall_height"}, src), src)
+    arena = _arena_of(_table(data, "arena", frozenset({"size", "wall_height"}), src), src)
     defaults = _table(data, "defaults", _DEFAULT_KEYS, src)
     entries = data.get("camera")
     if not entries or not isinstance(entries, list):
@@ -392,6 +392,18 @@ def rig_from_dict(
         where = f"camera #{i + 1} ({entry.get('name', 'unnamed')!r})"
         cams.append(_camera(entry, where, defaults, names, default_size, arena, src))
     return CameraRig(tuple(cams), _metadata(arena)), arena
+
+
+@overload
+def load_rig_file(
+    path: str | Path, default_size: tuple[int, int] | None = None, with_arena: Literal[False] = ...
+) -> CameraRig: ...
+
+
+@overload
+def load_rig_file(
+    path: str | Path, default_size: tuple[int, int] | None = None, *, with_arena: Literal[True]
+) -> tuple[CameraRig, ArenaConfig]: ...
 
 
 def load_rig_file(

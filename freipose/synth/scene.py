@@ -267,7 +267,7 @@ def _render_camera(args: tuple) -> str:
 
 def _scene_toml(config: SceneConfig, scene: Scene) -> str:
     b = scene.body
-    doc = {
+    doc: dict[str, Any] = {
         "freipose_version": __version__,
         "scene": config.to_dict(),
         "derived": {

@@ -9,7 +9,9 @@ over time, :func:`stimulation_effects` the offsets it adds to the feet or the he
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -19,7 +21,9 @@ from freipose.synth.errors import SynthError
 
 STIM_PARTS = ("Paw Front Right", "Paw Front Left", "Paw Back Right", "Paw Back Left", "Head")
 STIM_EFFECTS = ("oscillate", "lift", "freeze")
-FOOT_INDEX = {"Paw Front Right": 0, "Paw Front Left": 1, "Paw Back Right": 2, "Paw Back Left": 3}
+FOOT_INDEX: Mapping[str, int] = MappingProxyType(
+    {"Paw Front Right": 0, "Paw Front Left": 1, "Paw Back Right": 2, "Paw Back Left": 3}
+)
 
 
 @dataclass(frozen=True)
@@ -70,7 +74,7 @@ class StimulationConfig:
 
     def windows(self, total_s: float) -> list[tuple[float, float]]:
         """``(start_s, end_s)`` of every window that ends within ``total_s`` seconds."""
-        out = []
+        out: list[tuple[float, float]] = []
         t = self.onset_s
         while t + self.duration_s <= total_s + 1e-9 and (
             self.count is None or len(out) < self.count

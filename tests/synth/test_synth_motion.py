@@ -18,7 +18,7 @@ def long_motion():
 
 
 def test_keypoints_match_rat_skeleton_order():
-    assert RAT_KEYPOINTS == load_skeleton("rat").keypoints
+    assert load_skeleton("rat").keypoints == RAT_KEYPOINTS
 
 
 def test_trajectory_shape_and_determinism():
