@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any
 
 STIM_PART = "Paw Front Right"
@@ -71,7 +73,7 @@ class DemoPreset:
 
 _SESSIONS = (DemoSession("rat1_day1", 1, "train"), DemoSession("rat1_day2", 2, "test"))
 
-PRESETS: dict[str, DemoPreset] = {
+_PRESETS = {
     # End to end in a few minutes (CI): everything tiny, numbers meaningless.
     "tiny": DemoPreset(
         name="tiny",
@@ -161,3 +163,6 @@ PRESETS: dict[str, DemoPreset] = {
         batch=8,
     ),
 }
+
+# read-only: a preset is shared by every run that names it
+PRESETS: Mapping[str, DemoPreset] = MappingProxyType(_PRESETS)

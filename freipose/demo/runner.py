@@ -9,8 +9,9 @@ report is rewritten on every run.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from freipose.demo import report
@@ -21,7 +22,7 @@ from freipose.demo.steps import analyze, calibrate, evaluate, labels, predict, s
 
 StepFn = Callable[[DemoContext], dict[str, Any]]
 
-STEP_INFO: dict[str, tuple[str, StepFn]] = {
+STEP_INFO: Mapping[str, tuple[str, StepFn]] = MappingProxyType({
     "synth": ("Synthesize a calibration recording and stimulated sessions (freipose synth)",
               synth.run),
     "calibrate": ("Calibrate the 7 cameras from the board videos (freipose calib)",
@@ -37,7 +38,7 @@ STEP_INFO: dict[str, tuple[str, StepFn]] = {
     "analyze": ("Attribute the stimulation effect to body parts (freipose analyze)",
                 analyze.run),
     "report": ("Write report.html", report.run),
-}  # fmt: skip
+})  # fmt: skip
 
 
 def _resolve_preset(preset: str | DemoPreset) -> DemoPreset:

@@ -22,9 +22,9 @@ class _LabelScores:
 def _on_labels(ctx: DemoContext, trained: dict[str, Any]) -> _LabelScores:
     """Voxel network vs. baseline on the held-out instants (cube on the true centre)."""
     from freipose.io.labels import read_labels_h5
+    from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.dataset import MultiViewDataset
     from freipose.nn.evaluate import jpe, predict_dataset, write_report
-    from freipose.nn.checkpoint import load_checkpoint
 
     ev_path = ctx.out / "labels" / "eval.h5"
     lab = read_labels_h5(ev_path)
