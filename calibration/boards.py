@@ -27,11 +27,14 @@ import json
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from freipose.errors import FreiPoseError
+
+if TYPE_CHECKING:  # OpenCV is imported where it is used
+    import cv2
 
 __all__ = [
     "AprilGridBoard",
@@ -80,14 +83,14 @@ def _normalize_dictionary_name(name: str) -> str:
     )
 
 
-def get_dictionary(name: str):
+def get_dictionary(name: str) -> cv2.aruco.Dictionary:
     """The ``cv2.aruco.Dictionary`` for an OpenCV dictionary name (``"DICT_4X4_50"``)."""
     import cv2
 
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, _normalize_dictionary_name(name)))
 
 
-def board_dictionary(name: str, num_markers: int):
+def board_dictionary(name: str, num_markers: int) -> cv2.aruco.Dictionary:
     """The first ``num_markers`` markers of a named dictionary, as a ``cv2.aruco.Dictionary``.
 
     They are the markers a board with ids 0..num_markers-1 uses, with the named dictionary's
@@ -314,7 +317,7 @@ class CharucoBoard:
         w, h = self.size_mm
         return _rasterize(w, h, px_per_mm, self._black)
 
-    def cv_board(self, *, board_markers_only: bool = False):
+    def cv_board(self, *, board_markers_only: bool = False) -> cv2.aruco.CharucoBoard:
         """The equivalent ``cv2.aruco.CharucoBoard`` (lengths in mm).
 
         Args:
@@ -550,6 +553,7 @@ class AprilGridBoard:
 
 
 Board = CharucoBoard | ChessboardBoard | AprilGridBoard
+
 
 def board_hash(board: Board) -> str:
     """Short stable hash of the board's definition (for detection caches)."""

@@ -10,6 +10,7 @@ that is not found.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +23,9 @@ from freipose.calibration.boards import (
     get_dictionary,
 )
 from freipose.errors import FreiPoseError
+
+if TYPE_CHECKING:  # OpenCV is imported where it is used
+    import cv2
 
 __all__ = [
     "CHARUCO_THRESH_WINDOWS",
@@ -80,7 +84,6 @@ class CameraDetections:
         return CameraDetections(self.name, self.size, self.points[:n], self.source)
 
 
-
 def gray_image(image: np.ndarray) -> np.ndarray:
     """(H, W) gray version of a (H, W, 3) BGR image; a (H, W) image as it is."""
     import cv2
@@ -102,7 +105,9 @@ def _subpix(gray: np.ndarray, pts: np.ndarray, win: int) -> np.ndarray:
     return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
 
-def detect_charuco(gray: np.ndarray, board: CharucoBoard, detector=None):
+def detect_charuco(
+    gray: np.ndarray, board: CharucoBoard, detector: cv2.aruco.CharucoDetector | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``(corner ids (N,), corners (N, 2))`` of one ChArUco detection in a (H, W) image.
 
     Args:
@@ -117,7 +122,9 @@ def detect_charuco(gray: np.ndarray, board: CharucoBoard, detector=None):
     return ids, pts
 
 
-def detect_charuco_markers(gray: np.ndarray, board: CharucoBoard, detector=None):
+def detect_charuco_markers(
+    gray: np.ndarray, board: CharucoBoard, detector: cv2.aruco.CharucoDetector | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(corner ids (N,), corners (N, 2), marker ids (M,))`` of one ChArUco detection.
 
     Args:
@@ -141,7 +148,9 @@ def detect_charuco_markers(gray: np.ndarray, board: CharucoBoard, detector=None)
     )
 
 
-def charuco_detector(board: CharucoBoard, windows: tuple[int, int] | None = None):
+def charuco_detector(
+    board: CharucoBoard, windows: tuple[int, int] | None = None
+) -> cv2.aruco.CharucoDetector:
     """OpenCV ChArUco detector whose markers come from adaptive-threshold windows.
 
     Its dictionary holds only the board's markers (:func:`board_dictionary`): the same
@@ -169,7 +178,7 @@ def charuco_detector(board: CharucoBoard, windows: tuple[int, int] | None = None
     return cv2.aruco.CharucoDetector(board.cv_board(board_markers_only=True), cp, dp)
 
 
-def detect_chessboard(gray: np.ndarray, board: ChessboardBoard):
+def detect_chessboard(gray: np.ndarray, board: ChessboardBoard) -> tuple[np.ndarray, np.ndarray]:
     """``(corner ids (N,), corners (N, 2))`` of the chessboard in a (H, W) image.
 
     Args:
@@ -215,7 +224,9 @@ def _intensity(gray: np.ndarray, xy: np.ndarray) -> float:
     return float(patch.mean())
 
 
-def aruco_detector(dictionary_name: str, border_bits: int = 1, num_markers: int | None = None):
+def aruco_detector(
+    dictionary_name: str, border_bits: int = 1, num_markers: int | None = None
+) -> cv2.aruco.ArucoDetector:
     """OpenCV marker detector for a named dictionary.
 
     Args:
@@ -240,7 +251,9 @@ def aruco_detector(dictionary_name: str, border_bits: int = 1, num_markers: int 
     return cv2.aruco.ArucoDetector(dictionary, p)
 
 
-def detect_aprilgrid(gray: np.ndarray, board: AprilGridBoard, detector=None):
+def detect_aprilgrid(
+    gray: np.ndarray, board: AprilGridBoard, detector: cv2.aruco.ArucoDetector | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``(point ids (N,), corners (N, 2))`` of the grid's tag corners in a (H, W) image.
 
     Args:

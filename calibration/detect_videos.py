@@ -107,7 +107,6 @@ def plan_chunks(
     return sorted(out, key=lambda c: c[1] - c[2])
 
 
-
 def detect_cameras(
     sources: Sequence[str | Path],
     board: Board,
@@ -298,4 +297,3 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
     finally:
         if manager is not None:
             manager.shutdown()
-

@@ -63,4 +63,3 @@ def save_cache(path: Path, points: np.ndarray) -> None:
 
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, points=points, version=np.int64(CACHE_VERSION))
-

@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from freipose.calibration.boards import Board
-from freipose.calibration.bundle import BundleResult, Observations
+from freipose.calibration.bundle import BundleResult
+from freipose.calibration.bundle_problem import Observations
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.detect_videos import detect_cameras
 from freipose.calibration.diagnose import diagnose_board
@@ -114,7 +115,9 @@ class Adjustment:
     offsets: np.ndarray
 
 
-def _common_prefix(detections: list[CameraDetections], warnings: list[str]):
+def _common_prefix(
+    detections: list[CameraDetections], warnings: list[str]
+) -> list[CameraDetections]:
     counts = [d.num_frames for d in detections]
     n = min(counts)
     if len(set(counts)) > 1:

@@ -154,7 +154,9 @@ class BoardTracker:
         ).all(axis=1)
         return self._marker_ids[inside] if inside.any() else None
 
-    def _fast_window(self, crop: np.ndarray, win) -> tuple[np.ndarray, np.ndarray] | None:
+    def _fast_window(
+        self, crop: np.ndarray, win: tuple[int, int, int, int]
+    ) -> tuple[np.ndarray, np.ndarray] | None:
         """The one-window search in the tracking window, when it has every expected marker."""
         expected = self._expected_markers(win)
         if expected is None:
