@@ -23,14 +23,19 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+if TYPE_CHECKING:
+    from freipose.synth.body import BodyGeometry
+    from freipose.synth.render import CameraRenderer
 
-def _brute_force_ids(r, geom, f: int) -> np.ndarray:
+
+def _brute_force_ids(r: CameraRenderer, geom: BodyGeometry, f: int) -> np.ndarray:
     """Baseline: every pixel of the image against every ellipsoid (no culling); part ids."""
     C, A, Rr = geom.centers[f], geom.axes[f], geom.radii[f]
     Dx, Dy, Dz = r.rays_soa

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import click
 
 from freipose.cli._common import user_errors
@@ -78,9 +80,24 @@ def _parse_size(text: str) -> tuple[int, int]:
 )
 @click.option("--workers", type=int, default=None, help="Parallel processes [up to 2].")
 @click.option("--overwrite", is_flag=True, help="Replace a different scene already in OUTDIR.")
-def synth(outdir, n_cameras, rig_file, frames, fps, size, seed, appearance, stim,
-          calibration_video, calibration_frames, board_file, lossless, config_file, workers,
-          overwrite) -> None:  # fmt: skip
+def synth(
+    outdir: str,
+    n_cameras: int | None,
+    rig_file: str | None,
+    frames: int | None,
+    fps: float | None,
+    size: str | None,
+    seed: int | None,
+    appearance: str | None,
+    stim: str | None,
+    calibration_video: bool | None,
+    calibration_frames: int | None,
+    board_file: str | None,
+    lossless: bool | None,
+    config_file: str | None,
+    workers: int | None,
+    overwrite: bool,
+) -> None:
     """Render a synthetic multi-camera session of a moving rat with exact ground truth.
 
     Writes one video per camera, calibration.toml (the true cameras), labels.h5 (exact 3D
@@ -110,7 +127,7 @@ def synth(outdir, n_cameras, rig_file, frames, fps, size, seed, appearance, stim
             "calibration_frames": calibration_frames,
             "video_format": ".mkv" if lossless else None,
         }
-        changes: dict = {k: v for k, v in given.items() if v is not None}
+        changes: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
         if board_file is not None:
             from freipose.calibration.board_files import load_board
 

@@ -170,7 +170,7 @@ def _board_box(cam: Camera, corners_world: np.ndarray) -> tuple[int, int, int, i
 class _BoardTexture:
     """The board's reflectance texture (computed once; shared by all cameras)."""
 
-    def __init__(self, board: Any, px_per_mm: float, margin_mm: float | None):
+    def __init__(self, board: Any, px_per_mm: float, margin_mm: float | None) -> None:
         tex = np.asarray(board.texture(px_per_mm), dtype=np.float32) / 255.0
         self.refl = (INK + (PAPER - INK) * tex).astype(np.float32)
         self.size_mm = tuple(float(v) for v in board.size_mm)

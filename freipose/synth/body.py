@@ -265,7 +265,7 @@ def _surface_point(center: np.ndarray, radii: np.ndarray, direction: ArrayLike) 
 class _Dims:
     """Body-frame dimensions of a :class:`RatBody` in mm."""
 
-    def __init__(self, b: RatBody):
+    def __init__(self, b: RatBody) -> None:
         s, L, G = b.scale, b.scale * b.length, b.scale * b.girth
         self.s = s
         self.pivot = np.array([-50 * L, 0, 16 * G])

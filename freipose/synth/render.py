@@ -158,7 +158,7 @@ class CameraRenderer:
 
     def __init__(
         self, camera: Camera, arena: ArenaConfig, seed: int, look: CameraLook | None = None
-    ):
+    ) -> None:
         self.camera = camera
         self.arena = arena
         rng = np.random.default_rng(seed)
