@@ -77,6 +77,7 @@ from freipose.detect.model import DetectorConfig, DetectorNet, to_tensor
 from freipose.detect.multiview import ConsistencyConfig
 from freipose.detect.train_log import LOG, log_row, read_log, write_log
 from freipose.errors import FreiPoseError, InputFileError
+from freipose.io.toml import did_you_mean
 
 log = logging.getLogger(__name__)
 
@@ -150,8 +151,9 @@ class DetectorTrainConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(table) - known)
         if unknown:
+            hint = did_you_mean(unknown[0], known)
             raise DetectorTrainError(
-                f"[detector] has unknown keys {unknown}; known keys are {sorted(known)}"
+                f"[detector] has unknown keys {unknown}{hint} (known keys: {sorted(known)})"
             )
         try:
             return cls(**table)
