@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from freipose.calibration.detect import CameraDetections
 from freipose.calibration.detection_cache import cache_file, load_cache, save_cache
 from freipose.calibration.tracking import BoardTracker
 from freipose.workers import pool_context, process_pool
+
+if TYPE_CHECKING:  # tqdm is imported where the bar is made
+    from tqdm import tqdm
 
 logger = logging.getLogger(__name__)
 
@@ -32,6 +36,13 @@ PROGRESS_EVERY = 10  # frames between progress messages of a worker
 CHUNK_FRAMES = 100
 
 
+class ProgressSink(Protocol):
+    """Where a detection chunk reports its progress (a queue, or :class:`_BarTicks`)."""
+
+    def put(self, n: int) -> None:
+        """Take a report of ``n`` more frames done."""
+
+
 def _init_worker() -> None:
     """Detection worker: one OpenCV thread (the parallelism is across processes)."""
     import cv2
@@ -40,7 +51,7 @@ def _init_worker() -> None:
 
 
 def _detect_chunk(
-    path: str, board: Board, start: int, stop: int, progress=None
+    path: str, board: Board, start: int, stop: int, progress: ProgressSink | None = None
 ) -> tuple[int, np.ndarray]:
     """Detect the board in frames ``start..stop-1`` of one source, decoding each frame once.
 
@@ -196,7 +207,7 @@ class _BarTicks:
         then: called after every advance; ``None``: nothing.
     """
 
-    def __init__(self, bar, then=None):
+    def __init__(self, bar: tqdm, then: Callable[[], None] | None = None):
         self.bar = bar
         self.then = then
 
@@ -207,7 +218,14 @@ class _BarTicks:
             self.then()
 
 
-def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
+def _detect_parallel(
+    sources: Sequence[str | Path],
+    board: Board,
+    todo: Sequence[tuple[int, int, int]],
+    jobs: int,
+    results: dict[int, np.ndarray],
+    bar: tqdm,
+) -> None:
     """Run ``todo`` chunks in this process and ``jobs - 1`` worker processes.
 
     The chunks are handed out one at a time, to whichever process is free: this process
@@ -253,7 +271,7 @@ def _detect_parallel(sources, board, todo, jobs, results, bar) -> None:
             except queue_mod.Empty:
                 return
 
-    def work(run) -> None:
+    def work(run: Callable[[int, int, int], np.ndarray]) -> None:
         """Take chunks until none is left; ``run(ci, a, b)`` detects one: its points."""
         while (chunk := take()) is not None:
             ci, a, b = chunk

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from freipose.cli._common import user_errors
 from freipose.errors import FreiPoseError, InputFileError
+
+if TYPE_CHECKING:  # the calibration package is imported when a command runs
+    from freipose.calibration.boards import Board
 
 BOARD_OPTIONS = [
     click.option(
@@ -57,17 +62,17 @@ _FIELD_OPTIONS = (
 )
 
 
-def _board_options(f, with_file: bool = True):
+def _board_options(f: Callable[..., Any], with_file: bool = True) -> Callable[..., Any]:
     for opt in reversed(BOARD_OPTIONS if with_file else BOARD_OPTIONS[1:]):
         f = opt(f)
     return f
 
 
-def _board_field_options(f):
+def _board_field_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return _board_options(f, with_file=False)
 
 
-def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
+def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict[str, Any]) -> Board:
     """Board from a file, overridden or completed by command-line fields."""
     from freipose.calibration.board_files import board_from_dict, load_board
     from freipose.calibration.boards import BoardError
@@ -167,22 +172,22 @@ def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict):
 )
 @click.option("--no-cache", is_flag=True, help="Re-detect even if cached detections exist.")
 def run(
-    inputs,
-    board_file,
-    board_type,
-    output,
-    origin_frame,
-    intrinsics_only,
-    fix_intrinsics,
-    report_dir,
-    dist_model,
-    principal_point,
-    aspect,
-    refine_board,
-    view_weights,
-    jobs,
-    no_cache,
-    **board_fields,
+    inputs: tuple[Path, ...],
+    board_file: Path | None,
+    board_type: str | None,
+    output: Path,
+    origin_frame: int | None,
+    intrinsics_only: bool,
+    fix_intrinsics: Path | None,
+    report_dir: Path | None,
+    dist_model: str,
+    principal_point: str,
+    aspect: str,
+    refine_board: bool,
+    view_weights: bool,
+    jobs: int | None,
+    no_cache: bool,
+    **board_fields: Any,
 ) -> None:
     """Calibrate synchronized cameras from videos (or image folders) of a moving board.
 
@@ -263,7 +268,13 @@ def run(
     show_default=True,
     help="Printer resolution; print at 100 % scale.",
 )
-def board(board_file, board_type, output, dpi, **board_fields) -> None:
+def board(
+    board_file: Path | None,
+    board_type: str | None,
+    output: Path,
+    dpi: float,
+    **board_fields: Any,
+) -> None:
     """Render a printable image of a calibration board (print at 100 %, no scaling).
 
     \b
