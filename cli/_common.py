@@ -9,6 +9,8 @@ from typing import Any
 
 import click
 
+from freipose.errors import FreiPoseError
+
 
 @contextlib.contextmanager
 def user_errors(*extra: type[BaseException]) -> Iterator[None]:
@@ -100,7 +102,7 @@ def detector_spec(
 
     if method is None:
         if detector is not None and fixed_boxes is not None:
-            raise ValueError("give either --detector or --fixed-boxes, not both")
+            raise FreiPoseError("give either --detector or --fixed-boxes, not both")
         method = "fixed" if fixed_boxes is not None else "detector"
     return DetectorSpec(method, detector, fixed_boxes, bg_samples, min_views)
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from freipose.cli._common import calibration_option, device_option, frames_option, user_errors
+from freipose.errors import FreiPoseError
 
 
 @click.command()
@@ -94,7 +95,7 @@ def detect(
         from freipose.io.video import frame_range
 
         if batch_size < 1:
-            raise ValueError(f"--batch-size must be >= 1, got {batch_size}")
+            raise FreiPoseError(f"--batch-size must be >= 1, got {batch_size}")
         cfg = ConsistencyConfig(cube_size=cube_size, min_views=min_views)
         opened = discover_sessions([session], calibration, cameras="calibration", need_fps=False)
         rig, sources = opened[0].rig, open_sources(opened[0])

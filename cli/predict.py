@@ -15,6 +15,7 @@ from freipose.cli._common import (
     frames_option,
     user_errors,
 )
+from freipose.errors import FreiPoseError
 
 __all__ = ["detection_options", "detector_spec", "echo_result", "predict"]
 
@@ -101,7 +102,7 @@ def predict(
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         if batch < 1:
-            raise ValueError(f"--batch must be at least 1, got {batch}")
+            raise FreiPoseError(f"--batch must be at least 1, got {batch}")
         shard_t = parse_shard(shard)
         spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
         found = discover_sessions(sessions, calibration)

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from freipose.cli._common import user_errors
+from freipose.errors import FreiPoseError
 
 
 @click.command()
@@ -57,13 +58,13 @@ def render(
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         if tile_width < 32:
-            raise ValueError(f"--tile-width must be at least 32 pixels, got {tile_width}")
+            raise FreiPoseError(f"--tile-width must be at least 32 pixels, got {tile_width}")
         data = read_poses_h5(poses)
         rig = data.calibration
         if rig is None:
             calib = session / "calibration.toml" if session.is_dir() else None
             if calib is None or not calib.is_file():
-                raise ValueError(
+                raise FreiPoseError(
                     f"{poses} stores no calibration and {session} has no calibration.toml"
                 )
             rig = load_calibration(calib)
@@ -75,12 +76,14 @@ def render(
         )
         bad = [n for n in names if n not in rig.names or n not in videos]
         if bad:
-            raise ValueError(
+            raise FreiPoseError(
                 f"cameras {bad} are not both in the calibration {rig.names} and among the "
                 f"videos {sorted(videos)}"
             )
         if not names:
-            raise ValueError(f"no video in {session} matches the calibration's cameras {rig.names}")
+            raise FreiPoseError(
+                f"no video in {session} matches the calibration's cameras {rig.names}"
+            )
         rng = None
         if frames:
             stop = int(data.frame_index.max()) + 1

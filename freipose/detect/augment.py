@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from freipose.detect.base import DetectConfigError
 from freipose.detect.boxes import clip_boxes, transform_boxes
 from freipose.detect.model import STRIDE
 
@@ -47,12 +48,14 @@ class AugmentConfig:
     def __post_init__(self) -> None:
         lo, hi = self.scale
         if not 0 < lo <= hi:
-            raise ValueError(
+            raise DetectConfigError(
                 f"augmentation scale must be (min, max) with 0 < min <= max, got {self.scale}"
             )
         for name in ("hflip", "vflip", "blur", "random_fill", "gray"):
             if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"{name} is a probability in [0, 1], got {getattr(self, name)}")
+                raise DetectConfigError(
+                    f"{name} is a probability in [0, 1], got {getattr(self, name)}"
+                )
 
 
 def augment(

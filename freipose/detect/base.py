@@ -8,6 +8,12 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from freipose.errors import FreiPoseError
+
+
+class DetectConfigError(FreiPoseError):
+    """A detection setting (a config value or a command-line option) is not allowed."""
+
 
 @dataclass(frozen=True, eq=False)
 class Candidates:

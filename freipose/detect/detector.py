@@ -12,9 +12,10 @@ import numpy as np
 import torch
 
 from freipose import __version__
-from freipose.detect.base import Candidates
+from freipose.detect.base import Candidates, DetectConfigError
 from freipose.detect.boxes import transform_boxes
 from freipose.detect.model import DetectorConfig, DetectorNet, decode, letterbox_affine, to_tensor
+from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -24,7 +25,7 @@ CHECKPOINT_VERSION = 1
 PAD_VALUE = 114  # grey padding of letterboxed inputs
 
 
-class DetectorCheckpointError(ValueError):
+class DetectorCheckpointError(FreiPoseError):
     """A detector checkpoint is missing, unreadable or of another kind."""
 
 
@@ -34,7 +35,7 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(
+        raise DetectConfigError(
             f"device {device!r} was asked for but no CUDA GPU is available; use --device cpu"
         )
     return dev
@@ -142,7 +143,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """Read and check a detector checkpoint (tensors on the CPU)."""
     p = Path(path)
     if not p.is_file():
-        raise FileNotFoundError(
+        raise InputFileError(
             f"{p}: detector checkpoint not found; train one with "
             "`freipose train CONFIG --stage detector`"
         )
@@ -169,21 +170,23 @@ def load_backbone_weights(net: DetectorNet, path: str | Path) -> tuple[int, int]
 
     Keys may be bare (``stem.0.weight``) or prefixed with ``backbone.``; tensors whose name
     or shape does not match are skipped. Returns ``(loaded, skipped)`` counts and raises
-    ``ValueError`` when nothing matches.
+    ``DetectorCheckpointError`` when nothing matches.
     """
     p = Path(path)
     if not p.is_file():
-        raise FileNotFoundError(f"{p}: backbone weights file not found")
+        raise InputFileError(f"{p}: backbone weights file not found")
     try:
         state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise ValueError(f"{p}: not a readable PyTorch state dict ({exc})") from exc
+        raise DetectorCheckpointError(f"{p}: not a readable PyTorch state dict ({exc})") from exc
     if isinstance(state, dict) and "model" in state and isinstance(state["model"], dict):
         state = state["model"]
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict):
-        raise ValueError(f"{p}: expected a dict of tensors, found {type(state).__name__}")
+        raise DetectorCheckpointError(
+            f"{p}: expected a dict of tensors, found {type(state).__name__}"
+        )
     own = net.backbone.state_dict()
     new = {}
     skipped = 0
@@ -194,7 +197,7 @@ def load_backbone_weights(net: DetectorNet, path: str | Path) -> tuple[int, int]
         else:
             skipped += 1
     if not new:
-        raise ValueError(
+        raise DetectorCheckpointError(
             f"{p}: none of its {len(state)} tensors matches the detector backbone (width "
             f"{net.config.width}); expected names like {next(iter(own))!r}"
         )

@@ -25,6 +25,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from freipose.detect.base import DetectConfigError
+
 STRIDE = 4
 
 
@@ -44,13 +46,13 @@ class DetectorConfig:
 
     def __post_init__(self) -> None:
         if self.input_size < 64 or self.input_size % 32:
-            raise ValueError(
+            raise DetectConfigError(
                 f"input_size must be a multiple of 32 and >= 64, got {self.input_size}"
             )
         if not 0.1 <= self.width <= 2.0:
-            raise ValueError(f"width must be in [0.1, 2], got {self.width}")
+            raise DetectConfigError(f"width must be in [0.1, 2], got {self.width}")
         if self.neck_channels < 8:
-            raise ValueError(f"neck_channels must be >= 8, got {self.neck_channels}")
+            raise DetectConfigError(f"neck_channels must be >= 8, got {self.neck_channels}")
 
     def to_dict(self) -> dict:
         """The settings as a plain dict (stored in checkpoints)."""

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from freipose.detect.base import BoxSource, Candidates
+from freipose.detect.base import BoxSource, Candidates, DetectConfigError
 from freipose.detect.boxes import box_centers, box_sizes
 from freipose.geometry import CameraRig, project_rig, triangulate, triangulate_weighted
 from freipose.geometry.crops import cube_crop_boxes
@@ -56,15 +56,15 @@ class ConsistencyConfig:
 
     def __post_init__(self) -> None:
         if not self.cube_size > 0:
-            raise ValueError(f"cube_size must be positive (mm), got {self.cube_size}")
+            raise DetectConfigError(f"cube_size must be positive (mm), got {self.cube_size}")
         if self.max_candidates < 1:
-            raise ValueError(f"max_candidates must be >= 1, got {self.max_candidates}")
+            raise DetectConfigError(f"max_candidates must be >= 1, got {self.max_candidates}")
         if self.min_views < 2:
-            raise ValueError(
+            raise DetectConfigError(
                 f"min_views must be >= 2 (a 3D point needs two views), got {self.min_views}"
             )
         if self.rel_tolerance < 0 or self.min_tolerance_px <= 0:
-            raise ValueError("rel_tolerance must be >= 0 and min_tolerance_px > 0")
+            raise DetectConfigError("rel_tolerance must be >= 0 and min_tolerance_px > 0")
 
 
 @dataclass(frozen=True, eq=False)

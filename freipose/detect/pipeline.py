@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from freipose.detect.base import BoxSource
+from freipose.detect.base import BoxSource, DetectConfigError
 from freipose.detect.multiview import ConsistencyConfig, detect_multiview_batch
 from freipose.geometry import CameraRig
 from freipose.io.atomic import atomic_path
@@ -48,22 +48,22 @@ def make_source(
     """The box source the options ask for: ``(source, method name, description)``."""
     if method is None:
         if model is not None and fixed_boxes is not None:
-            raise ValueError("give either --model or --fixed-boxes, not both")
+            raise DetectConfigError("give either --model or --fixed-boxes, not both")
         method = "detector" if model is not None else "fixed" if fixed_boxes is not None else None
         if method is None:
-            raise ValueError(
+            raise DetectConfigError(
                 "say how to find the animal: --model CKPT (trained detector), --method bgsub "
                 "(background subtraction) or --fixed-boxes FILE"
             )
     if method == "detector":
         if model is None:
-            raise ValueError("--method detector needs --model CKPT")
+            raise DetectConfigError("--method detector needs --model CKPT")
         from freipose.detect.detector import Detector
 
         return Detector.load(model, device), "detector", str(model)
     if method == "fixed":
         if fixed_boxes is None:
-            raise ValueError("--method fixed needs --fixed-boxes FILE")
+            raise DetectConfigError("--method fixed needs --fixed-boxes FILE")
         from freipose.detect.fallback import FixedBoxes
 
         fb = FixedBoxes.from_toml(fixed_boxes)
@@ -74,7 +74,7 @@ def make_source(
 
         bg = BackgroundSubtractor.fit(dict(sources), n_samples=bg_samples, frames=frames)
         return bg, "bgsub", f"median background of {bg_samples} frames"
-    raise ValueError(f"unknown method {method!r}; use detector, bgsub or fixed")
+    raise DetectConfigError(f"unknown method {method!r}; use detector, bgsub or fixed")
 
 
 def detect_session(

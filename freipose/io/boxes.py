@@ -32,6 +32,7 @@ import h5py
 import numpy as np
 
 from freipose import __version__
+from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
@@ -41,7 +42,7 @@ SCHEMA = "freipose.boxes"
 SCHEMA_VERSION = 1
 
 
-class BoxesFormatError(ValueError):
+class BoxesFormatError(FreiPoseError):
     """A boxes file is malformed; the message names the file and the problem."""
 
 
@@ -78,10 +79,10 @@ class BoxesData:
         for name, (dt, shape) in arrays.items():
             a = np.asarray(getattr(self, name), dtype=dt)
             if a.shape != shape:
-                raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
+                raise BoxesFormatError(f"{name} must have shape {shape}, got {a.shape}")
             object.__setattr__(self, name, a)
         if self.calibration is not None and list(self.calibration.names) != list(cams):
-            raise ValueError(
+            raise BoxesFormatError(
                 f"calibration cameras {self.calibration.names} differ from cameras {list(cams)}"
             )
         object.__setattr__(self, "frame_index", fi)

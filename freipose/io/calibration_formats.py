@@ -51,6 +51,12 @@ from freipose.io.video import VIDEO_SUFFIXES
 log = logging.getLogger(__name__)
 
 ESTIMATED_KEY = "image_size_estimated"
+
+
+class UnknownCameraError(CalibrationFormatError, KeyError):
+    """A camera name that the rig does not have."""
+
+
 _YAML_SUFFIXES = (".yaml", ".yml")
 
 
@@ -512,7 +518,7 @@ def with_image_sizes(rig: CameraRig, sizes: Mapping[str | None, tuple[int, int]]
     """Set image sizes: key ``None`` applies to every camera, a camera name to that one."""
     unknown = [n for n in sizes if n is not None and n not in rig.names]
     if unknown:
-        raise KeyError(f"no cameras named {unknown} in the rig; cameras are {rig.names}")
+        raise UnknownCameraError(f"no cameras named {unknown} in the rig; cameras are {rig.names}")
     cams = []
     for c in rig:
         s = sizes.get(c.name, sizes.get(None))

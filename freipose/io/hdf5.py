@@ -8,6 +8,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from freipose.errors import InputFileError
+
 
 def str_array(values: Iterable[object]) -> np.ndarray:
     """(N,) UTF-8 variable-length strings for an HDF5 dataset."""
@@ -28,12 +30,12 @@ def open_h5(path: str | Path, what: str, error: type[Exception]) -> h5py.File:
         error: the exception class raised when the file is not readable HDF5.
 
     Raises:
-        FileNotFoundError: the file does not exist.
+        InputFileError: the file does not exist (a ``FileNotFoundError`` too).
         error: the file exists but is not readable HDF5 (e.g. truncated).
     """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"{what} not found: {path}")
+        raise InputFileError(f"{what} not found: {path}")
     try:
         return h5py.File(path, "r")
     except OSError as exc:

@@ -29,6 +29,7 @@ import numpy as np
 
 from freipose import __version__
 from freipose._frozen import PicklableFrozen
+from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
@@ -38,7 +39,7 @@ SCHEMA = "freipose.labels"
 SCHEMA_VERSION = 1
 
 
-class LabelsFormatError(ValueError):
+class LabelsFormatError(FreiPoseError):
     """A labels file is malformed; the message names the file and the problem."""
 
 
@@ -77,18 +78,18 @@ class LabelSet(PicklableFrozen):
         p2 = np.asarray(self.points2d, dtype=np.float64)
         p3 = np.asarray(self.points3d, dtype=np.float64)
         if fi.shape != (n,):
-            raise ValueError(f"frame_index must have shape ({n},), got {fi.shape}")
+            raise LabelsFormatError(f"frame_index must have shape ({n},), got {fi.shape}")
         if p2.shape != (n, v, k, 2):
-            raise ValueError(f"points2d must have shape {(n, v, k, 2)}, got {p2.shape}")
+            raise LabelsFormatError(f"points2d must have shape {(n, v, k, 2)}, got {p2.shape}")
         if p3.shape != (n, k, 3):
-            raise ValueError(f"points3d must have shape {(n, k, 3)}, got {p3.shape}")
+            raise LabelsFormatError(f"points3d must have shape {(n, k, 3)}, got {p3.shape}")
         if len(set(cams)) != v or len(set(kps)) != k:
-            raise ValueError("camera names and keypoint names must be unique")
+            raise LabelsFormatError("camera names and keypoint names must be unique")
         vis = None
         if self.visible2d is not None:
             vis = np.asarray(self.visible2d, dtype=bool)
             if vis.shape != (n, v, k):
-                raise ValueError(f"visible2d must have shape {(n, v, k)}, got {vis.shape}")
+                raise LabelsFormatError(f"visible2d must have shape {(n, v, k)}, got {vis.shape}")
         infos = dict(self.sessions)
         for s in sorted(set(sess)):
             infos.setdefault(s, SessionInfo())
@@ -96,7 +97,7 @@ class LabelSet(PicklableFrozen):
             if info.calibration is not None:
                 extra = [c for c in info.calibration.names if c not in cams]
                 if extra:
-                    raise ValueError(
+                    raise LabelsFormatError(
                         f"session {s!r}: calibration cameras {extra} not in cameras {list(cams)}"
                     )
         object.__setattr__(self, "session", sess)

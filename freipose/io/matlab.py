@@ -21,12 +21,14 @@ from typing import Any
 
 import numpy as np
 
+from freipose.errors import FreiPoseError, InputFileError
+
 log = logging.getLogger(__name__)
 
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
 
-class MatFileError(ValueError):
+class MatFileError(FreiPoseError):
     """A ``.mat`` file cannot be read; the message names the file and the reason."""
 
 
@@ -45,7 +47,7 @@ def load_mat(path: str | Path) -> dict[str, Any]:
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"MATLAB file not found: {path}")
+        raise InputFileError(f"MATLAB file not found: {path}")
     if _is_hdf5(path):
         return _load_v73(path)
     import scipy.io

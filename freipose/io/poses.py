@@ -71,27 +71,27 @@ class PoseData(PicklableFrozen):
     def __post_init__(self) -> None:
         poses = np.asarray(self.poses, dtype=np.float32)
         if poses.ndim != 3 or poses.shape[-1] != 3:
-            raise ValueError(f"poses must have shape (T, K, 3), got {poses.shape}")
+            raise PosesFormatError(f"poses must have shape (T, K, 3), got {poses.shape}")
         t, k = poses.shape[:2]
         conf = np.asarray(self.confidence, dtype=np.float32)
         if conf.shape != (t, k):
-            raise ValueError(f"confidence must have shape {(t, k)}, got {conf.shape}")
+            raise PosesFormatError(f"confidence must have shape {(t, k)}, got {conf.shape}")
         if np.any(conf[np.isfinite(conf)] < 0) or np.any(conf[np.isfinite(conf)] > 1):
-            raise ValueError("confidence values must lie in [0, 1]")
+            raise PosesFormatError("confidence values must lie in [0, 1]")
         kps = tuple(str(s) for s in self.keypoints)
         if len(kps) != k:
-            raise ValueError(f"{len(kps)} keypoint names for {k} keypoints in poses")
+            raise PosesFormatError(f"{len(kps)} keypoint names for {k} keypoints in poses")
         fi = np.asarray(self.frame_index, dtype=np.int64)
         if fi.shape != (t,):
-            raise ValueError(f"frame_index must have shape ({t},), got {fi.shape}")
+            raise PosesFormatError(f"frame_index must have shape ({t},), got {fi.shape}")
         fps = float(self.fps)
         if not np.isfinite(fps) or fps <= 0:
-            raise ValueError(f"fps must be a positive number, got {self.fps!r}")
+            raise PosesFormatError(f"fps must be a positive number, got {self.fps!r}")
         up = np.asarray(self.up, dtype=np.float64).reshape(-1)
         if up.shape != (3,) or not np.isfinite(up).all() or np.linalg.norm(up) == 0:
-            raise ValueError(f"up must be a non-zero 3-vector, got {self.up!r}")
+            raise PosesFormatError(f"up must be a non-zero 3-vector, got {self.up!r}")
         if self.skeleton is not None and tuple(self.skeleton.keypoints) != kps:
-            raise ValueError(
+            raise PosesFormatError(
                 f"skeleton {self.skeleton.name!r} keypoints {list(self.skeleton.keypoints)} do not "
                 f"match the poses' keypoints {list(kps)}"
             )
@@ -99,7 +99,9 @@ class PoseData(PicklableFrozen):
         for name, arr in dict(self.extra).items():
             a = np.asarray(arr)
             if a.ndim == 0 or a.shape[0] != t:
-                raise ValueError(f"extra dataset {name!r} must have T={t} rows, got {a.shape}")
+                raise PosesFormatError(
+                    f"extra dataset {name!r} must have T={t} rows, got {a.shape}"
+                )
             extra[name] = a
         object.__setattr__(self, "poses", poses)
         object.__setattr__(self, "confidence", conf)

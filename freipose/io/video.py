@@ -18,6 +18,7 @@ from types import TracebackType
 import cv2
 import numpy as np
 
+from freipose.errors import FreiPoseError
 from freipose.io.natsort import natural_key
 
 log = logging.getLogger(__name__)
@@ -28,8 +29,12 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 FOURCC = {".mp4": "mp4v", ".avi": "MJPG", ".mkv": "FFV1"}
 
 
-class MediaError(ValueError):
+class MediaError(FreiPoseError):
     """A video or image folder cannot be read; the message names it and says why."""
+
+
+class FrameRangeError(FreiPoseError):
+    """A ``--frames START:STOP`` range is malformed or selects no frame."""
 
 
 @contextlib.contextmanager
@@ -53,18 +58,20 @@ def frame_range(spec: str | None, num_frames: int) -> range:
     values count from the end. A STOP past the end is clipped (with a warning).
 
     Raises:
-        ValueError: malformed spec or an empty range.
+        FrameRangeError: malformed spec or an empty range.
     """
     if not spec:
         return range(num_frames)
     parts = str(spec).split(":")
     if len(parts) != 2:
-        raise ValueError(f"--frames must look like START:STOP (e.g. 0:1000 or 500:), got {spec!r}")
+        raise FrameRangeError(
+            f"--frames must look like START:STOP (e.g. 0:1000 or 500:), got {spec!r}"
+        )
     try:
         a = int(parts[0]) if parts[0].strip() else None
         b = int(parts[1]) if parts[1].strip() else None
     except ValueError:
-        raise ValueError(f"--frames must be two integers START:STOP, got {spec!r}") from None
+        raise FrameRangeError(f"--frames must be two integers START:STOP, got {spec!r}") from None
     r = range(num_frames)[slice(a, b)]
     if b is not None and b > num_frames:
         log.warning(
@@ -74,7 +81,7 @@ def frame_range(spec: str | None, num_frames: int) -> range:
             num_frames,
         )
     if len(r) == 0:
-        raise ValueError(
+        raise FrameRangeError(
             f"--frames {spec!r} selects no frames of a {num_frames}-frame video; "
             f"give START < STOP within 0..{num_frames}"
         )

@@ -16,6 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path
 from freipose.io.poses import PosesFormatError
 
@@ -25,7 +26,7 @@ SHARD_RE = re.compile(r"^(?P<session>.+)\.shard-(?P<i>\d+)-of-(?P<n>\d+)\.poses\
 _SHARD_ATTRS = ("shard", "run_range")
 
 
-class MergeError(ValueError):
+class MergeError(FreiPoseError):
     """Shard files cannot be merged; the message says which and why."""
 
 
@@ -46,7 +47,7 @@ def find_shards(inputs: Sequence[str | Path]) -> dict[str, list[Path]]:
                 )
             files = [p]
         else:
-            raise FileNotFoundError(f"{p}: no such shard file or folder")
+            raise InputFileError(f"{p}: no such shard file or folder")
         for f in files:
             m = SHARD_RE.match(f.name)
             assert m is not None

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from freipose.errors import FreiPoseError
 from freipose.geometry.camera import Camera, CameraRig
 from freipose.geometry.projection import project
 from freipose.io.poses import PoseData
@@ -26,6 +27,11 @@ from freipose.predict.reader import SyncReader
 from freipose.skeleton import Skeleton
 
 log = logging.getLogger(__name__)
+
+
+class RenderError(FreiPoseError):
+    """An overlay cannot be rendered as asked (e.g. frames without predictions)."""
+
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 
@@ -181,13 +187,13 @@ def render_overlay(
         ``output``.
 
     Raises:
-        ValueError: the frame range holds no predicted frame.
+        RenderError: the frame range holds no predicted frame.
     """
     fi = data.frame_index
     a, b = (int(fi.min()), int(fi.max()) + 1) if frames is None else frames
     rows = np.flatnonzero((fi >= a) & (fi < b))
     if len(rows) == 0:
-        raise ValueError(
+        raise RenderError(
             f"frames {a}:{b} hold no predictions; the poses cover frames {fi.min()}..{fi.max()}"
         )
     a, b = int(fi[rows].min()), int(fi[rows].max()) + 1
