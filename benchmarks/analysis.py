@@ -62,7 +62,7 @@ def main() -> None:
     for i in range(32, 32 + m - 64):
         np.abs(np.fft.rfft(sig[i - 32 : i + 32].T * win, axis=1))
     naive = (time.process_time() - c0) / (m - 64) * n
-    from freipose.analysis.variables import stft_amplitude
+    from freipose.analysis.signals import stft_amplitude
 
     c0 = time.process_time()
     stft_amplitude(sig)

@@ -7,14 +7,9 @@ import pytest
 
 from freipose.analysis.floor import FloorError, FloorPlane, fit_floor, load_floor, save_floor
 from freipose.analysis.io import read_variables_h5, variables_from_poses, write_variables_h5
+from freipose.analysis.signals import interpolate_gaps, stft_amplitude
 from freipose.analysis.simulate import RAT_REST_POSE, simulate_rat
-from freipose.analysis.variables import (
-    VariableConfig,
-    VariablesError,
-    compute_variables,
-    interpolate_gaps,
-    stft_amplitude,
-)
+from freipose.analysis.variables import VariableConfig, VariablesError, compute_variables
 from freipose.io.poses import PoseData
 from freipose.skeleton import load_skeleton
 
