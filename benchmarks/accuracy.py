@@ -18,40 +18,13 @@ Experiments (``--experiments``, comma separated):
 Prints the tables and writes ``results.json``, ``jpe_cameras.png``, ``jpe_fraction.png`` and
 the per-keypoint report of the main experiment (``main/``) into ``--out``.
 
-Example (CPU, the ``small`` preset; the main experiment takes about 25 minutes on one
-idle core, each sweep setting 5-10 minutes at 600 steps)::
+Example (CPU, the ``small`` preset)::
 
     python benchmarks/accuracy.py --out bench/accuracy --preset small --steps 1500
     python benchmarks/accuracy.py --out bench/sweeps --steps 600 --experiments cameras,fraction
 
-Measured 2026-11-22 (``small`` preset: stride-4 unprojected features, crops of the middle
-60 % of the cube, refinement trained from 20 % of the steps, P0 fusion weight per keypoint;
-1500 steps x batch 2, CPU, one thread of the 2-core machine with another training on the
-other core; 3 training sessions of 100 instants, held-out session of 60 instants with another
-seed and camera layout), ``python benchmarks/accuracy.py --steps 1500 --experiments main``:
-
-    training seed 0: voxel P0 4.25 mm, P1 3.90 mm [30 %: 2.50, 70 %: 6.20]; baseline 6.84 mm
-                     [4.13, 12.69]: P1 / baseline 0.570, P1 / P0 0.917
-    training seed 1 (``--set schedule.seed=1``): P0 5.00, P1 3.93 [2.51, 6.53]; baseline
-                     7.53 [4.38, 14.59]: P1 / baseline 0.522 (0.574 against seed 0's
-                     baseline), P1 / P0 0.785
-
-The voxel network beats the baseline on every keypoint (paws 4.5-8.4 mm vs 9.5-21 mm, head
-2-3 mm vs 2-4 mm). What each change did (seed 0, same data, same baseline 6.84 mm; P0 / P1):
-the previous preset 5.30 / 4.96; stride-4 unprojected features 4.63 / 4.99 (the refinement,
-trained for only the last half, then made P1 worse than P0); refinement from 20 % of the
-steps 4.57 / 4.63; crops of the middle 70 % of the cube 4.58 / 4.19, with per-keypoint fusion
-weights 4.44 / 4.09 (seed 1: 4.48 / 4.01); middle 60 % 4.25 / 3.90. The baseline crops the
-whole cube (with 70 % crops it got worse: 7.88 mm, keypoints outside a crop are lost to it).
-
-The sweeps were measured with the previous preset at 600 steps (one subset / draw per
-setting; median JPE voxel P1 vs baseline, mm): cameras 1: 20.1 vs - (cannot triangulate), 2:
-12.6 vs 21.2, 3: 11.7 vs 22.5, 4: 8.9 vs 18.3, 5: 8.3 vs 16.7, 6: 8.8 vs 16.4; labeled
-fraction 10 %: 8.9 vs 14.9, 20 %: 9.8 vs 15.8, 30 %: 8.3 vs 14.9, 60 %: 7.6 vs 19.3, 80 %: 7.2
-vs 16.3, 100 %: 8.1 vs 18.7. At 600 steps the baseline is under-trained (6.84 mm at 1500
-steps), so these ratios (~0.5) flatter the voxel network; one draw per setting makes them
-noisy. With one or two cameras, consider ``--set model.crop_fraction=1``: a keypoint outside
-a view's crop then has no other view to cover it.
+With one or two cameras, consider ``--set model.crop_fraction=1``: a keypoint outside a
+view's crop then has no other view to cover it.
 
 ``--set TABLE.KEY=VALUE`` overrides the preset (as above); ``--kinds voxel`` and ``--kinds
 baseline`` in two processes on the same ``--out`` use two cores, a third run with both
@@ -67,14 +40,13 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from typing import Any
 
 import numpy as np
+
+from freipose._compat import tomllib
 
 CAMERA_SETS = {
     1: [[1], [5], [7]],
@@ -139,10 +111,11 @@ def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, 
     """Train voxel + baseline on the same data/steps; evaluate both. Returns JPE arrays.
 
     Only the networks in ``kinds`` are trained; a network left out is still evaluated when
-    its model already exists (another process trained it: ``--kinds``)."""
+    its model already exists (another process trained it: ``--kinds``).
+    """
+    from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.dataset import MultiViewDataset
     from freipose.nn.evaluate import jpe, predict_dataset
-    from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.train import train_pose
     from freipose.skeleton import load_skeleton
 
@@ -190,13 +163,18 @@ def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, 
 
 
 def stats(e: np.ndarray) -> tuple[float, float, float]:
+    """Median, 30 % and 70 % percentiles of the labeled errors (inf: missing predictions)."""
     e = e[~np.isnan(e)]
     e = np.minimum(e, 1e12)
     q = np.percentile(e, [50, 30, 70])
     return tuple(float(v) if v < 1e12 else float("inf") for v in q)
 
 
-def main(argv: list[str] | None = None) -> int:
+NAN3 = (float("nan"),) * 3
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line options."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("bench/accuracy"))
     ap.add_argument("--preset", default="small")
@@ -229,18 +207,14 @@ def main(argv: list[str] | None = None) -> int:
         help="override a [model] or [schedule] key of the preset (TOML value), e.g. "
         "--set model.unproject_levels=1; repeatable",
     )
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING)
-    torch_threads = int(os.environ.get("OMP_NUM_THREADS", "1"))
+    return ap
 
-    import torch
 
-    from freipose.io.labels import read_labels_h5
+def _base_config(ap: argparse.ArgumentParser, args: argparse.Namespace) -> Any:
+    """The training config of every run: the preset, the schedule options and ``--set``."""
     from freipose.nn.config import ConfigError, config_from_dict
-    from freipose.nn.evaluate import write_report
 
-    torch.set_num_threads(torch_threads)
-    model_over = {"preset": args.preset}
+    model_over: dict[str, Any] = {"preset": args.preset}
     if args.cube_size:
         model_over["cube_size"] = args.cube_size
     sched = {
@@ -264,23 +238,108 @@ def main(argv: list[str] | None = None) -> int:
                 f"quoted strings, [lists]), e.g. --set model.norm='\"batch\"'"
             )
         (model_over if table == "model" else sched)[name] = parsed
+    try:
+        return config_from_dict({"model": model_over, "schedule": sched})
+    except ConfigError as exc:
+        ap.error(f"--set: {exc}")
+
+
+def _main_experiment(
+    pair: Callable[..., dict[str, np.ndarray]], out: Path, keypoints: Any, log: Any
+) -> dict[str, Any]:
+    """All cameras, all training instants; writes the per-keypoint report to ``out/main``."""
+    from freipose.nn.evaluate import write_report
+
+    res = pair("main", None, None)
+    write_report(out / "main", res, keypoints)
+    main_res = {k: stats(v) for k, v in res.items()}
+    v, b = main_res.get("voxel_P1", NAN3), main_res.get("baseline", NAN3)
+    p0 = main_res.get("voxel_P0", NAN3)
+    log("\nMAIN (7 cameras, all instants): median JPE mm [30 %, 70 %]")
+    log(f"  voxel P0   {p0[0]:7.2f}  [{p0[1]:.2f}, {p0[2]:.2f}]")
+    log(f"  voxel P1   {v[0]:7.2f}  [{v[1]:.2f}, {v[2]:.2f}]")
+    log(f"  baseline   {b[0]:7.2f}  [{b[1]:.2f}, {b[2]:.2f}]")
+    log(
+        f"  ratio voxel P1 / baseline = {v[0] / b[0]:.3f} (target <= 0.6); "
+        f"P1 / P0 = {v[0] / p0[0]:.3f} (target < 1)"
+    )
+    return main_res
+
+
+def _cameras_experiment(
+    pair: Callable[..., dict[str, np.ndarray]], trials: int, log: Any
+) -> dict[int, Any]:
+    """The camera subsets of :data:`CAMERA_SETS`, ``trials`` subsets per number of cameras."""
+    table = {}
+    for n, sets in CAMERA_SETS.items():
+        accs: dict[str, list] = {}
+        for s in sets[:trials]:
+            cams = [f"cam{i - 1}" for i in s]
+            res = pair(f"cams{n}_{'-'.join(map(str, s))}", cams, None)
+            for k, e in res.items():
+                accs.setdefault(k, []).append(e.reshape(-1))
+        table[n] = {k: stats(np.concatenate(v)) for k, v in accs.items()}
+    log("\nCAMERAS: median JPE mm (voxel P1 / baseline)")
+    for n, row in table.items():
+        vx, b = row.get("voxel_P1", NAN3), row.get("baseline", NAN3)
+        log(f"  {n} cams: voxel {vx[0]:7.2f}   baseline {b[0]:7.2f}")
+    return table
+
+
+def _fraction_experiment(
+    pair: Callable[..., dict[str, np.ndarray]], n_train: int, trials: int, log: Any
+) -> dict[float, Any]:
+    """Random subsets of :data:`FRACTIONS` of the training instants, ``trials`` draws each."""
+    table = {}
+    rng = np.random.default_rng(0)
+    all_idx = np.arange(n_train)
+    for f in FRACTIONS:
+        accs: dict[str, list] = {}
+        for trial in range(trials if f < 1 else 1):
+            idx = np.sort(rng.choice(all_idx, max(2, int(round(f * len(all_idx)))), replace=False))
+            res = pair(f"frac{int(f * 100)}_{trial}", None, idx)
+            for k, e in res.items():
+                accs.setdefault(k, []).append(e.reshape(-1))
+        table[f] = {k: stats(np.concatenate(v)) for k, v in accs.items()}
+    log("\nLABEL FRACTION: median JPE mm (voxel P1 / baseline)")
+    for f, row in table.items():
+        vx, b = row.get("voxel_P1", NAN3), row.get("baseline", NAN3)
+        log(f"  {int(f * 100):3d} %: voxel {vx[0]:7.2f}   baseline {b[0]:7.2f}")
+    return table
+
+
+class _Log:
+    """Print a message and append it to ``log.txt``."""
+
+    def __init__(self, path: Path):
+        self.file = path.open("a")
+
+    def __call__(self, msg: str) -> None:
+        print(msg, flush=True)
+        self.file.write(msg + "\n")
+        self.file.flush()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Generate the sessions, run the experiments, print the tables and write the results."""
+    ap = _parser()
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    torch_threads = int(os.environ.get("OMP_NUM_THREADS", "1"))
+
+    import torch
+
+    from freipose.io.labels import read_labels_h5
+
+    torch.set_num_threads(torch_threads)
     kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
     if not kinds or not kinds <= {"voxel", "baseline"}:
         ap.error(f"--kinds takes voxel and/or baseline, got {args.kinds!r}")
-    try:
-        base_cfg = config_from_dict({"model": model_over, "schedule": sched})
-    except ConfigError as exc:
-        ap.error(f"--set: {exc}")
+    base_cfg = _base_config(ap, args)
     # the arguments are valid: only now the output folder
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    logf = (out / "log.txt").open("a")
-
-    def log(msg: str) -> None:
-        print(msg, flush=True)
-        logf.write(msg + "\n")
-        logf.flush()
-
+    log = _Log(out / "log.txt")
     log(
         f"preset {args.preset}, {args.steps} steps x batch {args.batch_size}, "
         f"device {args.device}, "
@@ -299,79 +358,21 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {"config": vars(args) | {"out": str(out)}, "experiments": {}}
     exps = [e.strip() for e in args.experiments.split(",") if e.strip()]
     all_idx = np.arange(len(train_lab))
-    nan3 = (float("nan"),) * 3
+
+    def pair(tag: str, cameras: list[str] | None, idx: np.ndarray | None) -> dict:
+        indices = all_idx if idx is None else idx
+        return run_pair(
+            tag, base_cfg, train_lab, eval_lab, cameras, indices, out, args.device, log, kinds
+        )
+
     if "main" in exps:
-        res = run_pair(
-            "main", base_cfg, train_lab, eval_lab, None, all_idx, out, args.device, log, kinds
-        )
-        write_report(out / "main", res, read_labels_h5(eval_path).keypoints)
-        results["experiments"]["main"] = {k: stats(v) for k, v in res.items()}
-        main_res = results["experiments"]["main"]
-        v, b = main_res.get("voxel_P1", nan3), main_res.get("baseline", nan3)
-        p0 = main_res.get("voxel_P0", nan3)
-        log("\nMAIN (7 cameras, all instants): median JPE mm [30 %, 70 %]")
-        log(f"  voxel P0   {p0[0]:7.2f}  [{p0[1]:.2f}, {p0[2]:.2f}]")
-        log(f"  voxel P1   {v[0]:7.2f}  [{v[1]:.2f}, {v[2]:.2f}]")
-        log(f"  baseline   {b[0]:7.2f}  [{b[1]:.2f}, {b[2]:.2f}]")
-        log(
-            f"  ratio voxel P1 / baseline = {v[0] / b[0]:.3f} (target <= 0.6); "
-            f"P1 / P0 = {v[0] / p0[0]:.3f} (target < 1)"
-        )
+        keypoints = read_labels_h5(eval_path).keypoints
+        results["experiments"]["main"] = _main_experiment(pair, out, keypoints, log)
     if "cameras" in exps:
-        table = {}
-        for n, sets in CAMERA_SETS.items():
-            accs: dict[str, list] = {}
-            for s in sets[: args.trials]:
-                cams = [f"cam{i - 1}" for i in s]
-                res = run_pair(
-                    f"cams{n}_{'-'.join(map(str, s))}",
-                    base_cfg,
-                    train_lab,
-                    eval_lab,
-                    cams,
-                    all_idx,
-                    out,
-                    args.device,
-                    log,
-                    kinds,
-                )
-                for k, e in res.items():
-                    accs.setdefault(k, []).append(e.reshape(-1))
-            table[n] = {k: stats(np.concatenate(v)) for k, v in accs.items()}
-        results["experiments"]["cameras"] = table
-        log("\nCAMERAS: median JPE mm (voxel P1 / baseline)")
-        for n, row in table.items():
-            vx, b = row.get("voxel_P1", nan3), row.get("baseline", nan3)
-            log(f"  {n} cams: voxel {vx[0]:7.2f}   baseline {b[0]:7.2f}")
+        results["experiments"]["cameras"] = _cameras_experiment(pair, args.trials, log)
     if "fraction" in exps:
-        table = {}
-        rng = np.random.default_rng(0)
-        for f in FRACTIONS:
-            accs = {}
-            for trial in range(args.trials if f < 1 else 1):
-                idx = np.sort(
-                    rng.choice(all_idx, max(2, int(round(f * len(all_idx)))), replace=False)
-                )
-                res = run_pair(
-                    f"frac{int(f * 100)}_{trial}",
-                    base_cfg,
-                    train_lab,
-                    eval_lab,
-                    None,
-                    idx,
-                    out,
-                    args.device,
-                    log,
-                    kinds,
-                )
-                for k, e in res.items():
-                    accs.setdefault(k, []).append(e.reshape(-1))
-            table[f] = {k: stats(np.concatenate(v)) for k, v in accs.items()}
+        table = _fraction_experiment(pair, len(train_lab), args.trials, log)
         results["experiments"]["fraction"] = {str(k): v for k, v in table.items()}
-        log("\nLABEL FRACTION: median JPE mm (voxel P1 / baseline)")
-        for f, row in table.items():
-            vx, b = row.get("voxel_P1", nan3), row.get("baseline", nan3)
-            log(f"  {int(f * 100):3d} %: voxel {vx[0]:7.2f}   baseline {b[0]:7.2f}")
     _plots(out, results)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
     log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / 'results.json'}")
@@ -379,10 +380,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _plots(out: Path, results: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """``jpe_cameras.png`` and ``jpe_fraction.png`` of the sweeps that ran."""
+    from freipose.io.figures import new_figure, save_figure
 
     for name, xlabel in (
         ("cameras", "number of cameras"),
@@ -392,7 +391,8 @@ def _plots(out: Path, results: dict) -> None:
         if not table:
             continue
         xs = sorted(table, key=float)
-        fig, ax = plt.subplots(figsize=(5, 4))
+        fig = new_figure((5, 4))
+        ax = fig.subplots()
         for key, label in (
             ("voxel_P1", "FreiPose (voxel, P1)"),
             ("baseline", "2D + triangulation"),
@@ -410,8 +410,7 @@ def _plots(out: Path, results: dict) -> None:
         ax.legend()
         ax.grid(alpha=0.3)
         fig.tight_layout()
-        fig.savefig(out / f"jpe_{name}.png", dpi=120)
-        plt.close(fig)
+        save_figure(fig, out / f"jpe_{name}.png", dpi=120)
 
 
 if __name__ == "__main__":

@@ -10,11 +10,6 @@ Example::
 
     python benchmarks/throughput.py --preset small --device cpu
     python benchmarks/throughput.py --preset paper --device cuda --batch 4
-
-Measured 2026-11-22 on the idle 2-core CPU machine with the trained ``small`` model of the
-accuracy benchmark (``--ckpt``; 7 cameras 320x256, batch 2): 14.2 multi-view samples/s end to
-end with 2 threads (forward 14.5), 8.9 with 1 thread (forward 9.1). The ``paper`` preset on a
-GPU has not been measured (no GPU was available to these sessions).
 """
 
 from __future__ import annotations
@@ -40,9 +35,9 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
+    from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.config import config_from_dict
     from freipose.nn.data import collate_prepared, prepare_sample, to_device
-    from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.inference import predict_batch
     from freipose.nn.model import build_model
     from freipose.synth import default_rig

@@ -54,41 +54,16 @@ def evaluate(
     Example:
       freipose eval runs/small/model.pt eval/labels.h5 -o runs/small/eval
       freipose eval runs/small/model.pt eval/labels.h5 -o out --baseline runs/base/model.pt
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
-        import numpy as np
-
-        from freipose.io.labels import read_labels_h5
-        from freipose.nn.dataset import MultiViewDataset
-        from freipose.nn.evaluate import jpe, predict_dataset, write_report
-        from freipose.nn.checkpoint import load_checkpoint
+        from freipose.nn.evaluate import evaluate_checkpoints, write_report
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-        lab = read_labels_h5(labels)
-        ds = MultiViewDataset(lab, root=root or labels.resolve().parent)
-        results: dict[str, np.ndarray] = {}
-        keypoints = None
-        for path, name in ((ckpt, None), (baseline, "baseline")):
-            if path is None:
-                continue
-            model, config, skeleton = load_checkpoint(path, device)
-            if tuple(skeleton.keypoints) != tuple(lab.keypoints):
-                raise ValueError(
-                    f"{path}: the network predicts keypoints {list(skeleton.keypoints)} but "
-                    f"{labels} has {list(lab.keypoints)}"
-                )
-            keypoints = skeleton.keypoints
-            pred = predict_dataset(
-                model, ds, batch_size=batch_size, center_noise=center_noise, progress=not quiet
-            )
-            if len(pred["index"]) == 0:
-                raise ValueError(f"{labels}: no labeled instant with 3D labels and a calibration")
-            label = name or ("voxel" if config.model.kind == "voxel" else "baseline")
-            if config.model.kind == "voxel":
-                results[f"{label}_P0"] = jpe(pred["P0"], pred["gt"])
-                results[f"{label}_P1"] = jpe(pred["P1"], pred["gt"])
-            else:
-                results[label] = jpe(pred["P1"], pred["gt"])
+        methods = {"": ckpt} if baseline is None else {"": ckpt, "baseline": baseline}
+        results, keypoints = evaluate_checkpoints(
+            methods, labels, root=root, device=device, batch_size=batch_size,
+            center_noise=center_noise, progress=not quiet,
+        )  # fmt: skip
         summary = write_report(out_dir, results, keypoints)
         for name, s in summary.items():
             o = s["overall"]

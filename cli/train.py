@@ -46,7 +46,7 @@ def train(
       freipose train examples/train_small.toml --out runs/small --resume
       freipose train examples/train_small.toml --stage baseline --out runs/small_baseline
       torchrun --nproc_per_node 4 -m freipose.cli.main train cfg.toml --device cuda
-    """
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         if stage == "detector":
@@ -57,9 +57,10 @@ def train(
                     "detector training is not available in this installation "
                     f"(freipose.detect.train.train_detector could not be imported: {exc})"
                 ) from exc
-            from freipose.nn.config import tomllib
+            from freipose.io.toml import read_toml
+            from freipose.nn.config import ConfigError
 
-            data = tomllib.loads(config.read_text())
+            data = read_toml(config, "training config", ConfigError)
             out = (
                 out_dir
                 if out_dir is not None

@@ -11,19 +11,16 @@ resolved config (all defaults filled in) is written next to the checkpoints as
 from __future__ import annotations
 
 import dataclasses
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from freipose.errors import FreiPoseError
+from freipose.io.toml import did_you_mean, read_toml
 
 
-class ConfigError(ValueError):
+class ConfigError(FreiPoseError):
     """A training config is invalid; the message names the key and the allowed values."""
 
 
@@ -332,16 +329,25 @@ PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
 
 
 def _fields(cls: type) -> dict[str, dataclasses.Field]:
+    """The dataclass fields of ``cls`` by name."""
     return {f.name: f for f in dataclasses.fields(cls)}
 
 
 def _coerce(cls: type, values: Mapping[str, Any], table: str) -> dict[str, Any]:
+    """Check the keys and value types of the TOML table ``table`` against the fields of ``cls``.
+
+    Lists become tuples and integers floats where the field's default is one.
+
+    Raises:
+        ConfigError: an unknown key (with the closest known one) or a value of the wrong type.
+    """
     known = _fields(cls)
     out: dict[str, Any] = {}
     for key, value in values.items():
         if key not in known:
             raise ConfigError(
-                f"unknown key {table}.{key}; allowed keys: {sorted(known)} (see docs/formats.md)"
+                f"unknown key {table}.{key}{did_you_mean(key, known) or ';'} allowed keys: "
+                f"{sorted(known)} (see docs/formats.md)"
             )
         default = known[key].default
         if default is dataclasses.MISSING and known[key].default_factory is not dataclasses.MISSING:
@@ -367,12 +373,24 @@ def _coerce(cls: type, values: Mapping[str, Any], table: str) -> dict[str, Any]:
 
 
 def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
-    """Build a :class:`TrainConfig` from the TOML structure (presets applied, validated)."""
+    """Build a :class:`TrainConfig` from the TOML structure (presets applied, validated).
+
+    Args:
+        data: the TOML tables (``[data]``, ``[model]``, ``[schedule]``, ``[augment]``; the
+            ``[detector]`` and ``[predict]`` tables are kept in ``extra``).
+
+    Returns:
+        The resolved config.
+
+    Raises:
+        ConfigError: an unknown table, key or preset, or an invalid value.
+    """
     known_tables = {"data", "model", "schedule", "augment", "detector", "predict"}
     unknown = sorted(set(data) - known_tables)
     if unknown:
+        hint = did_you_mean(unknown[0], known_tables) or ";"
         raise ConfigError(
-            f"unknown config tables {unknown}; allowed: {sorted(known_tables)} "
+            f"unknown config tables {unknown}{hint} allowed: {sorted(known_tables)} "
             "(see docs/formats.md)"
         )
     model_tbl = dict(data.get("model", {}))
@@ -391,7 +409,14 @@ def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
 
 
 def config_to_dict(config: TrainConfig) -> dict[str, Any]:
-    """The complete config as TOML-ready nested dicts (every default written out)."""
+    """The complete config as TOML-ready nested dicts (every default written out).
+
+    Args:
+        config: a resolved config.
+
+    Returns:
+        The tables (the inverse of :func:`config_from_dict`).
+    """
 
     def plain(obj: Any) -> dict[str, Any]:
         return {
@@ -412,17 +437,18 @@ def config_to_dict(config: TrainConfig) -> dict[str, Any]:
 def load_config(path: str | Path) -> TrainConfig:
     """Read a training config TOML file.
 
+    Args:
+        path: the config file.
+
+    Returns:
+        The resolved config.
+
     Raises:
-        FileNotFoundError: no such file.
+        InputFileError: no such file.
         ConfigError: invalid TOML or invalid values (the message names the key).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"training config not found: {path}")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+    data = read_toml(path, "training config", ConfigError)
     try:
         return config_from_dict(data)
     except ConfigError as exc:
@@ -432,6 +458,16 @@ def load_config(path: str | Path) -> TrainConfig:
 
 
 def model_config_from_dict(data: Mapping[str, Any]) -> ModelConfig:
-    """A :class:`ModelConfig` from a plain dict (e.g. stored in a checkpoint)."""
+    """A :class:`ModelConfig` from a plain dict (e.g. stored in a checkpoint).
+
+    Args:
+        data: the ``[model]`` table (``preset`` is ignored).
+
+    Returns:
+        The model config (without the preset's values).
+
+    Raises:
+        ConfigError: an unknown key or an invalid value.
+    """
     d = {k: v for k, v in data.items() if k != "preset"}
     return ModelConfig(**_coerce(ModelConfig, d, "model"))

@@ -17,15 +17,23 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from freipose.errors import FreiPoseError
 from freipose.io.atomic import atomic_write_text
 from freipose.io.figures import new_figure, save_figure
+from freipose.io.labels import read_labels_h5
+from freipose.nn.checkpoint import load_checkpoint
 from freipose.nn.data import collate_prepared, label_center, prepare_sample
+from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.inference import predict_prepared
 from freipose.nn.types import Sample
 
 log = logging.getLogger(__name__)
 
 PCK_THRESHOLDS = np.linspace(0.0, 20.0, 41)
+
+
+class EvaluationError(FreiPoseError):
+    """A network cannot be evaluated on the given labels (the message says why)."""
 
 
 def usable_indices(source: Sequence[Sample]) -> np.ndarray:
@@ -106,6 +114,63 @@ def predict_dataset(
     return res
 
 
+def evaluate_checkpoints(
+    checkpoints: Mapping[str, str | Path],
+    labels: str | Path,
+    *,
+    root: str | Path | None = None,
+    device: str = "cpu",
+    batch_size: int = 4,
+    center_noise: float = 0.0,
+    progress: bool = False,
+) -> tuple[dict[str, np.ndarray], tuple[str, ...]]:
+    """Joint position errors of trained networks on a labels file (``freipose eval``).
+
+    Args:
+        checkpoints: method name -> checkpoint; an empty name is replaced by the network's
+            kind (``voxel`` or ``baseline``).
+        labels: the ``labels.h5`` file with 3D labels.
+        root: the folder the videos are relative to (default: the labels file's folder).
+        device: where the networks run.
+        batch_size: samples per forward pass.
+        center_noise: std (mm) of Gaussian noise added to each cube centre.
+        progress: show progress bars.
+
+    Returns:
+        ``(results, keypoints)``: result name -> (N, K) JPE in mm (a voxel network gives
+        ``<name>_P0`` and ``<name>_P1``, a baseline ``<name>``) and the K keypoint names.
+
+    Raises:
+        EvaluationError: a network predicts other keypoints than the labels have, or no
+            labeled instant has 3D labels and a calibration.
+    """
+    labels = Path(labels)
+    lab = read_labels_h5(labels)
+    ds = MultiViewDataset(lab, root=Path(root) if root else labels.resolve().parent)
+    results: dict[str, np.ndarray] = {}
+    keypoints: tuple[str, ...] = ()
+    for name, path in checkpoints.items():
+        model, config, skeleton = load_checkpoint(path, device)
+        if tuple(skeleton.keypoints) != tuple(lab.keypoints):
+            raise EvaluationError(
+                f"{path}: the network predicts keypoints {list(skeleton.keypoints)} but "
+                f"{labels} has {list(lab.keypoints)}"
+            )
+        keypoints = tuple(skeleton.keypoints)
+        pred = predict_dataset(
+            model, ds, batch_size=batch_size, center_noise=center_noise, progress=progress
+        )
+        if len(pred["index"]) == 0:
+            raise EvaluationError(f"{labels}: no labeled instant with 3D labels and a calibration")
+        label = name or ("voxel" if config.model.kind == "voxel" else "baseline")
+        if config.model.kind == "voxel":
+            results[f"{label}_P0"] = jpe(pred["P0"], pred["gt"])
+            results[f"{label}_P1"] = jpe(pred["P1"], pred["gt"])
+        else:
+            results[label] = jpe(pred["P1"], pred["gt"])
+    return results, keypoints
+
+
 def jpe(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """Joint position errors in mm; NaN where the label is unknown.
 
@@ -174,9 +239,7 @@ def _pck_figure(out: Path, summary: Mapping[str, Any]) -> None:
     save_figure(fig, out / "pck.png", dpi=120, format="png")
 
 
-def _boxplot_figure(
-    out: Path, results: Mapping[str, np.ndarray], keypoints: Sequence[str]
-) -> None:
+def _boxplot_figure(out: Path, results: Mapping[str, np.ndarray], keypoints: Sequence[str]) -> None:
     """``jpe_boxplot.png``: box plots of the errors per keypoint and method."""
     names = list(results)
     fig = new_figure((max(6, 0.9 * len(keypoints) * len(names)), 4))

@@ -1,5 +1,7 @@
-"""Building blocks of the voxel network: 2D encoder, unprojection, 3D U-Net, soft-argmax,
-2D heads (refinement and baseline), heat maps and confidence-weighted triangulation.
+"""Building blocks of the voxel network.
+
+The 2D encoder, unprojection, 3D U-Net, soft-argmax, 2D heads (refinement and baseline),
+heat maps and confidence-weighted triangulation.
 
 Shapes: B samples, V views, K keypoints, C channels, G voxels per cube edge, S crop size,
 h = w = S / stride feature size. Crop pixel coordinates use the project convention (pixel
@@ -75,6 +77,7 @@ class Encoder2D(nn.Module):
         self.skip_channels = tuple(channels[pools - 1 - j] for j in range(pools))
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Features and skip maps of (N, 3, S, S) crops (see the class docstring)."""
         skips: list[torch.Tensor] = []
         for i, block in enumerate(self.blocks):
             x = block(x)
@@ -103,7 +106,10 @@ def unproject(
 
     Args:
         features: (B, V, C, h, w) per-view feature maps covering the S x S crops.
-        K: (B, V, 3, 3) affine crop intrinsics; R (B, V, 3, 3); t (B, V, 3); dist (B, V, 5).
+        K: (B, V, 3, 3) affine crop intrinsics.
+        R: (B, V, 3, 3) camera rotations.
+        t: (B, V, 3) camera translations (mm).
+        dist: (B, V, 5) distortion coefficients (or None).
         view_mask: (B, V) bool, real views.
         points: (B, P, 3) world mm (voxel centres).
         crop_size: S, crop side in pixels.
@@ -170,6 +176,7 @@ class UNet3D(nn.Module):
         self.final = nn.Conv3d(c0, out, 1, bias=False)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Score volumes of a (B, C, G, G, G) feature volume (see the class docstring)."""
         size = x.shape[-3:]
         inp = x
         acts = []
@@ -225,6 +232,7 @@ def volume_confidence(probs: torch.Tensor, grid_size: int) -> torch.Tensor:
 
     Args:
         probs: (B, K, G**3) distributions.
+        grid_size: G, voxels per cube edge.
 
     Returns:
         (B, K) in [0, 1]; near 1 for a sharp, unimodal score volume.
@@ -240,6 +248,7 @@ def softargmax2d(logits: torch.Tensor, stride: float) -> tuple[torch.Tensor, tor
 
     Args:
         logits: (N, K, h, w).
+        stride: crop pixels per map pixel.
 
     Returns:
         ``(uv, probs)``: (N, K, 2) crop pixels (x, y) and (N, K, h*w) distributions.
@@ -258,7 +267,9 @@ def gaussian_heatmaps(uv: torch.Tensor, size: int, stride: float, sigma: float) 
 
     Args:
         uv: (N, K, 2) crop pixels.
-        size: h = w of the maps; ``stride`` crop pixels per map pixel; ``sigma`` in map px.
+        size: h = w of the maps.
+        stride: crop pixels per map pixel.
+        sigma: the Gaussians' width in map pixels.
 
     Returns:
         (N, K, size, size) in [0, 1].
@@ -274,7 +285,10 @@ def gaussian_log_prior(uv: torch.Tensor, size: int, stride: float, sigma: float)
     """Log of an unnormalised Gaussian, ``-d^2 / (2 sigma^2)`` (map px), around crop points.
 
     Args:
-        uv: (N, K, 2) crop pixels; ``size`` map side, ``stride`` crop px per map px.
+        uv: (N, K, 2) crop pixels.
+        size: side of the maps.
+        stride: crop pixels per map pixel.
+        sigma: the Gaussians' width in map pixels.
 
     Returns:
         (N, K, size, size) float32.
@@ -289,9 +303,11 @@ def gaussian_log_prior(uv: torch.Tensor, size: int, stride: float, sigma: float)
 def _skip_decoder(
     c_in: int, channels: list[int], skip_ch: tuple[int, ...], norm: str
 ) -> tuple[nn.ModuleList, nn.ModuleList, nn.ModuleList]:
-    """Layers of ``len(channels)`` decoder steps (:func:`_skip_decode`): stride-2 transposed
-    convs, 1x1 convs of the encoder's skip maps, 3x3 fusing convs; step ``i`` has
-    ``channels[i]`` channels and takes ``skip_ch[i]`` skip channels."""
+    """Layers of ``len(channels)`` decoder steps (:func:`_skip_decode`).
+
+    Stride-2 transposed convs, 1x1 convs of the encoder's skip maps, 3x3 fusing convs; step
+    ``i`` has ``channels[i]`` channels and takes ``skip_ch[i]`` skip channels.
+    """
     ups, skips, fuses = [], [], []
     c_prev = c_in
     for c, cs in zip(channels, skip_ch):
@@ -316,8 +332,7 @@ def _skip_decode(
 
 
 class Head2D(nn.Module):
-    """Per-view 2D keypoint head: maps ``levels`` octaves finer than the features, and
-    confidences.
+    """Per-view 2D keypoint head: maps ``levels`` octaves finer than the features, confidences.
 
     Used as the refinement head (input: features + P0 heat maps) and as the baseline's 2D
     detector (features only). A base of three convolutions at feature resolution, then
@@ -353,6 +368,7 @@ class Head2D(nn.Module):
     def forward(
         self, feat: torch.Tensor, skips: list[torch.Tensor], heat: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Map and confidence logits of features, skip maps and optional heat maps."""
         x = feat if heat is None else torch.cat([feat, heat.to(feat.dtype)], dim=1)
         x = _skip_decode(self.base(x), self.ups, self.skips, self.fuses, skips)
         return self.maps(x), self.conf(x)
@@ -373,6 +389,7 @@ class FeatureDecoder(nn.Module):
         self.ups, self.skips, self.fuses = _skip_decoder(ch, [ch] * levels, skip_ch, norm)
 
     def forward(self, feat: torch.Tensor, skips: list[torch.Tensor]) -> torch.Tensor:
+        """The raised features (see the class docstring)."""
         return _skip_decode(feat, self.ups, self.skips, self.fuses, skips)
 
 
@@ -404,8 +421,11 @@ def triangulate_with_prior(
     eq. 5.3); with none it is the prior.
 
     Args:
-        uv: (B, V, K, 2) distorted crop pixels; K affine crop intrinsics (B, V, 3, 3);
-            R, t, dist the views' extrinsics and distortion.
+        uv: (B, V, K, 2) distorted crop pixels.
+        K: (B, V, 3, 3) affine crop intrinsics.
+        R: (B, V, 3, 3) camera rotations.
+        t: (B, V, 3) camera translations (mm).
+        dist: (B, V, 5) distortion coefficients (or None).
         weights: (B, V, K) non-negative confidences (0 for padding views).
         prior: (B, K, 3) world mm.
         prior_weight: scalar or (B, K) weight of the prior (same units as ``weights``).

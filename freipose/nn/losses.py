@@ -49,8 +49,11 @@ def volume_cross_entropy(
 
     Args:
         probs: (B, K, G**3) softmax of the final score volumes.
-        gt: (B, K, 3) labels (mm); mask (B, K) labeled; center (B, 3); rotation (B, 3, 3)
-            grid axes (or None).
+        gt: (B, K, 3) labels (mm).
+        mask: (B, K) bool, labeled keypoints.
+        center: (B, 3) cube centres (mm).
+        rotation: (B, 3, 3) orientations of the grid axes in the world (or None).
+        model: gives the grid, the cube and ``volume_sigma``.
 
     Returns:
         Scalar loss (nats), per-sample mean over the valid keypoints, mean over samples.
@@ -80,7 +83,9 @@ def map_cross_entropy(
 
     Args:
         logits: (B, V, K, H, W) map logits (those the soft-argmax decodes).
-        gt2d: (B, V, K, 2) crop pixels; visible (B, V, K).
+        gt2d: (B, V, K, 2) crop pixels.
+        visible: (B, V, K) bool, visible labels.
+        model: gives the map stride and ``map_sigma``.
 
     Returns:
         Scalar loss (nats), per-sample mean over the visible entries, mean over samples.
@@ -154,8 +159,19 @@ def voxel_losses(
 def baseline_losses(
     out: Mapping[str, Any], batch: Mapping[str, Any], model: ModelConfig, sched: ScheduleConfig
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Loss of :class:`freipose.nn.model.BaselineNet`: 2D error, confidence and map
-    cross-entropy (as above)."""
+    """Loss of :class:`freipose.nn.model.BaselineNet`: 2D error, confidence, map cross-entropy.
+
+    The terms are those of :func:`voxel_losses` of the same names.
+
+    Args:
+        out: the network's output.
+        batch: the collated batch (with labels).
+        model: the architecture.
+        sched: gives the terms' weights.
+
+    Returns:
+        ``(total, parts)``: the weighted sum and the terms ``2d``, ``conf`` and ``map``.
+    """
     vis = batch["visible2d"] & batch["view_mask"][:, :, None]
     e2 = point_error(out["points2d"], batch["points2d"]) / model.stride
     l2d = _masked_mean(e2, vis)

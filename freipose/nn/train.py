@@ -14,7 +14,6 @@ averaged by DistributedDataParallel (gloo on CPU, NCCL on GPU).
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import logging
 import os
@@ -31,7 +30,6 @@ import torch.distributed as dist
 
 from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path, atomic_write_text
-from freipose.io.figures import new_figure, save_figure
 from freipose.io.labels import read_labels_h5
 from freipose.nn.checkpoint import read_checkpoint, serialize_checkpoint, training_checkpoint
 from freipose.nn.config import TrainConfig, config_to_dict, load_config
@@ -40,25 +38,11 @@ from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.evaluate import jpe, predict_dataset, usable_indices
 from freipose.nn.losses import baseline_losses, voxel_losses
 from freipose.nn.model import build_model, optimizer_groups
+from freipose.nn.train_log import append_log, plot_log, read_log, write_log
 from freipose.nn.types import Batch, Sample
 from freipose.skeleton import Skeleton, load_skeleton
 
 log = logging.getLogger(__name__)
-
-LOG_COLUMNS = [
-    "step",
-    "lr",
-    "loss",
-    "p0",
-    "aux",
-    "vol",
-    "2d",
-    "conf",
-    "p1",
-    "val_jpe_p0",
-    "val_jpe_p1",
-    "seconds",
-]
 
 
 class TrainError(FreiPoseError):
@@ -118,66 +102,6 @@ def _distributed(device: str) -> Processes:
         torch.cuda.set_device(local)
         return Processes(rank, world, torch.device("cuda", local))
     return Processes(rank, world, torch.device(device))
-
-
-def _read_log(path: Path, upto: int) -> list[dict[str, str]]:
-    """The rows of the log file ``path`` up to step ``upto`` (none without the file)."""
-    if not path.exists():
-        return []
-    with path.open(newline="") as f:
-        return [r for r in csv.DictReader(f) if r.get("step") and int(r["step"]) <= upto]
-
-
-def _log_line(row: dict[str, Any]) -> str:
-    """One log row as a CSV line of :data:`LOG_COLUMNS` (empty where the row has no value)."""
-    return ",".join(str(row.get(c, "")) for c in LOG_COLUMNS)
-
-
-def _write_log(path: Path, rows: list[dict[str, Any]]) -> None:
-    """Write the header and ``rows`` to the log file ``path`` (atomically)."""
-    lines = [",".join(LOG_COLUMNS)]
-    lines.extend(_log_line(r) for r in rows)
-    atomic_write_text(path, "\n".join(lines) + "\n")
-
-
-def _log_values(rows: list[dict[str, str]], column: str) -> np.ndarray:
-    """The values of ``column`` in ``rows`` (NaN where empty)."""
-    return np.array([float(r[column]) if r.get(column) not in (None, "") else np.nan for r in rows])
-
-
-def plot_log(csv_path: str | Path, png_path: str | Path) -> None:
-    """Plot the training log: losses (log scale) and validation JPE against the step.
-
-    Args:
-        csv_path: the run's ``log.csv``.
-        png_path: the PNG to write (nothing is written for an empty log).
-    """
-    rows = _read_log(Path(csv_path), 1 << 62)
-    if not rows:
-        return
-    fig = new_figure((10, 4))
-    a1, a2 = fig.subplots(1, 2)
-    steps = np.array([int(r["step"]) for r in rows])
-    for c in ("loss", "p0", "aux", "vol", "2d", "conf", "p1"):
-        v = _log_values(rows, c)
-        if np.isfinite(v).any():
-            a1.plot(steps, v, label=c)
-    a1.set_yscale("log")
-    a1.set_xlabel("step")
-    a1.set_title("training losses")
-    a1.legend(fontsize=8)
-    for c in ("val_jpe_p0", "val_jpe_p1"):
-        v = _log_values(rows, c)
-        ok = np.isfinite(v)
-        if ok.any():
-            a2.plot(steps[ok], v[ok], "o-", label=c)
-    a2.set_xlabel("step")
-    a2.set_ylabel("median JPE (mm)")
-    a2.set_title("validation")
-    if a2.get_legend_handles_labels()[0]:
-        a2.legend(fontsize=8)
-    fig.tight_layout()
-    save_figure(fig, png_path, dpi=100, format="png")
 
 
 def _rng_state() -> dict[str, Any]:
@@ -329,9 +253,7 @@ def _resume(
         stored["schedule"]["seed"] != sched.seed
         or stored["schedule"]["batch_size"] != sched.batch_size
     ):
-        raise TrainError(
-            f"{path}: schedule.seed and schedule.batch_size must not change on resume"
-        )
+        raise TrainError(f"{path}: schedule.seed and schedule.batch_size must not change on resume")
     model.load_state_dict(ckpt["model"])
     groups = ckpt["optimizer"]["param_groups"]
     if len(groups) != len(opt.param_groups) or any("lr_scale" not in g for g in groups):
@@ -352,7 +274,7 @@ def _start_outputs(files: RunFiles, config: TrainConfig, start: int) -> None:
     """Write ``config.toml`` and the log of the steps before ``start``."""
     files.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(files.out / "config.toml", _toml_text(config_to_dict(config)))
-    _write_log(files.log, _read_log(files.log, start))
+    write_log(files.log, read_log(files.log, start))
 
 
 def _loader(
@@ -507,8 +429,7 @@ def _train_steps(
             row.update({k: f"{v:.4f}" for k, v in metrics.items()})
             pbar.set_postfix(jpe=f"{metrics['val_jpe_p1']:.1f}mm")
         if rank == 0 and row is not None:
-            with run.files.log.open("a") as f:
-                f.write(_log_line(row) + "\n")
+            append_log(run.files.log, row)
             pbar.set_postfix(loss=row.get("loss"), refresh=False)
         if rank == 0 and (done % sched.checkpoint_every == 0 or last):
             _save(run, done, done == sched.steps)
@@ -574,9 +495,7 @@ def train_pose(
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[dev.index] if dev.type == "cuda" else None
         )
-    run = TrainRun(
-        config, skeleton, model, net, opt, procs, files, eval_source, samples.eval
-    )
+    run = TrainRun(config, skeleton, model, net, opt, procs, files, eval_source, samples.eval)
     loader = _loader(train_source, config, samples.train, start, procs)
     done = _train_steps(run, loader, start, stop_after, progress)
     if procs.world > 1:

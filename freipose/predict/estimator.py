@@ -73,6 +73,7 @@ class Estimate:
 
     @property
     def batch_size(self) -> int:
+        """B, the number of time steps."""
         return self.poses.shape[0]
 
     @classmethod
@@ -129,8 +130,11 @@ def estimate_with_missing(
     missing ones). Time steps with fewer than ``min_views`` frames are not run.
 
     Args:
+        estimator: the estimator to run.
         images: C arrays (B, H_c, W_c, 3).
         valid: (B, C) bool, the camera's frame was decoded.
+        rig: the C cameras.
+        min_views: fewest cameras with a frame for a time step to be run.
 
     Returns:
         (estimate over all C cameras, ran (B,) bool: the estimator ran for that time step)

@@ -20,15 +20,25 @@ import numpy as np
 
 from freipose.geometry.camera import CameraRig
 from freipose.geometry.crops import cube_crop_boxes
-from freipose.predict.estimator import Estimate
 from freipose.io.session import Session
+from freipose.io.video import frame_range
+from freipose.predict.estimator import Estimate
+from freipose.predict.run import PredictError, PredictResult, output_path, predict_session
+from freipose.predict.writer import is_complete
 from freipose.skeleton import Skeleton
 
 log = logging.getLogger(__name__)
 
 
 def file_sha256(path: str | Path) -> str:
-    """SHA-256 of a file's bytes (hex)."""
+    """SHA-256 of a file's bytes (hex).
+
+    Args:
+        path: the file.
+
+    Returns:
+        The hex digest.
+    """
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -37,22 +47,43 @@ def file_sha256(path: str | Path) -> str:
 
 
 def resolve_device(device: str) -> str:
-    """``auto`` -> ``cuda`` when available, else ``cpu``; other values are checked."""
+    """``auto`` -> ``cuda`` when available, else ``cpu``; other values are checked.
+
+    Args:
+        device: ``cpu``, ``cuda``, ``cuda:N`` or ``auto``.
+
+    Returns:
+        The device to use.
+
+    Raises:
+        PredictError: an unknown device, or CUDA without a GPU.
+    """
     import torch
 
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {device}: CUDA is not available on this machine; use cpu")
+        raise PredictError(f"--device {device}: CUDA is not available on this machine; use cpu")
     if device != "cpu" and not device.startswith("cuda"):
-        raise ValueError(f"--device must be cpu, cuda, cuda:N or auto, got {device!r}")
+        raise PredictError(f"--device must be cpu, cuda, cuda:N or auto, got {device!r}")
     return device
 
 
 @dataclass(frozen=True)
 class DetectorSpec:
-    """How to find the animal: ``method`` detector (``checkpoint``), bgsub or fixed
-    (``fixed_boxes`` TOML), plus the consistency settings."""
+    """How to find the animal, plus the consistency settings.
+
+    Attributes:
+        method: ``detector`` (a trained detector, ``checkpoint``), ``bgsub`` (background
+            subtraction) or ``fixed`` (boxes from the ``fixed_boxes`` TOML file).
+        checkpoint: the detector checkpoint (method ``detector``).
+        fixed_boxes: the fixed boxes file (method ``fixed``).
+        bg_samples: frames sampled for the background model (method ``bgsub``).
+        min_views: fewest agreeing views for a 3D centre.
+
+    Raises:
+        PredictError: an unknown method, or a method without its file.
+    """
 
     method: str = "detector"
     checkpoint: Path | None = None
@@ -62,19 +93,20 @@ class DetectorSpec:
 
     def __post_init__(self) -> None:
         if self.method not in ("detector", "bgsub", "fixed"):
-            raise ValueError(
+            raise PredictError(
                 f"unknown detection method {self.method!r}; use detector, bgsub or fixed"
             )
         if self.method == "detector" and self.checkpoint is None:
-            raise ValueError(
+            raise PredictError(
                 "say how to find the animal: --detector CKPT (from `freipose train CONFIG "
                 "--stage detector`), --method bgsub (static cameras, one animal) or "
                 "--fixed-boxes FILE"
             )
         if self.method == "fixed" and self.fixed_boxes is None:
-            raise ValueError("--method fixed needs --fixed-boxes FILE")
+            raise PredictError("--method fixed needs --fixed-boxes FILE")
 
     def describe(self) -> dict[str, Any]:
+        """The detection settings stored in the outputs' provenance (files by hash)."""
         out: dict[str, Any] = {"detection": self.method, "min_views": self.min_views}
         if self.method == "detector" and self.checkpoint is not None:
             out["detector_sha256"] = file_sha256(self.checkpoint)
@@ -90,7 +122,9 @@ class NetworkEstimator:
     """Detector + voxel network for one session (see the module docstring).
 
     Args:
-        model, config, skeleton: from :func:`freipose.nn.checkpoint.load_checkpoint`.
+        model: the network from :func:`freipose.nn.checkpoint.load_checkpoint`.
+        config: its training config.
+        skeleton: the keypoints it predicts.
         source: a box source (``propose(images, cameras) -> list[Candidates]``).
         refine: report the refined pose P1 (default) or the 3D network's P0.
         provenance: facts stored in the output (model hash, detection settings).
@@ -120,6 +154,7 @@ class NetworkEstimator:
         self.provenance = dict(provenance or {})
 
     def __call__(self, images: Sequence[np.ndarray], rig: CameraRig) -> Estimate:
+        """Predict B time steps from one (B, H_c, W_c, 3) BGR array per camera of ``rig``."""
         import torch
 
         from freipose.detect.multiview import detect_multiview_batch
@@ -147,11 +182,19 @@ class NetworkEstimator:
 
 
 def load_model(model_path: str | Path, device: str = "cpu") -> tuple[Any, Any, Skeleton, str]:
-    """Load a pose checkpoint for prediction: (model, config, skeleton, file sha256).
+    """Load a pose checkpoint for prediction.
+
+    Args:
+        model_path: the checkpoint.
+        device: where the network runs.
+
+    Returns:
+        ``(model, config, skeleton, sha256 of the file)``.
 
     Raises:
-        FileNotFoundError: no such file.
-        ValueError: not a FreiPose pose checkpoint (e.g. a detector checkpoint), corrupt.
+        InputFileError: no such file.
+        CheckpointError: not a FreiPose pose checkpoint (e.g. a detector checkpoint), corrupt.
+        PredictError: weights that do not fit the network (e.g. a hand-edited file).
     """
     from freipose.nn.checkpoint import load_checkpoint
 
@@ -161,16 +204,25 @@ def load_model(model_path: str | Path, device: str = "cpu") -> tuple[Any, Any, S
     except (FileNotFoundError, ValueError):
         raise
     except Exception as exc:  # noqa: BLE001 - e.g. state-dict mismatches in a hand-edited file
-        raise ValueError(f"{path}: cannot load the pose network ({exc})") from exc
+        raise PredictError(f"{path}: cannot load the pose network ({exc})") from exc
     return model, config, skeleton, file_sha256(path)
 
 
 def check_keypoints(skeleton: Skeleton, expected: Skeleton | None, model_path: str | Path) -> None:
-    """Raise if the model predicts other keypoints than the expected skeleton."""
+    """Check that the model predicts the keypoints of the expected skeleton.
+
+    Args:
+        skeleton: the model's skeleton.
+        expected: the skeleton asked for (None: any).
+        model_path: the checkpoint (for the message).
+
+    Raises:
+        PredictError: other keypoints or another order.
+    """
     if expected is None:
         return
     if tuple(expected.keypoints) != tuple(skeleton.keypoints):
-        raise ValueError(
+        raise PredictError(
             f"{model_path} was trained for keypoints {list(skeleton.keypoints)} (skeleton "
             f"{skeleton.name!r}) but {list(expected.keypoints)} (skeleton {expected.name!r}) "
             "were asked for; use a model trained for that skeleton or drop --skeleton"
@@ -180,24 +232,39 @@ def check_keypoints(skeleton: Skeleton, expected: Skeleton | None, model_path: s
 def make_box_source(
     spec: DetectorSpec, session: Session, frames: tuple[int, int], device: str
 ) -> Any:
-    """The box source for one session (bgsub is fitted on the run's frames)."""
+    """The box source for one session (bgsub is fitted on the run's frames).
+
+    Args:
+        spec: how to find the animal.
+        session: the session (its cameras and videos).
+        frames: the run's frame range ``(start, stop)``.
+        device: where the detector runs.
+
+    Returns:
+        An object with ``propose(images, cameras)``.
+
+    Raises:
+        PredictError: a detector checkpoint that cannot be used.
+    """
     if spec.method == "detector":
         from freipose.detect.detector import Detector
 
-        assert spec.checkpoint is not None
+        if spec.checkpoint is None:
+            raise PredictError("--method detector needs --detector CKPT")
         try:
             return Detector.load(spec.checkpoint, device)
         except FileNotFoundError:
             raise
         except Exception as exc:  # noqa: BLE001 - wrong checkpoint kind, state-dict mismatch
-            raise ValueError(
+            raise PredictError(
                 f"--detector {spec.checkpoint} is not a usable detector checkpoint (pass the file "
                 f"written by `freipose train CONFIG --stage detector`): {exc}"
             ) from exc
     if spec.method == "fixed":
         from freipose.detect.fallback import FixedBoxes
 
-        assert spec.fixed_boxes is not None
+        if spec.fixed_boxes is None:
+            raise PredictError("--method fixed needs --fixed-boxes FILE")
         fb = FixedBoxes.from_toml(spec.fixed_boxes)
         fb.check_cameras(session.cameras)
         return fb
@@ -234,15 +301,26 @@ def predict_sessions(
 
     Everything that can fail early is checked before the first frame: frame ranges, the
     model and its keypoints, the detector checkpoint or fixed boxes. Complete outputs are
-    skipped unless ``overwrite``. ``report(result)`` is called after each session.
+    skipped unless ``overwrite``.
+
+    Args:
+        sessions: the sessions to predict.
+        model_path: the pose checkpoint.
+        spec: how to find the animal.
+        outdir: the output folder.
+        frames: the frame range ``START:STOP`` of every session (default: all).
+        batch_size: time steps per network call.
+        device: ``cpu``, ``cuda``, ``cuda:N`` or ``auto``.
+        refine: report P1 (default) or P0.
+        shard: ``(i, n)``: predict shard i of n.
+        overwrite: redo complete outputs.
+        expected_skeleton: the keypoints the model must predict (None: any).
+        progress: show progress bars.
+        report: called with each session's result.
 
     Returns:
         One :class:`~freipose.predict.run.PredictResult` per session.
     """
-    from freipose.predict.run import PredictResult, output_path, predict_session
-    from freipose.io.video import frame_range
-    from freipose.predict.writer import is_complete
-
     dev = resolve_device(device)
     bounds = {s.name: frame_range(frames, s.num_frames) for s in sessions}
     ranges = {name: (r.start, r.stop) for name, r in bounds.items()}

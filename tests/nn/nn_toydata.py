@@ -10,6 +10,8 @@ import cv2
 import numpy as np
 
 from freipose.geometry import project
+from freipose.nn.dataset import labeled_sample
+from freipose.nn.types import Batch, Sample
 from freipose.skeleton import Skeleton
 from freipose.testing import make_circle_rig
 
@@ -21,7 +23,7 @@ def toy_skeleton() -> Skeleton:
     return Skeleton(name="toy", keypoints=tuple(f"kp{i}" for i in range(len(TEMPLATE))))
 
 
-def toy_samples(n: int, seed: int = 0, cams: int = 3, size=(160, 120), focal=220.0) -> list[dict]:
+def toy_samples(n: int, seed: int = 0, cams: int = 3, size=(160, 120), focal=220.0) -> list[Sample]:
     rig = make_circle_rig(n=cams, radius=700.0, height=400.0, size=size, focal=focal)
     rng = np.random.default_rng(seed)
     out = []
@@ -43,22 +45,17 @@ def toy_samples(n: int, seed: int = 0, cams: int = 3, size=(160, 120), focal=220
                 cv2.circle(img, (int(round(uv[k, 0])), int(round(uv[k, 1]))), r, COLORS[k], -1)
             images.append(img)
             p2.append(uv)
-        p2 = np.array(p2)
         out.append(
-            {
-                "session": "toy",
-                "frame_index": i,
-                "index": i,
-                "rig": rig,
-                "camera_names": tuple(rig.names),
-                "images": images,
-                "points2d": p2,
-                "visible2d": np.isfinite(p2).all(-1),
-                "points3d": pts,
-                "mask3d": np.ones(len(pts), bool),
-            }
+            labeled_sample(rig, images, np.array(p2), pts, session="toy", frame_index=i, index=i)
         )
     return out
+
+
+def toy_batch(model, n: int = 2, cams: int = 3, seed: int = 0) -> Batch:
+    """A collated, unaugmented batch of ``n`` toy samples for the model config ``model``."""
+    from freipose.nn.data import collate_prepared, prepare_sample
+
+    return collate_prepared([prepare_sample(s, model) for s in toy_samples(n, seed, cams)])
 
 
 def write_toy_labels(folder, samples: list[dict]):

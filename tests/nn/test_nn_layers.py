@@ -302,11 +302,9 @@ def test_feature_decoder_and_unproject_levels():
     assert net.lift is not None and build_model(replace(cfg, unproject_levels=0), 3).lift is None
     seen = {}
     net.lift.register_forward_hook(lambda m, i, o: seen.update(shape=tuple(o.shape)))
-    from nn_toydata import toy_samples
+    from nn_toydata import toy_batch
 
-    from freipose.nn.data import collate_prepared, prepare_sample
-
-    b = collate_prepared([prepare_sample(s, cfg) for s in toy_samples(2, cams=3)])
+    b = toy_batch(cfg, 2, cams=3)
     out = net(b)
     s = cfg.crop_size // cfg.stride * 4
     assert seen["shape"] == (2 * 3, cfg.feature_channels, s, s)

@@ -12,9 +12,9 @@ import torch
 from click.testing import CliRunner
 from nn_toydata import toy_samples, toy_skeleton, write_toy_labels
 
+from freipose.nn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
 from freipose.nn.config import ConfigError, config_from_dict, load_config
 from freipose.nn.evaluate import jpe, predict_dataset
-from freipose.nn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
 from freipose.nn.inference import predict_batch
 from freipose.nn.model import build_model
 from freipose.nn.train import train_pose

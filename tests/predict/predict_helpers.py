@@ -12,6 +12,8 @@ import numpy as np
 from freipose.geometry import Camera, CameraRig, triangulate
 from freipose.io.calibration import save_calibration
 from freipose.io.video import VideoWriter
+from freipose.nn.dataset import labeled_sample
+from freipose.nn.types import Sample
 from freipose.predict.estimator import Estimate
 
 KEYPOINTS = ("red", "green")
@@ -193,7 +195,7 @@ def toy_render(pts: np.ndarray, rig: CameraRig, rng: np.random.Generator) -> lis
     return images
 
 
-def toy_training_samples(n: int, rig: CameraRig, seed: int = 0) -> list[dict]:
+def toy_training_samples(n: int, rig: CameraRig, seed: int = 0) -> list[Sample]:
     """Labeled samples (``MultiViewDataset`` format) of the toy animal at random poses."""
     rng = np.random.default_rng(seed)
     out = []
@@ -201,20 +203,10 @@ def toy_training_samples(n: int, rig: CameraRig, seed: int = 0) -> list[dict]:
         pts = toy_pose(rng.uniform(0, 2 * np.pi), rng.uniform(-50, 50, 2))
         pts = pts + rng.normal(0, 3, pts.shape)
         images = toy_render(pts, rig, rng)
-        p2 = rig.project(pts)
         out.append(
-            {
-                "session": "train",
-                "frame_index": i,
-                "index": i,
-                "rig": rig,
-                "camera_names": tuple(rig.names),
-                "images": images,
-                "points2d": p2,
-                "visible2d": np.isfinite(p2).all(-1),
-                "points3d": pts,
-                "mask3d": np.ones(len(pts), bool),
-            }
+            labeled_sample(
+                rig, images, rig.project(pts), pts, session="train", frame_index=i, index=i
+            )
         )
     return out
 
