@@ -7,6 +7,7 @@ import logging
 from collections.abc import Mapping
 from dataclasses import MISSING, fields
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from freipose.calibration.boards import (
@@ -24,12 +25,14 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["board_from_dict", "load_board", "save_board"]
 
-_TYPES: dict[str, type] = {
-    "charuco": CharucoBoard,
-    "chessboard": ChessboardBoard,
-    "checkerboard": ChessboardBoard,
-    "aprilgrid": AprilGridBoard,
-}
+_TYPES: Mapping[str, type] = MappingProxyType(
+    {
+        "charuco": CharucoBoard,
+        "chessboard": ChessboardBoard,
+        "checkerboard": ChessboardBoard,
+        "aprilgrid": AprilGridBoard,
+    }
+)
 
 
 def _from_freicalib_marker(d: Mapping[str, Any], source: str) -> AprilGridBoard:

@@ -25,8 +25,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -56,12 +57,14 @@ class BoardError(FreiPoseError):
 # dictionaries
 
 
-_APRILTAG_FAMILIES = {
-    "16h5": "DICT_APRILTAG_16h5",
-    "25h9": "DICT_APRILTAG_25h9",
-    "36h10": "DICT_APRILTAG_36h10",
-    "36h11": "DICT_APRILTAG_36h11",
-}
+_APRILTAG_FAMILIES: Mapping[str, str] = MappingProxyType(
+    {
+        "16h5": "DICT_APRILTAG_16h5",
+        "25h9": "DICT_APRILTAG_25h9",
+        "36h10": "DICT_APRILTAG_36h10",
+        "36h11": "DICT_APRILTAG_36h11",
+    }
+)
 
 
 def _normalize_dictionary_name(name: str) -> str:

@@ -14,7 +14,7 @@ from freipose.errors import FreiPoseError, InputFileError
 if TYPE_CHECKING:  # the calibration package is imported when a command runs
     from freipose.calibration.boards import Board
 
-BOARD_OPTIONS = [
+BOARD_OPTIONS = (
     click.option(
         "--board",
         "board_file",
@@ -43,7 +43,7 @@ BOARD_OPTIONS = [
     click.option("--tag-size", type=float, help="AprilGrid: tag side (mm)."),
     click.option("--tag-spacing", type=float, help="AprilGrid: gap as a fraction of the tag size."),
     click.option("--family", help="AprilGrid: tag family (36h11, 16h5, ...)."),
-]
+)
 
 _FIELD_OPTIONS = (
     "squares_x",
