@@ -266,7 +266,7 @@ def bench_seed(args, seed: int, work: Path) -> dict:
             f"   (aniposelib / FreiPose; > 1 means FreiPose is better)"
         )
     if args.noise_floor:
-        from freipose.calibration.bundle import noise_sigma
+        from freipose.calibration.robust import noise_sigma
 
         ba = res.bundle
         sigma = noise_sigma(ba.errors[ba.inliers])

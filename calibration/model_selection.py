@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from freipose.calibration.bundle import BundleResult, Observations, camera_covariance
+from freipose.calibration.bundle import BundleResult, camera_covariance
+from freipose.calibration.bundle_problem import Observations
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.options import CalibrationOptions
 from freipose.calibration.stages import run_bundle

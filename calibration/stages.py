@@ -19,13 +19,8 @@ from typing import TypeVar
 
 import numpy as np
 
-from freipose.calibration.bundle import (
-    BundleResult,
-    Observations,
-    board_point_offsets,
-    bundle_adjust,
-    matrix_to_rvec,
-)
+from freipose.calibration.bundle import BundleResult, board_point_offsets, bundle_adjust
+from freipose.calibration.bundle_problem import Observations
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.extrinsics import (
     CameraGraph,
@@ -40,6 +35,7 @@ from freipose.calibration.intrinsics import (
     dist_free_mask,
 )
 from freipose.calibration.options import CalibrationOptions
+from freipose.geometry.transforms import matrix_to_rodrigues
 
 _In = TypeVar("_In")
 _Out = TypeVar("_Out")
@@ -332,7 +328,7 @@ def initial_parameters(
         K = Ks[i]
         cam0[i, :4] = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
         cam0[i, 4:9] = dists[i]
-        cam0[i, 9:12] = matrix_to_rvec(T_world[i, :3, :3])
+        cam0[i, 9:12] = matrix_to_rodrigues(T_world[i, :3, :3])
         cam0[i, 12:15] = T_world[i, :3, 3]
         if d.name not in intr.fixed:
             free[i, :4] = True
@@ -349,7 +345,7 @@ def initial_parameters(
     B0 = rig0.board_poses
     fr0 = np.zeros((len(rig0.frames), 6))
     for k, f in enumerate(rig0.frames):
-        fr0[k, :3] = matrix_to_rvec(B0[f, :3, :3])
+        fr0[k, :3] = matrix_to_rodrigues(B0[f, :3, :3])
         fr0[k, 3:] = B0[f, :3, 3]
     return BundleStart(cam0, free, square, fr0)
 

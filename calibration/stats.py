@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from freipose.calibration.bundle import BundleResult, Observations
+from freipose.calibration.bundle import BundleResult
+from freipose.calibration.bundle_problem import Observations
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.intrinsics import IntrinsicsResult
 

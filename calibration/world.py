@@ -7,26 +7,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from freipose.calibration.bundle import BundleResult, rodrigues
+from freipose.calibration.bundle import BundleResult
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.intrinsics import CalibrationError
 from freipose.geometry import Camera
+from freipose.geometry.transforms import invert_transform, rodrigues, transform
 
 __all__ = ["BOARD_TO_FLOOR", "WorldFrame", "rig_cameras", "world_frame"]
 
 # board frame (x right, y down the print, z into the board) -> floor frame (z up out of it)
 BOARD_TO_FLOOR = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-def _T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    return _T(T[:3, :3].T, -T[:3, :3].T @ T[:3, 3])
 
 
 @dataclass(frozen=True)
@@ -79,13 +69,13 @@ def world_frame(
     Returns:
         the cameras' and board poses' transforms in the world frame.
     """
-    Tc = np.stack([_T(rodrigues(p[9:12]), p[12:15]) for p in ba.cam_params])  # world→cam
+    Tc = np.stack([transform(rodrigues(p[9:12]), p[12:15]) for p in ba.cam_params])  # world→cam
     Bw = np.full((num_frames, 4, 4), np.nan)
     for k, f in enumerate(ba.frames):
-        Bw[f] = _T(rodrigues(ba.frame_params[k, :3]), ba.frame_params[k, 3:])
+        Bw[f] = transform(rodrigues(ba.frame_params[k, :3]), ba.frame_params[k, 3:])
     if origin_frame is not None:
         N = int(origin_frame)
-        W = BOARD_TO_FLOOR @ _inv(_origin_pose(Bw, N))
+        W = BOARD_TO_FLOOR @ invert_transform(_origin_pose(Bw, N))
         world = (
             f"board on the floor in frame {N}: origin at the board's top-left pattern corner, "
             f"x along the board's rows, y toward its first row, z up out of the floor; mm"
@@ -96,7 +86,7 @@ def world_frame(
             f"camera {names[0]}'s frame (origin at its optical centre, x right, y down, "
             f"z forward); mm"
         )
-    Tc = np.stack([T @ _inv(W) for T in Tc])
+    Tc = np.stack([T @ invert_transform(W) for T in Tc])
     Bw = np.einsum("ij,fjk->fik", W, Bw)
     return WorldFrame(Tc, Bw, world)
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from freipose.calibration.bundle import rodrigues
 from freipose.calibration.detect import CameraDetections
 from freipose.geometry import CameraRig, project
 from freipose.geometry.alignment import rig_errors as geometry_rig_errors
+from freipose.geometry.transforms import rodrigues
 
 
 def board_detections(

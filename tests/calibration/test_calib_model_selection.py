@@ -7,7 +7,7 @@ import pytest
 from calib_helpers import board_detections, rig_errors
 
 from freipose.calibration.boards import CharucoBoard
-from freipose.calibration.bundle import noise_sigma
+from freipose.calibration.robust import noise_sigma
 from freipose.calibration.options import CalibrationOptions
 from freipose.calibration.pipeline import CalibrationError, calibrate_detections
 from freipose.testing import make_circle_rig

@@ -5,13 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from freipose.calibration.bundle import (
-    Observations,
-    _normal_equations,
-    _Problem,
-    _Segments,
-    rodrigues,
-)
+from freipose.calibration.bundle_problem import Observations, Problem, Segments, normal_equations
+from freipose.geometry.transforms import rodrigues
 
 
 def _problem(rng, C=3, F=5, P=6):
@@ -40,7 +35,7 @@ def _problem(rng, C=3, F=5, P=6):
         np.array(cam), np.array(frame), np.array(point), rng.normal(320, 100, (n, 2))
     )
     order = rng.permutation(n)  # the problem sorts them itself
-    return _Problem(obs.subset(order), C, F), (intr, Rc, tc, Rf, tf)
+    return Problem(obs.subset(order), C, F), (intr, Rc, tc, Rf, tf)
 
 
 def test_jacobians_match_finite_differences():
@@ -84,7 +79,8 @@ def test_normal_equations_match_dense_products():
     w = rng.uniform(0.2, 1.0, len(r))
     free = np.ones((prob.C, 15), bool)
     free[0, 9:] = False  # the gauge: camera 0's pose is fixed
-    Hcc, Hff, Hcf, gc, gf = _normal_equations(prob, Rc, Rf, cache, r, w, free)
+    ne = normal_equations(prob, Rc, Rf, cache, r, w, free)
+    Hcc, Hff, Hcf, gc, gf = ne.Hcc, ne.Hff, ne.Hcf, ne.gc, ne.gf
     Jc, Jf = prob.jacobians(Rc, Rf, cache)
     Jc = Jc * free[prob.obs.cam][:, None, :]
     C, F, N = prob.C, prob.F, len(r)
@@ -116,7 +112,7 @@ def test_normal_equations_match_dense_products():
 
 
 def test_segments_sum_runs_of_sorted_keys():
-    seg = _Segments(np.array([0, 0, 2, 2, 2, 3]), 5)
+    seg = Segments(np.array([0, 0, 2, 2, 2, 3]), 5)
     x = np.arange(12.0).reshape(6, 2)
     np.testing.assert_array_equal(seg(x), [[2, 4], [0, 0], [18, 21], [10, 11], [0, 0]])
-    assert _Segments(np.zeros(0, int), 3)(np.zeros((0, 2))).shape == (3, 2)
+    assert Segments(np.zeros(0, int), 3)(np.zeros((0, 2))).shape == (3, 2)

@@ -6,7 +6,7 @@ import numpy as np
 from calib_helpers import board_detections, rig_errors
 
 from freipose.calibration.boards import CharucoBoard
-from freipose.calibration.bundle import view_noise_scales
+from freipose.calibration.robust import view_noise_scales
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.options import CalibrationOptions
 from freipose.calibration.pipeline import calibrate_detections
@@ -71,7 +71,8 @@ def test_noisy_views_count_less():
 def test_view_weights_follow_their_observations_in_any_order():
     # the solver sorts observations by camera and frame internally: view scales (and the
     # covariance's weights) must be permuted with them
-    from freipose.calibration.bundle import Observations, bundle_adjust, camera_covariance
+    from freipose.calibration.bundle import bundle_adjust, camera_covariance
+    from freipose.calibration.bundle_problem import Observations
 
     rig = make_circle_rig(3, radius=700.0, height=400.0, distortion=True)
     dets, _ = board_detections(rig, BOARD.object_points, BOARD.size_mm, 40, noise_px=0.1, seed=1)
