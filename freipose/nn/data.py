@@ -308,9 +308,10 @@ def prepare_sample(
     }
     if sample.get("points3d") is not None:
         lab = _crop_labels(sample, crops, model.crop_size)
-        res.update(
-            points3d=lab.points3d, mask3d=lab.mask3d, points2d=lab.points2d, visible2d=lab.visible2d
-        )
+        res["points3d"] = lab.points3d
+        res["mask3d"] = lab.mask3d
+        res["points2d"] = lab.points2d
+        res["visible2d"] = lab.visible2d
         if aug is not None and aug.refine_jitter > 0:
             res["p0_jitter"] = rng.normal(0.0, aug.refine_jitter, size=(lab.points3d.shape[0], 3))
     return res
@@ -347,12 +348,10 @@ def collate_prepared(items: list[PreparedSample]) -> Batch:
     labeled = all("points3d" in it for it in items)
     if labeled:
         nk = items[0]["points3d"].shape[0]
-        out.update(
-            points3d=torch.zeros(B, nk, 3),
-            mask3d=torch.zeros(B, nk, dtype=torch.bool),
-            points2d=torch.zeros(B, V, nk, 2),
-            visible2d=torch.zeros(B, V, nk, dtype=torch.bool),
-        )
+        out["points3d"] = torch.zeros(B, nk, 3)
+        out["mask3d"] = torch.zeros(B, nk, dtype=torch.bool)
+        out["points2d"] = torch.zeros(B, V, nk, 2)
+        out["visible2d"] = torch.zeros(B, V, nk, dtype=torch.bool)
     for b, it in enumerate(items):
         n = len(it["view_valid"])
         out["images"][b, :n] = torch.from_numpy(it["images"])

@@ -29,7 +29,7 @@ T = 24
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """(model.pt, session folder, true poses (T, 5, 3)); training takes 2-10 s on one core."""
+    """(model.pt, session folder, true poses (T, 5, 3)) of a tiny network trained 100 steps."""
     from freipose.nn.config import config_from_dict
     from freipose.nn.train import train_pose
 
