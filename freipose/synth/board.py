@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -314,18 +314,46 @@ def _auto_ppm(rig: CameraRig) -> float:
     return float(np.clip(3.0 * f / 600.0, 1.0, 8.0))
 
 
-def _board_camera_job(args: tuple[Any, ...]) -> str:
+@dataclass(frozen=True, eq=False)
+class _BoardJob:
+    """What a worker needs to render one camera's board video.
+
+    Attributes:
+        camera: the camera.
+        index: the camera's number in the rig (selects its look and noise).
+        texture: the board's texture.
+        poses: (F, 4, 4) board->world transforms.
+        seed: the recording's seed.
+        fps: frame rate.
+        path: the video file to write.
+        arena: the arena (background).
+    """
+
+    camera: Camera
+    index: int
+    texture: _BoardTexture
+    poses: np.ndarray
+    seed: int
+    fps: float
+    path: Path
+    arena: ArenaConfig
+
+
+def _board_camera_job(job: _BoardJob) -> str:
     """Worker: render and write one camera's board video (module level so it can be pickled)."""
     import cv2
 
     from freipose.io.video import VideoWriter
 
     cv2.setNumThreads(1)
-    cam, ci, tex, poses, seed, fps, path, arena = args
-    with VideoWriter(path, fps, cam.size) as w:
-        for img in _iter_board_camera(cam, ci, tex, poses, seed, True, True, arena):
+    cam = job.camera
+    frames = _iter_board_camera(
+        cam, job.index, job.texture, job.poses, job.seed, True, True, job.arena
+    )
+    with VideoWriter(job.path, job.fps, cam.size) as w:
+        for img in frames:
             w.write(img)
-    return str(path)
+    return str(job.path)
 
 
 def write_board_videos(
@@ -376,7 +404,7 @@ def write_board_videos(
     videos = {cam.name: out / f"{cam.name}{fmt}" for cam in rig}
     tex = _BoardTexture(board, _auto_ppm(rig), None)
     jobs = [
-        (cam, ci, tex, poses, seed, fps, videos[cam.name], arena)
+        _BoardJob(cam, ci, tex, poses, seed, fps, videos[cam.name], arena)
         for ci, cam in enumerate(rig)
         if not (same and videos[cam.name].is_file())
     ]

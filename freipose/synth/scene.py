@@ -244,7 +244,36 @@ def _blur_vectors(geom: BodyGeometry, cam: Camera, fps: float, shutter: float = 
     return np.nan_to_num(v) * shutter
 
 
-def _render_camera(args: tuple) -> str:
+@dataclass(frozen=True, eq=False)
+class _CameraJob:
+    """What a worker needs to render one camera's video.
+
+    Attributes:
+        camera: the camera.
+        arena: the arena.
+        geometry: the animal over all frames.
+        palette: (n_materials, 2, 3) BGR albedo of the animal.
+        path: the video file to write.
+        fps: frame rate.
+        seed_look: seed of the camera's look and textures.
+        seed_frames: seed of the per-frame sensor noise.
+        blur: motion blur.
+        noise: sensor noise.
+    """
+
+    camera: Camera
+    arena: ArenaConfig
+    geometry: BodyGeometry
+    palette: np.ndarray
+    path: Path
+    fps: float
+    seed_look: int
+    seed_frames: int
+    blur: bool
+    noise: bool
+
+
+def _render_camera(job: _CameraJob) -> str:
     """Worker: render and write one camera's video (module level so it can be pickled)."""
     import cv2
 
@@ -252,17 +281,17 @@ def _render_camera(args: tuple) -> str:
     from freipose.synth.render import CameraLook, CameraRenderer
 
     cv2.setNumThreads(1)
-    cam, arena, geom, palette, path, fps, seed_look, seed_frames, blur, noise = args
-    look = CameraLook.random(np.random.default_rng(seed_look))
-    if not noise:
+    cam, geom = job.camera, job.geometry
+    look = CameraLook.random(np.random.default_rng(job.seed_look))
+    if not job.noise:
         look = replace(look, noise_sigma=0.0)
-    renderer = CameraRenderer(cam, arena, seed_look, look)
-    rng = np.random.default_rng(seed_frames)
-    vel = _blur_vectors(geom, cam, fps) if blur else np.zeros((len(geom), 2))
-    with VideoWriter(path, fps, cam.size) as writer:
+    renderer = CameraRenderer(cam, job.arena, job.seed_look, look)
+    rng = np.random.default_rng(job.seed_frames)
+    vel = _blur_vectors(geom, cam, job.fps) if job.blur else np.zeros((len(geom), 2))
+    with VideoWriter(job.path, job.fps, cam.size) as writer:
         for f in range(len(geom)):
-            writer.write(renderer.render(geom, f, palette, rng, vel[f]))
-    return str(path)
+            writer.write(renderer.render(geom, f, job.palette, rng, vel[f]))
+    return str(job.path)
 
 
 def _scene_toml(config: SceneConfig, scene: Scene) -> str:
@@ -371,9 +400,20 @@ def _render_videos(
         if videos[cam.name].is_file():
             log.info("keeping %s (already rendered for this scene)", videos[cam.name])
             continue
-        jobs.append((cam, scene.arena, scene.geometry, palette, videos[cam.name], config.fps,
-                     _seed(config.seed, 100 + i), _seed(config.seed, 200 + i),
-                     config.motion_blur, config.noise))  # fmt: skip
+        jobs.append(
+            _CameraJob(
+                camera=cam,
+                arena=scene.arena,
+                geometry=scene.geometry,
+                palette=palette,
+                path=videos[cam.name],
+                fps=config.fps,
+                seed_look=_seed(config.seed, 100 + i),
+                seed_frames=_seed(config.seed, 200 + i),
+                blur=config.motion_blur,
+                noise=config.noise,
+            )
+        )
     if workers is None:  # processes only pay off for big jobs (each one starts Python anew)
         pixels = config.frames * len(scene.rig) * config.size[0] * config.size[1]
         workers = min(2, os.cpu_count() or 1) if pixels > 2e7 else 1
