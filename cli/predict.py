@@ -17,9 +17,6 @@ from freipose.cli._common import (
 )
 from freipose.errors import FreiPoseError
 
-__all__ = ["detection_options", "detector_spec", "echo_result", "predict"]
-
-
 @click.command()
 @click.argument("sessions", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
 @click.option(
