@@ -17,6 +17,7 @@ from freipose.cli._common import (
 )
 from freipose.errors import FreiPoseError
 
+
 @click.command()
 @click.argument("sessions", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
 @click.option(
