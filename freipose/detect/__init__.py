@@ -8,7 +8,9 @@
   and cube crops (:func:`detect_multiview`, :func:`detect_multiview_batch`,
   :func:`consistent_detection` -> :class:`MultiViewDetection`);
 * :mod:`.train`: ``train_detector`` for ``freipose train CONFIG --stage detector``;
-* :mod:`.evaluate`: ground-truth boxes and metrics (recall, 3D centre error, fps).
+* :mod:`.evaluate`: ground-truth boxes and metrics (recall, 3D centre error, fps);
+* :mod:`.pipeline`: a box source over a whole session (``freipose detect``; the session
+  itself is opened by :mod:`freipose.io.session`).
 
 Every box source has ``propose(images, cameras) -> list[Candidates]``.
 """
