@@ -1,5 +1,7 @@
-"""Extrinsics initialisation: board poses per camera, relative poses of camera pairs, chained
-over a maximum spanning tree of the camera graph (edge weight = frames seen together).
+"""Extrinsics initialisation: board poses, relative camera poses, chained over a spanning tree.
+
+Board poses per camera, relative poses of camera pairs, chained over a maximum spanning tree
+of the camera graph (edge weight = frames seen together).
 
 Cost is O(F·C²) for the pair statistics (one robust average per pair), not FreiCalib's
 O(F²·C²) frame-pair search.
@@ -14,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from freipose.calibration.intrinsics import CalibrationError, usable_frames
+from freipose.geometry.transforms import invert_transform, rodrigues_to_matrix, transform
 
 logger = logging.getLogger(__name__)
 
@@ -25,18 +28,6 @@ __all__ = [
     "initial_extrinsics",
     "mean_rotation",
 ]
-
-
-def _to_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.asarray(t).reshape(3)
-    return T
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    R, t = T[:3, :3], T[:3, 3]
-    return _to_T(R.T, -R.T @ t)
 
 
 def mean_rotation(Rs: np.ndarray) -> np.ndarray:
@@ -65,7 +56,8 @@ def board_poses_per_camera(
     Args:
         points: (F, P, 2) detections (NaN = missing).
         object_points: (P, 3).
-        K, dist: intrinsics.
+        K: (3, 3) intrinsic matrix.
+        dist: (5,) distortion coefficients.
         max_rms: poses with a larger reprojection RMS (px) are dropped (NaN).
 
     Returns:
@@ -90,16 +82,22 @@ def board_poses_per_camera(
         e = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
         if e > max_rms or float(np.asarray(tvec).reshape(3)[2]) <= 0:
             continue
-        R, _ = cv2.Rodrigues(rvec)
-        T[f] = _to_T(R, tvec)
+        T[f] = transform(rodrigues_to_matrix(rvec), tvec)
         rms[f] = e
     return T, rms
 
 
 @dataclass(frozen=True)
 class CameraGraph:
-    """Pairwise statistics: ``shared[i, j]`` frames where cameras i and j both have a board pose;
-    ``relative[i, j]`` (4, 4) robust average of T_i←j (camera j → camera i), NaN if unknown."""
+    """Pairwise statistics of the cameras' board poses.
+
+    Attributes:
+        names: the camera names.
+        shared: (C, C) frames where cameras i and j both have a board pose.
+        relative: (C, C, 4, 4) robust average of T_i←j (camera j → camera i), NaN if unknown.
+        tree_edges: the spanning tree's edges ``(i, j)`` (camera j chained from camera i).
+        root: the index of the camera whose frame is the world.
+    """
 
     names: tuple[str, ...]
     shared: np.ndarray
@@ -108,6 +106,7 @@ class CameraGraph:
     root: int = 0
 
     def to_dict(self) -> dict:
+        """The graph as plain data (cameras, shared frames per pair, spanning tree, root)."""
         n = len(self.names)
         return {
             "cameras": list(self.names),
@@ -138,7 +137,7 @@ def _relative_pose(Ti: np.ndarray, Tj: np.ndarray) -> tuple[np.ndarray, int]:
             inl = ang <= np.median(ang)
         R0 = mean_rotation(Rs[inl])
         t0 = np.mean(ts[inl], axis=0)
-    return _to_T(R0, t0), int(inl.sum())
+    return transform(R0, t0), int(inl.sum())
 
 
 def camera_graph(names: Sequence[str], poses: np.ndarray) -> CameraGraph:
@@ -156,7 +155,7 @@ def camera_graph(names: Sequence[str], poses: np.ndarray) -> CameraGraph:
                 continue
             T, _n = _relative_pose(poses[i, both], poses[j, both])
             rel[i, j] = T
-            rel[j, i] = _inv(T)
+            rel[j, i] = invert_transform(T)
     return CameraGraph(tuple(names), shared, rel)
 
 
@@ -184,13 +183,17 @@ def connected_groups(shared: np.ndarray, min_shared: int = 1) -> list[list[int]]
 def initial_extrinsics(
     names: Sequence[str], poses: np.ndarray, min_shared: int = 2
 ) -> tuple[np.ndarray, CameraGraph]:
-    """World→camera transforms (C, 4, 4) in the root camera's frame, chained over a maximum
-    spanning tree of the camera graph.
+    """World→camera transforms in the root camera's frame, chained over a spanning tree.
+
+    The tree is the maximum spanning tree of the camera graph (edge weight = shared frames).
 
     Args:
         names: camera names.
         poses: (C, F, 4, 4) board→camera poses, NaN where unknown.
         min_shared: frames two cameras must share to be connected.
+
+    Returns:
+        ``(T_world (C, 4, 4) world→camera, the camera graph with its spanning tree)``.
 
     Raises:
         CalibrationError: the cameras do not form one connected group (names the groups).
@@ -242,5 +245,5 @@ def initial_board_poses(T_world: np.ndarray, poses: np.ndarray, counts: np.ndarr
     for f in range(F):
         c = best[f]
         if have[c, f]:
-            out[f] = _inv(T_world[c]) @ poses[c, f]
+            out[f] = invert_transform(T_world[c]) @ poses[c, f]
     return out

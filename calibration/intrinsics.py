@@ -7,6 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from freipose.errors import FreiPoseError
+from freipose.geometry.transforms import rodrigues_to_matrix
+
 logger = logging.getLogger(__name__)
 
 __all__ = [
@@ -35,7 +38,7 @@ MIN_POINTS = 6  # board points a view needs (non-collinear) to constrain a homog
 MIN_VIEWS = 4
 
 
-class CalibrationError(ValueError):
+class CalibrationError(FreiPoseError):
     """Calibration cannot proceed; the message names the camera(s) and what to do."""
 
 
@@ -106,6 +109,8 @@ def select_views(
         points: (F, P, 2) detections (NaN = missing).
         object_points: (P, 3) board points.
         size: image (width, height).
+        max_views: most views to choose.
+        grid: (columns, rows) of the coverage cells.
 
     Returns:
         ``(frames (V,) int, coverage fraction, max tilt difference in degrees)``.
@@ -120,19 +125,18 @@ def select_views(
     w, h = size
     f_guess = 0.86 * w
     K = np.array([[f_guess, 0, (w - 1) / 2], [0, f_guess, (h - 1) / 2], [0, 0, 1.0]])
-    normals = {}
-    for f in cand:
-        m = mask[f]
+    normals: dict[int, np.ndarray] = {}
+    for fc in cand:
+        m = mask[fc]
         okp, rvec, _t = cv2.solvePnP(
             object_points[m].astype(np.float64),
-            points[f, m].astype(np.float64),
+            points[fc, m].astype(np.float64),
             K,
             None,
             flags=cv2.SOLVEPNP_IPPE,
         )
         if okp:
-            R, _ = cv2.Rodrigues(rvec)
-            normals[f] = R[:, 2]
+            normals[int(fc)] = rodrigues_to_matrix(rvec)[:, 2]
     order = sorted(normals, key=lambda f: -int(mask[f].sum()))
     chosen: list[int] = []
     covered = np.zeros((grid[1], grid[0]), bool)
@@ -181,6 +185,7 @@ def calibrate_intrinsics(
         size: (width, height).
         dist_model: one of :data:`DIST_MODELS`.
         camera: name for messages.
+        max_views: most views to use.
         fix_principal_point: keep the principal point at the image centre
             ``((w - 1) / 2, (h - 1) / 2)``.
 
