@@ -37,6 +37,7 @@ import numpy as np
 import tomli_w
 
 from freipose.geometry.camera import Camera, CameraRig
+from freipose.geometry.transforms import transform
 from freipose.io.atomic import atomic_write_text
 from freipose.io.calibration_toml import (
     UNIT_SCALE_TO_MM,
@@ -255,10 +256,7 @@ def write_mjson(rig: CameraRig, path: str | Path) -> None:
         )
     M = {}
     for cam in rig:
-        T = np.eye(4)
-        T[:3, :3] = cam.R.T
-        T[:3, 3] = cam.center / 1000.0
-        M[cam.name] = T.tolist()
+        M[cam.name] = transform(cam.R.T, cam.center / 1000.0).tolist()  # camera→world, m
     data = {
         "K": {c.name: c.K.tolist() for c in rig},
         "dist": {c.name: c.dist.tolist() for c in rig},
