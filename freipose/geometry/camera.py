@@ -10,23 +10,34 @@ from typing import Any
 import numpy as np
 
 from freipose._frozen import PicklableFrozen
+from freipose.errors import FreiPoseError
 from freipose.geometry._checks import check_last
 from freipose.geometry.pinhole import project_points
 from freipose.geometry.transforms import matrix_to_rodrigues, rodrigues_to_matrix, transform
 
 
+class CameraError(FreiPoseError):
+    """A camera or camera rig with invalid parameters; the message names the camera."""
+
+
+class UnknownCameraError(CameraError, KeyError):
+    """No camera of that name in the rig (also a ``KeyError``, as for a mapping)."""
+
+
 def _frozen_array(value: Any, shape: tuple[int, ...], what: str, owner: str) -> np.ndarray:
-    """Return ``value`` as a read-only float64 array of ``shape`` or raise ``ValueError``."""
+    """Return ``value`` as a read-only float64 array of ``shape`` or raise ``CameraError``."""
     try:
         arr = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"camera {owner!r}: {what} must be numeric, got {value!r}") from exc
+        raise CameraError(f"camera {owner!r}: {what} must be numeric, got {value!r}") from exc
     if arr.size == int(np.prod(shape)) and arr.shape != shape:
         arr = arr.reshape(shape)
     if arr.shape != shape:
-        raise ValueError(f"camera {owner!r}: {what} must have shape {shape}, got shape {arr.shape}")
+        raise CameraError(
+            f"camera {owner!r}: {what} must have shape {shape}, got shape {arr.shape}"
+        )
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"camera {owner!r}: {what} contains NaN or infinite values")
+        raise CameraError(f"camera {owner!r}: {what} contains NaN or infinite values")
     arr.setflags(write=False)
     return arr
 
@@ -53,33 +64,33 @@ class Camera:
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
-            raise ValueError(f"camera name must be a non-empty string, got {self.name!r}")
+            raise CameraError(f"camera name must be a non-empty string, got {self.name!r}")
         try:
             w, h = (int(v) for v in self.size)
         except (TypeError, ValueError) as exc:
-            raise ValueError(
+            raise CameraError(
                 f"camera {self.name!r}: size must be (width, height), got {self.size!r}"
             ) from exc
         if w <= 0 or h <= 0:
-            raise ValueError(f"camera {self.name!r}: size must be positive, got {(w, h)}")
+            raise CameraError(f"camera {self.name!r}: size must be positive, got {(w, h)}")
         object.__setattr__(self, "size", (w, h))
         K = _frozen_array(self.K, (3, 3), "K", self.name)
         if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.any(K[2] != (0, 0, 1)):
-            raise ValueError(
+            raise CameraError(
                 f"camera {self.name!r}: K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] "
                 f"with fx, fy > 0, got {K.tolist()}"
             )
         dist = np.zeros(5)
         d = np.asarray(self.dist, dtype=np.float64).ravel()
         if d.size > 5 and np.any(d[5:] != 0):
-            raise ValueError(
+            raise CameraError(
                 f"camera {self.name!r}: only the 5-parameter OpenCV distortion "
                 f"(k1, k2, p1, p2, k3) is supported, got {d.size} non-zero terms"
             )
         dist[: min(5, d.size)] = d[:5]
         R = _frozen_array(self.R, (3, 3), "R", self.name)
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-            raise ValueError(f"camera {self.name!r}: R is not a rotation matrix: {R.tolist()}")
+            raise CameraError(f"camera {self.name!r}: R is not a rotation matrix: {R.tolist()}")
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", _frozen_array(dist, (5,), "dist", self.name))
         object.__setattr__(self, "R", R)
@@ -150,7 +161,7 @@ class Camera:
         pos = np.asarray(position, dtype=np.float64)
         z = np.asarray(target, dtype=np.float64) - pos
         if np.linalg.norm(z) == 0:
-            raise ValueError(f"camera {name!r}: position and look-at target coincide")
+            raise CameraError(f"camera {name!r}: position and look-at target coincide")
         z /= np.linalg.norm(z)
         upv = np.asarray(up, dtype=np.float64)
         x = np.cross(z, upv)
@@ -205,14 +216,14 @@ class CameraRig(PicklableFrozen):
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
         if not cams:
-            raise ValueError("a camera rig needs at least one camera, got none")
+            raise CameraError("a camera rig needs at least one camera, got none")
         for c in cams:
             if not isinstance(c, Camera):
-                raise ValueError(f"rig entries must be Camera objects, got {type(c).__name__}")
+                raise CameraError(f"rig entries must be Camera objects, got {type(c).__name__}")
         names = [c.name for c in cams]
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
-            raise ValueError(f"camera names in a rig must be unique; repeated: {dupes}")
+            raise CameraError(f"camera names in a rig must be unique; repeated: {dupes}")
         object.__setattr__(self, "cameras", cams)
         object.__setattr__(self, "metadata", MappingProxyType(dict(self.metadata)))
 
@@ -232,7 +243,9 @@ class CameraRig(PicklableFrozen):
             for c in self.cameras:
                 if c.name == key:
                     return c
-            raise KeyError(f"no camera named {key!r} in the rig; cameras are {self.names}")
+            raise UnknownCameraError(
+                f"no camera named {key!r} in the rig; cameras are {self.names}"
+            )
         return self.cameras[key]
 
     def __contains__(self, name: object) -> bool:
@@ -243,7 +256,7 @@ class CameraRig(PicklableFrozen):
         try:
             return self.names.index(name)
         except ValueError:
-            raise KeyError(
+            raise UnknownCameraError(
                 f"no camera named {name!r} in the rig; cameras are {self.names}"
             ) from None
 
