@@ -20,6 +20,7 @@ import hashlib
 import io
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import torch
@@ -57,10 +58,9 @@ def _state_current(state: StateDict, num_keypoints: int) -> StateDict:
 
 
 #: checkpoint version -> function ``(state, num_keypoints) -> state`` in the current layout
-LOADING_RULES: dict[int, Callable[[StateDict, int], StateDict]] = {
-    2: _state_v2,
-    CHECKPOINT_VERSION: _state_current,
-}
+LOADING_RULES: Mapping[int, Callable[[StateDict, int], StateDict]] = MappingProxyType(
+    {2: _state_v2, CHECKPOINT_VERSION: _state_current}
+)
 
 
 def state_hash(state: Mapping[str, torch.Tensor]) -> str:

@@ -14,6 +14,7 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from freipose.errors import FreiPoseError
@@ -270,7 +271,7 @@ class TrainConfig:
 
 
 # Presets: (model overrides, schedule overrides).
-PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
+_PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "tiny": (
         dict(
             crop_size=32,
@@ -326,6 +327,9 @@ PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     ),
     "paper": ({}, {}),
 }
+PRESETS: Mapping[str, tuple[Mapping[str, Any], Mapping[str, Any]]] = MappingProxyType(
+    {k: (MappingProxyType(m), MappingProxyType(sc)) for k, (m, sc) in _PRESETS.items()}
+)
 
 
 def _fields(cls: type) -> dict[str, dataclasses.Field]:
