@@ -17,6 +17,7 @@ from freipose.calibration.bundle import BundleResult, camera_covariance
 from freipose.calibration.bundle_problem import Observations
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.options import CalibrationOptions
+from freipose.calibration.params import DIST, FOCAL, PRINCIPAL, TANGENTIAL
 from freipose.calibration.stages import run_bundle
 
 logger = logging.getLogger(__name__)
@@ -63,7 +64,7 @@ def describe_model(free_row: np.ndarray, square: bool, fixed: bool) -> dict[str,
     """
     if fixed:
         return {"principal_point": "given", "distortion": "given", "focal": "given"}
-    names = [n for n, f in zip(("k1", "k2", "p1", "p2", "k3"), free_row[4:9]) if f]
+    names = [n for n, f in zip(("k1", "k2", "p1", "p2", "k3"), free_row[DIST]) if f]
     return {
         "principal_point": "estimated" if free_row[2] else "image centre",
         "distortion": " ".join(names) if names else "none",
@@ -106,26 +107,26 @@ def _simplify_camera(
     p = cam[i]
     if opt.principal_point == "auto" and free[i, 2]:
         centre = np.array([(d.size[0] - 1) / 2, (d.size[1] - 1) / 2])
-        chi2 = _wald(p[2:4] - centre, cov[i, 2:4, 2:4])
+        chi2 = _wald(p[PRINCIPAL] - centre, cov[i, PRINCIPAL, PRINCIPAL])
         logger.info("camera %s: principal-point offset chi2 %.1f", d.name, chi2)
         if chi2 < CHI2_2DOF_1PCT:
-            cam[i, 2:4] = centre
-            free[i, 2:4] = False
+            cam[i, PRINCIPAL] = centre
+            free[i, PRINCIPAL] = False
             changed = True
     if opt.dist_model == "auto" and free[i, 6]:
-        chi2 = _wald(p[6:8], cov[i, 6:8, 6:8])
+        chi2 = _wald(p[TANGENTIAL], cov[i, TANGENTIAL, TANGENTIAL])
         logger.info("camera %s: tangential distortion chi2 %.1f", d.name, chi2)
         if chi2 < CHI2_2DOF_1PCT:
-            cam[i, 6:8] = 0.0
-            free[i, 6:8] = False
+            cam[i, TANGENTIAL] = 0.0
+            free[i, TANGENTIAL] = False
             changed = True
     if opt.aspect == "auto" and free[i, 0] and free[i, 1]:
         # var(fx - fy) = var fx + var fy - 2 cov(fx, fy)
-        c = cov[i, :2, :2]
+        c = cov[i, FOCAL, FOCAL]
         chi2 = _wald(np.array([p[0] - p[1]]), (c[0, 0] + c[1, 1] - 2 * c[0, 1])[None, None])
         logger.info("camera %s: fx - fy = %.3f px, chi2 %.1f", d.name, p[0] - p[1], chi2)
         if chi2 < CHI2_1DOF_1PCT:
-            cam[i, :2] = 0.5 * (p[0] + p[1])
+            cam[i, FOCAL] = 0.5 * (p[0] + p[1])
             free[i, 1] = False
             square[i] = True
             changed = True

@@ -25,8 +25,10 @@ __all__ = [
     "FRAME_RVEC",
     "FRAME_TVEC",
     "INTRINSICS",
+    "PINHOLE",
     "PRINCIPAL",
     "RVEC",
+    "TANGENTIAL",
     "TVEC",
     "camera_to_params",
     "params_to_camera",
@@ -35,7 +37,9 @@ __all__ = [
 CAM_PARAMS = 15  # columns of a camera row
 FOCAL = slice(0, 2)  # fx fy
 PRINCIPAL = slice(2, 4)  # cx cy
+PINHOLE = slice(0, 4)  # fx fy cx cy
 DIST = slice(4, 9)  # k1 k2 p1 p2 k3
+TANGENTIAL = slice(6, 8)  # p1 p2
 INTRINSICS = slice(0, 9)  # focal, principal point and distortion
 RVEC = slice(9, 12)  # world→camera rotation vector
 TVEC = slice(12, 15)  # world→camera translation (mm)

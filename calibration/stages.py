@@ -35,6 +35,19 @@ from freipose.calibration.intrinsics import (
     dist_free_mask,
 )
 from freipose.calibration.options import CalibrationOptions
+from freipose.calibration.params import (
+    CAM_PARAMS,
+    DIST,
+    EXTRINSICS,
+    FOCAL,
+    FRAME_PARAMS,
+    FRAME_RVEC,
+    FRAME_TVEC,
+    PINHOLE,
+    PRINCIPAL,
+    RVEC,
+    TVEC,
+)
 from freipose.geometry.transforms import matrix_to_rodrigues
 
 _In = TypeVar("_In")
@@ -321,32 +334,32 @@ def initial_parameters(
     Ks, dists, T_world, graph = intr.Ks, intr.dists, rig0.T_world, rig0.graph
     free_dist = dist_free_mask(opt.dist_model)
     C = len(dets)
-    cam0 = np.zeros((C, 15))
-    free = np.zeros((C, 15), bool)
+    cam0 = np.zeros((C, CAM_PARAMS))
+    free = np.zeros((C, CAM_PARAMS), bool)
     square = np.zeros(C, bool)  # fy tied to fx
     for i, d in enumerate(dets):
         K = Ks[i]
-        cam0[i, :4] = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-        cam0[i, 4:9] = dists[i]
-        cam0[i, 9:12] = matrix_to_rodrigues(T_world[i, :3, :3])
-        cam0[i, 12:15] = T_world[i, :3, 3]
+        cam0[i, PINHOLE] = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+        cam0[i, DIST] = dists[i]
+        cam0[i, RVEC] = matrix_to_rodrigues(T_world[i, :3, :3])
+        cam0[i, TVEC] = T_world[i, :3, 3]
         if d.name not in intr.fixed:
-            free[i, :4] = True
-            free[i, 4:9] = free_dist
+            free[i, PINHOLE] = True
+            free[i, DIST] = free_dist
             if opt.principal_point == "centre":
-                cam0[i, 2:4] = ((d.size[0] - 1) / 2, (d.size[1] - 1) / 2)
-                free[i, 2:4] = False
+                cam0[i, PRINCIPAL] = ((d.size[0] - 1) / 2, (d.size[1] - 1) / 2)
+                free[i, PRINCIPAL] = False
             if opt.aspect == "square":
-                cam0[i, :2] = 0.5 * (K[0, 0] + K[1, 1])
+                cam0[i, FOCAL] = 0.5 * (K[0, 0] + K[1, 1])
                 free[i, 1] = False
                 square[i] = True
         if i != graph.root:
-            free[i, 9:] = True
+            free[i, EXTRINSICS] = True
     B0 = rig0.board_poses
-    fr0 = np.zeros((len(rig0.frames), 6))
+    fr0 = np.zeros((len(rig0.frames), FRAME_PARAMS))
     for k, f in enumerate(rig0.frames):
-        fr0[k, :3] = matrix_to_rodrigues(B0[f, :3, :3])
-        fr0[k, 3:] = B0[f, :3, 3]
+        fr0[k, FRAME_RVEC] = matrix_to_rodrigues(B0[f, :3, :3])
+        fr0[k, FRAME_TVEC] = B0[f, :3, 3]
     return BundleStart(cam0, free, square, fr0)
 
 

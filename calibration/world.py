@@ -10,6 +10,7 @@ import numpy as np
 from freipose.calibration.bundle import BundleResult
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.intrinsics import CalibrationError
+from freipose.calibration.params import DIST, FRAME_RVEC, FRAME_TVEC, RVEC, TVEC
 from freipose.geometry import Camera
 from freipose.geometry.transforms import invert_transform, rodrigues, transform
 
@@ -69,10 +70,10 @@ def world_frame(
     Returns:
         the cameras' and board poses' transforms in the world frame.
     """
-    Tc = np.stack([transform(rodrigues(p[9:12]), p[12:15]) for p in ba.cam_params])  # world→cam
+    Tc = np.stack([transform(rodrigues(p[RVEC]), p[TVEC]) for p in ba.cam_params])  # world→cam
     Bw = np.full((num_frames, 4, 4), np.nan)
     for k, f in enumerate(ba.frames):
-        Bw[f] = transform(rodrigues(ba.frame_params[k, :3]), ba.frame_params[k, 3:])
+        Bw[f] = transform(rodrigues(ba.frame_params[k, FRAME_RVEC]), ba.frame_params[k, FRAME_TVEC])
     if origin_frame is not None:
         N = int(origin_frame)
         W = BOARD_TO_FLOOR @ invert_transform(_origin_pose(Bw, N))
@@ -110,5 +111,7 @@ def rig_cameras(
         K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
         R = world_to_cam[i, :3, :3]
         U, _s, Vt = np.linalg.svd(R)
-        cams.append(Camera(d.name, tuple(d.size), K, p[4:9].copy(), U @ Vt, world_to_cam[i, :3, 3]))
+        cams.append(
+            Camera(d.name, tuple(d.size), K, p[DIST].copy(), U @ Vt, world_to_cam[i, :3, 3])
+        )
     return tuple(cams)
