@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from freipose.cli._common import user_errors
 from freipose.cli._lazy import LazyGroup
+
+if TYPE_CHECKING:
+    from freipose.skeleton import Skeleton
 
 SUBCOMMANDS = {
     "import": "freipose.cli.labels:import_labels",
@@ -33,7 +37,8 @@ def labels() -> None:
     """  # noqa: D301 (click needs the \b escape)
 
 
-def _load_skeleton(spec: str | None):  # noqa: ANN202
+def _load_skeleton(spec: str | None) -> Skeleton | None:
+    """The skeleton named or stored at ``spec`` (None: no skeleton)."""
     if spec is None:
         return None
     from freipose.skeleton import load_skeleton

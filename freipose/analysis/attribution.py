@@ -180,14 +180,14 @@ def run_attribution(
     ]
     return AttributionResult(
         classification=pd.DataFrame(
-            [row for g in groups for row in g.classification], columns=CLASSIFICATION_COLUMNS
+            [row for g in groups for row in g.classification], columns=list(CLASSIFICATION_COLUMNS)
         ),
         attribution=pd.concat([g.attribution for g in groups], ignore_index=True),
         dynamics=pd.DataFrame(
-            [row for g in groups for row in g.dynamics], columns=DYNAMICS_COLUMNS
+            [row for g in groups for row in g.dynamics], columns=list(DYNAMICS_COLUMNS)
         ),
         timecourses=pd.DataFrame(
-            [row for g in groups for row in g.timecourses], columns=TIMECOURSE_COLUMNS
+            [row for g in groups for row in g.timecourses], columns=list(TIMECOURSE_COLUMNS)
         ),
         variables=layout,
         settings={k: getattr(config, k) for k in config.__dataclass_fields__},

@@ -20,7 +20,7 @@ from freipose.analysis.labelled import Frames, LabelledRecording
 from freipose.analysis.stats import informative_columns, scores
 from freipose.analysis.study import IGNORED, Study, StudyError
 
-CLASSIFICATION_COLUMNS = [
+CLASSIFICATION_COLUMNS = (
     "animal",
     "condition",
     "evaluated_on",
@@ -33,7 +33,7 @@ CLASSIFICATION_COLUMNS = [
     "n_train_frames",
     "n_train_nan_excluded",
     "n_variables_used",
-]
+)
 
 
 def make_svm(C: float, max_iter: int = 10000) -> Any:

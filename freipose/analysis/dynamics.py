@@ -15,7 +15,7 @@ import pandas as pd
 from freipose.analysis.labelled import LabelledRecording
 from freipose.analysis.stats import mean_sem
 
-DYNAMICS_COLUMNS = [
+DYNAMICS_COLUMNS = (
     "animal",
     "condition",
     "evaluated_on",
@@ -25,8 +25,8 @@ DYNAMICS_COLUMNS = [
     "mean_decision",
     "n_trials",
     "stimulated_fraction",
-]
-TIMECOURSE_COLUMNS = [
+)
+TIMECOURSE_COLUMNS = (
     "animal",
     "condition",
     "variable",
@@ -35,7 +35,7 @@ TIMECOURSE_COLUMNS = [
     "mean_z",
     "sem_z",
     "n_trials",
-]
+)
 
 
 def onset_aligned(

@@ -7,8 +7,10 @@ such recordings must rank that keypoint's variables first.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
@@ -18,29 +20,33 @@ from freipose.skeleton import load_skeleton
 
 # Rest pose in the body frame (mm): x forward, y left, z up; origin on the floor under the
 # ear midpoint. Keypoint order of the shipped rat skeleton.
-RAT_REST_POSE = {
-    "Ear Right": (0.0, -17.0, 55.0),
-    "Eye Right": (18.0, -11.0, 48.0),
-    "Paw Front Right": (8.0, -22.0, 4.0),
-    "Paw Back Right Ankle": (-122.0, -28.0, 18.0),
-    "Paw Back Right Tip": (-105.0, -30.0, 4.0),
-    "Ear Left": (0.0, 17.0, 55.0),
-    "Eye Left": (18.0, 11.0, 48.0),
-    "Paw Front Left": (8.0, 22.0, 4.0),
-    "Paw Back Left Ankle": (-122.0, 28.0, 18.0),
-    "Paw Back Left Tip": (-105.0, 30.0, 4.0),
-    "Nose": (42.0, 0.0, 40.0),
-    "Tail": (-150.0, 0.0, 35.0),
-}
+RAT_REST_POSE: Mapping[str, tuple[float, float, float]] = MappingProxyType(
+    {
+        "Ear Right": (0.0, -17.0, 55.0),
+        "Eye Right": (18.0, -11.0, 48.0),
+        "Paw Front Right": (8.0, -22.0, 4.0),
+        "Paw Back Right Ankle": (-122.0, -28.0, 18.0),
+        "Paw Back Right Tip": (-105.0, -30.0, 4.0),
+        "Ear Left": (0.0, 17.0, 55.0),
+        "Eye Left": (18.0, 11.0, 48.0),
+        "Paw Front Left": (8.0, 22.0, 4.0),
+        "Paw Back Left Ankle": (-122.0, 28.0, 18.0),
+        "Paw Back Left Tip": (-105.0, 30.0, 4.0),
+        "Nose": (42.0, 0.0, 40.0),
+        "Tail": (-150.0, 0.0, 35.0),
+    }
+)
 # Gait phase of each paw (diagonal trot); None = not a paw.
-_PAW_PHASE = {
-    "Paw Front Right": 0.0,
-    "Paw Back Left Tip": 0.0,
-    "Paw Back Left Ankle": 0.0,
-    "Paw Front Left": np.pi,
-    "Paw Back Right Tip": np.pi,
-    "Paw Back Right Ankle": np.pi,
-}
+_PAW_PHASE: Mapping[str, float] = MappingProxyType(
+    {
+        "Paw Front Right": 0.0,
+        "Paw Back Left Tip": 0.0,
+        "Paw Back Left Ankle": 0.0,
+        "Paw Front Left": np.pi,
+        "Paw Back Right Tip": np.pi,
+        "Paw Back Right Ankle": np.pi,
+    }
+)
 _HEAD = ("Ear Right", "Eye Right", "Ear Left", "Eye Left", "Nose")
 
 

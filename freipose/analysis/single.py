@@ -20,7 +20,7 @@ from freipose.analysis.config import AttributionConfig
 from freipose.analysis.stats import is_informative, scores
 from freipose.analysis.variables import Variables
 
-ATTRIBUTION_COLUMNS = [
+ATTRIBUTION_COLUMNS = (
     "animal",
     "condition",
     "rank",
@@ -36,7 +36,7 @@ ATTRIBUTION_COLUMNS = [
     "n_frames",
     "n_effective",
     "p_value_independent",
-]
+)
 
 
 def fit_block(
@@ -198,4 +198,4 @@ def attribution_table(
         ["f1", "p_value"], ascending=[False, True], na_position="last", kind="stable"
     )
     df.insert(2, "rank", np.arange(1, len(df) + 1))
-    return df[ATTRIBUTION_COLUMNS]
+    return df[list(ATTRIBUTION_COLUMNS)]

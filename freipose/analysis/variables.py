@@ -74,17 +74,19 @@ log = logging.getLogger(__name__)
 POINT_KINDS = ("local", "local_vel", "origin_dist", "origin_dist_vel", "floor_dist")
 STFT_KINDS = ("origin_dist_stft", "floor_dist_stft")
 ANGLE_KINDS = ("angle", "angle_vel")
-KIND_UNITS = {
-    "local": "mm",
-    "local_vel": "mm/s",
-    "origin_dist": "mm",
-    "origin_dist_vel": "mm/s",
-    "origin_dist_stft": "mm",
-    "floor_dist": "mm",
-    "floor_dist_stft": "mm",
-    "angle": "deg",
-    "angle_vel": "deg/s",
-}
+KIND_UNITS: Mapping[str, str] = MappingProxyType(
+    {
+        "local": "mm",
+        "local_vel": "mm/s",
+        "origin_dist": "mm",
+        "origin_dist_vel": "mm/s",
+        "origin_dist_stft": "mm",
+        "floor_dist": "mm",
+        "floor_dist_stft": "mm",
+        "angle": "deg",
+        "angle_vel": "deg/s",
+    }
+)
 
 
 class VariablesError(FreiPoseError):

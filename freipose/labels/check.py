@@ -85,7 +85,7 @@ class CheckResult:
     suspicious: list[Suspicious]
 
 
-_LR = [("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT"), ("_l", "_r"), ("_L", "_R")]
+_LR = (("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT"), ("_l", "_r"), ("_L", "_R"))
 
 
 def infer_symmetry(keypoints: Sequence[str]) -> list[tuple[int, int]]:

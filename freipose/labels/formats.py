@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
@@ -393,11 +394,13 @@ def read_jarvis(
     return out
 
 
-IMPORTERS: dict[str, Importer] = {
-    "dlc": read_dlc,
-    "sleap": read_sleap,
-    "anipose": read_anipose,
-    "dannce": read_dannce,
-    "jarvis": read_jarvis,
-    "freipose": read_freipose_json,
-}
+IMPORTERS: Mapping[str, Importer] = MappingProxyType(
+    {
+        "dlc": read_dlc,
+        "sleap": read_sleap,
+        "anipose": read_anipose,
+        "dannce": read_dannce,
+        "jarvis": read_jarvis,
+        "freipose": read_freipose_json,
+    }
+)
