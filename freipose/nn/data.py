@@ -24,7 +24,7 @@ from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.geometry.crops import crop_affine, crop_camera, cube_crop_boxes
 from freipose.nn.config import AugmentConfig, ModelConfig
-from freipose.nn.types import Batch, PreparedSample, Sample
+from freipose.nn.types import Batch, PreparedSample, Sample, SampleSource
 
 BORDER = 128
 
@@ -99,12 +99,20 @@ def _sample_rig(sample: Sample) -> CameraRig:
     return rig
 
 
-def _cube_center(
-    sample: Sample,
-    aug: AugmentConfig | None,
-    rng: np.random.Generator | None,
-    center: np.ndarray | None,
-) -> np.ndarray:
+@dataclass(frozen=True)
+class Augmentation:
+    """The training augmentation of one sample.
+
+    Attributes:
+        config: what to augment and by how much.
+        rng: the random generator every augmentation draws from.
+    """
+
+    config: AugmentConfig
+    rng: np.random.Generator
+
+
+def _cube_center(sample: Sample, aug: Augmentation | None, center: np.ndarray | None) -> np.ndarray:
     """The (3,) cube centre: ``center``, or the labels' mean plus jitter when augmenting.
 
     Raises:
@@ -120,16 +128,16 @@ def _cube_center(
                 f"sample {sample.get('index')} (session {sample.get('session')!r}, frame "
                 f"{sample.get('frame_index')}) has no 3D label to centre the voxel cube on"
             )
-        if aug is not None and aug.center_jitter > 0:
-            center = center + rng.normal(0.0, aug.center_jitter, size=3)
+        if aug is not None and aug.config.center_jitter > 0:
+            center = center + aug.rng.normal(0.0, aug.config.center_jitter, size=3)
     return np.asarray(center, dtype=np.float64).reshape(3)
 
 
-def _grid_rotation(aug: AugmentConfig | None, rng: np.random.Generator | None) -> np.ndarray:
+def _grid_rotation(aug: Augmentation | None) -> np.ndarray:
     """(3, 3) voxel grid orientation: a random turn about the world z axis when augmenting."""
-    if aug is None or aug.grid_rotation <= 0:
+    if aug is None or aug.config.grid_rotation <= 0:
         return np.eye(3)
-    a = math.radians(rng.uniform(-aug.grid_rotation, aug.grid_rotation))
+    a = math.radians(aug.rng.uniform(-aug.config.grid_rotation, aug.config.grid_rotation))
     return np.array(
         [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]]
     )
@@ -156,8 +164,7 @@ def _crop_image(
     img: np.ndarray,
     A: np.ndarray,
     size: int,
-    aug: AugmentConfig | None,
-    rng: np.random.Generator | None,
+    aug: Augmentation | None,
 ) -> np.ndarray:
     """Warp a full frame into its (3, S, S) float32 crop (BGR / 255 - 0.5), augmented."""
     crop = cv2.warpAffine(
@@ -171,7 +178,7 @@ def _crop_image(
     if crop.ndim == 2:
         crop = np.repeat(crop[..., None], 3, axis=-1)
     if aug is not None:
-        crop = _color_augment(crop, rng, aug)
+        crop = _color_augment(crop, aug.rng, aug.config)
     return crop.transpose(2, 0, 1).astype(np.float32) / 255.0 - 0.5
 
 
@@ -180,8 +187,7 @@ def _crop_views(
     images: list[np.ndarray],
     center: np.ndarray,
     model: ModelConfig,
-    aug: AugmentConfig | None,
-    rng: np.random.Generator | None,
+    aug: Augmentation | None,
 ) -> ViewCrops:
     """Cut every view's crop around the cube and derive its crop camera.
 
@@ -203,7 +209,7 @@ def _crop_views(
         if not np.all(np.isfinite(box)) or box[2] - box[0] <= 0:
             continue  # centre behind this camera
         valid[v] = True
-        T = _aug_affine(rng, aug, S) if aug is not None else np.eye(3)
+        T = _aug_affine(aug.rng, aug.config, S) if aug is not None else np.eye(3)
         A = T @ crop_affine(box, S)
         Ks[v] = T @ crop_camera(cam, box, S).K
         affines[v] = A
@@ -214,7 +220,7 @@ def _crop_views(
                     f"camera {cam.name!r}: image is {img.shape[1]}x{img.shape[0]} but the "
                     f"calibration says {cam.width}x{cam.height}"
                 )
-            out_img[v] = _crop_image(img, A, S, aug, rng)
+            out_img[v] = _crop_image(img, A, S, aug)
     return ViewCrops(out_img, Ks, affines, valid)
 
 
@@ -244,9 +250,9 @@ def _crop_labels(sample: Sample, crops: ViewCrops, size: int) -> CropLabels:
     if sample.get("mask3d") is not None:
         m3 &= np.asarray(sample["mask3d"], bool)
     p2 = np.asarray(sample.get("points2d", np.full((V, nk, 2), np.nan)), np.float64)
-    vis = sample.get("visible2d")
+    given = sample.get("visible2d")
     finite2 = np.isfinite(p2).all(-1)
-    vis = finite2 if vis is None else np.asarray(vis, bool) & finite2
+    vis = finite2 if given is None else np.asarray(given, bool) & finite2
     hom = np.concatenate([p2, np.ones(p2.shape[:-1] + (1,))], -1)
     p2c = np.einsum("vij,vkj->vki", crops.affine, hom)[..., :2]
     inside = (p2c >= -0.5).all(-1) & (p2c <= size - 0.5).all(-1)
@@ -284,15 +290,17 @@ def prepare_sample(
         ValueError: augmentation without ``rng``.
     """
     rig = _sample_rig(sample)
-    aug = augment if augment is not None and augment.enabled else None
-    if aug is not None and rng is None:
-        raise ValueError("prepare_sample: augmentation needs an rng")
-    center = _cube_center(sample, aug, rng, center)
-    grid_rot = _grid_rotation(aug, rng)
+    aug = None
+    if augment is not None and augment.enabled:
+        if rng is None:
+            raise ValueError("prepare_sample: augmentation needs an rng")
+        aug = Augmentation(augment, rng)
+    center = _cube_center(sample, aug, center)
+    grid_rot = _grid_rotation(aug)
     images = sample.get("images") or []
     if images and len(images) != len(rig):
         raise SampleError(f"sample has {len(images)} images for {len(rig)} cameras")
-    crops = _crop_views(rig, images, center, model, aug, rng)
+    crops = _crop_views(rig, images, center, model, aug)
     res: PreparedSample = {
         "images": crops.images,
         "K": crops.K,
@@ -312,8 +320,9 @@ def prepare_sample(
         res["mask3d"] = lab.mask3d
         res["points2d"] = lab.points2d
         res["visible2d"] = lab.visible2d
-        if aug is not None and aug.refine_jitter > 0:
-            res["p0_jitter"] = rng.normal(0.0, aug.refine_jitter, size=(lab.points3d.shape[0], 3))
+        if aug is not None and aug.config.refine_jitter > 0:
+            nk = lab.points3d.shape[0]
+            res["p0_jitter"] = aug.rng.normal(0.0, aug.config.refine_jitter, size=(nk, 3))
     return res
 
 
@@ -418,7 +427,7 @@ class TrainSamples(torch.utils.data.Dataset):
 
     def __init__(
         self,
-        source: Sequence[Sample],
+        source: SampleSource,
         model: ModelConfig,
         augment: AugmentConfig | None,
         seed: int,
@@ -447,7 +456,7 @@ class StepBatchSampler(torch.utils.data.Sampler):
 
     def __init__(
         self,
-        indices: Sequence[int],
+        indices: Sequence[int] | np.ndarray,
         batch_size: int,
         steps: int,
         seed: int,

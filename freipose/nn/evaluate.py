@@ -25,7 +25,7 @@ from freipose.nn.checkpoint import load_checkpoint
 from freipose.nn.data import collate_prepared, label_center, prepare_sample
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.inference import predict_prepared
-from freipose.nn.types import Sample
+from freipose.nn.types import SampleSource
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ class EvaluationError(FreiPoseError):
     """A network cannot be evaluated on the given labels (the message says why)."""
 
 
-def usable_indices(source: Sequence[Sample]) -> np.ndarray:
+def usable_indices(source: SampleSource) -> np.ndarray:
     """Indices of samples with at least one 3D label.
 
     Args:
@@ -50,8 +50,9 @@ def usable_indices(source: Sequence[Sample]) -> np.ndarray:
     if labels is not None:
         p3 = labels.points3d
         ok = np.isfinite(p3).all(-1).any(-1)
-        if getattr(source, "_views", None) is not None:
-            ok &= np.array([source._views[str(s)][2] is not None for s in labels.session], bool)
+        views = getattr(source, "_views", None)
+        if views is not None:
+            ok &= np.array([views[str(s)][2] is not None for s in labels.session], bool)
         return np.flatnonzero(ok)
     return np.array(
         [
@@ -65,8 +66,8 @@ def usable_indices(source: Sequence[Sample]) -> np.ndarray:
 
 def predict_dataset(
     model: Any,
-    source: Sequence[Sample],
-    indices: Sequence[int] | None = None,
+    source: SampleSource,
+    indices: Sequence[int] | np.ndarray | None = None,
     batch_size: int = 4,
     center_noise: float = 0.0,
     seed: int = 0,

@@ -19,7 +19,7 @@ from freipose.geometry.camera import CameraRig
 from freipose.geometry.triangulation import triangulate_robust
 from freipose.nn.config import ModelConfig
 from freipose.nn.data import collate_prepared, prepare_sample, to_device
-from freipose.nn.model import BaselineNet
+from freipose.nn.model import BaselineNet, VoxelPoseNet
 from freipose.nn.types import Batch, Prediction
 
 
@@ -120,7 +120,7 @@ def predict_prepared(model: nn.Module, batch: Batch, min_confidence: float = 0.1
 
 
 def predict_batch(
-    model: nn.Module,
+    model: VoxelPoseNet | BaselineNet,
     images: Sequence[Sequence[np.ndarray]],
     rigs: Sequence[CameraRig],
     centers: np.ndarray,

@@ -39,7 +39,7 @@ from freipose.nn.evaluate import jpe, predict_dataset, usable_indices
 from freipose.nn.losses import baseline_losses, voxel_losses
 from freipose.nn.model import build_model, optimizer_groups
 from freipose.nn.train_log import append_log, plot_log, read_log, write_log
-from freipose.nn.types import Batch, Sample
+from freipose.nn.types import Batch, SampleSource
 from freipose.skeleton import Skeleton, load_skeleton
 
 log = logging.getLogger(__name__)
@@ -126,7 +126,7 @@ def _set_rng_state(st: dict[str, Any]) -> None:
 
 
 def validate(
-    model: torch.nn.Module, source: Sequence[Sample], indices: np.ndarray, batch_size: int
+    model: torch.nn.Module, source: SampleSource, indices: np.ndarray, batch_size: int
 ) -> dict[str, float]:
     """Median JPE (mm) of P0 and P1 on the given samples.
 
@@ -199,8 +199,8 @@ class SampleSelection:
 
 
 def select_samples(
-    train_source: Sequence[Sample],
-    eval_source: Sequence[Sample] | None,
+    train_source: SampleSource,
+    eval_source: SampleSource | None,
     train_indices: Sequence[int] | None,
     eval_indices: Sequence[int] | None,
     eval_samples: int,
@@ -278,7 +278,7 @@ def _start_outputs(files: RunFiles, config: TrainConfig, start: int) -> None:
 
 
 def _loader(
-    source: Sequence[Sample],
+    source: SampleSource,
     config: TrainConfig,
     indices: np.ndarray,
     start: int,
@@ -321,7 +321,7 @@ class TrainRun:
     opt: torch.optim.Optimizer
     procs: Processes
     files: RunFiles
-    eval_source: Sequence[Sample] | None
+    eval_source: SampleSource | None
     eval_indices: np.ndarray
 
 
@@ -443,9 +443,9 @@ def _train_steps(
 def train_pose(
     config: TrainConfig,
     out_dir: str | Path,
-    train_source: Sequence[Sample],
+    train_source: SampleSource,
     skeleton: Skeleton,
-    eval_source: Sequence[Sample] | None = None,
+    eval_source: SampleSource | None = None,
     *,
     train_indices: Sequence[int] | None = None,
     eval_indices: Sequence[int] | None = None,

@@ -6,7 +6,8 @@ edge. World coordinates are in mm; pixel coordinates follow the project conventi
 centres at integers).
 
 * :class:`Sample`: one labeled time instant, as
-  :class:`freipose.nn.dataset.MultiViewDataset` gives it;
+  :class:`freipose.nn.dataset.MultiViewDataset` gives it; :class:`SampleSource`: anything
+  that gives samples by index (the dataset, a list);
 * :class:`PreparedSample`: its network input (:func:`freipose.nn.data.prepare_sample`);
 * :class:`Batch`: prepared samples stacked into tensors
   (:func:`freipose.nn.data.collate_prepared`);
@@ -18,7 +19,7 @@ centres at integers).
 from __future__ import annotations
 
 import sys
-from typing import TypedDict
+from typing import Protocol, TypedDict
 
 import numpy as np
 import torch
@@ -61,6 +62,14 @@ class Sample(TypedDict, total=False):
     visible2d: np.ndarray
     points3d: np.ndarray
     mask3d: np.ndarray
+
+
+class SampleSource(Protocol):
+    """Samples by index: a :class:`~freipose.nn.dataset.MultiViewDataset` or a list."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int, /) -> Sample: ...
 
 
 class PreparedSample(TypedDict):
