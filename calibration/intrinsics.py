@@ -53,7 +53,16 @@ def dist_free_mask(model: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class IntrinsicsResult:
-    """K (3, 3), dist (5,), RMS reprojection error (px) and the frame indices used."""
+    """One camera's intrinsics.
+
+    Attributes:
+        K: (3, 3) intrinsic matrix.
+        dist: (5,) distortion coefficients.
+        rms: RMS reprojection error (px) over the views used.
+        frames: (V,) the frame indices of the views used.
+        max_tilt_difference_deg: largest tilt difference between two of the views (degrees).
+        coverage: fraction of the image the views' boards cover.
+    """
 
     K: np.ndarray
     dist: np.ndarray
@@ -70,8 +79,19 @@ def _non_degenerate(obj: np.ndarray) -> bool:
     return len(s) == 2 and s[1] > 1e-6 * max(s[0], 1e-12)
 
 
-def usable_frames(points: np.ndarray, object_points: np.ndarray, min_points: int = MIN_POINTS):
-    """(F,) bool: frames with enough non-collinear detected points."""
+def usable_frames(
+    points: np.ndarray, object_points: np.ndarray, min_points: int = MIN_POINTS
+) -> np.ndarray:
+    """The frames with enough detected points that are not all on one line.
+
+    Args:
+        points: (F, P, 2) detections (NaN = missing).
+        object_points: (P, 3) board points.
+        min_points: detected points a frame needs.
+
+    Returns:
+        (F,) bool.
+    """
     mask = np.isfinite(points[..., 0])
     ok = mask.sum(axis=1) >= min_points
     for f in np.flatnonzero(ok):
