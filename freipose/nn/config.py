@@ -354,8 +354,9 @@ def _coerce(cls: type, values: Mapping[str, Any], table: str) -> dict[str, Any]:
                 f"{sorted(known)} (see docs/formats.md)"
             )
         default = known[key].default
-        if default is dataclasses.MISSING and known[key].default_factory is not dataclasses.MISSING:
-            default = known[key].default_factory()
+        factory = known[key].default_factory
+        if default is dataclasses.MISSING and callable(factory):
+            default = factory()
         if isinstance(default, tuple):
             if not isinstance(value, (list, tuple)):
                 raise ConfigError(f"{table}.{key} must be a list, got {value!r}")
