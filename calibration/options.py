@@ -49,7 +49,7 @@ class CalibrationOptions:
             keeps its printed size).
         view_weights: weight every board view's detections by that view's own noise level
             (σ / σ_view, estimated from its residuals after the first round; see
-            :func:`freipose.calibration.bundle.view_noise_scales`): blurred or steep views
+            :func:`freipose.calibration.robust.view_noise_scales`): blurred or steep views
             count less.
     """
 
