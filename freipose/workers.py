@@ -5,19 +5,40 @@ one (forking a process whose OpenCV or FFmpeg thread pools are running can deadl
 child), with the given modules imported once in the server so that every worker forks
 ready to run; elsewhere the workers are spawned. :func:`run_jobs` maps a function over a
 list of jobs in such a pool, or in this process when one worker is asked for.
+
+The forkserver process is started with ``python -c``, so on Python 3.11 the working folder
+comes first on its ``sys.path`` (the parent's ``sys.path`` is handed to the workers, not to
+the server). A folder or module in the working folder named like a preloaded package (a
+folder ``freipose``, say, holding a clone of this repository, or an empty one) would then
+be imported in the server instead of the installed package, and every worker forked from
+it would inherit that module. :func:`pool_context` therefore preloads only the modules
+that the working folder does not shadow; the others are imported by each worker itself,
+after it has taken over the parent's ``sys.path``. :func:`worker_errors` turns a pool whose
+worker died into a one-line :class:`WorkerError`.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
+import logging
 import multiprocessing as mp
+import os
+import signal
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from importlib.machinery import ModuleSpec, PathFinder
 from multiprocessing.context import BaseContext
 from pathlib import Path
 from typing import Any, TypeVar
 
 from tqdm import tqdm
+
+from freipose.errors import FreiPoseError
+
+log = logging.getLogger(__name__)
 
 J = TypeVar("J")
 R = TypeVar("R")
@@ -25,12 +46,121 @@ R = TypeVar("R")
 START_METHODS = ("forkserver", "spawn")
 
 
+class WorkerError(FreiPoseError):
+    """A worker process died before it could report its error."""
+
+
+def _spec_location(spec: ModuleSpec | None) -> tuple[str, ...]:
+    """Where a module spec's code lives: its file, else its package folders (resolved)."""
+    if spec is None:
+        return ()
+    if spec.origin is not None and spec.has_location:
+        return (os.path.realpath(spec.origin),)
+    return tuple(os.path.realpath(p) for p in spec.submodule_search_locations or ())
+
+
+def _shadowed_by_cwd(module: str) -> bool:
+    """Whether the working folder holds another ``module`` than the one this process uses.
+
+    That is, whether a process with the working folder first on ``sys.path`` would import
+    the top-level package of ``module`` from somewhere else than this process does (e.g.
+    an empty folder ``freipose`` there instead of the installed package).
+    """
+    top = module.partition(".")[0]
+    if top == "__main__" or getattr(sys.flags, "safe_path", False):
+        return False
+    try:
+        in_cwd = PathFinder.find_spec(top, [os.getcwd()])
+    except (OSError, ImportError, ValueError):
+        return False
+    if in_cwd is None:
+        return False
+    loaded = sys.modules.get(top)
+    try:
+        here = loaded.__spec__ if loaded is not None else importlib.util.find_spec(top)
+    except (ImportError, ValueError):
+        here = None
+    return _spec_location(here) != _spec_location(in_cwd)
+
+
+def safe_preload(preload: Sequence[str]) -> list[str]:
+    """The modules of ``preload`` that the forkserver can import as this process does.
+
+    Modules whose top-level package the working folder shadows are left out (each worker
+    imports them itself, with this process's ``sys.path``).
+    """
+    keep = [m for m in preload if not _shadowed_by_cwd(m)]
+    if len(keep) < len(preload):
+        dropped = sorted(set(preload) - set(keep))
+        log.debug("not preloading %s: the working folder %s shadows them", dropped, os.getcwd())
+    return keep
+
+
+def _exit_cause(pool: ProcessPoolExecutor | None) -> str | None:
+    """How the first dead worker of ``pool`` ended (its exit status or signal), if known."""
+    procs = getattr(pool, "_processes", None) or {}
+    codes = []
+    for p in list(procs.values()):
+        with contextlib.suppress(AssertionError, OSError, ValueError):
+            p.join(1.0)
+        if p.exitcode not in (None, 0):
+            codes.append(p.exitcode)
+    # the pool terminates the other workers (SIGTERM) once one has died
+    own = [c for c in codes if c != -signal.SIGTERM] or codes
+    if not own:
+        return None
+    code = own[0]
+    if code < 0:
+        name = signal.Signals(-code).name if -code in signal.valid_signals() else str(-code)
+        oom = " (the system may have run out of memory)" if -code == signal.SIGKILL else ""
+        return f"it was killed by {name}{oom}"
+    return f"it exited with status {code} (its own error, if any, is printed above)"
+
+
+def _broken_cause(err: BrokenProcessPool, pool: ProcessPoolExecutor | None) -> str:
+    """One line that says why a worker died, from the pool error and the dead workers."""
+    remote = err.__cause__
+    if remote is not None:
+        lines = [ln.strip() for ln in str(remote).splitlines() if ln.strip(" '\"")]
+        if lines:
+            return lines[-1]
+    return _exit_cause(pool) or (
+        "it ended without reporting an error (killed, or it failed to start: its own "
+        "error, if any, is printed above)"
+    )
+
+
+@contextlib.contextmanager
+def worker_errors(
+    pool: ProcessPoolExecutor | None = None,
+    hint: str = "run again with one job (--jobs 1) to see the error in this process",
+) -> Iterator[None]:
+    """Turn a pool's ``BrokenProcessPool`` in the block into a one-line :class:`WorkerError`.
+
+    Args:
+        pool: the pool whose results the block waits for: its dead workers' exit statuses
+            name the cause when the pool error does not.
+        hint: what the user can do, appended to the message.
+
+    Yields:
+        Nothing; the block runs unchanged.
+
+    Raises:
+        WorkerError: ``a worker process died: <cause>; <hint>``.
+    """
+    try:
+        yield
+    except BrokenProcessPool as e:
+        raise WorkerError(f"a worker process died: {_broken_cause(e, pool)}; {hint}") from e
+
+
 def pool_context(preload: Sequence[str] = (), start_method: str = "forkserver") -> BaseContext:
     """The multiprocessing context that :func:`process_pool` starts its workers with.
 
     Args:
         preload: modules the forkserver imports once before it forks the workers (ignored
-            with ``"spawn"``).
+            with ``"spawn"``; those that the working folder shadows are left to the workers,
+            see :func:`safe_preload`).
         start_method: ``"forkserver"`` (used where the platform has it, else ``"spawn"``) or
             ``"spawn"``.
 
@@ -44,7 +174,7 @@ def pool_context(preload: Sequence[str] = (), start_method: str = "forkserver") 
         raise ValueError(f"start_method must be one of {START_METHODS}, got {start_method!r}")
     if start_method == "forkserver" and "forkserver" in mp.get_all_start_methods():
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(list(preload))
+        ctx.set_forkserver_preload(safe_preload(preload))
         return ctx
     return mp.get_context("spawn")
 
@@ -119,8 +249,16 @@ def run_jobs(
 
         with opencv_threads(1):
             return [fn(j) for j in tqdm(jobs, desc=desc, disable=disable)]
-    with process_pool(n_workers, start_method=start_method) as ex:
+    hint = "run again with one worker (--workers 1) to see the error in this process"
+    with process_pool(n_workers, start_method=start_method) as ex, worker_errors(ex, hint):
         return list(tqdm(ex.map(fn, jobs), total=len(jobs), desc=desc, disable=disable))
 
 
-__all__ = ["pool_context", "process_pool", "run_jobs"]
+__all__ = [
+    "WorkerError",
+    "pool_context",
+    "process_pool",
+    "run_jobs",
+    "safe_preload",
+    "worker_errors",
+]
