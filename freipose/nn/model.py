@@ -124,13 +124,42 @@ class VoxelPoseNet(nn.Module):
 
     def forward(self, batch: Mapping[str, Any]) -> dict[str, Any]:
         """Poses P0 and P1 of a collated batch (:class:`freipose.nn.types.NetworkOutput`)."""
-        cfg = self.cfg
         images = batch["images"]
         B, V = images.shape[:2]
-        K, R, t, dist = batch["K"], batch["R"], batch["t"], batch["dist"]
-        mask, center = batch["view_mask"], batch["center"]
         feats, skip = self.encoder(images.reshape(B * V, *images.shape[2:]))
-        h = feats.shape[-1]
+        out = self._initial_pose(batch, feats, skip)
+        if self.refine is None or self.prior_log_weight is None:
+            uv0, _ = project_affine(
+                out["P0"].detach(), batch["K"], batch["R"], batch["t"], batch["dist"]
+            )
+            out.update(
+                P1=out["P0"],
+                points2d=uv0,
+                confidence2d=out["confidence0"][:, None].expand(B, V, -1),
+                confidence=out["confidence0"],
+            )
+            return out
+        out.update(
+            self._refined_pose(batch, feats, skip, out["P0"], self.refine, self.prior_log_weight)
+        )
+        return out
+
+    def _initial_pose(
+        self, batch: Mapping[str, Any], feats: torch.Tensor, skip: list[torch.Tensor]
+    ) -> dict[str, Any]:
+        """P0: the features unprojected into the voxel grid, the 3D U-Net and soft-argmax.
+
+        Args:
+            batch: the collated batch.
+            feats: (B*V, C, h, w) encoder features.
+            skip: the encoder's skip maps.
+
+        Returns:
+            ``P0``, ``P0_aux``, ``confidence0`` and ``volume_probs``.
+        """
+        cfg = self.cfg
+        B, V = batch["images"].shape[:2]
+        center = batch["center"]
         G = cfg.grid_size
         offs = voxel_offsets(G, cfg.cube_size, device=center.device)[None]  # (1, G^3, 3)
         rot = batch.get("grid_rotation")
@@ -140,11 +169,11 @@ class VoxelPoseNet(nn.Module):
         vfeats = feats if self.lift is None else self.lift(feats, skip)
         vol, _ = unproject(
             vfeats.float().reshape(B, V, *vfeats.shape[1:]),
-            K,
-            R,
-            t,
-            dist,
-            mask,
+            batch["K"],
+            batch["R"],
+            batch["t"],
+            batch["dist"],
+            batch["view_mask"],
             points,
             cfg.crop_size,
         )
@@ -152,21 +181,40 @@ class VoxelPoseNet(nn.Module):
         scores = self.unet(vol)
         decoded = [softargmax3d(s, center, cfg.cube_size, rot) for s in scores]
         P0, probs = decoded[-1]
-        out: dict[str, Any] = {
+        return {
             "P0": P0,
             "P0_aux": [d[0] for d in decoded[:-1]],
             "confidence0": volume_confidence(probs, G),
             "volume_probs": probs,
         }
-        if self.refine is None:
-            uv0, _ = project_affine(P0.detach(), K, R, t, dist)
-            out.update(
-                P1=P0,
-                points2d=uv0,
-                confidence2d=out["confidence0"][:, None].expand(B, V, -1),
-                confidence=out["confidence0"],
-            )
-            return out
+
+    def _refined_pose(
+        self,
+        batch: Mapping[str, Any],
+        feats: torch.Tensor,
+        skip: list[torch.Tensor],
+        P0: torch.Tensor,
+        refine: Head2D,
+        prior_log_weight: torch.Tensor,
+    ) -> dict[str, Any]:
+        """P1: the 2D refinement of P0's projections fused by confidence-weighted triangulation.
+
+        Args:
+            batch: the collated batch.
+            feats: (B*V, C, h, w) encoder features.
+            skip: the encoder's skip maps.
+            P0: (B, K, 3) the initial pose.
+            refine: the refinement head.
+            prior_log_weight: (K,) log of P0's weight in the fusion.
+
+        Returns:
+            ``P1``, ``points2d``, ``confidence2d``, ``confidence`` and ``map_logits``.
+        """
+        cfg = self.cfg
+        B, V = batch["images"].shape[:2]
+        K, R, t, dist = batch["K"], batch["R"], batch["t"], batch["dist"]
+        mask = batch["view_mask"]
+        h = feats.shape[-1]
         P0d = P0.detach()
         jitter = batch.get("p0_jitter")
         if jitter is not None and self.training:
@@ -175,7 +223,7 @@ class VoxelPoseNet(nn.Module):
             P0d = P0d + jitter.to(P0d.dtype)
         uv0, _ = project_affine(P0d, K, R, t, dist)  # (B, V, K, 2)
         heat = gaussian_heatmaps(uv0.reshape(B * V, -1, 2), h, cfg.stride, cfg.heatmap_sigma)
-        maps, conf_logits = self.refine(feats, skip, heat)
+        maps, conf_logits = refine(feats, skip, heat)
         # Residual formulation: the map logits are added to a Gaussian log-prior around the
         # projected P0, so an untrained head returns P0's projection (P1 = P0) and training
         # learns corrections.
@@ -192,16 +240,15 @@ class VoxelPoseNet(nn.Module):
         # total confidence, so P1 blends the refined views with P0 as far as they agree
         # (the prior is the unjittered P0: the weight learns how far to trust P0 as it is at
         # inference, while the head learns corrections from the jittered one)
-        prior_w = self.prior_log_weight.exp()[None] * conf.sum(1)  # (B, K)
+        prior_w = prior_log_weight.exp()[None] * conf.sum(1)  # (B, K)
         P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0.detach(), prior_w + 1e-3)
-        out.update(
-            P1=P1,
-            points2d=uv,
-            confidence2d=conf,
-            confidence=top2_mean(conf, mask),
-            map_logits=logits.reshape(B, V, *logits.shape[1:]),
-        )
-        return out
+        return {
+            "P1": P1,
+            "points2d": uv,
+            "confidence2d": conf,
+            "confidence": top2_mean(conf, mask),
+            "map_logits": logits.reshape(B, V, *logits.shape[1:]),
+        }
 
 
 class BaselineNet(nn.Module):
