@@ -57,7 +57,7 @@ def main() -> None:
     from freipose.detect import BackgroundSubtractor, ConsistencyConfig, Detector
     from freipose.detect.evaluate import evaluate_source, measure_fps
     from freipose.detect.train import train_detector
-    from freipose.labels.dataset import MultiViewDataset
+    from freipose.nn.dataset import MultiViewDataset
     from freipose.synth import SceneConfig, generate_session
 
     work = args.workdir or Path(tempfile.mkdtemp(prefix="fp_bench_detector_"))

@@ -143,10 +143,10 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         ``config`` (the training TOML), ``detector`` (checkpoint and metrics), ``pose`` and
         ``baseline`` (checkpoint, log and its last values).
     """
-    from freipose._compat import tomllib
+    from freipose.io.toml import read_toml
 
     cfg_path = _train_config(ctx)
-    data = tomllib.loads(cfg_path.read_text(encoding="utf-8"))
+    data = read_toml(cfg_path, "training config")
     out: dict[str, Any] = {"config": str(cfg_path)}
     out["detector"] = _train_detector(ctx, data, cfg_path)
     ctx.say("  voxel network (2D encoder, unprojection, 3D U-Net, refinement)")
