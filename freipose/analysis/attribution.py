@@ -15,7 +15,10 @@ For every (animal, condition) group of a study:
    predicted vs. true classes, with a Bonferroni correction over the variables.
 
 Frames are labelled by :func:`freipose.analysis.study.label_frames`; frames with NaN variables
-are left out of fitting and scoring (counted in the outputs).
+are left out of fitting and scoring (counted in the outputs). Variables undefined in every
+frame of some recording (a keypoint missing throughout) are left out of the whole analysis,
+and every recording needs a labelled frame with all remaining variables defined
+(:mod:`freipose.analysis.usable`), so no score is computed on zero frames.
 
 Variables that do not vary over the train frames beyond numerical noise (standard deviation
 at most ``constant_rtol`` times their root mean square, see
@@ -51,6 +54,7 @@ from freipose.analysis.labelled import (
 )
 from freipose.analysis.single import attribution_table, single_variable_scores
 from freipose.analysis.study import Study
+from freipose.analysis.usable import drop_undefined
 from freipose.analysis.variables import Variables
 
 log = logging.getLogger(__name__)
@@ -166,9 +170,13 @@ def run_attribution(
 
     Returns:
         The four result tables.
+
+    Raises:
+        NoUsableFramesError: a recording has no usable frame (see
+            :func:`~freipose.analysis.usable.drop_undefined`).
     """
     say = log_fn or log.info
-    recs = label_recordings(study, variables, config)
+    recs = drop_undefined(label_recordings(study, variables, config), study.path)
     if config.standardize == "recording":
         recs = standardized(recs, config.constant_rtol)
     layout = next(iter(recs.values())).variables

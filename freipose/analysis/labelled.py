@@ -17,7 +17,7 @@ from freipose.analysis.study import (
     StudyError,
     check_windows,
     label_frames,
-    read_events,
+    read_event_windows,
 )
 from freipose.analysis.variables import Variables
 
@@ -83,8 +83,9 @@ def label_recordings(
                 f"skeletons, STFT settings or frame rates: {fps} vs {var.fps} fps); all "
                 f"recordings of a study must give the same variables"
             )
-        win = read_events(rec.events)
-        check_windows(win, var.num_frames / var.fps, f"events file {rec.events} ({rec.name})")
+        win, lines = read_event_windows(rec.events)
+        source = f"events file {rec.events} ({rec.name})"
+        check_windows(win, var.num_frames / var.fps, source, lines)
         labels = label_frames(var.times, win, config.onset_delay_s, config.margin_s)
         out[rec.name] = LabelledRecording(rec, var, win, labels)
     return out

@@ -17,7 +17,7 @@ from freipose.analysis import figures
 from freipose.analysis.attribution import AttributionResult, run_attribution
 from freipose.analysis.config import AttributionConfig
 from freipose.analysis.io import cached_variables
-from freipose.analysis.study import load_study
+from freipose.analysis.study import check_study_events, load_study
 from freipose.analysis.variables import VariableConfig
 from freipose.io.atomic import atomic_path, atomic_write_text
 
@@ -92,9 +92,14 @@ def analyze_study(
 
     Returns:
         The result tables.
+
+    Raises:
+        StudyError: an invalid study or events file (the events files are checked before
+            any variable is computed), or recordings without usable frames.
     """
     say = say or log.info
     study = load_study(study_path)
+    check_study_events(study)
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     skel = skeleton if skeleton is not None else study.skeleton

@@ -55,7 +55,7 @@ def fit_block(
     and fitted with ``LinearSVC(C, class_weight="balanced")``; frames where the column is
     NaN are left out. A column that is constant over the train frames up to numerical noise
     (:func:`~freipose.analysis.stats.is_informative` with ``constant_rtol``) is not tested
-    (F1 NaN, p 1).
+    (F1 NaN, p 1); a column without a defined test frame gets no p-value (all NaN).
 
     Args:
         xtr: (N, B) train values.
@@ -79,7 +79,10 @@ def fit_block(
         ftr = np.isfinite(xtr[:, j])
         fte = np.isfinite(xte[:, j])
         y_tr, y_te = ytr[ftr], yte[fte]
-        if len(np.unique(y_tr)) < 2 or len(y_te) == 0:
+        if len(y_te) == 0:  # no test frame: no test, no p-value
+            out.append((nan, nan, nan, 0.0, 0.0, nan))
+            continue
+        if len(np.unique(y_tr)) < 2:
             out.append((nan, 1.0, nan, float(len(y_te)), 0.0, 1.0))
             continue
         x = xtr[ftr, j].astype(np.float64)

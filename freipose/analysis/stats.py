@@ -208,13 +208,14 @@ def scores(
 
     Returns:
         balanced accuracy, macro F1, chi-squared p with every frame counted as independent
-        (the method's test), effective number of frames, chi-squared p on that number.
+        (the method's test), effective number of frames, chi-squared p on that number; on
+        no frames every score and p-value is NaN (no test) and the effective number 0.
     """
     y_true = np.asarray(y_true).astype(np.int64)
     y_pred = np.asarray(y_pred).astype(np.int64)
     if len(y_true) == 0:
         nan = float("nan")
-        return nan, nan, 1.0, 0.0, 1.0
+        return nan, nan, nan, 0.0, nan
     table = confusion(y_true, y_pred)
     ba, f1 = table_scores(table)
     seg = np.array([len(y_true)]) if segments is None else segments

@@ -25,6 +25,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from freipose.errors import FreiPoseError, InputFileError
@@ -37,6 +38,7 @@ TOP_KEYS = ("recordings", "skeleton", "name", "description")
 REQUIRED_KEYS = ("name", "poses", "events", "animal", "condition", "split")
 SPLITS = ("train", "test")
 STIMULATED, NOT_STIMULATED, IGNORED = 1, 0, -1
+EVENTS_FIX = "one row per stimulation window, seconds from the first frame of the poses file"
 
 
 class StudyError(FreiPoseError):
@@ -200,6 +202,91 @@ def load_study(path: str | Path, check_files: bool = True) -> Study:
     return study
 
 
+def _event_rows(path: Path) -> tuple[list[tuple[float, float]], list[int]]:
+    """The windows of an events file and the line of each (unsorted, unchecked).
+
+    Raises:
+        StudyError: not CSV text, missing columns or non-numeric values.
+    """
+    rows: list[tuple[float, float]] = []
+    lines: list[int] = []
+    try:
+        with path.open(newline="") as fh:
+            reader = csv.DictReader(fh)
+            cols = [c.strip() for c in (reader.fieldnames or [])]
+            if "start_s" not in cols or "end_s" not in cols:
+                raise StudyError(
+                    f"events file {path}, line 1: expected a header with columns start_s,end_s "
+                    f"({EVENTS_FIX}), found {cols}; add or correct the header"
+                )
+            for row in reader:
+                line = reader.line_num
+                row = {k.strip(): v for k, v in row.items() if k is not None}
+                if all(not (v or "").strip() for v in row.values()):
+                    continue
+                try:
+                    rows.append((float(row["start_s"]), float(row["end_s"])))
+                except (TypeError, ValueError):
+                    raise StudyError(
+                        f"events file {path}, line {line}: start_s/end_s must be numbers "
+                        f"(seconds), got {row.get('start_s')!r}, {row.get('end_s')!r}; correct "
+                        f"or remove that row"
+                    ) from None
+                lines.append(line)
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise StudyError(
+            f"events file {path}: not a readable CSV text file ({exc}); expected a header "
+            f"start_s,end_s and {EVENTS_FIX}"
+        ) from None
+    return rows, lines
+
+
+def read_event_windows(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read and check ``events.csv``, keeping the file line of every window.
+
+    Args:
+        path: the events file.
+
+    Returns:
+        (N, 2) float start/end seconds sorted by start, and (N,) their lines in the file.
+
+    Raises:
+        InputFileError: no such file.
+        StudyError: not CSV text, missing columns, non-numeric or non-finite values,
+            end <= start, overlapping windows; the message names the file, the line and the
+            fix.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"events file not found: {path}")
+    rows, lines = _event_rows(path)
+    win = np.array(rows, dtype=float).reshape(-1, 2)
+    line = np.array(lines, dtype=np.int64)
+    for i in range(len(win)):
+        a, b = win[i]
+        if not (np.isfinite(a) and np.isfinite(b)):
+            raise StudyError(
+                f"events file {path}, line {line[i]}: start_s/end_s must be finite numbers, "
+                f"got {a}, {b}; correct or remove that row"
+            )
+        if b <= a:
+            raise StudyError(
+                f"events file {path}, line {line[i]}: the window ends ({b} s) before it starts "
+                f"({a} s); end_s must be greater than start_s (swapped columns?)"
+            )
+    order = np.argsort(win[:, 0], kind="stable")
+    win, line = win[order], line[order]
+    over = np.flatnonzero(win[1:, 0] < win[:-1, 1])
+    if len(over):
+        i = over[0]
+        raise StudyError(
+            f"events file {path}, lines {line[i]} and {line[i + 1]}: windows overlap: "
+            f"[{win[i, 0]}, {win[i, 1]}] s and [{win[i + 1, 0]}, {win[i + 1, 1]}] s; merge or "
+            f"correct them"
+        )
+    return win, line
+
+
 def read_events(path: str | Path) -> np.ndarray:
     """Read ``events.csv``.
 
@@ -211,58 +298,21 @@ def read_events(path: str | Path) -> np.ndarray:
 
     Raises:
         InputFileError: no such file.
-        StudyError: missing columns, non-numeric values, end <= start, overlapping windows.
+        StudyError: see :func:`read_event_windows`.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputFileError(f"events file not found: {path}")
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        cols = [c.strip() for c in (reader.fieldnames or [])]
-        if "start_s" not in cols or "end_s" not in cols:
-            raise StudyError(
-                f"events file {path}: expected a header with columns start_s,end_s "
-                f"(seconds from the first frame), found {cols}"
-            )
-        rows = []
-        for line, row in enumerate(reader, start=2):
-            row = {k.strip(): v for k, v in row.items() if k is not None}
-            if all(not (v or "").strip() for v in row.values()):
-                continue
-            try:
-                rows.append((float(row["start_s"]), float(row["end_s"])))
-            except (TypeError, ValueError):
-                raise StudyError(
-                    f"events file {path}, line {line}: start_s/end_s must be numbers, got "
-                    f"{row.get('start_s')!r}, {row.get('end_s')!r}"
-                ) from None
-    win = np.array(rows, dtype=float).reshape(-1, 2)
-    if not np.isfinite(win).all():
-        raise StudyError(f"events file {path}: start_s/end_s must be finite numbers")
-    bad = np.flatnonzero(win[:, 1] <= win[:, 0])
-    if len(bad):
-        a, b = win[bad[0]]
-        raise StudyError(
-            f"events file {path}: window {bad[0] + 1} ends ({b} s) before it starts ({a} s)"
-        )
-    win = win[np.argsort(win[:, 0], kind="stable")]
-    over = np.flatnonzero(win[1:, 0] < win[:-1, 1])
-    if len(over):
-        i = over[0]
-        raise StudyError(
-            f"events file {path}: windows overlap: [{win[i, 0]}, {win[i, 1]}] s and "
-            f"[{win[i + 1, 0]}, {win[i + 1, 1]}] s; merge or correct them"
-        )
-    return win
+    return read_event_windows(path)[0]
 
 
-def check_windows(windows: np.ndarray, duration_s: float, source: str) -> None:
+def check_windows(
+    windows: np.ndarray, duration_s: float, source: str, lines: np.ndarray | None = None
+) -> None:
     """Raise when a window lies outside ``[0, duration_s]`` (seconds from the first frame).
 
     Args:
         windows: (N, 2) start/end seconds.
         duration_s: the recording's duration in seconds.
         source: the events file and recording, for messages.
+        lines: (N,) the windows' lines in the events file, for messages.
 
     Raises:
         StudyError: a window lies outside the recording.
@@ -272,10 +322,66 @@ def check_windows(windows: np.ndarray, duration_s: float, source: str) -> None:
     bad = np.flatnonzero((win[:, 0] < -tol) | (win[:, 1] > duration_s + tol))
     if len(bad):
         a, b = win[bad[0]]
+        where = f"{source}, line {lines[bad[0]]}" if lines is not None else source
+        what = "stimulation window" if lines is not None else f"stimulation window {bad[0] + 1}"
         raise StudyError(
-            f"{source}: stimulation window {bad[0] + 1} [{a}, {b}] s lies outside the recording "
+            f"{where}: {what} [{a}, {b}] s lies outside the recording "
             f"(0 to {duration_s:.3f} s from the first frame); events are seconds from the "
-            f"first frame of the poses file, not from the start of the video or clock time"
+            f"first frame of the poses file, not from the start of the video or clock time; "
+            f"correct or remove that row"
+        )
+
+
+def poses_duration(path: str | Path) -> float | None:
+    """Duration in seconds of a poses file's frame range, read without loading the poses.
+
+    Args:
+        path: the poses file.
+
+    Returns:
+        ``(last frame - first frame + 1) / fps`` (the duration of its variables), or None
+        when the file does not say (its reader reports the problem later).
+    """
+    try:
+        with h5py.File(path, "r") as f:
+            fps = float(f.attrs["fps"])
+            fi = np.asarray(f["frame_index"][()], dtype=np.int64)
+    except (OSError, KeyError, ValueError, TypeError):
+        return None
+    if fi.ndim != 1 or not len(fi) or not (np.isfinite(fps) and fps > 0):
+        return None
+    return float(fi[-1] - fi[0] + 1) / fps
+
+
+def check_study_events(study: Study) -> None:
+    """Check every recording's events file before any variable is computed.
+
+    Each file must parse (see :func:`read_event_windows`) and its windows must lie inside
+    the recording, whose duration comes from the poses file's frame range and frame rate.
+
+    Args:
+        study: the study.
+
+    Raises:
+        StudyError: invalid events files; the message names every bad file, its line and
+            the fix.
+        InputFileError: an events file does not exist.
+    """
+    problems: dict[str, StudyError] = {}
+    for rec in study.recordings:
+        try:
+            win, lines = read_event_windows(rec.events)
+            duration = poses_duration(rec.poses)
+            if duration is not None:
+                check_windows(win, duration, f"events file {rec.events} ({rec.name})", lines)
+        except StudyError as exc:
+            problems.setdefault(str(exc), exc)
+    if len(problems) == 1:
+        raise next(iter(problems.values()))
+    if problems:
+        raise StudyError(
+            f"{len(problems)} events problems in study {study.path}:\n"
+            + "\n".join(f"  - {m}" for m in problems)
         )
 
 
