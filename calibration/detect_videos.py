@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -21,7 +22,7 @@ from freipose.calibration.boards import Board
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.detection_cache import cache_file, load_cache, save_cache
 from freipose.calibration.tracking import BoardTracker
-from freipose.workers import pool_context, process_pool
+from freipose.workers import pool_context, process_pool, worker_errors
 
 if TYPE_CHECKING:  # tqdm is imported where the bar is made
     from tqdm import tqdm
@@ -142,6 +143,9 @@ def detect_cameras(
 
     Returns:
         one :class:`CameraDetections` per source, in order.
+
+    Raises:
+        WorkerError: a worker process died (the message says how, in one line).
     """
     from tqdm import tqdm
 
@@ -218,6 +222,15 @@ class _BarTicks:
             self.then()
 
 
+def _join(threads: Sequence[threading.Thread], between: Callable[[], None]) -> None:
+    """Wait for ``threads`` to end, calling ``between()`` every 0.25 s and once at the end."""
+    while any(t.is_alive() for t in threads):
+        for t in threads:
+            t.join(timeout=0.25)
+        between()
+    between()
+
+
 def _detect_parallel(
     sources: Sequence[str | Path],
     board: Board,
@@ -238,9 +251,11 @@ def _detect_parallel(
         jobs: processes, this one included.
         results: per camera, the (F, P, 2) detections, filled in place.
         bar: the tqdm progress bar, advanced as frames are done.
+
+    Raises:
+        WorkerError: a worker process died (the message says how, in one line).
     """
     import queue as queue_mod
-    import threading
     from collections import deque
 
     from freipose.io.video import opencv_threads
@@ -290,7 +305,10 @@ def _detect_parallel(
             stop()
 
     try:
-        with process_pool(jobs - 1, preload=preload, initializer=_init_worker) as ex:
+        with (
+            process_pool(jobs - 1, preload=preload, initializer=_init_worker) as ex,
+            worker_errors(ex),
+        ):
             feeders = [
                 threading.Thread(target=feed, args=(ex,), daemon=True) for _ in range(jobs - 1)
             ]
@@ -305,13 +323,9 @@ def _detect_parallel(
                 stop()
                 raise
             finally:
-                while any(t.is_alive() for t in feeders):
-                    for t in feeders:
-                        t.join(timeout=0.25)
-                    drain()
-            drain()
-        if errors:
-            raise errors[0]
+                _join(feeders, drain)
+            if errors:
+                raise errors[0]
     finally:
         if manager is not None:
             manager.shutdown()

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from freipose.calibration.boards import Board, board_hash
+from freipose.errors import InputFileError
 
 __all__ = ["CACHE_VERSION", "cache_file", "load_cache", "save_cache"]
 
@@ -15,12 +16,22 @@ CACHE_VERSION = 3  # raised whenever the detections of the same frames change
 
 
 def _source_signature(path: Path) -> str:
-    """Hash of the absolute path, size and modification time (files) or listing (folders)."""
+    """Hash of the absolute path, size and modification time (files) or listing (folders).
+
+    Raises:
+        InputFileError: a folder entry that does not exist (a broken link).
+    """
     p = path.resolve()
     h = hashlib.sha1(str(p).encode())
     if p.is_dir():
         for f in sorted(p.iterdir()):
-            st = f.stat()
+            try:
+                st = f.stat()
+            except FileNotFoundError:  # a link to nothing, or a file removed meanwhile
+                raise InputFileError(
+                    f"{f}: a broken link (or a file removed meanwhile) in the image folder "
+                    f"{path}; remove it or make it point to the image"
+                ) from None
             h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns}".encode())
     else:
         st = p.stat()

@@ -326,8 +326,13 @@ def _calibrate_detections(
 
 
 def detection_cache_dir(output: str | Path) -> Path:
-    """Folder next to the output that caches detections: ``<output stem>.detections/``."""
+    """Folder next to the output that caches detections: ``<output stem>.detections/``.
+
+    An output named ``.`` or ``..`` (a JARVIS folder) is taken by its absolute name.
+    """
     out = Path(output)
+    if out.name in ("", ".", ".."):
+        out = out.resolve()
     return out.with_name(out.stem + ".detections")
 
 

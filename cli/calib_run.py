@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import os
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
 
 from freipose.cli._common import user_errors
+from freipose.cli.calib_files import FORMATS_HELP
 from freipose.errors import FreiPoseError, InputFileError
 
 if TYPE_CHECKING:  # the calibration package is imported when a command runs
@@ -97,15 +100,191 @@ def _resolve_board(board_file: Path | None, board_type: str | None, kw: dict[str
     return board_from_dict({"type": board_type, **fields}, source="command-line board options")
 
 
+# An existing output larger than this is no calibration file (those are a few kB): it is
+# not read to find out.
+_MAX_CALIBRATION_BYTES = 16 << 20
+
+
+def _suffix_text(writers: Sequence[str], suffixes: dict[str, str]) -> str:
+    """``.toml (toml), .json (mjson), ...``: the suffixes that name a writable format."""
+    by_format: dict[str, list[str]] = {f: [] for f in writers}
+    for sfx, f in suffixes.items():
+        if sfx != "/" and f in by_format:
+            by_format[f].append(sfx)
+    return ", ".join(f"{' or '.join(s)} ({f})" for f, s in by_format.items() if s)
+
+
+def output_format(output: Path, fmt: str | None) -> str:
+    """The format that ``-o OUTPUT`` is written in: ``--format``, else from the suffix.
+
+    Raises:
+        FreiPoseError: ``fmt`` is no format that FreiPose writes, or it is ``None`` and the
+            suffix names none (the message lists the suffixes and ``--format``'s names).
+    """
+    from freipose.io.calibration import SUFFIXES, WRITERS, CalibrationFormatError, detect_format
+
+    names = ", ".join(sorted(WRITERS))
+    if fmt is not None:
+        if fmt not in WRITERS:
+            raise FreiPoseError(
+                f"--format {fmt}: not a calibration format that FreiPose writes; expected one "
+                f"of {names}"
+            )
+        return fmt
+    fix = f"rename it (e.g. -o {output.with_suffix('.toml')}) or pass --format, one of {names}"
+    expected = f"expected {_suffix_text(list(WRITERS), dict(SUFFIXES))}"
+    try:
+        found = detect_format(output)
+    except CalibrationFormatError:
+        sfx = repr(output.suffix) if output.suffix else "(none)"
+        raise FreiPoseError(
+            f"cannot tell the calibration format of -o {output} from its suffix {sfx}: "
+            f"{expected}; {fix}"
+        ) from None
+    if found not in WRITERS:
+        raise FreiPoseError(
+            f"-o {output}: {output.suffix!r} is the {found} format, which FreiPose reads but "
+            f"does not write; {expected}; {fix}"
+        )
+    return found
+
+
+def _writable_folder(folder: Path, what: str) -> None:
+    """Raise unless ``folder`` exists or can be made.
+
+    It can be made when its nearest existing ancestor is a folder this process may write in.
+    """
+    p = folder.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir():
+        raise FreiPoseError(
+            f"{what}: {p} is a file, not a folder, so {folder} cannot be made; choose a path "
+            f"in a folder"
+        )
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise FreiPoseError(f"{what}: no permission to write in {p}; choose another folder")
+
+
+def _check_replaceable(output: Path, fmt: str) -> None:
+    """Raise if the existing file ``output`` is not a calibration (it would be replaced)."""
+    from freipose.io.calibration import READERS, detect_format, load_calibration
+
+    size = output.stat().st_size
+    why = f"{size} bytes, more than any calibration file"
+    if size <= _MAX_CALIBRATION_BYTES:
+        formats = [fmt] if fmt in READERS else []
+        with contextlib.suppress(FreiPoseError):
+            formats.append(detect_format(output))
+        for f in dict.fromkeys(formats):
+            try:
+                load_calibration(output, f)
+                return
+            except (ValueError, OSError, KeyError) as e:  # FreiPoseError is a ValueError
+                why = str(e)
+    raise FreiPoseError(
+        f"-o {output} exists and is not a calibration file ({why}); it would be replaced: "
+        f"choose another output name, or delete it first if it may go"
+    )
+
+
+def _check_jarvis_output(output: Path, cameras: Sequence[str]) -> None:
+    """Raise if the JARVIS writer would refuse ``output`` for a rig of ``cameras``."""
+    if output.suffix.lower() in (".yaml", ".yml") and not output.is_dir():
+        if len(cameras) != 1:
+            raise FreiPoseError(
+                f"-o {output}: a JARVIS .yaml file holds one camera, the rig has "
+                f"{len(cameras)}; give a folder instead, e.g. -o {output.with_suffix('')}/"
+            )
+        if output.exists():
+            _check_replaceable(output, "jarvis")
+        return
+    if output.is_file():
+        raise FreiPoseError(
+            f"-o {output} is a file; a JARVIS calibration is a folder of <camera>.yaml: give "
+            f"a folder name, e.g. -o {output.with_suffix('')}_jarvis/"
+        )
+    if output.is_dir():
+        others = sorted(
+            p.name
+            for p in output.iterdir()
+            if p.suffix.lower() in (".yaml", ".yml")
+            and not p.name.startswith(".")
+            and p.stem not in cameras
+        )
+        if others:
+            raise FreiPoseError(
+                f"-o {output}: the folder already holds camera files {others} that are not in "
+                f"this rig ({', '.join(cameras)}); they would be read as extra cameras. Write "
+                f"to an empty folder"
+            )
+
+
+def check_outputs(
+    output: Path, fmt: str | None, report_dir: Path | None, cameras: Sequence[str]
+) -> str:
+    """Check every output of ``freipose calib run`` before any work; return the format.
+
+    Args:
+        output: ``-o``, the calibration file (a folder for ``jarvis``).
+        fmt: ``--format``; ``None``: from ``output``'s suffix.
+        report_dir: ``--report``; ``None``: no report.
+        cameras: the camera names (the inputs' stems).
+
+    Returns:
+        the calibration format that ``output`` is written in.
+
+    Raises:
+        FreiPoseError: an output that could not be written, or an existing ``output`` that
+            is not a calibration.
+    """
+    from freipose.calibration.pipeline import detection_cache_dir
+
+    if fmt is None and output.is_dir():
+        raise FreiPoseError(
+            f"-o {output} is a folder; expected a calibration file name, e.g. -o "
+            f"{output / 'calibration.toml'}, or --format jarvis to write a JARVIS folder of "
+            f"<camera>.yaml into it"
+        )
+    f = output_format(output, fmt)
+    if f == "jarvis":
+        _check_jarvis_output(output, cameras)
+    elif output.is_dir():
+        raise FreiPoseError(
+            f"-o {output} is a folder; a {f} calibration is one file: give a file name, e.g. "
+            f"-o {output / 'calibration.toml'}"
+        )
+    elif output.exists():
+        _check_replaceable(output, f)
+    _writable_folder(output.parent, f"-o {output}")
+    cache = detection_cache_dir(output)
+    if cache.exists() and not cache.is_dir():
+        raise FreiPoseError(
+            f"{cache} (the detection cache of -o {output}) is a file, not a folder; move it "
+            f"away or choose another output name"
+        )
+    if report_dir is not None:
+        _writable_folder(report_dir, f"--report {report_dir}")
+    return f
+
+
 @click.command("run")
 @click.argument("inputs", nargs=-1, type=click.Path(path_type=Path))
 @_board_options
 @click.option(
     "-o",
     "--output",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=click.Path(path_type=Path),
     required=True,
-    help="Output calibration file (calibration.toml).",
+    help="Output calibration file (calibration.toml), or folder with --format jarvis.",
+)
+@click.option(
+    "--format",
+    "fmt",
+    default=None,
+    metavar="F",
+    help="Format of OUTPUT, whatever its name (default: from its suffix: .toml native, "
+    f".json M.json, .yaml/.yml JARVIS). A writable one of: {FORMATS_HELP}.",
 )
 @click.option(
     "--origin-frame",
@@ -176,6 +355,7 @@ def run(
     board_file: Path | None,
     board_type: str | None,
     output: Path,
+    fmt: str | None,
     origin_frame: int | None,
     intrinsics_only: bool,
     fix_intrinsics: Path | None,
@@ -192,7 +372,10 @@ def run(
     """Calibrate synchronized cameras from videos (or image folders) of a moving board.
 
     Each INPUT is one camera (its name is the file or folder stem); frames are matched by index.
-    Detections are cached in OUTPUT's folder as <output stem>.detections/.
+    Detections are cached in OUTPUT's folder as <output stem>.detections/. OUTPUT's format
+    comes from its suffix, or from --format (which writes that format under any name). Every
+    output is checked before the detection starts; an existing OUTPUT is replaced only if it
+    is a calibration.
 
     \b
     Example:
@@ -200,6 +383,7 @@ def run(
           -o calibration.toml --origin-frame 0 --report calib_report/
       freipose calib left/ right/ --board-type chessboard --inner-corners-x 9 \\
           --inner-corners-y 6 --square-size 30 -o stereo.toml
+      freipose calib cams/*.mp4 --board board.toml -o calib_jarvis/ --format jarvis
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     import logging
     import shutil
@@ -218,6 +402,8 @@ def run(
         for p in inputs:
             if not p.exists():
                 raise InputFileError(f"input {p} does not exist (expected a video or folder)")
+        cameras = [p.stem if p.is_file() else p.name for p in inputs]
+        out_format = check_outputs(output, fmt, report_dir, cameras)
         board = _resolve_board(board_file, board_type, board_fields)
         fixed = load_calibration(fix_intrinsics) if fix_intrinsics is not None else None
         if no_cache:
@@ -234,7 +420,7 @@ def run(
             jobs=jobs,
         )
         result = calibrate(list(inputs), board, output, opts)
-        save_calibration(result.rig, output)
+        save_calibration(result.rig, output, out_format)
         log = logging.getLogger("freipose.calib")
         for s in result.stats:
             rms = f"{s.rms:.3f} px" if s.rms == s.rms else "n/a"
