@@ -122,3 +122,34 @@ def echo_result(res: Any) -> None:
             f"  warning: camera {cam}: frames from {i} on could not be decoded (truncated video?)",
             err=True,
         )
+
+
+def allow_incomplete_option() -> Decorator:
+    """``--allow-incomplete``: use a poses file whose prediction run has not finished."""
+    return click.option(
+        "--allow-incomplete",
+        is_flag=True,
+        help="Use a poses file whose prediction has not finished (missing frames are empty).",
+    )
+
+
+def overwrite_option(what: str = "the output") -> Decorator:
+    """``--overwrite``: replace an existing complete output."""
+    return click.option("--overwrite", is_flag=True, help=f"Replace {what} if it exists.")
+
+
+def check_complete(path: Path, allow_incomplete: bool) -> None:
+    """Refuse an unfinished poses file, or warn how many frames it lacks when allowed.
+
+    Raises:
+        IncompletePosesError: the file is unfinished and ``allow_incomplete`` is false.
+    """
+    from freipose.io.poses import require_complete
+
+    missing = require_complete(path, allow_incomplete)
+    if missing:
+        click.echo(
+            f"warning: {path} is incomplete: {missing} frames have no prediction "
+            "(empty in the output)",
+            err=True,
+        )

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import calibration_option, device_option, frames_option, user_errors
+from freipose.cli._common import (
+    calibration_option,
+    device_option,
+    frames_option,
+    overwrite_option,
+    user_errors,
+)
 from freipose.errors import FreiPoseError
 
 
@@ -58,6 +64,7 @@ from freipose.errors import FreiPoseError
     show_default=True,
     help="Frames per camera for the median background (bgsub).",
 )
+@overwrite_option("OUTPUT if it exists")
 def detect(
     session: Path,
     output: Path,
@@ -71,6 +78,7 @@ def detect(
     min_views: int,
     batch_size: int,
     bg_samples: int,
+    overwrite: bool,
 ) -> None:
     """Find the animal in every view and frame, consistently across views.
 
@@ -79,7 +87,8 @@ def detect(
     crop box from a cube of --cube-size mm around the centre. Writes per frame and camera
     the boxes, scores, crop boxes, the 3D centre and how many views agreed. An
     interrupted run leaves .OUTPUT.progress.npz next to the output; running the same
-    command again continues from there.
+    command again continues from there. An existing OUTPUT is kept unless --overwrite;
+    a second run on the same OUTPUT is refused while the first one works.
 
     \b
     Example:
@@ -90,7 +99,9 @@ def detect(
     with user_errors():
         from freipose.detect.multiview import ConsistencyConfig
         from freipose.detect.pipeline import detect_session, make_source, open_sources
+        from freipose.io.atomic import refuse_existing, remove_leftover_partials
         from freipose.io.boxes import write_boxes_h5
+        from freipose.io.lock import output_lock
         from freipose.io.session import discover_sessions
         from freipose.io.video import frame_range
 
@@ -103,13 +114,26 @@ def detect(
         source, method_name, desc = make_source(
             rig, sources, rng, model, method, fixed_boxes, device, bg_samples
         )
+        refuse_existing(output, overwrite)  # before the work; again under the lock
         # Partial results survive an interruption; rerunning the command continues.
         progress = output.with_name(f".{output.name}.progress.npz")
-        data = detect_session(
-            rig, sources, rng, source, cfg, batch_size, method_name, desc, progress_file=progress
-        )
-        write_boxes_h5(data, output)
-        progress.unlink(missing_ok=True)
+        with output_lock(output, "boxes file"):
+            refuse_existing(output, overwrite)
+            remove_leftover_partials(output)
+            remove_leftover_partials(progress)
+            data = detect_session(
+                rig,
+                sources,
+                rng,
+                source,
+                cfg,
+                batch_size,
+                method_name,
+                desc,
+                progress_file=progress,
+            )
+            write_boxes_h5(data, output)
+            progress.unlink(missing_ok=True)
         n = len(data)
         found = int((data.n_agree > 0).sum())
         click.echo(

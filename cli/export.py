@@ -7,7 +7,13 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import user_errors
+from freipose.cli._common import (
+    allow_incomplete_option,
+    check_complete,
+    overwrite_option,
+    user_errors,
+)
+from freipose.errors import FreiPoseError
 
 
 def _parse_time(value: str | None) -> datetime.datetime | None:
@@ -54,16 +60,22 @@ def _parse_time(value: str | None) -> datetime.datetime | None:
     help="NWB only: recording start as an ISO time with time zone (default 1970-01-01 UTC).",
 )
 @click.option("--description", default=None, help="NWB only: session description.")
+@allow_incomplete_option()
+@overwrite_option("existing exports")
 def export(
     poses: tuple[Path, ...],
     fmt: str,
     output: Path | None,
     start_time: str | None,
     description: str | None,
+    allow_incomplete: bool,
+    overwrite: bool,
 ) -> None:
     """Export predicted poses (poses.h5) to formats other tools read.
 
-    Units stay millimetres in the calibration's world frame.
+    Units stay millimetres in the calibration's world frame. An unfinished prediction
+    (a .partial file) is refused unless --allow-incomplete, and an existing export is
+    kept unless --overwrite.
 
     \b
     Examples:
@@ -72,7 +84,8 @@ def export(
       freipose export poses/rec1.poses.h5 --format anipose -o rec1_3d.csv
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
-        from freipose.io.export import default_output, export_poses
+        from freipose.io.atomic import refuse_existing
+        from freipose.io.export import export_poses
 
         kwargs = {}
         if fmt == "nwb":
@@ -81,12 +94,39 @@ def export(
                 kwargs["session_start_time"] = t
             if description:
                 kwargs["session_description"] = description
-        for p in poses:
-            if output is None:
-                out = None
-            elif len(poses) > 1 or output.is_dir() or not output.suffix:
-                out = output / default_output(p, fmt).name
-            else:
-                out = output
+        jobs = _export_jobs(poses, fmt, output)
+        for p, _ in jobs:
+            check_complete(p, allow_incomplete)
+        for _, out in jobs:
+            refuse_existing(out, overwrite)
+        for p, out in jobs:
             written = export_poses(p, fmt, out, **kwargs)
             click.echo(f"wrote {written}")
+
+
+def _export_jobs(poses: tuple[Path, ...], fmt: str, output: Path | None) -> list[tuple[Path, Path]]:
+    """``(input, output)`` per distinct input; two inputs with one output are an error."""
+    from freipose.io.export import default_output
+
+    inputs = list(dict.fromkeys(p.resolve() for p in poses))
+    given: dict[Path, Path] = {}
+    for p in poses:
+        given.setdefault(p.resolve(), p)
+    seen: dict[Path, Path] = {}
+    jobs = []
+    for key in inputs:
+        p = given[key]
+        if output is None:
+            out = default_output(p, fmt)
+        elif len(poses) > 1 or output.is_dir() or not output.suffix:
+            out = output / default_output(p, fmt).name
+        else:
+            out = output
+        if out.resolve() in seen:
+            raise FreiPoseError(
+                f"{seen[out.resolve()]} and {p} would both be exported to {out}; export them "
+                "into different folders"
+            )
+        seen[out.resolve()] = p
+        jobs.append((p, out))
+    return jobs

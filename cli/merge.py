@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import user_errors
+from freipose.cli._common import overwrite_option, user_errors
 
 
 @click.command()
@@ -19,12 +19,16 @@ from freipose.cli._common import user_errors
     help="Folder for the merged <session>.poses.h5 (default: the shards' folder).",
 )
 @click.option("--remove-shards", is_flag=True, help="Delete the shard files after merging.")
-def merge(shards: tuple[Path, ...], outdir: Path | None, remove_shards: bool) -> None:
+@overwrite_option("merged files that exist")
+def merge(
+    shards: tuple[Path, ...], outdir: Path | None, remove_shards: bool, overwrite: bool
+) -> None:
     """Merge the shards of sharded predictions into one poses.h5 per session.
 
     SHARDS are shard files (<session>.shard-I-of-N.poses.h5) or folders holding them. All N
     shards of a session must be complete and come from the same command; the result equals
-    the file an unsharded run writes.
+    the file an unsharded run writes. An existing merged file is kept unless --overwrite
+    (nothing is merged then).
 
     \b
     Example:
@@ -34,5 +38,5 @@ def merge(shards: tuple[Path, ...], outdir: Path | None, remove_shards: bool) ->
     with user_errors():
         from freipose.predict.merge import merge_outputs
 
-        for path in merge_outputs(shards, outdir, remove=remove_shards):
+        for path in merge_outputs(shards, outdir, remove=remove_shards, overwrite=overwrite):
             click.echo(f"wrote {path}")

@@ -6,7 +6,12 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import user_errors
+from freipose.cli._common import (
+    allow_incomplete_option,
+    check_complete,
+    overwrite_option,
+    user_errors,
+)
 from freipose.errors import FreiPoseError
 
 
@@ -29,6 +34,14 @@ from freipose.errors import FreiPoseError
     "--tile-width", type=int, default=480, show_default=True, help="Width of each view in pixels."
 )
 @click.option("--no-3d", is_flag=True, help="Leave out the 3D skeleton panel.")
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Draw the poses even if they do not belong to SESSION (other session, cameras or "
+    "frame count).",
+)
+@allow_incomplete_option()
+@overwrite_option("the overlay video")
 @click.pass_context
 def render(
     ctx: click.Context,
@@ -39,11 +52,17 @@ def render(
     frames: str | None,
     tile_width: int,
     no_3d: bool,
+    force: bool,
+    allow_incomplete: bool,
+    overwrite: bool,
 ) -> None:
     """Draw predicted poses onto the videos: one tile per camera plus a 3D panel.
 
     Keypoints and limbs are coloured by confidence (red 0, yellow 0.5, green 1). The
     cameras come from the calibration stored in POSES (or SESSION/calibration.toml).
+    POSES must be a finished prediction of SESSION (its session name, videos and frame
+    count are checked; --force draws them anyway), and an existing OUTPUT is kept unless
+    --overwrite.
 
     \b
     Examples:
@@ -51,14 +70,17 @@ def render(
       freipose render rec1/ poses/rec1.poses.h5 -o clip.mkv --cameras cam0,cam3 --no-3d
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
+        from freipose.io.atomic import refuse_existing, remove_leftover_partials
         from freipose.io.calibration import load_calibration
+        from freipose.io.lock import output_lock
         from freipose.io.poses import read_poses_h5
         from freipose.io.video import find_camera_videos, frame_range
-        from freipose.predict.render import render_overlay
+        from freipose.predict.render import check_session, render_overlay
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         if tile_width < 32:
             raise FreiPoseError(f"--tile-width must be at least 32 pixels, got {tile_width}")
+        check_complete(poses, allow_incomplete)
         data = read_poses_h5(poses)
         rig = data.calibration
         if rig is None:
@@ -84,19 +106,25 @@ def render(
             raise FreiPoseError(
                 f"no video in {session} matches the calibration's cameras {rig.names}"
             )
+        for problem in check_session(data, poses, session, videos, force):
+            click.echo(f"warning: {problem} (--force)", err=True)
         rng = None
         if frames:
             stop = int(data.frame_index.max()) + 1
             r = frame_range(frames, stop)
             rng = (r.start, r.stop)
-        out = render_overlay(
-            [videos[n] for n in names],
-            rig.subset(names),
-            data,
-            output,
-            frames=rng,
-            tile_width=tile_width,
-            show_3d=not no_3d,
-            progress=not quiet,
-        )
+        with output_lock(output, "overlay video"):
+            refuse_existing(output, overwrite)
+            remove_leftover_partials(output, output.suffix.lower())
+            remove_leftover_partials(output)
+            out = render_overlay(
+                [videos[n] for n in names],
+                rig.subset(names),
+                data,
+                output,
+                frames=rng,
+                tile_width=tile_width,
+                show_3d=not no_3d,
+                progress=not quiet,
+            )
         click.echo(f"wrote {out}")

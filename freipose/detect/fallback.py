@@ -16,8 +16,9 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -25,6 +26,7 @@ import numpy as np
 from freipose.detect.base import Candidates
 from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.toml import read_toml
+from freipose.io.video import MediaError
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +37,35 @@ class FallbackBoxesError(FreiPoseError):
 
 class NoBackgroundError(FallbackBoxesError, KeyError):
     """A camera has no background model."""
+
+
+def _decodable(name: str, read: Callable[[int], Any], indices: list[int]) -> list[np.ndarray]:
+    """The frames ``indices`` that can be decoded (a truncated video lacks its last ones).
+
+    Raises:
+        FallbackBoxesError: none of them can be decoded.
+    """
+    out, bad = [], []
+    for i in indices:
+        try:
+            out.append(np.asarray(read(i)))
+        except MediaError:
+            bad.append(i)
+    if bad:
+        log.warning(
+            "camera %s: %d of the %d frames sampled for the background cannot be decoded "
+            "(truncated or damaged video?); the background uses the other %d",
+            name,
+            len(bad),
+            len(indices),
+            len(out),
+        )
+    if not out:
+        raise FallbackBoxesError(
+            f"camera {name}: none of the {len(indices)} frames sampled for the background can "
+            "be decoded; is the video damaged?"
+        )
+    return out
 
 
 class BackgroundSubtractor:
@@ -110,9 +141,9 @@ class BackgroundSubtractor:
                 np.linspace(0, len(rng) - 1, min(n_samples, len(rng))).round().astype(int)
             )
             read = src.read if hasattr(src, "read") else src.__getitem__  # type: ignore[union-attr]
-            stack = np.stack([np.asarray(read(rng[i])) for i in idx])
+            stack = np.stack(_decodable(name, read, [rng[i] for i in idx]))
             bgs[name] = np.median(stack, axis=0).astype(np.uint8)
-            log.info("background of %s from %d frames", name, len(idx))
+            log.info("background of %s from %d frames", name, len(stack))
         return cls(bgs, **kwargs)
 
     def _prep(self, img: np.ndarray) -> tuple[np.ndarray, float]:

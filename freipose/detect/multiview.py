@@ -220,6 +220,7 @@ def detect_multiview_batch(
     rig: CameraRig,
     source: BoxSource,
     config: ConsistencyConfig | None = None,
+    valid: np.ndarray | None = None,
 ) -> list[MultiViewDetection]:
     """Consistent detections for several time instants.
 
@@ -229,6 +230,8 @@ def detect_multiview_batch(
         source: a :class:`~freipose.detect.base.BoxSource` (``Detector``,
             ``BackgroundSubtractor``, ``FixedBoxes``); all T*C images go through it at once.
         config: consistency settings (cube size etc.).
+        valid: (T, C) bool, False where a frame could not be decoded: that image is not
+            shown to ``source`` and the view has no candidate (default: all decoded).
     """
     c = len(rig)
     flat: list[np.ndarray] = []
@@ -238,7 +241,17 @@ def detect_multiview_batch(
         flat.extend(fr)
     if not flat:
         return []
-    cands = source.propose(flat, list(rig.names) * len(frames))
+    names = list(rig.names) * len(frames)
+    if valid is None:
+        cands = source.propose(flat, names)
+    else:
+        ok = np.asarray(valid, bool).reshape(-1)
+        shown = [i for i in range(len(flat)) if ok[i]]
+        found = iter(
+            source.propose([flat[i] for i in shown], [names[i] for i in shown]) if shown else []
+        )
+        none = Candidates(np.zeros((0, 4)), np.zeros(0))
+        cands = [next(found) if ok[i] else none for i in range(len(flat))]
     return [
         consistent_detection(cands[t * c : (t + 1) * c], rig, config) for t in range(len(frames))
     ]

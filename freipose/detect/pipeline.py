@@ -17,7 +17,7 @@ from freipose.geometry import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.boxes import BoxesData
 from freipose.io.session import Session
-from freipose.io.video import FrameSource
+from freipose.io.video import FrameSource, MediaError
 
 log = logging.getLogger(__name__)
 
@@ -122,14 +122,18 @@ def detect_session(
             log.info("resuming from %s: %d of %d frames done", progress_file, done, t)
     bar = tqdm(total=t, initial=done, desc="detect", unit="frame", disable=None)
     last_save = done
+    first_missing: dict[str, int] = {}
     for b0 in range(done, t, batch_size):
         idx = list(frames[b0 : b0 + batch_size])
-        batch = [[sources[n].read(i) for n in rig.names] for i in idx]
-        for k, det in enumerate(detect_multiview_batch(batch, rig, source, cfg)):
+        batch, valid = _read_batch(rig, sources, idx, first_missing)
+        ok = None if valid.all() else valid
+        for k, det in enumerate(detect_multiview_batch(batch, rig, source, cfg, ok)):
             j = b0 + k
             arrays["boxes"][j], arrays["scores"][j] = det.boxes, det.scores
             arrays["agree"][j], arrays["n_agree"][j] = det.agree, det.n_agree
             arrays["center"][j], arrays["crop_boxes"][j] = det.center, det.crop_boxes
+            for key in ("boxes", "scores", "crop_boxes"):  # no box where no frame
+                arrays[key][j][~valid[k]] = np.nan
         bar.update(len(idx))
         n_done = b0 + len(idx)
         if progress_file is not None and n_done - last_save >= save_every and n_done < t:
@@ -149,6 +153,43 @@ def detect_session(
         },
         **arrays,
     )
+
+
+def _read_batch(
+    rig: CameraRig,
+    sources: Mapping[str, FrameSource],
+    idx: list[int],
+    first_missing: dict[str, int],
+) -> tuple[list[list[np.ndarray]], np.ndarray]:
+    """The frames ``idx`` of every camera and which could be decoded, ``(T, C)`` bool.
+
+    A frame that cannot be decoded (a truncated or damaged video) ends that camera's
+    video: ``first_missing`` records it and later frames of that camera are not read. A
+    missing frame is a black image that no box source sees.
+    """
+    valid = np.ones((len(idx), len(rig)), bool)
+    batch: list[list[np.ndarray]] = []
+    for k, i in enumerate(idx):
+        views = []
+        for c, cam in enumerate(rig):
+            img = None
+            if i < first_missing.get(cam.name, i + 1):
+                try:
+                    img = sources[cam.name].read(i)
+                except MediaError:
+                    first_missing[cam.name] = i
+                    log.warning(
+                        "camera %r: frames from %d on cannot be decoded (truncated or damaged "
+                        "video?); they get no box",
+                        cam.name,
+                        i,
+                    )
+            if img is None:
+                valid[k, c] = False
+                img = np.zeros((cam.height, cam.width, 3), np.uint8)
+            views.append(img)
+        batch.append(views)
+    return batch, valid
 
 
 def _save_progress(path: Path, signature: str, arrays: dict, done: int) -> None:

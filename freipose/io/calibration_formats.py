@@ -47,6 +47,7 @@ from freipose.io.calibration_toml import (
     toml_value,
 )
 from freipose.io.natsort import natural_key
+from freipose.io.toml import check_keys
 from freipose.io.video import VIDEO_SUFFIXES
 
 log = logging.getLogger(__name__)
@@ -189,9 +190,14 @@ def read_mjson(path: str | Path) -> CameraRig:
             f"name (e.g. {{'K': {{'cam0': 3x3}}, 'dist': {{'cam0': [k1,k2,p1,p2,k3]}}, "
             f"'M': {{'cam0': 4x4 camera-to-world in metres}}}}); found {found}"
         )
+    check_keys(data, ("K", "dist", "M", "img_size", "metadata"), str(path), CalibrationFormatError)
     names = sorted(data["K"], key=natural_key)
     if not names:
         raise CalibrationFormatError(f"{path}: 'K' lists no cameras")
+    for key in ("dist", "M", "img_size"):
+        if isinstance(data.get(key), dict):  # every camera needs its 'K'
+            where = f"{path}: '{key}' (keyed by the cameras of 'K')"
+            check_keys(data[key], names, where, CalibrationFormatError)
     for key in ("dist", "M"):
         lacking = [n for n in names if n not in data[key]]
         if lacking:
@@ -300,6 +306,10 @@ def write_anipose_calibration(rig: CameraRig, path: str | Path, units: str = "mm
 
 
 # -- JARVIS (OpenCV FileStorage YAML, one file per camera) -------------------------------
+# JARVIS's camera entries; E and F (from its stereo step) and the image size are allowed.
+_JARVIS_KEYS = ("intrinsicMatrix", "distortionCoefficients", "R", "T")
+
+
 def _read_jarvis_file(path: Path) -> tuple[str, dict[str, Any]]:
     import cv2
 
@@ -322,7 +332,7 @@ def _read_jarvis_file(path: Path) -> tuple[str, dict[str, Any]]:
 def _jarvis_values(fs: Any, path: Path) -> dict[str, Any]:
     """The camera entries of an open FileStorage (K, R still transposed as stored)."""
     vals: dict[str, Any] = {}
-    for key in ("intrinsicMatrix", "distortionCoefficients", "R", "T"):
+    for key in _JARVIS_KEYS:
         node = fs.getNode(key)
         mat = None if node.empty() else node.mat()
         if mat is None:
@@ -331,6 +341,8 @@ def _jarvis_values(fs: Any, path: Path) -> dict[str, Any]:
                 f"transposed), distortionCoefficients, R (transposed) and T (mm)"
             )
         vals[key] = np.asarray(mat, dtype=np.float64)
+    known = (*_JARVIS_KEYS, "E", "F", "image_width", "image_height", "imageSize")
+    check_keys(dict.fromkeys(fs.root().keys()), known, str(path), CalibrationFormatError)
     size: tuple[int, ...] | None = None
     w, h = fs.getNode("image_width"), fs.getNode("image_height")
     if not w.empty() and not h.empty():
@@ -465,6 +477,8 @@ def dannce_camera_params(
             f"{source}: camera {name!r} params lack {missing}; DANNCE params need K, "
             f"RDistort, TDistort, r and t"
         )
+    where = f"{source}: camera {name!r} params"
+    check_keys(params, ("K", "RDistort", "TDistort", "r", "t"), where, CalibrationFormatError)
     K = np.asarray(params["K"], dtype=np.float64).reshape(3, 3).T
     rd = np.asarray(params.get("RDistort", np.zeros(3)), dtype=np.float64).ravel()
     td = np.asarray(params.get("TDistort", np.zeros(2)), dtype=np.float64).ravel()

@@ -17,7 +17,7 @@ import tomli_w
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import Camera, CameraRig
 from freipose.io.atomic import atomic_write_text
-from freipose.io.toml import parse_toml, read_toml
+from freipose.io.toml import check_keys, did_you_mean, parse_toml, read_toml
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,34 @@ def toml_value(v: Any) -> Any:
     return v
 
 
+# The keys of a [cam_N] table; ``fisheye`` is Anipose's flag (only false is supported).
+CAMERA_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translation", "fisheye")
+
+
+def _check_tables(data: dict[str, Any], cams: list[str], source: str) -> None:
+    """Reject top-level entries other than ``[cam_N]`` tables and ``[metadata]``."""
+    known = [*cams, "metadata"]
+    for k in data:
+        if k not in known:
+            hint = did_you_mean(k, [*known, f"cam_{len(cams)}"])
+            raise CalibrationFormatError(
+                f"{source}: unknown table {k!r}{hint}; a calibration file holds one [cam_N] "
+                f"table per camera (cam_0, cam_1, ...) and an optional [metadata] table"
+            )
+
+
+def _check_camera_keys(tab: Any, key: str, source: str) -> None:
+    """Reject unknown keys of a ``[cam_N]`` table (with a did-you-mean) and fisheye cameras."""
+    if not isinstance(tab, dict):
+        raise CalibrationFormatError(f"{source}: [{key}] must be a table, got {tab!r}")
+    check_keys(tab, CAMERA_KEYS, f"{source}: [{key}]", CalibrationFormatError)
+    if tab.get("fisheye", False):
+        raise CalibrationFormatError(
+            f"{source}: [{key}] is a fisheye camera (fisheye = true); FreiPose supports the "
+            f"pinhole model with OpenCV's 5 distortion coefficients only"
+        )
+
+
 def rig_from_toml_dict(
     data: dict[str, Any], source: str = "<toml>", units: str | None = None
 ) -> CameraRig:
@@ -81,6 +109,7 @@ def rig_from_toml_dict(
             (Anipose files often omit it); default ``mm``.
     """
     keys = sorted((k for k in data if _cam_index(k) >= 0), key=_cam_index)
+    _check_tables(data, keys, source)
     if not keys:
         raise CalibrationFormatError(
             f"{source}: no [cam_N] tables found; expected one table per camera such as "
@@ -96,6 +125,7 @@ def rig_from_toml_dict(
     cams = []
     for k in keys:
         tab = data[k]
+        _check_camera_keys(tab, k, source)
         missing = [f for f in ("size", "matrix", "rotation", "translation") if f not in tab]
         if missing:
             raise CalibrationFormatError(

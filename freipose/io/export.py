@@ -43,9 +43,13 @@ class ExportError(FreiPoseError):
 
 
 def default_output(poses_path: str | Path, fmt: str) -> Path:
-    """``x.poses.h5`` -> ``x.csv`` / ``x.anipose.csv`` / ``x.dlc3d.csv`` / ``x.nwb``."""
+    """``x.poses.h5`` -> ``x.csv`` / ``x.anipose.csv`` / ``x.dlc3d.csv`` / ``x.nwb``.
+
+    An unfinished ``x.poses.h5.partial`` gives the same names.
+    """
     p = Path(poses_path)
-    stem = p.name[: -len(".poses.h5")] if p.name.endswith(".poses.h5") else p.stem
+    name = p.name[: -len(".partial")] if p.name.endswith(".poses.h5.partial") else p.name
+    stem = name[: -len(".poses.h5")] if name.endswith(".poses.h5") else p.stem
     return p.with_name(stem + SUFFIXES[fmt])
 
 

@@ -213,3 +213,129 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
             raise PosesFormatError(
                 f"{path}: data cannot be read ({exc}); is the file truncated?"
             ) from exc
+
+
+class IncompletePosesError(FreiPoseError):
+    """A poses file whose prediction run has not finished (``complete`` is false)."""
+
+
+PARTIAL_SUFFIX = ".partial"
+
+
+@dataclass(frozen=True)
+class RunState:
+    """How far the prediction run that writes a poses file has come.
+
+    Attributes:
+        done: frames with a final prediction (``completed_frames``).
+        total: rows of the file.
+        complete: the run has finished (no ``complete`` attribute counts as finished).
+        provenance: the run's provenance (session, model, detection settings).
+        frames: the run's frame range ``(start, stop)`` (all shards).
+        shard: ``"I/N"`` for a shard file, else ``""``.
+    """
+
+    done: int
+    total: int
+    complete: bool
+    provenance: Mapping[str, Any]
+    frames: tuple[int, int]
+    shard: str = ""
+
+    @property
+    def missing(self) -> int:
+        """Frames without a prediction yet."""
+        return self.total - self.done
+
+
+def run_state(path: str | Path) -> RunState:
+    """The :class:`RunState` of the poses file ``path`` (a ``.partial`` file too).
+
+    A file without a ``complete`` attribute (written in one go by :func:`write_poses_h5` or
+    another tool) is complete unless its name ends in ``.partial``.
+
+    Raises:
+        PosesFormatError: the file is not a readable poses file.
+    """
+    path = Path(path)
+    with open_h5(path, "poses file", PosesFormatError) as f:
+        total = int(f["poses"].shape[0]) if "poses" in f else 0  # read_poses_h5 says more
+        partial = path.name.endswith(PARTIAL_SUFFIX)
+        complete = bool(f.attrs.get("complete", not partial))
+        if "completed_frames" in f.attrs:
+            done = int(f.attrs["completed_frames"])
+        elif "extra/status" in f:  # status -1: not predicted yet
+            done = int((f["extra/status"][()] >= 0).sum())
+        else:
+            done = total if complete else 0
+        fi = f["frame_index"][()] if "frame_index" in f else np.zeros(0, np.int64)
+        frames = (int(fi[0]), int(fi[-1]) + 1) if len(fi) else (0, 0)
+        if "run_range" in f.attrs:
+            rr = f.attrs["run_range"]
+            frames = (int(rr[0]), int(rr[1]))
+        try:
+            prov = json.loads(f.attrs["provenance"]) if "provenance" in f.attrs else {}
+        except ValueError:
+            prov = {}
+        shard = str(f.attrs.get("shard", ""))
+    return RunState(done, total, complete, prov if isinstance(prov, dict) else {}, frames, shard)
+
+
+def resume_command(path: str | Path, state: RunState) -> str:
+    """The ``freipose predict`` command that finishes the run writing ``path``.
+
+    Built from the provenance the run stored (session, model and detection settings); the
+    parts it does not record appear as placeholders (``SESSION``, ``...``).
+    """
+    prov = state.provenance
+    path = Path(path)
+    name = path.name[: -len(PARTIAL_SUFFIX)] if path.name.endswith(PARTIAL_SUFFIX) else path.name
+    parts = ["freipose predict", str(prov.get("session", "SESSION"))]
+    parts.append(f"--model {prov.get('model_file', '...')}")
+    method = prov.get("detection")
+    if method == "detector":
+        parts.append(f"--detector {prov.get('detector_file', 'DETECTOR')}")
+    elif method == "bgsub":
+        parts.append("--method bgsub")
+        if int(prov.get("bg_samples", 40)) != 40:
+            parts.append(f"--bg-samples {int(prov['bg_samples'])}")
+    elif method == "fixed":
+        parts.append("--fixed-boxes BOXES.toml")
+    if "min_views" in prov and int(prov["min_views"]) != 2:
+        parts.append(f"--min-views {int(prov['min_views'])}")
+    if prov.get("refine") is False:
+        parts.append("--no-refine")
+    if "session" in prov:
+        parts.append(f"--frames {state.frames[0]}:{state.frames[1]}")
+    if state.shard:
+        parts.append(f"--shard {state.shard}")
+    outdir = path.parent if name.endswith(".poses.h5") else Path("DIR")
+    parts.append(f"-o {outdir}")
+    return " ".join(parts)
+
+
+def require_complete(path: str | Path, allow_incomplete: bool = False) -> int:
+    """Refuse a poses file whose prediction run has not finished, unless allowed.
+
+    Args:
+        path: the poses file (``<session>.poses.h5`` or its ``.partial`` file).
+        allow_incomplete: go on with an unfinished file (its missing frames hold NaN).
+
+    Returns:
+        The number of frames without a prediction (0 for a complete file).
+
+    Raises:
+        IncompletePosesError: the file is unfinished and ``allow_incomplete`` is false; the
+            message names the frames predicted and the command that finishes the run.
+        PosesFormatError: the file is not a readable poses file.
+    """
+    state = run_state(path)
+    if state.complete:
+        return 0
+    if not allow_incomplete:
+        raise IncompletePosesError(
+            f"{path} is incomplete ({state.done} of {state.total} frames predicted): finish "
+            f"it with `{resume_command(path, state)}` (it resumes), or pass "
+            f"--allow-incomplete to go on without the {state.missing} missing frames"
+        )
+    return state.missing

@@ -17,7 +17,8 @@ import h5py
 import numpy as np
 
 from freipose.errors import FreiPoseError, InputFileError
-from freipose.io.atomic import atomic_path
+from freipose.io.atomic import atomic_path, refuse_existing, remove_leftover_partials
+from freipose.io.lock import output_lock
 from freipose.io.poses import PosesFormatError
 
 log = logging.getLogger(__name__)
@@ -174,20 +175,39 @@ def _write_merged(files: list[h5py.File], out: h5py.File) -> None:
 
 
 def merge_outputs(
-    inputs: Sequence[str | Path], outdir: str | Path | None = None, remove: bool = False
+    inputs: Sequence[str | Path],
+    outdir: str | Path | None = None,
+    remove: bool = False,
+    overwrite: bool = False,
 ) -> list[Path]:
     """Merge every session's shards found in ``inputs`` into ``OUTDIR/<session>.poses.h5``.
+
+    Every merged file is written while holding its output lock (see
+    :func:`freipose.io.lock.output_lock`); leftovers of a killed merge into the same file
+    are removed first.
 
     Args:
         inputs: shard files and/or folders holding them.
         outdir: where to write; default the folder of each session's first shard.
         remove: delete the shard files after a successful merge.
+        overwrite: replace merged files that exist (default: refuse before merging any).
+
+    Raises:
+        OutputExistsError: a merged file exists and ``overwrite`` is false.
+        OutputLockedError: another run is writing a merged file.
     """
-    out = []
+    jobs = []
     for session, files in sorted(find_shards(inputs).items()):
         folder = Path(outdir) if outdir is not None else files[0].parent
-        target = folder / f"{session}.poses.h5"
-        merge_shards(files, target)
+        jobs.append((folder / f"{session}.poses.h5", files))
+    for target, _ in jobs:
+        refuse_existing(target, overwrite)
+    out = []
+    for target, files in jobs:
+        with output_lock(target, "poses file"):
+            refuse_existing(target, overwrite)
+            remove_leftover_partials(target)
+            merge_shards(files, target)
         if remove:
             for f in files:
                 f.unlink()

@@ -11,7 +11,7 @@ median position) over a floor grid in the plane through the lowest keypoints.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import cv2
@@ -249,3 +249,65 @@ def render_overlay(
             writer.write(canvas)
             bar.update(1)
     return Path(output)
+
+
+def session_mismatches(data: PoseData, session: Path, videos: Mapping[str, Path]) -> list[str]:
+    """How the poses ``data`` disagree with the session folder ``session`` (empty: they fit).
+
+    Compared: the session name and the video file names recorded in the poses'
+    provenance, the cameras of the poses' calibration, and the frame count (the poses must
+    not cover frames beyond the session's longest video).
+    """
+    from freipose.io.video import FrameSource
+
+    prov = dict(data.provenance)
+    problems = []
+    name = session.resolve().name
+    if "session" in prov and str(prov["session"]) != name:
+        problems.append(f"the poses are of session {prov['session']!r}, the videos of {name!r}")
+    recorded = prov.get("videos")
+    if isinstance(recorded, dict):
+        other = {c: f for c, f in recorded.items() if c in videos and videos[c].name != str(f)}
+        if other:
+            problems.append(
+                "the poses were predicted from the videos "
+                + ", ".join(f"{c}: {f}" for c, f in sorted(other.items()))
+                + ", the session has "
+                + ", ".join(f"{c}: {videos[c].name}" for c in sorted(other))
+            )
+    if data.calibration is not None and not set(data.calibration.names) & set(videos):
+        problems.append(
+            f"the poses' cameras {data.calibration.names} are not among the session's videos "
+            f"{sorted(videos)}"
+        )
+    lengths = []
+    for path in videos.values():
+        with FrameSource(path) as src:
+            lengths.append(src.num_frames)
+    last = int(data.frame_index.max()) if data.num_frames else -1
+    if lengths and last >= max(lengths):
+        problems.append(
+            f"the poses cover frames up to {last}, the session's videos have {max(lengths)} frames"
+        )
+    return problems
+
+
+def check_session(
+    data: PoseData, poses: Path, session: Path, videos: Mapping[str, Path], force: bool
+) -> list[str]:
+    """Refuse poses that belong to another session, unless ``force``.
+
+    Returns:
+        The mismatches found (see :func:`session_mismatches`), for a warning under ``force``.
+
+    Raises:
+        RenderError: the poses do not fit the session and ``force`` is false.
+    """
+    problems = session_mismatches(data, session, videos)
+    if problems and not force:
+        raise RenderError(
+            f"{poses} does not belong to the session {session}: "
+            + "; ".join(problems)
+            + ". Render the poses of this session, or pass --force to draw them anyway"
+        )
+    return problems

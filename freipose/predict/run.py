@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from freipose import __version__
 from freipose.errors import FreiPoseError
+from freipose.io.lock import output_lock
 from freipose.io.session import Session
 from freipose.io.video import frame_range
 from freipose.predict.estimator import PoseEstimator, estimate_with_missing
@@ -286,10 +287,36 @@ def predict_session(
 
     Raises:
         PredictError: the skeleton's keypoints are not the estimator's.
+        OutputLockedError: another run is writing the same output (nothing is touched).
     """
     t0 = time.perf_counter()
     plan = _plan_run(session, frames, batch_size, chunk_frames, shard)
     path = output_path(outdir, session.name, shard)
+    with output_lock(path, "poses file"):
+        return _predict_locked(
+            session, estimator, path, plan, t0, batch_size=batch_size, shard=shard,
+            overwrite=overwrite, skeleton=skeleton, provenance=provenance, progress=progress,
+            prefetch=prefetch, on_batch=on_batch,
+        )  # fmt: skip
+
+
+def _predict_locked(
+    session: Session,
+    estimator: PoseEstimator,
+    path: Path,
+    plan: _RunPlan,
+    t0: float,
+    *,
+    batch_size: int,
+    shard: tuple[int, int] | None,
+    overwrite: bool,
+    skeleton: Skeleton | None,
+    provenance: Mapping[str, Any] | None,
+    progress: bool,
+    prefetch: int,
+    on_batch: Callable[[int], None] | None,
+) -> PredictResult:
+    """:func:`predict_session` once the output's lock is held (arguments as there)."""
     if path.exists() and not overwrite:
         if is_complete(path):
             log.info("%s exists and is complete; skipping (use --overwrite to redo it)", path)

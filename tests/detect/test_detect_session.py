@@ -68,8 +68,10 @@ def test_cli_detect_bgsub_and_fixed(session_dir, tmp_path):
     )
     fixed = str(tmp_path / "fixed.toml")
     res = runner.invoke(
-        cli, ["detect", str(session_dir), "--fixed-boxes", fixed, "--frames", "2:6", "-o", str(out)]
-    )
+        cli,
+        ["detect", str(session_dir), "--fixed-boxes", fixed, "--frames", "2:6", "-o", str(out),
+         "--overwrite"],
+    )  # fmt: skip
     assert res.exit_code == 0, res.output
     data = read_boxes_h5(out)
     assert list(data.frame_index) == [2, 3, 4, 5] and data.method == "fixed"

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import tomli_w
 
 from freipose._compat import tomllib
 from freipose.geometry import Camera, CameraRig, project
@@ -94,6 +95,8 @@ def test_toml_units_and_errors(tmp_path):
         load_calibration(p)
     del d["cam_0"]["rotation"]
     with pytest.raises(CalibrationFormatError, match=r"\[cam_0\] lacks \['rotation'\]"):
+        rig_from_toml_text(tomli_w.dumps(d))
+    with pytest.raises(CalibrationFormatError, match="'rotatio'; did you mean 'rotation'"):
         rig_from_toml_text(rig_to_toml_text(rig).replace("rotation =", "rotatio ="))
     with pytest.raises(FileNotFoundError, match="not found"):
         load_calibration(tmp_path / "missing.toml")
