@@ -14,17 +14,21 @@ from freipose.errors import FreiPoseError
 
 @contextlib.contextmanager
 def user_errors(*extra: type[BaseException]) -> Iterator[None]:
-    """Turn the errors a user can fix (bad files, bad values) into ``click.ClickException``.
+    """Turn the errors a user can fix into ``click.ClickException`` (one message, no traceback).
 
-    Library code raises ``ValueError`` (and subclasses such as the format errors),
-    ``FileNotFoundError`` or ``KeyError`` with a message that says what was expected, what
-    was found and how to fix it; the CLI shows that message without a traceback.
+    Library code raises a :class:`~freipose.errors.FreiPoseError` (and subclasses such as
+    the format errors) with a message that says what was expected, what was found and how
+    to fix it. Exactly those, and the ``extra`` types a command names, become messages;
+    any other exception is a bug and keeps its traceback.
+
+    Args:
+        extra: further exception types that this command shows as messages.
     """
     try:
         yield
     except click.ClickException:
         raise
-    except (ValueError, FileNotFoundError, KeyError, *extra) as exc:
+    except (FreiPoseError, *extra) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
         raise click.ClickException(str(msg)) from exc
 

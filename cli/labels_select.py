@@ -109,7 +109,7 @@ def select(
         if todo:
             if model is None:
                 names = [s.name for s in todo]
-                raise ValueError(
+                raise click.UsageError(
                     f"no predictions for sessions {names} in {pdir}; pass --model CKPT (and how "
                     "to find the animal) to predict them, or --poses-dir with their poses.h5"
                 )

@@ -18,6 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from freipose.io.video import MediaError
+
 log = logging.getLogger(__name__)
 
 _END = object()
@@ -45,7 +47,7 @@ def open_capture(path: Path, start: int) -> cv2.VideoCapture:
     """An OpenCV capture positioned so that the next ``read`` returns frame ``start``."""
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
-        raise OSError(f"{path}: OpenCV cannot open this file as a video")
+        raise MediaError(f"{path}: OpenCV cannot open this file as a video")
     if start > 0:
         cap.set(cv2.CAP_PROP_POS_FRAMES, start)
         pos = int(round(cap.get(cv2.CAP_PROP_POS_FRAMES)))
@@ -131,7 +133,7 @@ class SyncReader:
                         frame = None
                         self.first_missing[c] = i
                     elif frame.shape[:2] != self.shapes[c]:
-                        raise OSError(
+                        raise MediaError(
                             f"{path}: frame {i} is {frame.shape[1]}x{frame.shape[0]}, expected "
                             f"{self.shapes[c][1]}x{self.shapes[c][0]}"
                         )
