@@ -55,3 +55,18 @@ def test_every_command_has_help_with_an_example(path):
 def test_unknown_command_is_a_usage_error():
     r = CliRunner().invoke(cli, ["no-such-command"])
     assert r.exit_code == 2 and "No such command" in r.output
+
+
+def test_user_errors_shows_freipose_errors_and_lets_bugs_through() -> None:
+    import click
+    import pytest
+
+    from freipose.cli._common import user_errors
+    from freipose.errors import FreiPoseError, InputFileError
+
+    for err in (FreiPoseError("bad value; pass --x"), InputFileError("no such file: a.toml")):
+        with pytest.raises(click.ClickException, match=str(err)), user_errors():
+            raise err
+    for bug in (ValueError("shape mismatch"), KeyError("k"), FileNotFoundError("x")):
+        with pytest.raises(type(bug)), user_errors():
+            raise bug
