@@ -56,9 +56,11 @@ def evaluate(
       freipose eval runs/small/model.pt eval/labels.h5 -o out --baseline runs/base/model.pt
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
+        from freipose.io.checkpoints import POSE_NETWORK, check_checkpoints
         from freipose.nn.evaluate import evaluate_checkpoints, write_report
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
+        check_checkpoints(("CKPT", ckpt, POSE_NETWORK), ("--baseline", baseline, POSE_NETWORK))
         methods = {"": ckpt} if baseline is None else {"": ckpt, "baseline": baseline}
         results, keypoints = evaluate_checkpoints(
             methods, labels, root=root, device=device, batch_size=batch_size,

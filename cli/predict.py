@@ -93,6 +93,7 @@ def predict(
       freipose merge poses/
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
+        from freipose.io.checkpoints import DETECTOR, POSE_NETWORK, check_checkpoints
         from freipose.io.session import discover_sessions
         from freipose.predict.network import predict_sessions
         from freipose.predict.run import parse_shard
@@ -103,6 +104,7 @@ def predict(
             raise FreiPoseError(f"--batch must be at least 1, got {batch}")
         shard_t = parse_shard(shard)
         spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
+        check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
         found = discover_sessions(sessions, calibration)
         predict_sessions(
             found,

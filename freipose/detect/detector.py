@@ -15,17 +15,27 @@ from freipose import __version__
 from freipose.detect.base import Candidates, DetectConfigError
 from freipose.detect.boxes import transform_boxes
 from freipose.detect.model import DetectorConfig, DetectorNet, decode, letterbox_affine, to_tensor
-from freipose.errors import FreiPoseError, InputFileError
+from freipose.errors import InputFileError
 from freipose.io.atomic import atomic_path
+from freipose.io.checkpoints import (
+    DETECTOR,
+    DETECTOR_FORMAT,
+    KIND_NAMES,
+    UNSAFE,
+    CheckpointFileError,
+    CheckpointUse,
+    load_safely,
+    read_checkpoint_as,
+)
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "freipose.detector"
+CHECKPOINT_FORMAT = DETECTOR_FORMAT
 CHECKPOINT_VERSION = 1
 PAD_VALUE = 114  # grey padding of letterboxed inputs
 
 
-class DetectorCheckpointError(FreiPoseError):
+class DetectorCheckpointError(CheckpointFileError):
     """A detector checkpoint is missing, unreadable or of another kind."""
 
 
@@ -78,9 +88,19 @@ class Detector:
         self.metadata = dict(metadata or {})
 
     @classmethod
-    def load(cls, path: str | Path, device: str | torch.device = "cpu", **kwargs: Any) -> Detector:
-        """Load a checkpoint written by ``freipose train CONFIG --stage detector``."""
-        ckpt = load_checkpoint(path)
+    def load(
+        cls,
+        path: str | Path,
+        device: str | torch.device = "cpu",
+        option: str | None = None,
+        **kwargs: Any,
+    ) -> Detector:
+        """Load a checkpoint written by ``freipose train CONFIG --stage detector``.
+
+        ``option`` (e.g. ``"--detector"``) names the option that gave ``path`` in the
+        message for a file of another kind; ``kwargs`` go to the constructor.
+        """
+        ckpt = load_checkpoint(path, option=option)
         net = DetectorNet(DetectorConfig(**ckpt["config"]))
         net.load_state_dict(ckpt["model"])
         meta = {k: ckpt[k] for k in ("metrics", "step", "box_margin") if k in ckpt}
@@ -126,37 +146,51 @@ class Detector:
 def save_checkpoint(
     path: str | Path, net: DetectorNet, extra: dict[str, Any] | None = None
 ) -> None:
-    """Write ``{"format", "version", "config", "model", ...extra}`` atomically with torch.save."""
+    """Write ``{"format", "version", "kind", "config", "model", ...extra}`` atomically.
+
+    ``kind`` is ``"detector_training_state"`` when ``extra`` holds an ``optimizer`` state
+    (a resumable ``detector_last.pt``), else ``"detector"``.
+    """
+    extra = extra or {}
     state = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
         "freipose_version": __version__,
+        "kind": "detector_training_state" if "optimizer" in extra else "detector",
         "config": net.config.to_dict(),
         "model": {k: v.detach().cpu() for k, v in net.state_dict().items()},
     }
-    state.update(extra or {})
+    state.update(extra)
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
 
 
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read and check a detector checkpoint (tensors on the CPU)."""
+def load_checkpoint(
+    path: str | Path, use: CheckpointUse = DETECTOR, option: str | None = None
+) -> dict[str, Any]:
+    """Read and check a detector checkpoint (tensors on the CPU), without running its code.
+
+    Args:
+        path: the checkpoint.
+        use: the accepted kinds (default: a detector, with or without training state).
+        option: the option that named the file (e.g. ``"--detector"``), for the message.
+
+    Returns:
+        The checkpoint dict.
+
+    Raises:
+        InputFileError: no such file.
+        DetectorCheckpointError: a damaged file, a file of another kind (e.g. a pose
+            network; see :func:`freipose.io.checkpoints.checkpoint_kind`) or a newer
+            version.
+    """
     p = Path(path)
     if not p.is_file():
         raise InputFileError(
             f"{p}: detector checkpoint not found; train one with "
             "`freipose train CONFIG --stage detector`"
         )
-    try:
-        ckpt = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many kinds for non-checkpoints
-        raise DetectorCheckpointError(f"{p}: not a readable PyTorch checkpoint ({exc})") from exc
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
-        raise DetectorCheckpointError(
-            f"{p}: expected a FreiPose detector checkpoint (format {CHECKPOINT_FORMAT!r}), "
-            f"found {found!r}"
-        )
+    ckpt = read_checkpoint_as(p, use, option, DetectorCheckpointError)
     if int(ckpt.get("version", 0)) > CHECKPOINT_VERSION:
         raise DetectorCheckpointError(
             f"{p}: checkpoint version {ckpt['version']} is newer than this FreiPose reads "
@@ -175,10 +209,12 @@ def load_backbone_weights(net: DetectorNet, path: str | Path) -> tuple[int, int]
     p = Path(path)
     if not p.is_file():
         raise InputFileError(f"{p}: backbone weights file not found")
-    try:
-        state = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise DetectorCheckpointError(f"{p}: not a readable PyTorch state dict ({exc})") from exc
+    state = load_safely(p, error=DetectorCheckpointError)
+    if state is UNSAFE:
+        raise DetectorCheckpointError(
+            f"{p} is {KIND_NAMES['other']}; detector.backbone_weights takes a state dict of "
+            "tensors or a detector checkpoint"
+        )
     if isinstance(state, dict) and "model" in state and isinstance(state["model"], dict):
         state = state["model"]
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):

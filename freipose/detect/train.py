@@ -77,6 +77,8 @@ from freipose.detect.model import DetectorConfig, DetectorNet, to_tensor
 from freipose.detect.multiview import ConsistencyConfig
 from freipose.detect.train_log import LOG, log_row, read_log, write_log
 from freipose.errors import FreiPoseError, InputFileError
+from freipose.io.checkpoints import DETECTOR_TRAINING_STATE
+from freipose.io.lock import output_lock
 from freipose.io.toml import did_you_mean
 
 log = logging.getLogger(__name__)
@@ -304,7 +306,7 @@ def _start_training(
     start = 0
     last = None if out_dir is None else Path(out_dir) / LAST
     if resume and last is not None and last.is_file():
-        ckpt = load_checkpoint(last)
+        ckpt = load_checkpoint(last, DETECTOR_TRAINING_STATE, "--resume")
         if ckpt["config"] != cfg.model_config().to_dict():
             raise DetectorTrainError(
                 f"{last}: was trained with {ckpt['config']}, the config asks for "
@@ -526,6 +528,7 @@ def train_detector(
     Raises:
         DetectorTrainError: a bad ``[data]`` or ``[detector]`` table, or no labeled instants.
         InputFileError: a labels file does not exist.
+        OutputLockedError: another run is training into ``out_dir`` (nothing is touched).
     """
     cfg = DetectorTrainConfig.from_dict(config.get("detector"))
     train_paths, eval_paths, root = _data_paths(config, Path(config_path))
@@ -533,8 +536,21 @@ def train_detector(
         bw = Path(config_path).resolve().parent / cfg.backbone_weights
         cfg = dataclasses.replace(cfg, backbone_weights=str(bw))
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     dev = resolve_device(device)
+    with output_lock(out_dir / LAST, "detector run folder", option="--out"):
+        return _train_into(cfg, (train_paths, eval_paths, root), out_dir, resume, dev)
+
+
+def _train_into(
+    cfg: DetectorTrainConfig,
+    data: tuple[list[Path], list[Path], Path | None],
+    out_dir: Path,
+    resume: bool,
+    dev: torch.device,
+) -> Path:
+    """The body of :func:`train_detector`, run while it holds the run folder's lock."""
+    train_paths, eval_paths, root = data
+    out_dir.mkdir(parents=True, exist_ok=True)
     train_sets = _datasets(train_paths, root)
     eval_sets = _datasets(eval_paths, root) if eval_paths else []
     split = _split_items(train_sets, eval_sets, cfg)

@@ -126,16 +126,21 @@ def _read(lock: Path) -> tuple[LockOwner | None, os.stat_result] | None:
     return LockOwner.from_json(text), st
 
 
-def _refusal(out: Path, lock: Path, owner: LockOwner | None, host: str) -> OutputLockedError:
-    """The error for a lock held by ``owner`` (None: an unreadable lock file)."""
+def _refusal(
+    out: Path, lock: Path, owner: LockOwner | None, host: str, option: str = "-o"
+) -> OutputLockedError:
+    """The error for a lock held by ``owner`` (None: an unreadable lock file).
+
+    ``option`` is the option of the refused command that names another output.
+    """
     if owner is None:
         return OutputLockedError(
             f"another run (unknown: its lock file {lock} cannot be read) is writing {out}; "
-            f"wait for it or pass another -o; if that run is gone, delete {lock}"
+            f"wait for it or pass another {option}; if that run is gone, delete {lock}"
         )
     msg = (
         f"another run ({owner.host}, pid {owner.pid}, started {owner.started}) is writing "
-        f"{out}; wait for it or pass another -o"
+        f"{out}; wait for it or pass another {option}"
     )
     if owner.host != host:
         msg += f"; if that run is gone, delete {lock}"
@@ -157,7 +162,7 @@ def _remove_if_unchanged(lock: Path, st: os.stat_result) -> None:
             lock.unlink()
 
 
-def _acquire(out: Path, lock: Path, me: LockOwner, what: str) -> None:
+def _acquire(out: Path, lock: Path, me: LockOwner, what: str, option: str = "-o") -> None:
     """Create ``lock`` for ``me``, taking over a stale one; raise if another run holds it."""
     for _ in range(_ATTEMPTS):
         if _create(lock, me):
@@ -167,12 +172,12 @@ def _acquire(out: Path, lock: Path, me: LockOwner, what: str) -> None:
             continue
         owner, st = found
         if not _is_stale(owner, st, me.host):
-            raise _refusal(out, lock, owner, me.host)
+            raise _refusal(out, lock, owner, me.host, option)
         who = "unreadable" if owner is None else f"of {owner.host}, pid {owner.pid}"
         log.warning("removed a stale lock (%s) of the %s %s", who, what, out)
         _remove_if_unchanged(lock, st)
     found = _read(lock)
-    raise _refusal(out, lock, None if found is None else found[0], me.host)
+    raise _refusal(out, lock, None if found is None else found[0], me.host, option)
 
 
 def _release(lock: Path, me: LockOwner) -> None:
@@ -184,7 +189,7 @@ def _release(lock: Path, me: LockOwner) -> None:
 
 
 @contextlib.contextmanager
-def output_lock(path: str | Path, what: str = "output") -> Iterator[Path]:
+def output_lock(path: str | Path, what: str = "output", option: str = "-o") -> Iterator[Path]:
     """Hold the exclusive lock of the output ``path`` for the duration of the block.
 
     Creates ``<path>.lock`` (and the output's folder if needed) with this run's host, pid,
@@ -195,6 +200,8 @@ def output_lock(path: str | Path, what: str = "output") -> Iterator[Path]:
     Args:
         path: the output file that the block writes or resumes into.
         what: what the output is (``"poses file"``, ``"checkpoint"``), for the log.
+        option: the command's option that names another output (``-o``, ``--out``), for
+            the refusal ("wait for it or pass another OPTION").
 
     Yields:
         The lock file's path.
@@ -206,7 +213,7 @@ def output_lock(path: str | Path, what: str = "output") -> Iterator[Path]:
     lock = lock_path(out)
     lock.parent.mkdir(parents=True, exist_ok=True)
     me = _this_run()
-    _acquire(out, lock, me, what)
+    _acquire(out, lock, me, what, option)
     try:
         yield lock
     finally:

@@ -1,9 +1,11 @@
 """Pose checkpoints: writing, reading, verifying and loading them for inference.
 
 A checkpoint is a ``torch.save`` dict (see docs/formats.md) with ``format`` =
-:data:`CHECKPOINT_FORMAT` and a ``version``. Each version that can still be read has one
-loading rule in :data:`LOADING_RULES` that brings its weights to the layout of
-:data:`CHECKPOINT_VERSION`:
+:data:`CHECKPOINT_FORMAT` and a ``version``; it is read without running code from it, and a
+file of another kind (a detector, not a FreiPose file) is refused by
+:func:`freipose.io.checkpoints.read_checkpoint_as` with a message naming the right one.
+Each version that can still be read has one loading rule in :data:`LOADING_RULES` that
+brings its weights to the layout of :data:`CHECKPOINT_VERSION`:
 
 * version 1: 2D heads with one decoder level and no ``head_levels`` in the config;
   refused (retrain).
@@ -27,16 +29,17 @@ import torch
 from torch import nn
 
 from freipose import __version__
-from freipose.errors import FreiPoseError, InputFileError
+from freipose.io.checkpoints import POSE_FORMAT, POSE_NETWORK, CheckpointFileError
+from freipose.io.checkpoints import read_checkpoint_as as _read_checkpoint_as
 from freipose.nn.config import TrainConfig, config_from_dict, config_to_dict
 from freipose.nn.model import build_model
 from freipose.skeleton import Skeleton, skeleton_from_dict
 
-CHECKPOINT_FORMAT = "freipose.pose_checkpoint"
+CHECKPOINT_FORMAT = POSE_FORMAT
 CHECKPOINT_VERSION = 3
 
 
-class CheckpointError(FreiPoseError):
+class CheckpointError(CheckpointFileError):
     """A checkpoint file is missing, corrupt or of another kind (the message says which)."""
 
 
@@ -98,38 +101,29 @@ def _check_version(path: Path, version: int) -> None:
         )
 
 
-def read_checkpoint(path: str | Path) -> dict[str, Any]:
+def read_checkpoint(path: str | Path, option: str | None = None) -> dict[str, Any]:
     """Read and verify a checkpoint written by ``freipose train`` (see docs/formats.md).
 
-    The stored weights are checked against their hash and then brought to the current
-    layout by the loading rule of the checkpoint's version (:data:`LOADING_RULES`); the
-    other entries are returned as stored.
+    The file is read without running code from it and must be of a pose-network kind
+    (:func:`freipose.io.checkpoints.checkpoint_kind`). The stored weights are checked
+    against their hash and then brought to the current layout by the loading rule of the
+    checkpoint's version (:data:`LOADING_RULES`); the other entries are returned as stored.
 
     Args:
         path: the checkpoint file.
+        option: the option (or argument) that named the file, for the messages.
 
     Returns:
         The checkpoint dict; ``model`` holds the weights in the current layout.
 
     Raises:
         InputFileError: no such file.
-        CheckpointError: not a FreiPose pose checkpoint, a version that cannot be read, or
-            weights that fail the hash check.
+        CheckpointError: a damaged file, a checkpoint of another kind (a detector, not a
+            FreiPose file), a version that cannot be read, or weights that fail the hash
+            check.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputFileError(f"checkpoint not found: {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a bad file
-        raise CheckpointError(
-            f"{path}: not a readable checkpoint ({exc}); is it truncated?"
-        ) from exc
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(
-            f"{path}: not a FreiPose pose checkpoint (expected format {CHECKPOINT_FORMAT!r}); "
-            "pass a file written by `freipose train`"
-        )
+    ckpt = _read_checkpoint_as(path, POSE_NETWORK, option, CheckpointError)
     version = ckpt.get("version", 0)
     _check_version(path, version)
     if state_hash(ckpt["model"]) != ckpt.get("weights_sha256"):
@@ -194,13 +188,14 @@ def serialize_checkpoint(ckpt: dict[str, Any]) -> bytes:
 
 
 def load_checkpoint(
-    path: str | Path, device: str | torch.device = "cpu"
+    path: str | Path, device: str | torch.device = "cpu", option: str | None = None
 ) -> tuple[nn.Module, TrainConfig, Skeleton]:
     """Load a trained network for inference.
 
     Args:
         path: a checkpoint written by ``freipose train``.
         device: where the network runs.
+        option: the option (or argument) that named the file, for the messages.
 
     Returns:
         ``(model, config, skeleton)``: the network in eval mode on ``device``, its
@@ -210,7 +205,7 @@ def load_checkpoint(
         InputFileError: no such file.
         CheckpointError: see :func:`read_checkpoint`.
     """
-    ckpt = read_checkpoint(path)
+    ckpt = read_checkpoint(path, option)
     config = config_from_dict(ckpt["config"])
     skeleton = skeleton_from_dict(ckpt["skeleton"], f"{path}:skeleton")
     model = build_model(dataclasses.replace(config.model, pretrained=""), len(skeleton.keypoints))

@@ -196,7 +196,8 @@ class MultiViewDataset(torch.utils.data.Dataset):
             except MediaError as exc:
                 raise LabelsDataError(
                     f"session {session!r}, camera {camera!r}: {exc} (video paths are relative "
-                    f"to {self.root}; pass root= to change that)"
+                    f"to {self.root}; to change that, set `data.root` in the training config "
+                    "or pass --root to `freipose eval`)"
                 ) from exc
             self._sources[key] = src
         return src

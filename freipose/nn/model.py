@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from freipose.errors import InputFileError
+from freipose.io.checkpoints import POSE_NETWORK, UNSAFE, kind_error, kind_of, load_safely
 from freipose.nn.config import ModelConfig
 from freipose.nn.geometry import project_affine, voxel_offsets
 from freipose.nn.layers import (
@@ -322,6 +323,8 @@ def build_model(cfg: ModelConfig, num_keypoints: int) -> nn.Module:
 
     Raises:
         InputFileError: ``cfg.pretrained`` names a file that does not exist.
+        CheckpointFileError: ``cfg.pretrained`` names a damaged file, a detector checkpoint
+            or a file that is not only tensors (not written by FreiPose or PyTorch).
     """
     model: nn.Module
     model = (
@@ -331,7 +334,10 @@ def build_model(cfg: ModelConfig, num_keypoints: int) -> nn.Module:
         path = Path(cfg.pretrained)
         if not path.is_file():
             raise InputFileError(f"model.pretrained: encoder weights file not found: {path}")
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = load_safely(path)
+        kind = kind_of(state)
+        if state is UNSAFE or kind.startswith("detector"):
+            raise kind_error(path, kind, POSE_NETWORK, "model.pretrained")
         if isinstance(state, Mapping) and "model" in state:
             state = {
                 k[len("encoder.") :]: v

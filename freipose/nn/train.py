@@ -14,6 +14,7 @@ averaged by DistributedDataParallel (gloo on CPU, NCCL on GPU).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import os
@@ -31,6 +32,7 @@ import torch.distributed as dist
 from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path, atomic_write_text
 from freipose.io.labels import read_labels_h5
+from freipose.io.lock import output_lock
 from freipose.nn.checkpoint import read_checkpoint, serialize_checkpoint, training_checkpoint
 from freipose.nn.config import TrainConfig, config_to_dict, load_config
 from freipose.nn.data import StepBatchSampler, TrainSamples, collate_prepared, to_device
@@ -239,7 +241,7 @@ def _resume(
             size, or its optimizer state is of an older FreiPose.
     """
     path = files.checkpoint
-    ckpt = read_checkpoint(path)
+    ckpt = read_checkpoint(path, "--resume")
     stored = ckpt["config"]
     mine = config_to_dict(config)
     sched = config.schedule
@@ -440,6 +442,17 @@ def _train_steps(
     return done
 
 
+def _run_lock(files: RunFiles, procs: Processes) -> contextlib.AbstractContextManager[Any]:
+    """The lock of the run folder's ``checkpoint.pt``, held by the process that writes (rank 0).
+
+    Raises:
+        OutputLockedError: another run is writing into the folder (on entering).
+    """
+    if procs.rank != 0:
+        return contextlib.nullcontext()
+    return output_lock(files.checkpoint, "training run folder", option="--out")
+
+
 def train_pose(
     config: TrainConfig,
     out_dir: str | Path,
@@ -475,32 +488,34 @@ def train_pose(
     Raises:
         TrainError: the run folder, the device or the checkpoint to resume does not fit.
         DivergedError: the loss became infinite or NaN.
+        OutputLockedError: another run is training into ``out_dir`` (nothing is touched).
     """
     files = RunFiles(Path(out_dir))
-    sched = config.schedule
     procs = _distributed(device)
-    _check_run_folder(files, resume)
-    samples = select_samples(
-        train_source, eval_source, train_indices, eval_indices, sched.eval_samples
-    )
-    torch.manual_seed(sched.seed)
-    model = build_model(config.model, len(skeleton.keypoints)).to(procs.device)
-    opt = torch.optim.Adam(optimizer_groups(model), lr=sched.lr)
-    start = _resume(files, config, model, opt) if resume else 0
-    if procs.rank == 0:
-        _start_outputs(files, config, start)
-    net = model
-    if procs.world > 1:
-        dev = procs.device
-        net = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[dev.index] if dev.type == "cuda" else None
+    with _run_lock(files, procs):
+        sched = config.schedule
+        _check_run_folder(files, resume)
+        samples = select_samples(
+            train_source, eval_source, train_indices, eval_indices, sched.eval_samples
         )
-    run = TrainRun(config, skeleton, model, net, opt, procs, files, eval_source, samples.eval)
-    loader = _loader(train_source, config, samples.train, start, procs)
-    done = _train_steps(run, loader, start, stop_after, progress)
-    if procs.world > 1:
-        dist.barrier()
-    return files.out / ("model.pt" if done >= sched.steps else "checkpoint.pt")
+        torch.manual_seed(sched.seed)
+        model = build_model(config.model, len(skeleton.keypoints)).to(procs.device)
+        opt = torch.optim.Adam(optimizer_groups(model), lr=sched.lr)
+        start = _resume(files, config, model, opt) if resume else 0
+        if procs.rank == 0:
+            _start_outputs(files, config, start)
+        net = model
+        if procs.world > 1:
+            dev = procs.device
+            net = torch.nn.parallel.DistributedDataParallel(
+                model, device_ids=[dev.index] if dev.type == "cuda" else None
+            )
+        run = TrainRun(config, skeleton, model, net, opt, procs, files, eval_source, samples.eval)
+        loader = _loader(train_source, config, samples.train, start, procs)
+        done = _train_steps(run, loader, start, stop_after, progress)
+        if procs.world > 1:
+            dist.barrier()
+        return files.out / ("model.pt" if done >= sched.steps else "checkpoint.pt")
 
 
 def train_from_config(

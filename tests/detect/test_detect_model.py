@@ -127,10 +127,10 @@ def test_checkpoint_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="not found"):
         Detector.load(tmp_path / "none.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(DetectorCheckpointError, match="not a readable"):
+    with pytest.raises(DetectorCheckpointError, match="junk.pt is not a FreiPose checkpoint"):
         Detector.load(tmp_path / "junk.pt")
     torch.save({"format": "something.else"}, tmp_path / "other.pt")
-    with pytest.raises(DetectorCheckpointError, match="found 'something.else'"):
+    with pytest.raises(DetectorCheckpointError, match="other.pt is not a FreiPose checkpoint"):
         Detector.load(tmp_path / "other.pt")
 
 
