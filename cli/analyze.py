@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._common import user_errors
+from freipose.cli._common import allow_incomplete_option, check_complete, user_errors
 from freipose.cli._lazy import DefaultLazyGroup
 
 
@@ -166,6 +166,7 @@ window_option = click.option(
     help="Parallel workers for the single-variable SVMs (-1 = all cores).",
 )
 @click.option("--no-figures", is_flag=True, help="Write the tables only.")
+@allow_incomplete_option()
 def run(
     study: Path,
     outdir: Path,
@@ -185,6 +186,7 @@ def run(
     top: int,
     jobs: int,
     no_figures: bool,
+    allow_incomplete: bool,
 ) -> None:
     """Attribute a stimulation effect to body parts by classification (SVMs).
 
@@ -227,6 +229,7 @@ def run(
             acfg,
             make_figures=not no_figures,
             say=click.echo,
+            allow_incomplete=allow_incomplete,
         )
         cls = result.classification
         click.echo(
@@ -248,8 +251,15 @@ def run(
 @floor_option
 @gap_option
 @window_option
+@allow_incomplete_option()
 def variables(
-    poses: Path, output: Path, skeleton: str | None, floor: str, max_gap: float, stft_window: int
+    poses: Path,
+    output: Path,
+    skeleton: str | None,
+    floor: str,
+    max_gap: float,
+    stft_window: int,
+    allow_incomplete: bool,
 ) -> None:
     """Compute the behavioral variables of a poses file (912 for the 12-keypoint rat).
 
@@ -271,6 +281,7 @@ def variables(
         from freipose.io.poses import read_poses_h5
 
         cfg = VariableConfig(max_gap_s=max_gap, stft_window=stft_window)
+        check_complete(poses, allow_incomplete)
         data = read_poses_h5(poses, require_up=True)
         var = variables_from_poses(data, skeleton, floor, cfg, source=str(poses))
         write_variables_h5(var, output, variables_settings(skeleton, floor, cfg), source=poses)
@@ -294,7 +305,10 @@ def variables(
     help="Output floor TOML.",
 )
 @skeleton_option
-def floor(poses: tuple[Path, ...], output: Path, skeleton: str | None) -> None:
+@allow_incomplete_option()
+def floor(
+    poses: tuple[Path, ...], output: Path, skeleton: str | None, allow_incomplete: bool
+) -> None:
     """Fit the floor plane to the lowest paw positions of one or more poses files.
 
     \b
@@ -311,6 +325,7 @@ def floor(poses: tuple[Path, ...], output: Path, skeleton: str | None) -> None:
 
         feet, up = [], None
         for p in poses:
+            check_complete(p, allow_incomplete)
             data = read_poses_h5(p, require_up=True)
             skel = resolve_skeleton(data, skeleton)
             check_keypoints(data.keypoints, skel, str(p))

@@ -17,9 +17,10 @@ from freipose.analysis import figures
 from freipose.analysis.attribution import AttributionResult, run_attribution
 from freipose.analysis.config import AttributionConfig
 from freipose.analysis.io import cached_variables
-from freipose.analysis.study import check_study_events, load_study
+from freipose.analysis.study import Study, check_study_events, load_study
 from freipose.analysis.variables import VariableConfig
 from freipose.io.atomic import atomic_path, atomic_write_text
+from freipose.io.poses import require_complete
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +69,36 @@ def write_figures(result: AttributionResult, outdir: Path) -> list[Path]:
     return paths
 
 
+def check_complete_poses(study: Study, allow_incomplete: bool = False) -> dict[str, int]:
+    """Refuse the study's unfinished poses files, or warn how many frames each lacks.
+
+    Args:
+        study: the study.
+        allow_incomplete: go on with unfinished files (their missing frames are NaN and
+            left out of the analysis).
+
+    Returns:
+        Recording name -> frames without a prediction, for the incomplete recordings.
+
+    Raises:
+        IncompletePosesError: a poses file is unfinished and ``allow_incomplete`` is false;
+            the message names the file and the command that finishes it.
+    """
+    missing = {}
+    for rec in study.recordings:
+        n = require_complete(rec.poses, allow_incomplete)
+        if n:
+            missing[rec.name] = n
+            log.warning(
+                "%s (%s) is incomplete: %d frames have no prediction (NaN, left out of the "
+                "analysis)",
+                rec.poses,
+                rec.name,
+                n,
+            )
+    return missing
+
+
 def analyze_study(
     study_path: str | Path,
     outdir: str | Path,
@@ -77,6 +108,7 @@ def analyze_study(
     config: AttributionConfig = AttributionConfig(),
     make_figures: bool = True,
     say: Callable[[str], None] | None = None,
+    allow_incomplete: bool = False,
 ) -> AttributionResult:
     """Run the whole attribution analysis of a study and write its outputs.
 
@@ -89,16 +121,20 @@ def analyze_study(
         config: the attribution settings.
         make_figures: also write the PNG figures.
         say: progress messages (default: this module's logger).
+        allow_incomplete: go on with poses files whose prediction run has not finished
+            (with a warning naming the frames without a prediction).
 
     Returns:
         The result tables.
 
     Raises:
-        StudyError: an invalid study or events file (the events files are checked before
-            any variable is computed), or recordings without usable frames.
+        IncompletePosesError: a poses file is incomplete and ``allow_incomplete`` is false.
+        StudyError: an invalid study or events file (the poses and events files are checked
+            before any variable is computed), or recordings without usable frames.
     """
     say = say or log.info
     study = load_study(study_path)
+    check_complete_poses(study, allow_incomplete)
     check_study_events(study)
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)

@@ -152,3 +152,57 @@ def test_every_bad_events_file_is_reported(tmp_path, no_variables):
     assert "2 events problems in study" in res.output
     assert "rat1_train_events.csv, line 2" in res.output
     assert "rat1_test_events.csv (rat1_test), line 2" in res.output
+
+
+# ------------------------------------------------------------------ incomplete poses files
+
+
+def _make_incomplete(poses, done):
+    """Mark a poses file as an unfinished prediction run with ``done`` frames predicted."""
+    with h5py.File(poses, "a") as f:
+        x = f["poses"][()]
+        x[done:] = np.nan
+        f["poses"][...] = x
+        f.attrs["complete"] = False
+        f.attrs["completed_frames"] = done
+
+
+def test_incomplete_poses_file_in_a_study_is_refused_unless_allowed(tmp_path):
+    study = _study(tmp_path)
+    poses = tmp_path / "rat1_test.poses.h5"
+    _make_incomplete(poses, 600)
+    res = _analyze(study, tmp_path / "out")
+    assert res.exit_code == 1, res.output
+    assert f"{poses} is incomplete (600 of 800 frames predicted)" in res.output
+    assert "--allow-incomplete" in res.output and "Traceback" not in res.output
+    assert not list((tmp_path / "out").glob("variables/*.vars.h5"))
+    res = _analyze(study, tmp_path / "out", "--allow-incomplete")
+    assert res.exit_code == 0, res.output
+    assert f"{poses} (rat1_test) is incomplete: 200 frames have no prediction" in res.output
+    assert (tmp_path / "out" / "classification.csv").is_file()
+
+
+def test_partial_poses_file_in_a_study_is_refused(tmp_path):
+    study = _study(tmp_path)
+    partial = tmp_path / "rat1_test.poses.h5.partial"
+    (tmp_path / "rat1_test.poses.h5").rename(partial)
+    study.write_text(study.read_text().replace('"rat1_test.poses.h5"', f'"{partial.name}"'))
+    res = _analyze(study, tmp_path / "out")
+    assert res.exit_code == 1, res.output
+    assert f"{partial} is incomplete" in res.output and "--allow-incomplete" in res.output
+
+
+def test_variables_and_floor_refuse_an_incomplete_poses_file_unless_allowed(tmp_path):
+    _study(tmp_path)
+    poses = tmp_path / "rat1_test.poses.h5"
+    _make_incomplete(poses, 600)
+    for cmd in (
+        ["variables", str(poses), "-o", str(tmp_path / "v.vars.h5")],
+        ["floor", str(poses), "-o", str(tmp_path / "floor.toml")],
+    ):
+        res = CliRunner().invoke(cli, ["analyze", *cmd])
+        assert res.exit_code == 1, res.output
+        assert "is incomplete (600 of 800 frames predicted)" in res.output
+        res = CliRunner().invoke(cli, ["analyze", *cmd, "--allow-incomplete"])
+        assert res.exit_code == 0, res.output
+        assert "200 frames have no prediction" in res.output
