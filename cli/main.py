@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import logging
+import os
 import sys
+import warnings
 
 import click
 
@@ -25,6 +27,22 @@ COMMANDS = {
     "analyze": "freipose.cli.analyze:analyze",
     "demo": "freipose.cli.demo:demo",
 }
+
+
+def quiet_native_warnings(verbose: int) -> None:
+    """Keep FFmpeg's, OpenCV's and NumPy's own warnings off the terminal unless ``-v``.
+
+    FreiPose reports what matters about a video or a computation in its own messages;
+    the libraries' lines (``[mov,mp4 @ 0x...] moov atom not found``, ``[ WARN:0@...]``,
+    ``RuntimeWarning: Mean of empty slice``) are shown with ``-v`` only. The environment
+    variables are read by OpenCV when it first opens a video, so they are set before any
+    command imports it; a value the user set is kept.
+    """
+    if verbose:
+        return
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"numpy(\.|$)")
 
 
 def setup_logging(verbose: int, quiet: bool) -> None:
@@ -63,6 +81,7 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
     ctx.ensure_object(dict)
     ctx.obj["quiet"] = quiet
     setup_logging(verbose, quiet)
+    quiet_native_warnings(verbose)
 
 
 def main() -> None:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import click
 import pytest
 from click.testing import CliRunner
@@ -70,3 +73,35 @@ def test_user_errors_shows_freipose_errors_and_lets_bugs_through() -> None:
     for bug in (ValueError("shape mismatch"), KeyError("k"), FileNotFoundError("x")):
         with pytest.raises(type(bug)), user_errors():
             raise bug
+
+
+def test_library_warnings_stay_off_the_terminal_unless_verbose(tmp_path) -> None:
+    """FFmpeg's own lines about a broken video show with -v only; FreiPose's error always."""
+    import subprocess
+    import sys
+
+    import cv2
+    import numpy as np
+
+    good = tmp_path / "good.mp4"
+    w = cv2.VideoWriter(str(good), cv2.VideoWriter_fourcc(*"mp4v"), 25, (64, 48))
+    for i in range(30):
+        w.write(np.full((48, 64, 3), 5 * i, np.uint8))
+    w.release()
+    data = good.read_bytes()
+    for cam in ("cam0", "cam1"):
+        (tmp_path / f"{cam}.mp4").write_bytes(data[: len(data) // 2])  # no moov atom
+    board = Path(__file__).resolve().parents[2] / "examples" / "board.toml"
+    args = [str(tmp_path / "cam0.mp4"), str(tmp_path / "cam1.mp4"), "--board", str(board),
+            "-o", str(tmp_path / "c.toml")]  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_")}
+
+    def run(*pre: str) -> subprocess.CompletedProcess:
+        code = "from freipose.cli.main import main; main()"
+        return subprocess.run([sys.executable, "-c", code, *pre, "calib", *args],
+                              capture_output=True, text=True, env=env, cwd=tmp_path)  # fmt: skip
+
+    quiet, verbose = run(), run("-v")
+    assert quiet.returncode != 0 and "cannot open this file as a video" in quiet.stderr
+    assert "moov atom" not in quiet.stderr
+    assert "moov atom" in verbose.stderr
