@@ -395,27 +395,33 @@ def _bundle_adjust(
     )
 
 
-def camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
+def camera_covariance(
+    result: BundleResult, free: np.ndarray, tie: np.ndarray | None = None
+) -> np.ndarray:
     """Marginal covariance of every camera's parameters at the solution.
 
     Gauss-Newton approximation ``σ² S⁻¹`` from the reduced camera system (board poses
     eliminated) over the inlier detections, with the robust loss's weights; ``σ²`` is the
     weighted residual variance per degree of freedom. Local parameters: fx fy cx cy k1 k2 p1 p2
     k3 (absolute), rotation and translation (increments). Rows and columns of fixed
-    parameters are zero.
+    parameters are zero; a tied fy (``tie``) is fx's row and column.
 
     Args:
         result: a bundle-adjustment result.
         free: (C, 15) bool, the parameters that were optimised.
+        tie: (C,) bool, cameras whose fy was tied to fx (their fx moves both focal lengths);
+            ``None``: none.
 
     Returns:
         (C, 15, 15) covariances.
     """
     with _one_blas_thread():
-        return _camera_covariance(result, free)
+        return _camera_covariance(result, free, tie)
 
 
-def _camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
+def _camera_covariance(
+    result: BundleResult, free: np.ndarray, tie: np.ndarray | None
+) -> np.ndarray:
     """:func:`camera_covariance` (BLAS limits already set)."""
     cam, fr, obs = result.cam_params, result.frame_params, result.obs.subset(result.inliers)
     C, F = cam.shape[0], fr.shape[0]
@@ -428,7 +434,7 @@ def _camera_covariance(result: BundleResult, free: np.ndarray) -> np.ndarray:
     w = irls_weights(
         e, result.loss, result.f_scale, None if vs is None else vs[result.inliers][prob.order]
     )
-    ne = normal_equations(prob, Rc, Rf, pr, r, w, free)
+    ne = normal_equations(prob, Rc, Rf, pr, r, w, free, tie)
     S = schur(ne.Hcc, ne.Hff + 1e-12 * np.eye(FRAME_PARAMS), ne.Hcf, ne.gc, ne.gf).S
     dof = max(1, 2 * len(obs) - int(free.sum()) - FRAME_PARAMS * F)
     s2 = float(np.sum(w * e**2) / dof)

@@ -51,6 +51,10 @@ class CalibrationOptions:
             (σ / σ_view, estimated from its residuals after the first round; see
             :func:`freipose.calibration.robust.view_noise_scales`): blurred or steep views
             count less.
+        accept_implausible: return a calibration that fails the plausibility checks
+            (:mod:`freipose.calibration.plausibility`) with its findings, marked as suspect
+            in its metadata, instead of raising
+            :class:`~freipose.calibration.plausibility.ImplausibleCalibrationError`.
     """
 
     origin_frame: int | None = None
@@ -68,3 +72,4 @@ class CalibrationOptions:
     progress: bool = True
     refine_board: bool = True
     view_weights: bool = True
+    accept_implausible: bool = False

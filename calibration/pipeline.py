@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from freipose.calibration.boards import Board
-from freipose.calibration.bundle import BundleResult
+from freipose.calibration.bundle import BundleResult, camera_covariance
 from freipose.calibration.bundle_problem import Observations
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.detect_videos import detect_cameras
@@ -27,6 +27,12 @@ from freipose.calibration.extrinsics import CameraGraph
 from freipose.calibration.intrinsics import CalibrationError, IntrinsicsResult, dist_free_mask
 from freipose.calibration.model_selection import select_models
 from freipose.calibration.options import ASPECT_MODES, PRINCIPAL_POINT_MODES, CalibrationOptions
+from freipose.calibration.plausibility import (
+    Finding,
+    ImplausibleCalibrationError,
+    check_plausibility,
+    findings_metadata,
+)
 from freipose.calibration.stages import (
     BoardObservations,
     BundleStart,
@@ -42,6 +48,7 @@ from freipose.calibration.stats import (
     CameraStats,
     bundle_stats,
     high_error_warnings,
+    intrinsic_standard_errors,
     intrinsics_stats,
 )
 from freipose.calibration.world import WorldFrame, rig_cameras, world_frame
@@ -52,9 +59,11 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "CalibrationError",
     "CalibrationResult",
+    "ImplausibleCalibrationError",
     "calibrate",
     "calibrate_detections",
     "detection_cache_dir",
+    "intrinsics_from",
 ]
 
 
@@ -74,6 +83,12 @@ class CalibrationResult:
         warnings: messages for the user.
         intrinsics: per-camera initial intrinsics.
         board_offsets: (P, 2) mm in-plane corrections of the board points (``refine_board``).
+        standard_errors: per camera, the standard errors of its free intrinsics (see
+            :func:`freipose.calibration.stats.intrinsic_standard_errors`; empty for
+            ``intrinsics_only``).
+        findings: why the calibration is not physically plausible (only with
+            ``accept_implausible``; else such a calibration raises
+            :class:`ImplausibleCalibrationError`).
     """
 
     rig: CameraRig
@@ -87,6 +102,8 @@ class CalibrationResult:
     warnings: list[str] = field(default_factory=list)
     intrinsics: dict[str, IntrinsicsResult] = field(default_factory=dict)
     board_offsets: np.ndarray | None = None
+    standard_errors: dict[str, dict[str, float]] = field(default_factory=dict)
+    findings: tuple[Finding, ...] = ()
 
     def camera_errors(self, camera: int) -> np.ndarray:
         """Final reprojection errors (px) of the inlier detections of camera index ``camera``."""
@@ -107,12 +124,16 @@ class Adjustment:
         models: ``{camera: intrinsics model description}``.
         offsets: (P, 2) mm in-plane corrections of the board points (zeros without
             ``refine_board``).
+        free: (C, 15) bool, the final adjustment's free camera parameters.
+        square: (C,) bool, cameras whose fy is tied to fx in it.
     """
 
     bundle: BundleResult
     obs: Observations
     models: dict[str, dict[str, str]]
     offsets: np.ndarray
+    free: np.ndarray
+    square: np.ndarray
 
 
 def _common_prefix(
@@ -270,7 +291,7 @@ def _adjust(
         ba.seconds,
         ba.nfev,
     )
-    return Adjustment(ba, obs, sel.models, offsets)
+    return Adjustment(ba, obs, sel.models, offsets, sel.free, sel.square)
 
 
 def _rms_offset(offsets: np.ndarray) -> float:
@@ -279,7 +300,11 @@ def _rms_offset(offsets: np.ndarray) -> float:
 
 
 def _metadata(
-    board: Board, opt: CalibrationOptions, world: WorldFrame, adj: Adjustment
+    board: Board,
+    opt: CalibrationOptions,
+    world: WorldFrame,
+    adj: Adjustment,
+    quality: _Quality,
 ) -> dict[str, Any]:
     """The calibration file's metadata."""
     ba = adj.bundle
@@ -297,7 +322,42 @@ def _metadata(
         metadata["board_point_corrections_rms_mm"] = round(_rms_offset(adj.offsets), 4)
     if opt.origin_frame is not None:
         metadata["origin_frame"] = int(opt.origin_frame)
+    metadata["intrinsics_standard_errors"] = {
+        cam: {k: float(f"{v:.4g}") for k, v in se.items()}
+        for cam, se in quality.standard_errors.items()
+        if se
+    }
+    if quality.findings:
+        metadata["suspect"] = findings_metadata(quality.findings)
     return metadata
+
+
+@dataclass(frozen=True)
+class _Quality:
+    """The final adjustment's intrinsic standard errors and plausibility findings."""
+
+    standard_errors: dict[str, dict[str, float]]
+    findings: tuple[Finding, ...]
+
+
+def _quality(
+    dets: list[CameraDetections], board: Board, adj: Adjustment, opt: CalibrationOptions
+) -> _Quality:
+    """Standard errors and plausibility of the final adjustment.
+
+    Raises:
+        ImplausibleCalibrationError: a finding, without ``opt.accept_implausible``.
+    """
+    names = [d.name for d in dets]
+    cov = camera_covariance(adj.bundle, adj.free, adj.square)
+    se = intrinsic_standard_errors(cov, adj.free, adj.square, names)
+    diag = float(np.hypot(*board.size_mm))
+    findings = check_plausibility(names, [tuple(d.size) for d in dets], adj.bundle, diag, se)
+    for f in findings:
+        logger.warning(f.message)
+    if findings and not opt.accept_implausible:
+        raise ImplausibleCalibrationError(findings)
+    return _Quality(se, findings)
 
 
 def _calibrate_detections(
@@ -314,14 +374,16 @@ def _calibrate_detections(
     seen = board_observations(dets, obj, rig0.frames)
     start = initial_parameters(dets, intr, rig0, opt)
     adj = _adjust(start, seen, rig0.frames, dets, intr, obj, opt)
+    quality = _quality(dets, board, adj, opt)
     world = world_frame(adj.bundle, dets[0].num_frames, [d.name for d in dets], opt.origin_frame)
     cams = rig_cameras(dets, adj.bundle, world.cameras)
     stats = bundle_stats(dets, adj.bundle, adj.obs, intr.results)
     warnings.extend(high_error_warnings(stats))
-    rig = CameraRig(cams, _metadata(board, opt, world, adj))
+    rig = CameraRig(cams, _metadata(board, opt, world, adj, quality))
     return CalibrationResult(
         rig, board, dets, stats, world.board_poses, world.description, rig0.graph, adj.bundle,
         warnings, intr.results, adj.offsets if opt.refine_board else None,
+        quality.standard_errors, quality.findings,
     )  # fmt: skip
 
 
@@ -390,3 +452,72 @@ def calibrate(
             + (f"; {hint}" if hint else "; make sure the camera sees the whole board")
         )
     return calibrate_detections(dets, board, opt)
+
+
+def _intrinsic_source(folder: Path, camera: str) -> Path:
+    """The video file or image folder in ``folder`` named after ``camera``.
+
+    Raises:
+        CalibrationError: there is none, or more than one.
+    """
+    from freipose.io.video import VIDEO_SUFFIXES
+
+    found = [p for p in sorted(folder.iterdir()) if p.stem == camera or p.name == camera]
+    found = [p for p in found if p.is_dir() or p.suffix.lower() in VIDEO_SUFFIXES]
+    if len(found) != 1:
+        what = "no video or image folder" if not found else f"{len(found)} candidates"
+        raise CalibrationError(
+            f"--intrinsics-from {folder}: {what} for camera {camera} (expected "
+            f"{folder / camera}.mp4 or another video, or an image folder {folder / camera}/, "
+            f"named like the camera's board video)"
+        )
+    return found[0]
+
+
+def intrinsics_from(
+    source: str | Path,
+    cameras: Sequence[str],
+    board: Board,
+    options: CalibrationOptions | None = None,
+) -> CameraRig:
+    """Every camera's intrinsics from a separate recording, for ``fixed_intrinsics``.
+
+    Args:
+        source: a calibration file (any format :func:`freipose.io.calibration.load_calibration`
+            reads) holding the cameras by name, or a folder with one video or image folder of
+            ``board`` per camera, named after it (its intrinsics are calibrated first).
+        cameras: the camera names.
+        board: the board of the intrinsic recordings.
+        options: the options of the intrinsics calibration (``dist_model``,
+            ``principal_point``, ``max_views``, ``jobs``, ``progress``).
+
+    Returns:
+        a rig with the cameras' K and distortion (extrinsics not meaningful).
+
+    Raises:
+        CalibrationError: a camera that the file or folder does not have.
+    """
+    from dataclasses import replace
+
+    from freipose.io.calibration import load_calibration
+
+    src = Path(source)
+    if not src.is_dir():
+        rig = load_calibration(src)
+        missing = [c for c in cameras if c not in rig]
+        if missing:
+            raise CalibrationError(
+                f"--intrinsics-from {src}: camera(s) {', '.join(missing)} are not in the file "
+                f"(it has {', '.join(rig.names)}); name the videos like its cameras, or give "
+                f"a folder of per-camera intrinsic recordings"
+            )
+        return rig.subset(list(cameras))
+    opt = replace(options or CalibrationOptions(), intrinsics_only=True, fixed_intrinsics=None)
+    paths = [_intrinsic_source(src, c) for c in cameras]
+    cams = []
+    for c, p in zip(cameras, paths):
+        res = calibrate([p], board, None, opt)
+        cam = res.rig[0]
+        cams.append(Camera(c, cam.size, cam.K, cam.dist, np.eye(3), np.zeros(3)))
+        logger.info("camera %s: intrinsics from %s, RMS %.3f px", c, p, res.stats[0].rms)
+    return CameraRig(tuple(cams), {"intrinsics_from": str(src)})

@@ -26,8 +26,10 @@ def summary_dict(result: CalibrationResult) -> dict[str, Any]:
         result: the calibration.
 
     Returns:
-        the board, frame count, per-camera figures and parameters, world frame, camera
-        graph, warnings and the bundle adjustment's statistics.
+        the board, frame count, per-camera figures, parameters and intrinsic standard
+        errors, world frame, camera graph, warnings, the plausibility findings of a
+        calibration written with ``--force`` (``suspect``, empty when plausible) and the
+        bundle adjustment's statistics.
     """
     cams = {}
     for s, cam in zip(result.stats, result.rig):
@@ -37,6 +39,9 @@ def summary_dict(result: CalibrationResult) -> dict[str, Any]:
         d["principal_point_px"] = [round(float(cam.K[0, 2]), 3), round(float(cam.K[1, 2]), 3)]
         d["distortion"] = [round(float(x), 6) for x in cam.dist]
         d["center_mm"] = [round(float(x), 3) for x in cam.center]
+        se = result.standard_errors.get(s.name)
+        if se:
+            d["intrinsics_standard_errors"] = {k: float(f"{v:.4g}") for k, v in se.items()}
         cams[s.name] = d
     out: dict[str, Any] = {
         "board": result.board.to_dict(),
@@ -45,6 +50,7 @@ def summary_dict(result: CalibrationResult) -> dict[str, Any]:
         "world": result.world,
         "camera_graph": result.graph.to_dict() if result.graph is not None else None,
         "warnings": list(result.warnings),
+        "suspect": [f.to_dict() for f in result.findings],
     }
     if result.bundle is not None:
         b = result.bundle
@@ -119,6 +125,9 @@ def _rig_figure(result: CalibrationResult) -> Figure:
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
     ax.set_title("cameras (red, optical axis) and board poses")
+    if result.findings:
+        cams = ", ".join(dict.fromkeys(f.camera for f in result.findings))
+        fig.suptitle(f"SUSPECT calibration (written with --force): {cams}", color="r")
     return fig
 
 

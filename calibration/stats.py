@@ -21,8 +21,12 @@ __all__ = [
     "CameraStats",
     "bundle_stats",
     "high_error_warnings",
+    "intrinsic_standard_errors",
     "intrinsics_stats",
 ]
+
+# the intrinsic parameters of a camera row (freipose.calibration.params), in order
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 HIGH_ERROR_PX = 1.0
 
@@ -137,3 +141,31 @@ def high_error_warnings(stats: Sequence[CameraStats]) -> list[str]:
             logger.warning(msg)
             warnings.append(msg)
     return warnings
+
+
+def intrinsic_standard_errors(
+    cov: np.ndarray, free: np.ndarray, square: np.ndarray, names: Sequence[str]
+) -> dict[str, dict[str, float]]:
+    """Standard errors of every camera's free intrinsics.
+
+    Args:
+        cov: (C, 15, 15) the cameras' parameter covariances
+            (:func:`freipose.calibration.bundle.camera_covariance`).
+        free: (C, 15) bool, the free parameters.
+        square: (C,) bool, cameras whose fy is tied to fx (fy gets fx's error).
+        names: the camera names, in rig order.
+
+    Returns:
+        ``{camera: {"fx": se, "fy": se, "cx": ...}}`` (px for focal length and principal
+        point); only free parameters appear, and a camera with none has an empty entry.
+    """
+    out: dict[str, dict[str, float]] = {}
+    for c, name in enumerate(names):
+        se = {}
+        for j, key in enumerate(INTRINSIC_NAMES):
+            tied = key == "fy" and bool(square[c]) and bool(free[c, 0])
+            if free[c, j] or tied:
+                v = cov[c, 0, 0] if tied else cov[c, j, j]
+                se[key] = float(np.sqrt(max(float(v), 0.0)))
+        out[name] = se
+    return out

@@ -132,8 +132,12 @@ def rig_summary(rig: Any, title: str) -> str:
     est = set(rig.metadata.get(ESTIMATED_KEY, []))
     lines = [title, f"{len(rig)} cameras; lengths in mm"]
     for k, v in rig.metadata.items():
-        if k not in ("units", ESTIMATED_KEY):
+        if k not in ("units", ESTIMATED_KEY, _SE_KEY, _SUSPECT_KEY):
             lines.append(f"  {k}: {v}")
+    suspect = rig.metadata.get(_SUSPECT_KEY) or []
+    if suspect:
+        lines.append("SUSPECT: written with --force although it failed the plausibility checks:")
+        lines += [f"  - {f.get('message', f) if isinstance(f, dict) else f}" for f in suspect]
     head = [
         "camera",
         "size",
@@ -169,6 +173,7 @@ def rig_summary(rig: Any, title: str) -> str:
             + [_fmt(x) for x in pos]
         )
     lines += ["", *_table(head, rows)]
+    lines += _standard_error_lines(rig.metadata.get(_SE_KEY) or {})
     if est:
         lines.append("* image size not stored in the file; estimated as 2 * principal point + 1")
     centers = rig.centers
@@ -181,6 +186,25 @@ def rig_summary(rig: Any, title: str) -> str:
         off = dists[~np.eye(len(rig), dtype=bool)]
         lines.append(f"min {off.min():.1f}, median {np.median(off):.1f}, max {off.max():.1f} mm")
     return "\n".join(lines)
+
+
+_SE_KEY = "intrinsics_standard_errors"
+_SUSPECT_KEY = "suspect"
+
+
+def _standard_error_lines(se: dict[str, dict[str, float]]) -> list[str]:
+    """The table of the intrinsic standard errors a calibration file carries."""
+    if not se:
+        return []
+    keys = [
+        k
+        for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+        if any(k in v for v in se.values())
+    ]
+    rows = [[c] + [f"{v[k]:.3g}" if k in v else "fixed" for k in keys] for c, v in se.items()]
+    return ["", "Intrinsics standard errors (px for f and c; parameters not listed: fixed):"] + (
+        _table(["camera", *keys], rows)
+    )
 
 
 def _table(head: list[str], rows: list[list[str]]) -> list[str]:

@@ -268,6 +268,30 @@ def check_outputs(
     return f
 
 
+def _echo_result(result: Any, output: Path) -> None:
+    """Print the per-camera figures, warnings, standard errors and findings of a calibration."""
+    import logging
+
+    log = logging.getLogger("freipose.calib")
+    for s in result.stats:
+        rms = f"{s.rms:.3f} px" if s.rms == s.rms else "n/a"
+        click.echo(
+            f"{s.name}: {s.frames_detected} frames with the board, {s.points_used} points "
+            f"used, reprojection RMS {rms}"
+        )
+    for w in result.warnings:
+        log.warning(w)
+    for s in result.stats:
+        se = result.standard_errors.get(s.name)
+        if se:
+            parts = ", ".join(f"{k} {v:.3g}" for k, v in se.items())
+            click.echo(f"{s.name}: intrinsics standard errors {parts}")
+    click.echo(f"world frame: {result.world}")
+    for f in result.findings:
+        click.echo(f"SUSPECT (written with --force): {f.message}", err=True)
+    click.echo(f"wrote {output}" + (" (marked as suspect)" if result.findings else ""))
+
+
 @click.command("run")
 @click.argument("inputs", nargs=-1, type=click.Path(path_type=Path))
 @_board_options
@@ -297,6 +321,19 @@ def check_outputs(
     "--fix-intrinsics",
     type=click.Path(dir_okay=False, path_type=Path),
     help="Calibration file with known intrinsics, kept fixed (cameras matched by name).",
+)
+@click.option(
+    "--intrinsics-from",
+    type=click.Path(exists=True, path_type=Path),
+    help="Intrinsics from a separate recording, kept fixed: a calibration file (cameras "
+    "matched by name), or a folder with one board video or image folder per camera, named "
+    "after it (their intrinsics are calibrated first, with the same board).",
+)
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Write the calibration even when it fails the plausibility checks; it is then "
+    "marked as suspect in its metadata and the report.",
 )
 @click.option(
     "--report",
@@ -359,6 +396,8 @@ def run(
     origin_frame: int | None,
     intrinsics_only: bool,
     fix_intrinsics: Path | None,
+    intrinsics_from: Path | None,
+    force: bool,
     report_dir: Path | None,
     dist_model: str,
     principal_point: str,
@@ -377,6 +416,14 @@ def run(
     output is checked before the detection starts; an existing OUTPUT is replaced only if it
     is a calibration.
 
+    After the bundle adjustment the calibration is checked for physical plausibility: each
+    camera's field of view (5-170 degrees), principal point (at most 25 % of the image size
+    outside it), distortion (must not fold the image), board poses (must agree with the other
+    cameras'), rejected detections (at most 30 %) and focal-length standard error (at most
+    5 %). A calibration that fails is not written (nor its report): the message names the
+    camera, the numbers and the fix (--fix-intrinsics or --intrinsics-from, leaving the camera
+    out, more frames). --force writes it anyway, marked as suspect.
+
     \b
     Example:
       freipose calib cams/cam0.mp4 cams/cam1.mp4 cams/cam2.mp4 --board board.toml \\
@@ -385,12 +432,13 @@ def run(
           --inner-corners-y 6 --square-size 30 -o stereo.toml
       freipose calib cams/*.mp4 --board board.toml -o calib_jarvis/ --format jarvis
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
-    import logging
     import shutil
+    from dataclasses import replace
 
     with user_errors():
         from freipose.calibration.options import CalibrationOptions
         from freipose.calibration.pipeline import calibrate, detection_cache_dir
+        from freipose.calibration.pipeline import intrinsics_from as intrinsics_from_recording
         from freipose.calibration.report import write_report
         from freipose.io.calibration import load_calibration, save_calibration
 
@@ -405,6 +453,10 @@ def run(
         cameras = [p.stem if p.is_file() else p.name for p in inputs]
         out_format = check_outputs(output, fmt, report_dir, cameras)
         board = _resolve_board(board_file, board_type, board_fields)
+        if fix_intrinsics is not None and intrinsics_from is not None:
+            raise FreiPoseError(
+                "--fix-intrinsics and --intrinsics-from both give the intrinsics: pass one"
+            )
         fixed = load_calibration(fix_intrinsics) if fix_intrinsics is not None else None
         if no_cache:
             shutil.rmtree(detection_cache_dir(output), ignore_errors=True)
@@ -418,20 +470,14 @@ def run(
             refine_board=refine_board,
             view_weights=view_weights,
             jobs=jobs,
+            accept_implausible=force,
         )
+        if intrinsics_from is not None:
+            rig = intrinsics_from_recording(intrinsics_from, cameras, board, opts)
+            opts = replace(opts, fixed_intrinsics=rig)
         result = calibrate(list(inputs), board, output, opts)
         save_calibration(result.rig, output, out_format)
-        log = logging.getLogger("freipose.calib")
-        for s in result.stats:
-            rms = f"{s.rms:.3f} px" if s.rms == s.rms else "n/a"
-            click.echo(
-                f"{s.name}: {s.frames_detected} frames with the board, {s.points_used} points "
-                f"used, reprojection RMS {rms}"
-            )
-        for w in result.warnings:
-            log.warning(w)
-        click.echo(f"world frame: {result.world}")
-        click.echo(f"wrote {output}")
+        _echo_result(result, output)
         if report_dir is not None:
             paths = write_report(result, report_dir)
             click.echo(f"wrote report ({len(paths)} files) to {report_dir}")

@@ -1,0 +1,304 @@
+"""Physical plausibility of a calibration, checked after the bundle adjustment.
+
+A calibration is refused (:class:`ImplausibleCalibrationError`) when a camera's field of
+view lies outside :data:`FOV_RANGE_DEG`, its principal point lies more than
+:data:`PRINCIPAL_MARGIN` of the image size outside the image, its radial distortion folds
+the image, the board poses its own detections imply disagree with the rig's, the bundle
+adjustment rejected more than :data:`MAX_OUTLIER_SHARE` of its detections, or its focal
+length's standard error exceeds :data:`MAX_FOCAL_SE` of the focal length.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from freipose.calibration.bundle import BundleResult
+from freipose.calibration.intrinsics import CalibrationError
+from freipose.calibration.params import DIST, FRAME_RVEC, FRAME_TVEC, RVEC, TVEC
+from freipose.geometry.transforms import invert_transform, rodrigues, transform
+
+__all__ = [
+    "FOV_RANGE_DEG",
+    "MAX_FOCAL_SE",
+    "MAX_OUTLIER_SHARE",
+    "MAX_POSE_ANGLE_DEG",
+    "MAX_POSE_SHIFT",
+    "PRINCIPAL_MARGIN",
+    "Finding",
+    "ImplausibleCalibrationError",
+    "check_plausibility",
+]
+
+FOV_RANGE_DEG = (5.0, 170.0)  # plausible horizontal field of view
+PRINCIPAL_MARGIN = 0.25  # how far (share of the image size) the principal point may lie outside
+MAX_OUTLIER_SHARE = 0.30  # share of a camera's detections the bundle adjustment may reject
+MAX_POSE_ANGLE_DEG = 5.0  # median board-pose rotation disagreement of a camera
+MAX_POSE_SHIFT = 0.10  # median board-centre disagreement, as a share of the board diagonal
+MAX_FOCAL_SE = 0.05  # standard error of fx as a share of fx
+_POSE_FRAMES = 60  # frames per camera used for the board-pose comparison (evenly spaced)
+_MIN_PNP_POINTS = 6
+
+_FIX = (
+    "pass --fix-intrinsics FILE (or --intrinsics-from) with intrinsics of this camera from "
+    "a separate recording, leave the camera out, or record more frames with the board tilted "
+    "and moved over the whole image"
+)
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One reason a calibration is not plausible.
+
+    Attributes:
+        camera: the camera's name.
+        check: ``field_of_view``, ``principal_point``, ``folding_distortion``,
+            ``board_poses``, ``outliers`` or ``weak_intrinsics``.
+        message: the camera, the evidence (numbers) and the fix.
+    """
+
+    camera: str
+    check: str
+    message: str
+
+    def to_dict(self) -> dict[str, str]:
+        """The finding as ``summary.json`` holds it."""
+        return {"camera": self.camera, "check": self.check, "message": self.message}
+
+
+class ImplausibleCalibrationError(CalibrationError):
+    """The calibration is not physically plausible; ``findings`` says why."""
+
+    def __init__(self, findings: Sequence[Finding]) -> None:
+        """Build the message from ``findings`` (one line each)."""
+        self.findings = tuple(findings)
+        lines = "\n".join(f"  - {f.message}" for f in self.findings)
+        super().__init__(
+            f"the calibration is not physically plausible, so it was not written:\n{lines}\n"
+            f"Fix the recording as suggested, or pass --force to write it anyway (marked as "
+            f"suspect in the file's metadata and the report)"
+        )
+
+
+def _fov_findings(name: str, size: tuple[int, int], p: np.ndarray) -> list[Finding]:
+    """Field of view and principal point of camera row ``p`` on a ``size`` image."""
+    w, h = size
+    out = []
+    lo, hi = FOV_RANGE_DEG
+    fx, fy = float(p[0]), float(p[1])
+    fov = [2 * np.degrees(np.arctan2(s / 2, f)) if f > 0 else 180.0 for s, f in ((w, fx), (h, fy))]
+    if not (lo <= fov[0] <= hi) or fy <= 0 or fov[1] > hi:
+        out.append(
+            Finding(
+                name,
+                "field_of_view",
+                f"camera {name}: focal length fx = {fx:.1f}, fy = {fy:.1f} px on a {w}x{h} "
+                f"image gives a horizontal field of view of {fov[0]:.1f} degrees (plausible: "
+                f"{lo:.0f}-{hi:.0f}); {_FIX}",
+            )
+        )
+    cx, cy = float(p[2]), float(p[3])
+    m = PRINCIPAL_MARGIN
+    if not (-m * w <= cx <= (1 + m) * w and -m * h <= cy <= (1 + m) * h):
+        out.append(
+            Finding(
+                name,
+                "principal_point",
+                f"camera {name}: principal point ({cx:.1f}, {cy:.1f}) px lies more than "
+                f"{100 * m:.0f} % of the image size outside the {w}x{h} image; {_FIX}",
+            )
+        )
+    return out
+
+
+def folding_radius(dist: np.ndarray, corner_radius: float) -> float | None:
+    """Where the radial distortion folds before reaching the image corner, else ``None``.
+
+    The radial map ``r_d = r (1 + k1 r² + k2 r⁴ + k3 r⁶)`` of normalized radii must rise
+    until it reaches ``corner_radius`` (the image corner's normalized distorted radius);
+    otherwise image points near the corner belong to two rays, or to none.
+
+    Args:
+        dist: (5,) k1 k2 p1 p2 k3.
+        corner_radius: the image corner's normalized radius.
+
+    Returns:
+        the undistorted radius where the map stops rising, or ``None`` when it reaches the
+        corner first (or never stops rising within 4 times the corner's radius).
+    """
+    k1, k2, k3 = float(dist[0]), float(dist[1]), float(dist[4])
+    r = np.linspace(0.0, 4.0 * corner_radius, 4001)
+    r2 = r * r
+    slope = 1 + 3 * k1 * r2 + 5 * k2 * r2**2 + 7 * k3 * r2**3
+    rd = r * (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3)
+    stop = np.flatnonzero(slope <= 0)
+    reach = np.flatnonzero(rd >= corner_radius)
+    if stop.size and (not reach.size or stop[0] < reach[0]):
+        return float(r[stop[0]])
+    return None
+
+
+def _folding_findings(name: str, size: tuple[int, int], p: np.ndarray) -> list[Finding]:
+    """A finding when camera row ``p``'s radial distortion folds inside the image."""
+    w, h = size
+    if not (p[0] > 0 and p[1] > 0):
+        return []
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
+    rc = float(np.hypot((corners[:, 0] - p[2]) / p[0], (corners[:, 1] - p[3]) / p[1]).max())
+    r = folding_radius(p[DIST], rc)
+    if r is None:
+        return []
+    k = ", ".join(f"{n} = {x:.4g}" for n, x in zip(("k1", "k2", "k3"), p[DIST][[0, 1, 4]]))
+    return [
+        Finding(
+            name,
+            "folding_distortion",
+            f"camera {name}: the radial distortion ({k}) folds the image: it stops rising at "
+            f"normalized radius {r:.3f}, before the image corner ({rc:.3f}); {_FIX}, or "
+            f"choose a simpler --dist-model",
+        )
+    ]
+
+
+def _pose_disagreement(ba: BundleResult, camera: int, diag: float) -> tuple[float, float, int]:
+    """Median rotation (deg) and board-centre shift (share of ``diag``) of one camera.
+
+    For the board poses seen by this camera and at least one other, the pose that the
+    camera's own inlier detections imply (PnP with its adjusted intrinsics, from the rig's
+    pose) is compared with the rig's pose.
+
+    Returns:
+        the medians and the number of poses compared (0: none, medians NaN).
+    """
+    obs, keep = ba.obs, ba.inliers
+    p = ba.cam_params[camera]
+    K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
+    Tc = transform(rodrigues(p[RVEC]), p[TVEC])
+    cams_per_frame = np.zeros(len(ba.frames), int)
+    pairs = np.unique(np.stack([obs.frame[keep], obs.cam[keep]], 1), axis=0)
+    np.add.at(cams_per_frame, pairs[:, 0], 1)
+    mine = obs.cam == camera
+    cnt = np.bincount(obs.frame[mine & keep], minlength=len(ba.frames))
+    ks = np.flatnonzero((cnt >= _MIN_PNP_POINTS) & (cams_per_frame >= 2))
+    if ks.size > _POSE_FRAMES:
+        ks = ks[np.linspace(0, ks.size - 1, _POSE_FRAMES).round().astype(int)]
+    angles, shifts = [], []
+    centre = np.append(0.5 * (obs.point[mine].min(0)[:2] + obs.point[mine].max(0)[:2]), 0.0)
+    for k in ks:
+        m = mine & keep & (obs.frame == k)
+        B = transform(rodrigues(ba.frame_params[k, FRAME_RVEC]), ba.frame_params[k, FRAME_TVEC])
+        T0 = Tc @ B
+        rv, tv = cv2.Rodrigues(T0[:3, :3])[0], T0[:3, 3].reshape(3, 1).copy()
+        ok, rv, tv = cv2.solvePnP(
+            obs.point[m].astype(np.float64),
+            obs.uv[m].astype(np.float64),
+            K,
+            p[DIST].astype(np.float64),
+            rv,
+            tv,
+            useExtrinsicGuess=True,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+        if not ok:
+            continue
+        Bc = invert_transform(Tc) @ transform(cv2.Rodrigues(rv)[0], tv.ravel())
+        dR = B[:3, :3].T @ Bc[:3, :3]
+        angles.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
+        shift = (Bc[:3, :3] - B[:3, :3]) @ centre + Bc[:3, 3] - B[:3, 3]
+        shifts.append(np.linalg.norm(shift))
+    if not angles:
+        return float("nan"), float("nan"), 0
+    return float(np.median(angles)), float(np.median(shifts)) / diag, len(angles)
+
+
+def _pose_findings(ba: BundleResult, camera: int, name: str, diag: float) -> list[Finding]:
+    """A finding when camera ``camera``'s board poses disagree with the rig's."""
+    angle, shift, n = _pose_disagreement(ba, camera, diag)
+    if n == 0 or (angle <= MAX_POSE_ANGLE_DEG and shift <= MAX_POSE_SHIFT):
+        return []
+    return [
+        Finding(
+            name,
+            "board_poses",
+            f"camera {name}: the board poses its own detections imply disagree with the other "
+            f"cameras' in {n} shared frames: median {angle:.1f} degrees and {100 * shift:.0f} % "
+            f"of the board diagonal (plausible: at most {MAX_POSE_ANGLE_DEG:.0f} degrees and "
+            f"{100 * MAX_POSE_SHIFT:.0f} %); check that its video belongs to this recording "
+            f"and is synchronized and not mirrored, or leave the camera out; {_FIX}",
+        )
+    ]
+
+
+def _outlier_findings(ba: BundleResult, camera: int, name: str) -> list[Finding]:
+    """A finding when the bundle adjustment rejected a large share of a camera's detections."""
+    mine = ba.obs.cam == camera
+    n = int(mine.sum())
+    bad = int((mine & ~ba.inliers).sum())
+    if n == 0 or bad / n <= MAX_OUTLIER_SHARE:
+        return []
+    return [
+        Finding(
+            name,
+            "outliers",
+            f"camera {name}: the bundle adjustment rejected {bad} of its {n} detections "
+            f"({100 * bad / n:.0f} %, plausible: at most {100 * MAX_OUTLIER_SHARE:.0f} %); its "
+            f"views do not fit one camera model: {_FIX}",
+        )
+    ]
+
+
+def _weak_findings(name: str, p: np.ndarray, se: Mapping[str, float]) -> list[Finding]:
+    """A finding when camera row ``p``'s focal length is poorly determined."""
+    s = se.get("fx")
+    if s is None or not p[0] > 0 or s <= MAX_FOCAL_SE * p[0]:
+        return []
+    return [
+        Finding(
+            name,
+            "weak_intrinsics",
+            f"camera {name}: its focal length fx = {p[0]:.1f} px has a standard error of "
+            f"{s:.1f} px ({100 * s / p[0]:.0f} %, plausible: at most "
+            f"{100 * MAX_FOCAL_SE:.0f} %); {_FIX}",
+        )
+    ]
+
+
+def check_plausibility(
+    names: Sequence[str],
+    sizes: Sequence[tuple[int, int]],
+    ba: BundleResult,
+    board_diagonal: float,
+    standard_errors: Mapping[str, Mapping[str, float]],
+) -> tuple[Finding, ...]:
+    """Every reason the adjusted rig is not physically plausible (see the module docstring).
+
+    Args:
+        names: the camera names, in rig order.
+        sizes: their image sizes (width, height).
+        ba: the final bundle adjustment.
+        board_diagonal: the board's diagonal (mm), the scale of the board-pose comparison.
+        standard_errors: per camera, the standard errors of its free intrinsics
+            (:func:`freipose.calibration.stats.intrinsic_standard_errors`).
+
+    Returns:
+        the findings, in camera order (empty: plausible).
+    """
+    out: list[Finding] = []
+    for i, (name, size) in enumerate(zip(names, sizes)):
+        p = ba.cam_params[i]
+        out += _fov_findings(name, size, p)
+        out += _folding_findings(name, size, p)
+        out += _outlier_findings(ba, i, name)
+        out += _weak_findings(name, p, standard_errors.get(name, {}))
+        if len(names) > 1:
+            out += _pose_findings(ba, i, name, board_diagonal)
+    return tuple(out)
+
+
+def findings_metadata(findings: Sequence[Finding]) -> list[dict[str, Any]]:
+    """The findings as the calibration file's ``metadata.suspect`` holds them."""
+    return [f.to_dict() for f in findings]
