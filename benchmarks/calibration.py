@@ -118,8 +118,10 @@ def errors(centers, rotations, focals, truth):
 
 
 def run_freipose(videos, board, out: Path, jobs: int | None):
-    """What ``calibrate`` does (detection in ``jobs`` processes, then the solver), timed in
-    two parts. Returns centres, rotations, focals, detection s, solver s."""
+    """What ``calibrate`` does (detection in ``jobs`` processes, then the solver), timed.
+
+    Returns centres, rotations, focals, detection s, solver s, detections, result.
+    """
     from freipose.calibration.detect_videos import detect_cameras
     from freipose.calibration.options import CalibrationOptions
     from freipose.calibration.pipeline import calibrate_detections
@@ -135,9 +137,11 @@ def run_freipose(videos, board, out: Path, jobs: int | None):
 
 
 def noise_floor(dets, board, truth, poses, sigma: float, draws: int, seed: int) -> np.ndarray:
-    """FreiPose's errors (draws, 3) when exactly the corners it detected are seen exactly,
-    plus independent Gaussian noise of ``sigma`` px per axis: what the detector's noise alone
-    leaves on this recording (its board views, image coverage and tilts)."""
+    """FreiPose's errors (draws, 3) from its detected corners' exact projections plus noise.
+
+    The noise is independent Gaussian noise of ``sigma`` px per axis: what the detector's
+    noise alone leaves on this recording (its board views, image coverage and tilts).
+    """
     from freipose.calibration.detect import CameraDetections
     from freipose.calibration.options import CalibrationOptions
     from freipose.calibration.pipeline import calibrate_detections
@@ -160,9 +164,11 @@ def noise_floor(dets, board, truth, poses, sigma: float, draws: int, seed: int) 
 
 
 def run_aniposelib(videos, board, seed: int):
-    """``CameraGroup.calibrate_videos`` timed in its two parts (``get_rows_videos``, then
-    ``calibrate_rows``). aniposelib subsamples points with ``np.random``: seeded for
-    reproducibility."""
+    """``CameraGroup.calibrate_videos`` timed in its two parts.
+
+    The parts are ``get_rows_videos`` and ``calibrate_rows``. aniposelib subsamples points
+    with ``np.random``: seeded for reproducibility.
+    """
     import cv2
     from aniposelib.boards import CharucoBoard
     from aniposelib.cameras import CameraGroup
@@ -203,24 +209,59 @@ def run_aniposelib(videos, board, seed: int):
     return np.array(centers), rots, focals, t1 - t0, t2 - t1
 
 
-def bench_seed(args, seed: int, work: Path) -> dict:
-    from freipose.synth.board import default_board, write_board_videos
-    from freipose.synth.rig import default_rig
+def render_rig(args, seed: int, work: Path, variant: bool):
+    """Render one recording: ``(rig, board, videos, poses, render s)``.
 
-    rig = default_rig(args.cameras, size=(args.width, args.width * 3 // 4))
+    The default rig and board, or (``variant``) with the board inverted (``--inverted``)
+    and/or the last camera below a transparent floor looking up at a transparent board
+    (``--below-floor``; every camera behind the board sees its pattern mirrored).
+    """
+    import dataclasses
+
+    from freipose.geometry import CameraRig
+    from freipose.synth.board import default_board, write_board_videos
+    from freipose.synth.rig import camera_below_floor, default_rig
+
+    size = (args.width, args.width * 3 // 4)
+    rig = default_rig(args.cameras, size=size)
     board = default_board()
+    below = variant and args.below_floor
+    if variant and args.inverted:
+        board = dataclasses.replace(board, inverted=True)
+    if below:
+        last = camera_below_floor(rig[-1].name, size)
+        rig = CameraRig((*rig.cameras[:-1], last), rig.metadata)
     t0 = time.perf_counter()
     vids, poses = write_board_videos(
-        work, rig, board, args.frames, seed=seed, fmt=args.format, progress=False
-    )
+        work, rig, board, args.frames, seed=seed, fmt=args.format, progress=False,
+        transparent=below,
+    )  # fmt: skip
+    return rig, board, [vids[n] for n in rig.names], poses, time.perf_counter() - t0
+
+
+def bench_seed(args, seed: int, work: Path) -> dict:
+    variant = args.inverted or args.below_floor
+    rig, board, videos, poses, t_render = render_rig(args, seed, work, variant)
     jobs = args.jobs or os.cpu_count() or 1
+    what = " inverted board" if args.inverted else ""
+    if args.below_floor:
+        what += f", {rig[-1].name} below a transparent floor (transparent board)"
     print(
         f"\nseed {seed}: {args.cameras} x {args.frames} frames {args.width}x"
-        f"{args.width * 3 // 4} {args.format} (rendered in {time.perf_counter() - t0:.1f} s); "
+        f"{args.width * 3 // 4} {args.format}{what} (rendered in {t_render:.1f} s); "
         f"FreiPose detection processes: {jobs}; aniposelib: OpenCV's default thread pool"
     )
-    videos = [vids[n] for n in rig.names]
+    normal = None
+    if variant:  # the normal case of the same seed, for FreiPose and aniposelib
+        normal = render_rig(args, seed, work / "normal", False)
+        print(
+            "aniposelib runs on the normal recording (normal print, default rig): it reads "
+            "neither inverted boards nor boards seen from behind"
+        )
+    anipose_videos = normal[2] if normal else videos
     rows, runs = {}, {"freipose": [], "aniposelib": []}
+    if normal:
+        runs["freipose normal"] = []
     have_aniposelib = True
     # the tools take turns, so that a slower spell of a shared machine falls on both; each
     # tool's errors are the same in every run (aniposelib's sampling is seeded)
@@ -229,17 +270,29 @@ def bench_seed(args, seed: int, work: Path) -> dict:
         runs["freipose"].append((td, ts))
         if i == 0:
             rows["freipose"] = errors(np.asarray(c), r, f, rig)
+            print(
+                "board views per camera (front/back): "
+                + ", ".join(
+                    f"{d.name} {int((d.counts >= 4).sum()) - d.back_views}/{d.back_views}"
+                    for d in dets
+                )
+            )
+        if normal:
+            c, r, f, td, ts, _d, _r = run_freipose(normal[2], normal[1], work, jobs)
+            runs["freipose normal"].append((td, ts))
+            if i == 0:
+                rows["freipose normal"] = errors(np.asarray(c), r, f, normal[0])
         if not have_aniposelib:
             continue
         try:
-            c, r, f, td, ts = run_aniposelib(videos, board, seed)
+            c, r, f, td, ts = run_aniposelib(anipose_videos, normal[1] if normal else board, seed)
         except ImportError:
             print("aniposelib is not installed (pip install -e .[bench]); FreiPose only")
             have_aniposelib = False
             continue
         runs["aniposelib"].append((td, ts))
         if i == 0:
-            rows["aniposelib"] = errors(c, r, f, rig)
+            rows["aniposelib"] = errors(c, r, f, normal[0] if normal else rig)
     for k in rows:
         # the run with the median wall time (detect + solve)
         rows[k] = (*rows[k], *sorted(runs[k], key=sum)[len(runs[k]) // 2])
@@ -250,18 +303,18 @@ def bench_seed(args, seed: int, work: Path) -> dict:
             + f" (the table: the median of {args.repeat})"
         )
     print(
-        f"{'method':<12}{'centre err mm':>15}{'rot err deg':>13}{'focal err %':>13}"
+        f"{'method':<16}{'centre err mm':>15}{'rot err deg':>13}{'focal err %':>13}"
         f"{'detect s':>10}{'solve s':>9}{'wall s':>9}"
     )
     for k, v in rows.items():
         print(
-            f"{k:<12}{v[0]:>15.3f}{v[1]:>13.3f}{v[2]:>13.3f}{v[3]:>10.2f}{v[4]:>9.2f}"
+            f"{k:<16}{v[0]:>15.3f}{v[1]:>13.3f}{v[2]:>13.3f}{v[3]:>10.2f}{v[4]:>9.2f}"
             f"{v[3] + v[4]:>9.2f}"
         )
     if "aniposelib" in rows:
         a, b = rows["aniposelib"], rows["freipose"]
         print(
-            f"{'ratio a/f':<12}{a[0] / b[0]:>15.2f}{a[1] / b[1]:>13.2f}{a[2] / b[2]:>13.2f}"
+            f"{'ratio a/f':<16}{a[0] / b[0]:>15.2f}{a[1] / b[1]:>13.2f}{a[2] / b[2]:>13.2f}"
             f"{a[3] / b[3]:>10.2f}{a[4] / b[4]:>9.2f}{(a[3] + a[4]) / (b[3] + b[4]):>9.2f}"
             f"   (aniposelib / FreiPose; > 1 means FreiPose is better)"
         )
@@ -318,6 +371,18 @@ def main() -> None:
         choices=(".mp4", ".mkv"),
         help="video container: .mp4 (MPEG-4 Part 2, lossy, fast to decode, like camera "
         "recordings; default) or .mkv (lossless FFV1, ~20 ms per frame to decode)",
+    )
+    ap.add_argument(
+        "--inverted",
+        action="store_true",
+        help="render the board printed inverted (white on black; inverted = true) and also "
+        "the normal case of each seed",
+    )
+    ap.add_argument(
+        "--below-floor",
+        action="store_true",
+        help="the last camera stands below a transparent floor looking up at a transparent "
+        "board (cameras behind the board see it mirrored); also renders the normal case",
     )
     args = ap.parse_args()
     if args.repeat < 1:

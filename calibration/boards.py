@@ -4,8 +4,8 @@ Every board is a frozen dataclass with
 
 * ``size_mm`` -> ``(width_mm, height_mm)``: the physical extent of the printed pattern;
 * ``texture(px_per_mm)`` -> uint8 ``(H, W)`` grayscale image of exactly that extent (white
-  background, black pattern, anti-aliased), as it is printed and as the synthetic renderer
-  maps it onto the board plane;
+  background, black pattern, anti-aliased; its negative for a board with ``inverted = true``),
+  as it is printed and as the synthetic renderer maps it onto the board plane;
 * ``object_points`` -> ``(P, 3)`` float64 board-frame coordinates (mm, z = 0) of every detectable
   corner, in id order;
 * ``to_dict()`` which round-trips through
@@ -194,6 +194,30 @@ def require_positive(name: str, value: Any) -> float:
     return float(value)
 
 
+def require_bool(name: str, value: Any) -> bool:
+    """``value`` when it is a boolean (``true``/``false`` in TOML); ``name`` is for messages.
+
+    Raises:
+        BoardError: ``value`` is no boolean.
+    """
+    if not isinstance(value, (bool, np.bool_)):
+        raise BoardError(f"{name} must be true or false, got {value!r}")
+    return bool(value)
+
+
+def _print(tex: np.ndarray, inverted: bool) -> np.ndarray:
+    """The texture as printed: white on black (the negative) for an inverted board."""
+    return 255 - tex if inverted else tex
+
+
+def _fields_dict(kind: str, board: Any) -> dict[str, Any]:
+    """``type`` and the board's fields, ``inverted`` only when true (normal boards' hash stays)."""
+    d = {"type": kind, **asdict(board)}
+    if not d.get("inverted"):
+        d.pop("inverted", None)
+    return d
+
+
 # --------------------------------------------------------------------------------------------
 # ChArUco
 
@@ -205,7 +229,7 @@ class CharucoBoard:
     The top-left square is black (OpenCV >= 4.6); with ``legacy_pattern`` and an even number of
     rows it is white instead (boards printed by OpenCV < 4.6 or aniposelib). Markers sit centred
     in the white squares with ids in row-major order. Corner ids are row-major over the
-    ``(squares_x - 1) x (squares_y - 1)`` inner corners.
+    ``(squares_x - 1) x (squares_y - 1)`` inner corners. ``inverted``: printed as the negative.
     """
 
     squares_x: int
@@ -214,6 +238,7 @@ class CharucoBoard:
     marker_size: float
     dictionary: str
     legacy_pattern: bool = False
+    inverted: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "squares_x", require_positive_int("squares_x", self.squares_x, 2))
@@ -227,6 +252,7 @@ class CharucoBoard:
             )
         object.__setattr__(self, "dictionary", _normalize_dictionary_name(self.dictionary))
         object.__setattr__(self, "legacy_pattern", bool(self.legacy_pattern))
+        object.__setattr__(self, "inverted", require_bool("inverted", self.inverted))
         n_markers = (self.squares_x * self.squares_y) // 2
         available = get_dictionary(self.dictionary).bytesList.shape[0]
         if n_markers > available:
@@ -316,9 +342,9 @@ class CharucoBoard:
         return np.where(inside, vals, out & inb)
 
     def texture(self, px_per_mm: float) -> np.ndarray:
-        """(H, W) uint8 image of the pattern at ``px_per_mm`` (white background, anti-aliased)."""
+        """(H, W) uint8 print at ``px_per_mm`` (anti-aliased; the negative when ``inverted``)."""
         w, h = self.size_mm
-        return _rasterize(w, h, px_per_mm, self._black)
+        return _print(_rasterize(w, h, px_per_mm, self._black), self.inverted)
 
     def cv_board(self, *, board_markers_only: bool = False) -> cv2.aruco.CharucoBoard:
         """The equivalent ``cv2.aruco.CharucoBoard`` (lengths in mm).
@@ -347,8 +373,7 @@ class CharucoBoard:
 
     def to_dict(self) -> dict[str, Any]:
         """The fields, with ``type``, that ``board_from_dict`` reads back."""
-        d = {"type": "charuco", **asdict(self)}
-        return d
+        return _fields_dict("charuco", self)
 
 
 # --------------------------------------------------------------------------------------------
@@ -361,12 +386,14 @@ class ChessboardBoard:
 
     The printed pattern has a white quiet zone of one square around the squares (the chessboard
     detector needs it), so ``size_mm`` = ``(inner_corners + 3) * square_size``. The top-left square
-    is black; corner ids are row-major (``inner_corners_x`` per row).
+    is black; corner ids are row-major (``inner_corners_x`` per row). ``inverted``: printed as
+    the negative (a black quiet zone, white squares where the normal print has black ones).
     """
 
     inner_corners_x: int
     inner_corners_y: int
     square_size: float
+    inverted: bool = False
 
     kind = "chessboard"
 
@@ -376,6 +403,7 @@ class ChessboardBoard:
         n = require_positive_int("inner_corners_y", self.inner_corners_y, 2)
         object.__setattr__(self, "inner_corners_y", n)
         object.__setattr__(self, "square_size", require_positive("square_size", self.square_size))
+        object.__setattr__(self, "inverted", require_bool("inverted", self.inverted))
 
     @property
     def margin_mm(self) -> float:
@@ -410,13 +438,13 @@ class ChessboardBoard:
         return inside & ((col + row) % 2 == 0)
 
     def texture(self, px_per_mm: float) -> np.ndarray:
-        """(H, W) uint8 image of the pattern at ``px_per_mm`` (white background, anti-aliased)."""
+        """(H, W) uint8 print at ``px_per_mm`` (anti-aliased; the negative when ``inverted``)."""
         w, h = self.size_mm
-        return _rasterize(w, h, px_per_mm, self._black)
+        return _print(_rasterize(w, h, px_per_mm, self._black), self.inverted)
 
     def to_dict(self) -> dict[str, Any]:
         """The fields, with ``type``, that ``board_from_dict`` reads back."""
-        return {"type": "chessboard", **asdict(self)}
+        return _fields_dict("chessboard", self)
 
 
 # --------------------------------------------------------------------------------------------
@@ -441,6 +469,7 @@ class AprilGridBoard:
     tag_spacing: float
     family: str = "36h11"
     border: int = 2
+    inverted: bool = False
 
     kind = "aprilgrid"
 
@@ -465,6 +494,7 @@ class AprilGridBoard:
             )
         object.__setattr__(self, "family", fam)
         object.__setattr__(self, "border", require_positive_int("border", self.border, 1))
+        object.__setattr__(self, "inverted", require_bool("inverted", self.inverted))
         available = get_dictionary(self.dictionary).bytesList.shape[0]
         if self.tags_x * self.tags_y > available:
             raise BoardError(
@@ -546,13 +576,13 @@ class AprilGridBoard:
         return np.where(inside, vals, out)
 
     def texture(self, px_per_mm: float) -> np.ndarray:
-        """(H, W) uint8 image of the pattern at ``px_per_mm`` (white background, anti-aliased)."""
+        """(H, W) uint8 print at ``px_per_mm`` (anti-aliased; the negative when ``inverted``)."""
         w, h = self.size_mm
-        return _rasterize(w, h, px_per_mm, self._black)
+        return _print(_rasterize(w, h, px_per_mm, self._black), self.inverted)
 
     def to_dict(self) -> dict[str, Any]:
         """The fields, with ``type``, that ``board_from_dict`` reads back."""
-        return {"type": "aprilgrid", **asdict(self)}
+        return _fields_dict("aprilgrid", self)
 
 
 Board = CharucoBoard | ChessboardBoard | AprilGridBoard

@@ -9,6 +9,7 @@ that is not found.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -32,13 +33,18 @@ __all__ = [
     "CameraDetections",
     "DetectionError",
     "aruco_detector",
+    "board_gray",
+    "board_side",
     "charuco_detector",
     "detect_aprilgrid",
+    "detect_aprilgrid_candidates",
     "detect_charuco",
     "detect_charuco_markers",
     "detect_chessboard",
     "detect_image",
     "gray_image",
+    "mirror_x",
+    "quads",
 ]
 
 CHARUCO_THRESH_WINDOWS = (3, 13)  # px, smallest and largest adaptive-threshold window (ChArUco)
@@ -57,12 +63,28 @@ class CameraDetections:
         size: image (width, height).
         points: (F, P, 2) pixel coordinates, NaN where not detected.
         source: the video file or image folder.
+        side: (F,) int8 side of the board seen: 0 front (or no board), 1 back (found in the
+            mirror image: a transparent or double-sided board seen from behind); ``None``:
+            not recorded (all front).
     """
 
     name: str
     size: tuple[int, int]
     points: np.ndarray
     source: str = ""
+    side: np.ndarray | None = None
+
+    @property
+    def sides(self) -> np.ndarray:
+        """(F,) int8 side of the board per frame (0 front or no board, 1 back)."""
+        if self.side is None:
+            return np.zeros(self.num_frames, np.int8)
+        return np.asarray(self.side, np.int8)
+
+    @property
+    def back_views(self) -> int:
+        """Number of frames in which the board's back was seen."""
+        return int(np.count_nonzero(self.sides == 1))
 
     @property
     def num_frames(self) -> int:
@@ -81,7 +103,8 @@ class CameraDetections:
 
     def truncated(self, n: int) -> CameraDetections:
         """The detections of the first ``n`` frames."""
-        return CameraDetections(self.name, self.size, self.points[:n], self.source)
+        side = None if self.side is None else self.side[:n]
+        return CameraDetections(self.name, self.size, self.points[:n], self.source, side)
 
 
 def gray_image(image: np.ndarray) -> np.ndarray:
@@ -92,6 +115,59 @@ def gray_image(image: np.ndarray) -> np.ndarray:
     if img.ndim == 3:
         return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     return img
+
+
+def board_gray(image: np.ndarray, board: Board) -> np.ndarray:
+    """(H, W) gray image in which ``board`` is printed dark on light.
+
+    It is the image's negative for an inverted board (white pattern on black), so that the
+    detectors of normal prints find it; corner positions are those of the original image.
+    """
+    import cv2
+
+    gray = gray_image(image)
+    return cv2.bitwise_not(gray) if board.inverted else gray
+
+
+def quads(corners: Sequence[np.ndarray] | None) -> np.ndarray:
+    """OpenCV's marker outlines (a list of (1, 4, 2) arrays, or None) as one (N, 4, 2) array."""
+    if corners is None or len(corners) == 0:
+        return np.zeros((0, 4, 2))
+    return np.concatenate([np.asarray(c, np.float64).reshape(-1, 4, 2) for c in corners])
+
+
+def mirror_x(pts: np.ndarray, width: int) -> np.ndarray:
+    """Points (..., 2) px of a horizontally flipped image in the original: x -> width - 1 - x."""
+    out = np.array(pts, np.float64, copy=True)
+    out[..., 0] = (width - 1) - out[..., 0]
+    return out
+
+
+def board_side(points: np.ndarray, object_points: np.ndarray) -> np.ndarray:
+    """(F,) int8 side of the board seen per frame: 1 back, 0 front or fewer than 3 points.
+
+    A board seen from behind is imaged mirrored: the affine map from board (x, y) to image
+    (x, y) fitted to a frame's points has a negative determinant (positive from the front,
+    where board x and y run like image x and y).
+
+    Args:
+        points: (F, P, 2) px, NaN where not detected.
+        object_points: (P, 3) board points (mm).
+
+    Returns:
+        the side of every frame.
+    """
+    pts = np.asarray(points, np.float64)
+    obj = np.asarray(object_points, np.float64)[:, :2]
+    out = np.zeros(pts.shape[0], np.int8)
+    found = np.isfinite(pts[..., 0])
+    for f in np.flatnonzero(found.sum(axis=1) >= 3):
+        m = found[f]
+        a = np.column_stack([obj[m], np.ones(int(m.sum()))])
+        coef, _res, rank, _sv = np.linalg.lstsq(a, pts[f, m], rcond=None)
+        if rank == 3 and np.linalg.det(coef[:2].T) < 0:
+            out[f] = 1
+    return out
 
 
 def _subpix(gray: np.ndarray, pts: np.ndarray, win: int) -> np.ndarray:
@@ -264,16 +340,36 @@ def detect_aprilgrid(
     Returns:
         the point ids (4 per tag) and their sub-pixel coordinates (empty when none is found).
     """
+    pid, pts, _markers, _rejected = detect_aprilgrid_candidates(gray, board, detector)
+    return pid, pts
+
+
+def detect_aprilgrid_candidates(
+    gray: np.ndarray, board: AprilGridBoard, detector: cv2.aruco.ArucoDetector | None = None
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """:func:`detect_aprilgrid`, with the number of tags found and the rejected candidates.
+
+    Args:
+        gray: (H, W) uint8 image.
+        board: the board.
+        detector: an :func:`aruco_detector` for the board's tags (default: a new one).
+
+    Returns:
+        the point ids, their coordinates, the number of the board's tags found and the
+        (R, 4, 2) outlines of the marker candidates that decoded to no tag (a mirrored grid
+        gives many).
+    """
     if detector is None:
         detector = aruco_detector(board.dictionary, board.border, board.n_tags)
-    corners, ids, _ = detector.detectMarkers(gray)
+    corners, ids, rejected = detector.detectMarkers(gray)
+    rejected_quads = quads(rejected)
     if ids is None or len(ids) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 2))
+        return np.zeros(0, np.int64), np.zeros((0, 2)), 0, rejected_quads
     ids = np.asarray(ids, np.int64).reshape(-1)
     corners = [np.asarray(c, np.float64).reshape(4, 2) for c in corners]
     keep = ids < board.n_tags
     if not keep.any():
-        return np.zeros(0, np.int64), np.zeros((0, 2))
+        return np.zeros(0, np.int64), np.zeros((0, 2)), 0, rejected_quads
     ids = ids[keep]
     cs = np.stack([c for c, k in zip(corners, keep) if k])  # (M, 4, 2) TL TR BR BL
     side = np.linalg.norm(cs - np.roll(cs, 1, axis=1), axis=-1).min()
@@ -282,7 +378,7 @@ def detect_aprilgrid(
     pts = _subpix(gray, cs.reshape(-1, 2), win).reshape(-1, 4, 2)
     order = np.asarray(board.OPENCV_TO_CORNER)
     pid = (4 * ids[:, None] + order[None, :]).reshape(-1)
-    return pid, pts.reshape(-1, 2)
+    return pid, pts.reshape(-1, 2), int(keep.sum()), rejected_quads
 
 
 def detect_image(image: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray]:
@@ -294,9 +390,25 @@ def detect_image(image: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarra
 
     Returns:
         ``(ids (N,) int, corners (N, 2) float64)``: point ids into ``board.object_points`` and
-        their pixel coordinates; empty when the board is not found.
+        their pixel coordinates; empty when the board is not found. A ChArUco board or
+        AprilTag grid that is not found is searched in the mirror image too (its back seen
+        through a transparent print, or a double-sided print's back): what is found there is
+        mapped back to this image (see :func:`board_side`).
     """
-    gray = gray_image(image)
+    import cv2
+
+    gray = board_gray(image, board)
+    ids, pts = _detect_gray(gray, board)
+    if len(ids) >= 4 or isinstance(board, ChessboardBoard):
+        return ids, pts
+    ids_m, pts_m = _detect_gray(cv2.flip(gray, 1), board)
+    if len(ids_m) >= 4:
+        return ids_m, mirror_x(pts_m, gray.shape[1])
+    return ids, pts
+
+
+def _detect_gray(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray]:
+    """``(ids, corners)`` of the board printed dark on light in a (H, W) gray image."""
     if isinstance(board, CharucoBoard):
         return detect_charuco(gray, board)
     if isinstance(board, ChessboardBoard):

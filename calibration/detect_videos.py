@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from freipose.calibration.boards import Board
-from freipose.calibration.detect import CameraDetections
+from freipose.calibration.detect import CameraDetections, board_side
 from freipose.calibration.detection_cache import cache_file, load_cache, save_cache
 from freipose.calibration.tracking import BoardTracker
 from freipose.workers import pool_context, process_pool, worker_errors
@@ -142,7 +142,8 @@ def detect_cameras(
         progress: show a progress bar.
 
     Returns:
-        one :class:`CameraDetections` per source, in order.
+        one :class:`CameraDetections` per source, in order, with the side of the board seen
+        in every frame (:func:`~freipose.calibration.detect.board_side`).
 
     Raises:
         WorkerError: a worker process died (the message says how, in one line).
@@ -194,8 +195,9 @@ def detect_cameras(
     for ci in done:
         if ci in cache_paths:
             save_cache(cache_paths[ci], results[ci])
+    obj = board.object_points
     return [
-        CameraDetections(name, size, results[ci], str(sources[ci]))
+        CameraDetections(name, size, results[ci], str(sources[ci]), board_side(results[ci], obj))
         for ci, (name, size, _n) in enumerate(infos)
     ]
 

@@ -12,7 +12,7 @@ from freipose.errors import InputFileError
 
 __all__ = ["CACHE_VERSION", "cache_file", "load_cache", "save_cache"]
 
-CACHE_VERSION = 3  # raised whenever the detections of the same frames change
+CACHE_VERSION = 4  # raised whenever the detections of the same frames change
 
 
 def _source_signature(path: Path) -> str:

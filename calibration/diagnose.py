@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -13,7 +14,7 @@ from freipose.calibration.boards import (
     ChessboardBoard,
     get_dictionary,
 )
-from freipose.calibration.detect import aruco_detector, detect_charuco, gray_image
+from freipose.calibration.detect import aruco_detector, board_gray, detect_charuco, detect_image
 
 __all__ = ["diagnose_board"]
 
@@ -57,20 +58,44 @@ def _smallest_family_member(name: str, max_id: int) -> str:
     return name
 
 
-def diagnose_board(images: Sequence[np.ndarray], board: Board) -> str:
+def _inversion_hint(images: Sequence[np.ndarray], board: Board, board_file: str) -> str | None:
+    """A sentence when the board is found with the other ``inverted`` setting, else ``None``."""
+    other = replace(board, inverted=not board.inverted)
+    n = sum(len(detect_image(im, other)[0]) for im in images)
+    if n < 4:
+        return None
+    if other.inverted:
+        return (
+            f"the board looks inverted (white pattern on black: {n} corners found in the "
+            f"negative images): add `inverted = true` to {board_file}"
+        )
+    return (
+        f"the board looks like a normal print (dark pattern on white: {n} corners found), but "
+        f"{board_file} says inverted = true: remove that line"
+    )
+
+
+def diagnose_board(
+    images: Sequence[np.ndarray], board: Board, board_file: str | None = None
+) -> str:
     """Explain why ``board`` is not found in ``images`` by trying other boards.
 
-    Tries every OpenCV marker dictionary (1- and 2-bit borders), the legacy ChArUco layout and
-    other ChArUco sizes.
+    Tries the board with the other ``inverted`` setting (a print's negative), every OpenCV
+    marker dictionary (1- and 2-bit borders), the legacy ChArUco layout and other ChArUco
+    sizes.
 
     Args:
         images: (H, W, 3) BGR or (H, W) gray frames of one camera.
         board: the board that was not found.
+        board_file: the board's file, for the message (default: "the board file").
 
     Returns:
         a sentence for the user.
     """
-    grays = [gray_image(im) for im in images]
+    inverted = _inversion_hint(images, board, board_file or "the board file")
+    if inverted is not None:
+        return inverted
+    grays = [board_gray(im, board) for im in images]
     # 1. markers of which dictionary?
     found: dict[tuple[str, int], tuple[int, int]] = {}  # (dict, border) -> (count, max id)
     for dname, border in _probe_dictionaries():

@@ -5,7 +5,9 @@ The board (any ``freipose.calibration.boards`` board, or anything with ``size_mm
 (distortion-exact) viewing ray is intersected with the board plane, 3 x 3 sub-pixel rays
 are averaged (anti-aliasing; sub-pixel rays from the per-pixel ray field's derivatives) and
 the printed texture is looked up at the hit points. The printed pattern sits on a white
-substrate with a margin; its back side is grey.
+substrate with a margin; its back side is grey, or, for a transparent (or double-sided) print,
+the pattern seen from behind: mirrored. A camera below the floor (z < 0) looks through it, as
+through a glass or acrylic floor.
 
 Board frame (shared with the calibration code): z = 0 is the board plane, x along the
 texture columns, y along its rows, origin at the texture's top-left pixel edge; the printed
@@ -170,7 +172,10 @@ def _board_box(cam: Camera, corners_world: np.ndarray) -> tuple[int, int, int, i
 class _BoardTexture:
     """The board's reflectance texture (computed once; shared by all cameras)."""
 
-    def __init__(self, board: Any, px_per_mm: float, margin_mm: float | None) -> None:
+    def __init__(
+        self, board: Any, px_per_mm: float, margin_mm: float | None, transparent: bool = False
+    ) -> None:
+        self.transparent = bool(transparent)  # the back shows the pattern (mirrored)
         tex = np.asarray(board.texture(px_per_mm), dtype=np.float32) / 255.0
         self.refl = (INK + (PAPER - INK) * tex).astype(np.float32)
         self.size_mm = tuple(float(v) for v in board.size_mm)
@@ -214,6 +219,8 @@ def _render_board_on(
     nrm = R[:, 2] * (1.0 if not front else -1.0)  # normal facing the camera
     lam = 0.45 + 0.55 * abs(float(nrm @ LIGHT))
     depth_bg = renderer.bg_depth[y0:y1, x0:x1]
+    if renderer.origin[2] < 0:  # a camera below the floor sees through it
+        depth_bg = np.full_like(depth_bg, np.inf)
     offs = (np.arange(samples) + 0.5) / samples - 0.5
     cover = np.zeros((y1 - y0, x1 - x0), np.float32)
     value = np.zeros((y1 - y0, x1 - x0), np.float32)
@@ -229,7 +236,7 @@ def _render_board_on(
             on = (s > 0) & (s < depth_bg) & (bx >= -m) & (bx <= bw + m)
             on &= (by >= -m) & (by <= bh + m)
             val: np.ndarray | np.float32
-            if front:
+            if front or tex.transparent:
                 mx = bx * np.float32(tex.ppm) - np.float32(0.5)
                 my = by * np.float32(tex.ppm) - np.float32(0.5)
                 val = cv2.remap(
@@ -262,14 +269,16 @@ def render_board_frames(
     arena: ArenaConfig | None = None,
     px_per_mm: float | None = None,
     margin_mm: float | None = None,
+    transparent: bool = False,
 ) -> dict[str, list[np.ndarray]]:
     """Render the board at ``poses`` (F, 4, 4) in every camera: camera name -> F BGR uint8 images.
 
     Exact inverse-mapping rendering with lens distortion, 3 x 3 anti-aliasing, the arena as
     background (walls occlude the board), per-camera exposure, optional mild optics blur and
-    sensor noise. Deterministic in ``seed``.
+    sensor noise. Deterministic in ``seed``. ``transparent``: cameras behind the board see its
+    pattern mirrored (a transparent or double-sided print) instead of a grey back.
     """
-    tex = _BoardTexture(board, px_per_mm or _auto_ppm(rig), margin_mm)
+    tex = _BoardTexture(board, px_per_mm or _auto_ppm(rig), margin_mm, transparent)
     return {
         cam.name: list(_iter_board_camera(cam, ci, tex, poses, seed, noise, blur, arena))
         for ci, cam in enumerate(rig)
@@ -367,12 +376,14 @@ def write_board_videos(
     arena: ArenaConfig | None = None,
     workers: int = 1,
     progress: bool | None = None,
+    transparent: bool = False,
 ) -> tuple[dict[str, Path], np.ndarray]:
     """Write a calibration recording: one board video per camera plus the ground truth.
 
     Writes ``outdir/<camera><fmt>``, ``calibration.toml`` (the true rig), ``board.toml``
     (the board) and ``board_poses.npy`` ((F, 4, 4) board->world transforms). Running it
-    again with the same arguments keeps the videos already written (resume).
+    again with the same arguments keeps the videos already written (resume). ``transparent``:
+    cameras behind the board see its pattern mirrored (see :func:`render_board_frames`).
 
     Returns:
         ``(videos {camera: path}, poses (F, 4, 4))``.
@@ -392,7 +403,7 @@ def write_board_videos(
     # what the videos depend on; complete videos of the same recording are kept (resume)
     stamp = hashlib.sha256(json.dumps([
         rig_to_toml_text(rig), repr(board), n_frames, int(seed), float(fps), fmt,
-        list(arena.size), arena.wall_height,
+        list(arena.size), arena.wall_height, *(["transparent"] if transparent else []),
     ]).encode()).hexdigest()  # fmt: skip
     stamp_path = out / ".synth_board_stamp"
     same = stamp_path.is_file() and stamp_path.read_text(encoding="utf-8") == stamp
@@ -402,7 +413,7 @@ def write_board_videos(
     with atomic_path(out / "board_poses.npy") as tmp, open(tmp, "wb") as fh:
         np.save(fh, poses)
     videos = {cam.name: out / f"{cam.name}{fmt}" for cam in rig}
-    tex = _BoardTexture(board, _auto_ppm(rig), None)
+    tex = _BoardTexture(board, _auto_ppm(rig), None, transparent)
     jobs = [
         _BoardJob(cam, ci, tex, poses, seed, fps, videos[cam.name], arena)
         for ci, cam in enumerate(rig)

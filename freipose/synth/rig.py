@@ -158,6 +158,36 @@ def default_rig(
     return CameraRig(tuple(cams), _metadata(arena))
 
 
+def camera_below_floor(
+    name: str, size: tuple[int, int], arena: ArenaConfig | None = None, distortion: bool = True
+) -> Camera:
+    """A camera under a transparent floor, looking up at the arena's centre.
+
+    It stands below the centre, a little off to one side, its image's up along world +y; the
+    focal length fits the arena into the image (the renderer sees the board through the floor).
+
+    Args:
+        name: the camera's name.
+        size: image size (width, height).
+        arena: the arena (default :class:`ArenaConfig`).
+        distortion: give the lens the mild barrel distortion of :func:`default_rig`.
+
+    Returns:
+        the camera.
+    """
+    arena = arena or ArenaConfig()
+    reach = float(max(arena.size)) / 600.0
+    pos = np.array([60.0 * reach, -80.0 * reach, -650.0 * reach])
+    target = np.array([0.0, 0.0, 200.0 * reach])
+    up = (0.0, 1.0, 0.0)
+    w, h = (int(v) for v in size)
+    focal = _fit_focal(pos, target, (w, h), up, arena)
+    dist = [-0.08, 0.02, 0.0, 0.0, 0.0] if distortion else None
+    if distortion:
+        focal *= 1.0 + 0.2 * 0.08
+    return Camera.look_at(name, pos, target, (w, h), focal, up=up, dist=dist)
+
+
 def _metadata(arena: ArenaConfig) -> dict[str, Any]:
     return {
         "units": "mm",
