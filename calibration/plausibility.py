@@ -40,7 +40,7 @@ MAX_OUTLIER_SHARE = 0.30  # share of a camera's detections the bundle adjustment
 MAX_POSE_ANGLE_DEG = 5.0  # median board-pose rotation disagreement of a camera
 MAX_POSE_SHIFT = 0.10  # median board-centre disagreement, as a share of the board diagonal
 MAX_FOCAL_SE = 0.05  # standard error of fx as a share of fx
-_POSE_FRAMES = 60  # frames per camera used for the board-pose comparison (evenly spaced)
+_POSE_FRAMES = 30  # frames per camera used for the board-pose comparison (evenly spaced)
 _MIN_PNP_POINTS = 6
 
 _FIX = (
@@ -177,27 +177,34 @@ def _pose_disagreement(ba: BundleResult, camera: int, diag: float) -> tuple[floa
     obs, keep = ba.obs, ba.inliers
     p = ba.cam_params[camera]
     K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
+    dist = p[DIST].astype(np.float64)
     Tc = transform(rodrigues(p[RVEC]), p[TVEC])
-    cams_per_frame = np.zeros(len(ba.frames), int)
-    pairs = np.unique(np.stack([obs.frame[keep], obs.cam[keep]], 1), axis=0)
-    np.add.at(cams_per_frame, pairs[:, 0], 1)
-    mine = obs.cam == camera
-    cnt = np.bincount(obs.frame[mine & keep], minlength=len(ba.frames))
-    ks = np.flatnonzero((cnt >= _MIN_PNP_POINTS) & (cams_per_frame >= 2))
+    F = len(ba.frames)
+    seen = np.zeros((F, len(ba.cam_params)), bool)
+    seen[obs.frame[keep], obs.cam[keep]] = True
+    idx = np.flatnonzero(keep & (obs.cam == camera))
+    idx = idx[np.argsort(obs.frame[idx], kind="stable")]
+    ks, starts, cnt = np.unique(obs.frame[idx], return_index=True, return_counts=True)
+    use = (cnt >= _MIN_PNP_POINTS) & (seen[ks].sum(1) >= 2)
+    ks, starts, cnt = ks[use], starts[use], cnt[use]
     if ks.size > _POSE_FRAMES:
-        ks = ks[np.linspace(0, ks.size - 1, _POSE_FRAMES).round().astype(int)]
+        pick = np.linspace(0, ks.size - 1, _POSE_FRAMES).round().astype(int)
+        ks, starts, cnt = ks[pick], starts[pick], cnt[pick]
     angles, shifts = [], []
-    centre = np.append(0.5 * (obs.point[mine].min(0)[:2] + obs.point[mine].max(0)[:2]), 0.0)
-    for k in ks:
-        m = mine & keep & (obs.frame == k)
-        B = transform(rodrigues(ba.frame_params[k, FRAME_RVEC]), ba.frame_params[k, FRAME_TVEC])
+    pts = obs.point[idx]
+    centre = np.append(0.5 * (pts.min(0)[:2] + pts.max(0)[:2]), 0.0) if idx.size else np.zeros(3)
+    Tc_inv = invert_transform(Tc)
+    for k, s0, n in zip(ks, starts, cnt):
+        m = idx[s0 : s0 + n]
+        fr = ba.frame_params[k].astype(np.float64)
+        B = transform(cv2.Rodrigues(fr[FRAME_RVEC])[0], fr[FRAME_TVEC])
         T0 = Tc @ B
         rv, tv = cv2.Rodrigues(T0[:3, :3])[0], T0[:3, 3].reshape(3, 1).copy()
         ok, rv, tv = cv2.solvePnP(
             obs.point[m].astype(np.float64),
             obs.uv[m].astype(np.float64),
             K,
-            p[DIST].astype(np.float64),
+            dist,
             rv,
             tv,
             useExtrinsicGuess=True,
@@ -205,7 +212,7 @@ def _pose_disagreement(ba: BundleResult, camera: int, diag: float) -> tuple[floa
         )
         if not ok:
             continue
-        Bc = invert_transform(Tc) @ transform(cv2.Rodrigues(rv)[0], tv.ravel())
+        Bc = Tc_inv @ transform(cv2.Rodrigues(rv)[0], tv.ravel())
         dR = B[:3, :3].T @ Bc[:3, :3]
         angles.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
         shift = (Bc[:3, :3] - B[:3, :3]) @ centre + Bc[:3, 3] - B[:3, 3]
