@@ -171,7 +171,7 @@ def select_models(
     square = square.copy()
     changed = False
     if opt.principal_point == "auto" or opt.dist_model == "auto" or opt.aspect == "auto":
-        cov = camera_covariance(ba, free)
+        cov = camera_covariance(ba, free, square)
         cam = ba.cam_params.copy()
         for i, d in enumerate(dets):
             if d.name not in fixed_names:
