@@ -341,7 +341,11 @@ class _Quality:
 
 
 def _quality(
-    dets: list[CameraDetections], board: Board, adj: Adjustment, opt: CalibrationOptions
+    dets: list[CameraDetections],
+    board: Board,
+    adj: Adjustment,
+    fixed: frozenset[str],
+    opt: CalibrationOptions,
 ) -> _Quality:
     """Standard errors and plausibility of the final adjustment.
 
@@ -352,7 +356,8 @@ def _quality(
     cov = camera_covariance(adj.bundle, adj.free, adj.square)
     se = intrinsic_standard_errors(cov, adj.free, adj.square, names)
     diag = float(np.hypot(*board.size_mm))
-    findings = check_plausibility(names, [tuple(d.size) for d in dets], adj.bundle, diag, se)
+    sizes = [tuple(d.size) for d in dets]
+    findings = check_plausibility(names, sizes, adj.bundle, diag, se, fixed)
     for f in findings:
         logger.warning(f.message)
     if findings and not opt.accept_implausible:
@@ -374,7 +379,7 @@ def _calibrate_detections(
     seen = board_observations(dets, obj, rig0.frames)
     start = initial_parameters(dets, intr, rig0, opt)
     adj = _adjust(start, seen, rig0.frames, dets, intr, obj, opt)
-    quality = _quality(dets, board, adj, opt)
+    quality = _quality(dets, board, adj, intr.fixed, opt)
     world = world_frame(adj.bundle, dets[0].num_frames, [d.name for d in dets], opt.origin_frame)
     cams = rig_cameras(dets, adj.bundle, world.cameras)
     stats = bundle_stats(dets, adj.bundle, adj.obs, intr.results)

@@ -49,6 +49,11 @@ _FIX = (
     "and moved over the whole image"
 )
 
+_FIX_GIVEN = (
+    "its intrinsics were given (--fix-intrinsics or --intrinsics-from): check that they "
+    "belong to this camera (same lens, focus and resolution), or calibrate them anew"
+)
+
 
 @dataclass(frozen=True)
 class Finding:
@@ -84,7 +89,7 @@ class ImplausibleCalibrationError(CalibrationError):
         )
 
 
-def _fov_findings(name: str, size: tuple[int, int], p: np.ndarray) -> list[Finding]:
+def _fov_findings(name: str, size: tuple[int, int], p: np.ndarray, fix: str) -> list[Finding]:
     """Field of view and principal point of camera row ``p`` on a ``size`` image."""
     w, h = size
     out = []
@@ -98,7 +103,7 @@ def _fov_findings(name: str, size: tuple[int, int], p: np.ndarray) -> list[Findi
                 "field_of_view",
                 f"camera {name}: focal length fx = {fx:.1f}, fy = {fy:.1f} px on a {w}x{h} "
                 f"image gives a horizontal field of view of {fov[0]:.1f} degrees (plausible: "
-                f"{lo:.0f}-{hi:.0f}); {_FIX}",
+                f"{lo:.0f}-{hi:.0f}); {fix}",
             )
         )
     cx, cy = float(p[2]), float(p[3])
@@ -109,7 +114,7 @@ def _fov_findings(name: str, size: tuple[int, int], p: np.ndarray) -> list[Findi
                 name,
                 "principal_point",
                 f"camera {name}: principal point ({cx:.1f}, {cy:.1f}) px lies more than "
-                f"{100 * m:.0f} % of the image size outside the {w}x{h} image; {_FIX}",
+                f"{100 * m:.0f} % of the image size outside the {w}x{h} image; {fix}",
             )
         )
     return out
@@ -142,7 +147,7 @@ def folding_radius(dist: np.ndarray, corner_radius: float) -> float | None:
     return None
 
 
-def _folding_findings(name: str, size: tuple[int, int], p: np.ndarray) -> list[Finding]:
+def _folding_findings(name: str, size: tuple[int, int], p: np.ndarray, fix: str) -> list[Finding]:
     """A finding when camera row ``p``'s radial distortion folds inside the image."""
     w, h = size
     if not (p[0] > 0 and p[1] > 0):
@@ -158,7 +163,7 @@ def _folding_findings(name: str, size: tuple[int, int], p: np.ndarray) -> list[F
             name,
             "folding_distortion",
             f"camera {name}: the radial distortion ({k}) folds the image: it stops rising at "
-            f"normalized radius {r:.3f}, before the image corner ({rc:.3f}); {_FIX}, or "
+            f"normalized radius {r:.3f}, before the image corner ({rc:.3f}); {fix}, or "
             f"choose a simpler --dist-model",
         )
     ]
@@ -222,7 +227,9 @@ def _pose_disagreement(ba: BundleResult, camera: int, diag: float) -> tuple[floa
     return float(np.median(angles)), float(np.median(shifts)) / diag, len(angles)
 
 
-def _pose_findings(ba: BundleResult, camera: int, name: str, diag: float) -> list[Finding]:
+def _pose_findings(
+    ba: BundleResult, camera: int, name: str, diag: float, fix: str
+) -> list[Finding]:
     """A finding when camera ``camera``'s board poses disagree with the rig's."""
     angle, shift, n = _pose_disagreement(ba, camera, diag)
     if n == 0 or (angle <= MAX_POSE_ANGLE_DEG and shift <= MAX_POSE_SHIFT):
@@ -235,12 +242,12 @@ def _pose_findings(ba: BundleResult, camera: int, name: str, diag: float) -> lis
             f"cameras' in {n} shared frames: median {angle:.1f} degrees and {100 * shift:.0f} % "
             f"of the board diagonal (plausible: at most {MAX_POSE_ANGLE_DEG:.0f} degrees and "
             f"{100 * MAX_POSE_SHIFT:.0f} %); check that its video belongs to this recording "
-            f"and is synchronized and not mirrored, or leave the camera out; {_FIX}",
+            f"and is synchronized and not mirrored, or leave the camera out; {fix}",
         )
     ]
 
 
-def _outlier_findings(ba: BundleResult, camera: int, name: str) -> list[Finding]:
+def _outlier_findings(ba: BundleResult, camera: int, name: str, fix: str) -> list[Finding]:
     """A finding when the bundle adjustment rejected a large share of a camera's detections."""
     mine = ba.obs.cam == camera
     n = int(mine.sum())
@@ -253,12 +260,12 @@ def _outlier_findings(ba: BundleResult, camera: int, name: str) -> list[Finding]
             "outliers",
             f"camera {name}: the bundle adjustment rejected {bad} of its {n} detections "
             f"({100 * bad / n:.0f} %, plausible: at most {100 * MAX_OUTLIER_SHARE:.0f} %); its "
-            f"views do not fit one camera model: {_FIX}",
+            f"views do not fit one camera model: {fix}",
         )
     ]
 
 
-def _weak_findings(name: str, p: np.ndarray, se: Mapping[str, float]) -> list[Finding]:
+def _weak_findings(name: str, p: np.ndarray, se: Mapping[str, float], fix: str) -> list[Finding]:
     """A finding when camera row ``p``'s focal length is poorly determined."""
     s = se.get("fx")
     if s is None or not p[0] > 0 or s <= MAX_FOCAL_SE * p[0]:
@@ -269,7 +276,7 @@ def _weak_findings(name: str, p: np.ndarray, se: Mapping[str, float]) -> list[Fi
             "weak_intrinsics",
             f"camera {name}: its focal length fx = {p[0]:.1f} px has a standard error of "
             f"{s:.1f} px ({100 * s / p[0]:.0f} %, plausible: at most "
-            f"{100 * MAX_FOCAL_SE:.0f} %); {_FIX}",
+            f"{100 * MAX_FOCAL_SE:.0f} %); {fix}",
         )
     ]
 
@@ -280,6 +287,7 @@ def check_plausibility(
     ba: BundleResult,
     board_diagonal: float,
     standard_errors: Mapping[str, Mapping[str, float]],
+    fixed: frozenset[str] = frozenset(),
 ) -> tuple[Finding, ...]:
     """Every reason the adjusted rig is not physically plausible (see the module docstring).
 
@@ -290,6 +298,7 @@ def check_plausibility(
         board_diagonal: the board's diagonal (mm), the scale of the board-pose comparison.
         standard_errors: per camera, the standard errors of its free intrinsics
             (:func:`freipose.calibration.stats.intrinsic_standard_errors`).
+        fixed: the cameras whose intrinsics were given (their findings point at the file).
 
     Returns:
         the findings, in camera order (empty: plausible).
@@ -297,12 +306,13 @@ def check_plausibility(
     out: list[Finding] = []
     for i, (name, size) in enumerate(zip(names, sizes)):
         p = ba.cam_params[i]
-        out += _fov_findings(name, size, p)
-        out += _folding_findings(name, size, p)
-        out += _outlier_findings(ba, i, name)
-        out += _weak_findings(name, p, standard_errors.get(name, {}))
+        fix = _FIX_GIVEN if name in fixed else _FIX
+        out += _fov_findings(name, size, p, fix)
+        out += _folding_findings(name, size, p, fix)
+        out += _outlier_findings(ba, i, name, fix)
+        out += _weak_findings(name, p, standard_errors.get(name, {}), fix)
         if len(names) > 1:
-            out += _pose_findings(ba, i, name, board_diagonal)
+            out += _pose_findings(ba, i, name, board_diagonal, fix)
     return tuple(out)
 
 

@@ -177,3 +177,16 @@ def test_cli_refuses_and_force_marks_suspect(tmp_path, dets, monkeypatch):
     assert summary["cameras"]["cam0"]["intrinsics_standard_errors"]["fx"] > 0
     r = CliRunner().invoke(cli, ["calib", "show", str(out)], catch_exceptions=False)
     assert "SUSPECT" in r.output and "standard errors" in r.output
+
+
+def test_wrong_given_intrinsics_refused(rig, dets):
+    from freipose.geometry import Camera, CameraRig
+
+    cams = list(rig)
+    c = cams[1]
+    K = c.K.copy()
+    K[:2, :2] *= 1.2  # the --fix-intrinsics file of another lens
+    cams[1] = Camera(c.name, c.size, K, c.dist, c.R, c.t)
+    opt = CalibrationOptions(progress=False, fixed_intrinsics=CameraRig(tuple(cams)))
+    with pytest.raises(ImplausibleCalibrationError, match="camera cam1: .*intrinsics were given"):
+        calibrate_detections(dets, BOARD, opt)
