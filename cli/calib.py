@@ -18,6 +18,13 @@ SUBCOMMANDS = {
 def calib() -> None:
     """Calibrate cameras from synchronized board videos, or convert/show calibration files.
 
+    A calibration that is not physically plausible (a field of view, principal point or
+    distortion no lens has, a camera whose board poses disagree with the others', over 30 %
+    of a camera's detections rejected, a focal length the views do not pin down) is not
+    written: the message names the camera, the numbers and the fix; --force writes it marked
+    as suspect (see freipose calib run --help). --intrinsics-from takes intrinsics from a
+    separate recording.
+
     \b
     Examples:
       freipose calib cams/cam0.mp4 cams/cam1.mp4 --board board.toml -o calibration.toml
