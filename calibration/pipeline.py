@@ -358,8 +358,6 @@ def _quality(
     diag = float(np.hypot(*board.size_mm))
     sizes = [tuple(d.size) for d in dets]
     findings = check_plausibility(names, sizes, adj.bundle, diag, se, fixed)
-    for f in findings:
-        logger.warning(f.message)
     if findings and not opt.accept_implausible:
         raise ImplausibleCalibrationError(findings)
     return _Quality(se, findings)

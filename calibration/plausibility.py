@@ -260,7 +260,8 @@ def _outlier_findings(ba: BundleResult, camera: int, name: str, fix: str) -> lis
             "outliers",
             f"camera {name}: the bundle adjustment rejected {bad} of its {n} detections "
             f"({100 * bad / n:.0f} %, plausible: at most {100 * MAX_OUTLIER_SHARE:.0f} %); its "
-            f"views do not fit one camera model: {fix}",
+            f"views do not fit one camera model (is its video mirrored, from another recording "
+            f"or out of sync?); {fix}",
         )
     ]
 
