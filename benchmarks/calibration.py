@@ -13,6 +13,13 @@ decode; ``--format .mkv`` writes lossless FFV1 (~20 ms per frame), whose decodin
 dominates both tools' time. ``--noise-floor N`` also reports what FreiPose's solver gives when
 its own corners are replaced by exact projections plus Gaussian noise of the measured size.
 
+``--inverted`` renders the board printed inverted (``inverted = true``); ``--below-floor``
+puts the last camera below a transparent floor, looking up at a transparent board (it and any
+camera behind the board see the pattern mirrored: FreiPose finds it in the mirror image).
+Both also render and calibrate the normal recording of the same seed ("freipose normal");
+aniposelib, which reads neither, runs on that normal recording. The per-camera counts of
+front and back views are printed.
+
     pip install -e .[bench]     # aniposelib
     python benchmarks/calibration.py --cameras 4 --frames 150 --width 640 --seed 1 2 3
     python benchmarks/calibration.py --seed 2 --workdir /tmp/calib-bench   # keep the videos

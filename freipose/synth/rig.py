@@ -163,8 +163,11 @@ def camera_below_floor(
 ) -> Camera:
     """A camera under a transparent floor, looking up at the arena's centre.
 
-    It stands below the centre, a little off to one side, its image's up along world +y; the
-    focal length fits the arena into the image (the renderer sees the board through the floor).
+    It stands 650 mm below the centre (scaled with the arena), a little off to one side, its
+    image's up along world +y. Its focal length frames the region that the synthetic
+    calibration board moves through (:func:`freipose.synth.board.board_poses`: 260 mm around
+    the centre at its lowest height, 140 mm), so that the board covers the image as it does in
+    the other cameras; the renderer sees the board through the floor.
 
     Args:
         name: the camera's name.
@@ -181,7 +184,11 @@ def camera_below_floor(
     target = np.array([0.0, 0.0, 200.0 * reach])
     up = (0.0, 1.0, 0.0)
     w, h = (int(v) for v in size)
-    focal = _fit_focal(pos, target, (w, h), up, arena)
+    probe = Camera.look_at("probe", pos, target, (w, h), 1.0, up=up)
+    box = np.array([[x, y, 140.0] for x in (-260.0, 260.0) for y in (-260.0, 260.0)]) * reach
+    xc = box @ probe.R.T + probe.t
+    xy = np.abs(xc[:, :2] / xc[:, 2:3])
+    focal = float(min(0.92 * (w / 2) / xy[:, 0].max(), 0.92 * (h / 2) / xy[:, 1].max()))
     dist = [-0.08, 0.02, 0.0, 0.0, 0.0] if distortion else None
     if distortion:
         focal *= 1.0 + 0.2 * 0.08
