@@ -406,6 +406,7 @@ def calibrate(
     board: Board,
     output: str | Path | None = None,
     options: CalibrationOptions | None = None,
+    board_file: str | Path | None = None,
 ) -> CalibrationResult:
     """Detect ``board`` in every frame of every source (video or image folder) and calibrate.
 
@@ -419,6 +420,7 @@ def calibrate(
         output: the calibration file to be written (names the detection cache); ``None``:
             no cache.
         options: the options (default: :class:`CalibrationOptions`'s defaults).
+        board_file: the board's file, named in the hint when the board is never found.
 
     Returns:
         the calibrated rig with everything a report needs.
@@ -449,7 +451,7 @@ def calibrate(
             n = src.num_frames
             idx = np.unique(np.linspace(0, n - 1, min(n, 4)).round().astype(int))
             imgs = [src.read(int(i)) for i in idx]
-        hint = diagnose_board(imgs, board)
+        hint = diagnose_board(imgs, board, None if board_file is None else str(board_file))
         raise CalibrationError(
             f"camera {d.name}: the board was never detected in its {d.num_frames} frames ({p})"
             + (f"; {hint}" if hint else "; make sure the camera sees the whole board")

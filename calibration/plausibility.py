@@ -157,14 +157,17 @@ def _folding_findings(name: str, size: tuple[int, int], p: np.ndarray, fix: str)
     r = folding_radius(p[DIST], rc)
     if r is None:
         return []
-    k = ", ".join(f"{n} = {x:.4g}" for n, x in zip(("k1", "k2", "k3"), p[DIST][[0, 1, 4]]))
+    k1, k2, k3 = (float(x) for x in p[DIST][[0, 1, 4]])
+    reach = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)  # the largest distorted radius
+    k = f"k1 = {k1:.4g}, k2 = {k2:.4g}, k3 = {k3:.4g}"
     return [
         Finding(
             name,
             "folding_distortion",
-            f"camera {name}: the radial distortion ({k}) folds the image: it stops rising at "
-            f"normalized radius {r:.3f}, before the image corner ({rc:.3f}); {fix}, or "
-            f"choose a simpler --dist-model",
+            f"camera {name}: the radial distortion ({k}) folds the image: the distorted radius "
+            f"rises only to {reach:.3f} (normalized; at undistorted radius {r:.3f}) and falls "
+            f"after that, short of the image corner at {rc:.3f}; {fix}, or choose a simpler "
+            f"--dist-model",
         )
     ]
 

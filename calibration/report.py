@@ -26,14 +26,17 @@ def summary_dict(result: CalibrationResult) -> dict[str, Any]:
         result: the calibration.
 
     Returns:
-        the board, frame count, per-camera figures, parameters and intrinsic standard
+        the board, frame count, per-camera figures (with ``back_side_views``, the frames
+        in which the camera saw the board from behind), parameters and intrinsic standard
         errors, world frame, camera graph, warnings, the plausibility findings of a
         calibration written with ``--force`` (``suspect``, empty when plausible) and the
         bundle adjustment's statistics.
     """
     cams = {}
+    back = {det.name: det.back_views for det in result.detections}
     for s, cam in zip(result.stats, result.rig):
         d = s.to_dict()
+        d["back_side_views"] = int(back.get(s.name, 0))
         d["size"] = [int(cam.size[0]), int(cam.size[1])]
         d["focal_px"] = [round(float(cam.K[0, 0]), 3), round(float(cam.K[1, 1]), 3)]
         d["principal_point_px"] = [round(float(cam.K[0, 2]), 3), round(float(cam.K[1, 2]), 3)]

@@ -273,11 +273,13 @@ def _echo_result(result: Any, output: Path) -> None:
     import logging
 
     log = logging.getLogger("freipose.calib")
+    back = {d.name: d.back_views for d in result.detections}
     for s in result.stats:
         rms = f"{s.rms:.3f} px" if s.rms == s.rms else "n/a"
+        behind = f" ({back[s.name]} seen from behind)" if back.get(s.name) else ""
         click.echo(
-            f"{s.name}: {s.frames_detected} frames with the board, {s.points_used} points "
-            f"used, reprojection RMS {rms}"
+            f"{s.name}: {s.frames_detected} frames with the board{behind}, {s.points_used} "
+            f"points used, reprojection RMS {rms}"
         )
     for w in result.warnings:
         log.warning(w)
@@ -475,7 +477,7 @@ def run(
         if intrinsics_from is not None:
             rig = intrinsics_from_recording(intrinsics_from, cameras, board, opts)
             opts = replace(opts, fixed_intrinsics=rig)
-        result = calibrate(list(inputs), board, output, opts)
+        result = calibrate(list(inputs), board, output, opts, board_file=board_file)
         save_calibration(result.rig, output, out_format)
         _echo_result(result, output)
         if report_dir is not None:

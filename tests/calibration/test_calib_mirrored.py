@@ -159,3 +159,7 @@ def test_camera_below_a_transparent_floor_calibrates_like_the_others(tmp_path):
     res = calibrate_detections(dets, board, CalibrationOptions(jobs=2, progress=False))
     dc, rot, fe = rig_errors(res.rig, rig)
     assert dc.max() < 1.0 and rot.max() < 0.1 and np.abs(fe).max() < 0.3, (dc, rot, fe)
+    from freipose.calibration.report import summary_dict
+
+    sides = {n: c["back_side_views"] for n, c in summary_dict(res)["cameras"].items()}
+    assert sides["cam2"] == below.back_views  # the report says which side each camera saw
