@@ -25,6 +25,14 @@ def calib() -> None:
     as suspect (see freipose calib run --help). --intrinsics-from takes intrinsics from a
     separate recording.
 
+    Boards printed inverted (white squares and markers on black) need `inverted = true` in
+    the board file; the message for a board that is never found says so when the images
+    show one. A board seen from behind (a camera under a transparent floor, a board printed
+    on both sides or on a transparent sheet) is found without being told: ChArUco boards and
+    AprilGrids are searched in the mirror image, and the output says how many frames each
+    camera saw from behind. A chessboard seen from behind cannot be told from a mirrored
+    grid: use a ChArUco board or an AprilGrid for such rigs.
+
     \b
     Examples:
       freipose calib cams/cam0.mp4 cams/cam1.mp4 --board board.toml -o calibration.toml
