@@ -23,6 +23,7 @@ COMMANDS = {
     "predict": "freipose.cli.predict:predict",
     "merge": "freipose.cli.merge:merge",
     "export": "freipose.cli.export:export",
+    "smooth": "freipose.cli.smooth:smooth",
     "render": "freipose.cli.render:render",
     "analyze": "freipose.cli.analyze:analyze",
     "demo": "freipose.cli.demo:demo",

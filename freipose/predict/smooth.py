@@ -1,0 +1,367 @@
+"""Temporal smoothing of predicted poses with a posterior standard deviation per point.
+
+Every keypoint follows a constant-velocity model on each world axis (state: position and
+velocity, white-noise acceleration of spectral density ``q`` in mm^2/s^3). A frame's
+measurement is the predicted position with variance ``sigma0^2 * c^-beta`` (``c`` the
+frame's confidence, floored at :data:`MIN_CONFIDENCE`), so low-confidence frames count
+little; frames without a prediction have no measurement and are filled by the smoother.
+A measurement whose innovation is improbable under the filter (Mahalanobis distance over
+the three axes above the 99.9 % point of chi-square with 3 degrees of freedom) is
+rejected as an outlier. A Rauch-Tung-Striebel pass gives the posterior mean and variance
+of every frame; being a forward-backward smoother it adds no lag.
+
+The parameters ``(q, sigma0, beta)`` of each keypoint are fitted on the recording itself by
+maximising the innovation likelihood of the Kalman filter in a pattern search (on at most
+:data:`FIT_FRAMES` frames from the middle of the recording), so the reported uncertainty
+follows the recording's own noise.
+
+The filter is written here in NumPy rather than taken from a library: ``filterpy``
+(``KalmanFilter.batch_filter`` / ``rts_smoother``) and ``pykalman`` run one series at a
+time with per-step matrix calls in Python, which is too slow for a grid fit over
+``K * 3`` series and dozens of parameter candidates, and neither fits the scale of a
+per-frame measurement variance (pykalman's EM estimates one constant observation
+covariance; filterpy fits nothing); ``ensemble-kalman-smoother`` needs an ensemble of
+networks and JAX. The scalar two-state filter below runs all series and all candidates at
+once as arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from freipose.errors import FreiPoseError
+from freipose.io.atomic import refuse_existing
+from freipose.io.lock import output_lock
+from freipose.io.poses import PoseData, read_poses_h5, write_poses_h5
+
+MIN_CONFIDENCE = 0.02
+GATE_CHI2_3 = 16.27  # 99.9 % point of chi-square with 3 degrees of freedom
+FIT_FRAMES = 4000
+_P0 = 1e8  # prior variance of the first position (mm^2) and velocity ((mm/s)^2)
+
+_ROUNDS = 12
+
+
+class SmoothingError(FreiPoseError):
+    """The poses cannot be smoothed (too few predicted frames of a keypoint)."""
+
+
+@dataclass(frozen=True)
+class SmootherParams:
+    """Fitted parameters of the smoother, one value per keypoint.
+
+    Attributes:
+        q: (K,) process noise, white-noise acceleration spectral density in mm^2/s^3.
+        sigma0: (K,) measurement standard deviation in mm at confidence 1.
+        beta: (K,) exponent of the confidence: variance = sigma0^2 * c^-beta.
+    """
+
+    q: np.ndarray
+    sigma0: np.ndarray
+    beta: np.ndarray
+
+    def as_dict(self, keypoints: tuple[str, ...]) -> dict[str, Any]:
+        """The parameters per keypoint name, for provenance."""
+        return {
+            name: {"q_mm2_s3": float(q), "sigma0_mm": float(s), "beta": float(b)}
+            for name, q, s, b in zip(keypoints, self.q, self.sigma0, self.beta, strict=True)
+        }
+
+
+@dataclass(frozen=True)
+class SmoothResult:
+    """Posterior of the smoother.
+
+    Attributes:
+        mean: (T, K, 3) posterior mean in mm.
+        std: (T, K, 3) posterior standard deviation in mm, per axis.
+        filled: (T, K) frames without a prediction (filled by the smoother).
+        rejected: (T, K) predictions rejected as outliers.
+        params: the fitted parameters.
+        loglik: (K,) innovation log-likelihood of the fitted parameters on the fit frames.
+    """
+
+    mean: np.ndarray
+    std: np.ndarray
+    filled: np.ndarray
+    rejected: np.ndarray
+    params: SmootherParams
+    loglik: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Pass:
+    """Forward-filter output: log-likelihood, rejections and the per-frame states (if kept)."""
+
+    loglik: np.ndarray
+    rejected: np.ndarray
+    states: tuple[np.ndarray, ...]
+
+
+def _meas_var(conf: np.ndarray, sigma0: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """(G, K, 1) parameters and (K,) confidences -> (G, K, 1) measurement variances.
+
+    ``conf`` may be divided by a reference confidence (as in :func:`fit_params`); the
+    floor :data:`MIN_CONFIDENCE` is applied by the caller.
+    """
+    return sigma0**2 * conf[None, :, None] ** (-beta)
+
+
+def _forward(
+    z: np.ndarray,
+    conf: np.ndarray,
+    dt: np.ndarray,
+    params: tuple[np.ndarray, np.ndarray, np.ndarray],
+    keep: bool,
+) -> _Pass:
+    """Kalman filter of every series and parameter candidate at once.
+
+    Args:
+        z: (T, K, 3) measurements in mm, NaN where missing.
+        conf: (T, K) confidences.
+        dt: (T,) seconds from the previous frame (dt[0] unused).
+        params: q, sigma0, beta, each (G, K, 1).
+        keep: keep the filtered and predicted states for the smoother.
+    """
+    q, sigma0, beta = params
+    t_n, k_n, _ = z.shape
+    shape = np.broadcast_shapes(q.shape, (1, k_n, 3))
+    valid = np.isfinite(z).all(axis=-1)
+    first = np.where(valid.any(axis=0), valid.argmax(axis=0), 0)
+    x = np.broadcast_to(np.nan_to_num(z[first, np.arange(k_n)])[None], shape).copy()
+    v = np.zeros(shape)
+    p00, p01, p11 = np.full(shape, _P0), np.zeros(shape), np.full(shape, _P0)
+    loglik = np.zeros(shape[:2])
+    rejected = np.zeros((t_n, k_n), bool) if q.shape[0] == 1 else None
+    out = [np.empty((t_n, *shape)) for _ in range(10)] if keep else None
+    for t in range(t_n):
+        if t > 0:
+            h = dt[t]
+            x = x + h * v
+            p00 = p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3
+            p01 = p01 + h * p11 + q * h * h / 2
+            p11 = p11 + q * h
+        if out is not None:
+            for arr, val in zip(out[5:], (x, v, p00, p01, p11), strict=True):
+                arr[t] = val
+        ok = valid[t]
+        if ok.any():
+            r = _meas_var(conf[t], sigma0, beta)
+            s = p00 + r
+            e = np.where(ok[None, :, None], np.nan_to_num(z[t])[None] - x, 0.0)
+            d2 = (e * e / s).sum(axis=-1)
+            use = ok[None] & (d2 <= GATE_CHI2_3)
+            ll = -0.5 * (np.log(2 * np.pi * s).sum(axis=-1) + np.minimum(d2, GATE_CHI2_3))
+            # the first measurement of a series has the diffuse prior: it adds no evidence
+            counts = ok[None] & (t > first)[None]
+            loglik += np.where(counts, ll, 0.0)
+            if rejected is not None:
+                rejected[t] = ok & ~use[0]
+            u = use[..., None]
+            k0, k1 = np.where(u, p00 / s, 0.0), np.where(u, p01 / s, 0.0)
+            x, v = x + k0 * e, v + k1 * e
+            p00, p01, p11 = p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01
+        if out is not None:
+            for arr, val in zip(out[:5], (x, v, p00, p01, p11), strict=True):
+                arr[t] = val
+    return _Pass(loglik, rejected if rejected is not None else np.zeros(0), tuple(out or ()))
+
+
+def _rts(states: tuple[np.ndarray, ...], dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rauch-Tung-Striebel pass: filtered and predicted states -> position mean, variance."""
+    fx, fv, f00, f01, f11, px, pv, p00, p01, p11 = states
+    t_n = fx.shape[0]
+    mx, mv, m00, m01, m11 = fx[-1].copy(), fv[-1].copy(), f00[-1].copy(), f01[-1].copy(), f11[-1]
+    mean, var = np.empty_like(fx), np.empty_like(fx)
+    mean[-1], var[-1] = mx, m00
+    for t in range(t_n - 2, -1, -1):
+        h = dt[t + 1]
+        # C = P_f F^T P_p^-1 with F = [[1, h], [0, 1]]
+        a00, a01 = f00[t] + h * f01[t], f01[t]
+        a10, a11 = f01[t] + h * f11[t], f11[t]
+        det = p00[t + 1] * p11[t + 1] - p01[t + 1] ** 2
+        i00, i01, i11 = p11[t + 1] / det, -p01[t + 1] / det, p00[t + 1] / det
+        c00, c01 = a00 * i00 + a01 * i01, a00 * i01 + a01 * i11
+        c10, c11 = a10 * i00 + a11 * i01, a10 * i01 + a11 * i11
+        dx, dv = mx - px[t + 1], mv - pv[t + 1]
+        d00, d01, d11 = m00 - p00[t + 1], m01 - p01[t + 1], m11 - p11[t + 1]
+        mx = fx[t] + c00 * dx + c01 * dv
+        mv = fv[t] + c10 * dx + c11 * dv
+        # P_s = P_f + C (M - P_p) C^T
+        n00 = f00[t] + c00 * (c00 * d00 + c01 * d01) + c01 * (c00 * d01 + c01 * d11)
+        n01 = f01[t] + c00 * (c10 * d00 + c11 * d01) + c01 * (c10 * d01 + c11 * d11)
+        n11 = f11[t] + c10 * (c10 * d00 + c11 * d01) + c11 * (c10 * d01 + c11 * d11)
+        m00, m01, m11 = n00, n01, n11
+        mean[t], var[t] = mx, m00
+    return mean, var
+
+
+def _candidates(center: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The 27 neighbours of a (3, K) centre (log q, log sigma0, beta) -> three (27, K, 1)."""
+    f = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * 3), indexing="ij")).reshape(3, -1)
+    pts = center[:, None, :] + f[:, :, None] * step[:, None, :]  # (3, 27, K)
+    return np.exp(pts[0])[..., None], np.exp(pts[1])[..., None], np.maximum(pts[2], 0.0)[..., None]
+
+
+def fit_params(
+    z: np.ndarray, conf: np.ndarray, dt: np.ndarray
+) -> tuple[SmootherParams, np.ndarray]:
+    """Maximum-likelihood smoother parameters per keypoint, by a pattern search.
+
+    The search starts at ``q = 1e5 mm^2/s^3, sigma0 = 3 mm, beta = 1`` with steps of a factor
+    10 in ``q``, 3.16 in ``sigma0`` and 0.5 in ``beta``; every round evaluates the 27
+    neighbours of each keypoint's centre, moves to the best one, and halves the steps where
+    the centre was best.
+
+    Args:
+        z: (T, K, 3) measurements in mm, NaN where missing.
+        conf: (T, K) confidences in [0, 1].
+        dt: (T,) seconds from the previous frame.
+
+    Returns:
+        The parameters and the (K,) log-likelihood they reach.
+    """
+    t_n, k_n, _ = z.shape
+    lo = max(0, (t_n - FIT_FRAMES) // 2)
+    z, conf, dt = z[lo : lo + FIT_FRAMES], conf[lo : lo + FIT_FRAMES], dt[lo : lo + FIT_FRAMES]
+    # searched as sigma at the median confidence, so that sigma and beta hardly correlate
+    c = np.clip(conf, MIN_CONFIDENCE, 1.0)
+    ref = np.array([np.median(c[np.isfinite(z[:, j, 0]), j]) for j in range(k_n)])
+    c = c / ref
+    center = np.array([np.log(1e5), np.log(3.0), 1.0])[:, None] * np.ones((1, k_n))
+    step = np.array([np.log(10.0), np.log(10.0) / 2, 0.5])[:, None] * np.ones((1, k_n))
+    k = np.arange(k_n)
+    ll_best = np.full(k_n, -np.inf)
+    for _ in range(_ROUNDS):
+        q, s, b = _candidates(center, step)
+        ll = _forward(z, c, dt, (q, s, b), keep=False).loglik
+        i = ll.argmax(axis=0)
+        ll_best = ll[i, k]
+        stay = ll_best <= ll[13, k]  # 13: the centre of the 3 x 3 x 3 neighbours
+        center = np.stack([np.log(q[i, k, 0]), np.log(s[i, k, 0]), b[i, k, 0]])
+        step = np.where(stay[None], step / 2, step)
+    sigma0 = np.exp(center[1]) * ref ** (center[2] / 2)
+    return SmootherParams(np.exp(center[0]), sigma0, center[2]), ll_best
+
+
+def smooth_arrays(
+    z: np.ndarray, conf: np.ndarray, dt: np.ndarray, params: SmootherParams | None = None
+) -> SmoothResult:
+    """Smooth (T, K, 3) positions with their (T, K) confidences.
+
+    Args:
+        z: (T, K, 3) positions in mm, NaN where there is no prediction.
+        conf: (T, K) confidences in [0, 1] (NaN counts as missing).
+        dt: (T,) seconds from the previous frame (dt[0] unused), all positive.
+        params: fixed parameters; fitted on the data when None.
+
+    Returns:
+        The posterior mean and standard deviation per frame, keypoint and axis.
+
+    Raises:
+        SmoothingError: a keypoint has fewer than 3 predicted frames.
+    """
+    z = np.asarray(z, np.float64)
+    conf = np.clip(np.nan_to_num(np.asarray(conf, np.float64), nan=0.0), MIN_CONFIDENCE, 1.0)
+    valid = np.isfinite(z).all(axis=-1)
+    z = np.where(valid[..., None], z, np.nan)
+    few = np.flatnonzero(valid.sum(axis=0) < 3)
+    if few.size:
+        raise SmoothingError(
+            f"keypoints {few.tolist()} have fewer than 3 predicted frames of {z.shape[0]}; "
+            "a smoother needs at least 3 (predict a longer part of the recording)"
+        )
+    loglik = np.zeros(z.shape[1])
+    if params is None:
+        params, loglik = fit_params(z, conf, dt)
+    p = (params.q[None, :, None], params.sigma0[None, :, None], params.beta[None, :, None])
+    run = _forward(z, conf, dt, p, keep=True)
+    mean, var = _rts(run.states, dt)
+    return SmoothResult(
+        mean=mean[:, 0],
+        std=np.sqrt(np.maximum(var[:, 0], 0.0)),
+        filled=~valid,
+        rejected=run.rejected,
+        params=params,
+        loglik=loglik,
+    )
+
+
+def frame_intervals(frame_index: np.ndarray, fps: float) -> np.ndarray:
+    """(T,) seconds between consecutive frames (the first is 1 / fps)."""
+    steps = np.diff(np.asarray(frame_index, np.int64), prepend=frame_index[0] - 1)
+    if (steps <= 0).any():
+        raise SmoothingError("frame_index must increase; the poses file has repeated frames")
+    return steps / float(fps)
+
+
+def smooth_poses(data: PoseData, source: str = "") -> PoseData:
+    """The smoothed poses of one recording, same schema plus the posterior.
+
+    ``extra/smooth_std`` (T, K, 3) holds the posterior standard deviation in mm per axis,
+    ``extra/filled`` (T, K) the frames without a prediction, ``extra/rejected`` (T, K) the
+    predictions rejected as outliers; the confidences stay the network's. The provenance
+    gains ``smoother`` with the method and the fitted parameters per keypoint.
+    """
+    res = smooth_arrays(data.poses, data.confidence, frame_intervals(data.frame_index, data.fps))
+    prov: dict[str, Any] = dict(data.provenance)
+    prov["smoother"] = {
+        "method": "constant-velocity Kalman filter + RTS smoother (freipose.predict.smooth)",
+        "measurement_variance": "sigma0^2 * max(confidence, 0.02)^-beta",
+        "outlier_gate_chi2_3dof": GATE_CHI2_3,
+        "fitted_by": "maximum innovation likelihood on the recording",
+        "params": res.params.as_dict(data.keypoints),
+        "source": source,
+    }
+    extra: Mapping[str, np.ndarray] = {
+        **dict(data.extra),
+        "smooth_std": res.std.astype(np.float32),
+        "filled": res.filled,
+        "rejected": res.rejected,
+    }
+    return PoseData(
+        poses=res.mean.astype(np.float32),
+        confidence=data.confidence,
+        keypoints=data.keypoints,
+        frame_index=data.frame_index,
+        fps=data.fps,
+        up=data.up,
+        calibration=data.calibration,
+        skeleton=data.skeleton,
+        provenance=prov,
+        extra=extra,
+    )
+
+
+def refuse_same(src: Path, dst: Path) -> None:
+    """Refuse an output that is its own input.
+
+    Raises:
+        SmoothingError: ``dst`` is the file ``src``.
+    """
+    if dst.resolve() == src.resolve():
+        raise SmoothingError(
+            f"the smoothed poses would replace their input {src}; pass another -o folder"
+        )
+
+
+def smooth_file(src: str | Path, dst: str | Path, overwrite: bool = False) -> Path:
+    """Smooth the poses file ``src`` into ``dst`` (atomically, under the output lock).
+
+    Raises:
+        SmoothingError: ``dst`` is ``src``, or the poses cannot be smoothed.
+        OutputExistsError: ``dst`` exists and ``overwrite`` is false.
+        PosesFormatError: ``src`` is not a readable poses file.
+    """
+    src, dst = Path(src), Path(dst)
+    refuse_same(src, dst)
+    refuse_existing(dst, overwrite)
+    with output_lock(dst, "smoothed poses file"):
+        refuse_existing(dst, overwrite)
+        write_poses_h5(smooth_poses(read_poses_h5(src), source=str(src)), dst)
+    return dst

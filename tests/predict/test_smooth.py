@@ -1,0 +1,135 @@
+"""Temporal smoothing: lower error than raw, honest 2-sigma bands, filled gaps, no lag."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from freipose.cli.main import cli
+from freipose.io.poses import PoseData, read_poses_h5, write_poses_h5
+from freipose.predict.smooth import SmoothingError, smooth_arrays, smooth_poses
+
+T, K, FPS = 1500, 4, 100.0
+GAP = slice(700, 710)
+
+
+def _session(seed: int = 0):
+    """A smooth truth, noise of std 2 mm / sqrt(confidence), 3 % gross outliers, a gap."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(T) / FPS
+    f, ph = rng.uniform(0.2, 2.0, (K, 3, 5)), rng.uniform(0, 2 * np.pi, (K, 3, 5))
+    amp = rng.uniform(5, 30, (K, 3, 5))
+    truth = (amp * np.sin(2 * np.pi * f * t[:, None, None, None] + ph)).sum(-1)
+    conf = rng.uniform(0.2, 1.0, (T, K))
+    z = truth + rng.normal(size=(T, K, 3)) * (2.0 / np.sqrt(conf))[..., None]
+    out = rng.random((T, K)) < 0.03
+    z[out] += rng.normal(0, 40, (int(out.sum()), 3))
+    conf[out] = 0.05
+    z[GAP, 1] = np.nan
+    conf[GAP, 1] = 0
+    return truth, z, conf
+
+
+@pytest.fixture(scope="module")
+def smoothed():
+    truth, z, conf = _session()
+    return truth, z, smooth_arrays(z, conf, np.full(T, 1 / FPS))
+
+
+def test_error_lower_than_raw(smoothed):
+    truth, z, res = smoothed
+    raw = np.nanmedian(np.linalg.norm(z - truth, axis=-1))
+    err = np.median(np.linalg.norm(res.mean - truth, axis=-1))
+    assert err < 0.5 * raw
+    vel_true = np.diff(truth, axis=0) * FPS
+    vel_raw = np.nanmedian(np.linalg.norm(np.diff(z, axis=0) * FPS - vel_true, axis=-1))
+    vel_s = np.median(np.linalg.norm(np.diff(res.mean, axis=0) * FPS - vel_true, axis=-1))
+    assert vel_s < 0.5 * vel_raw
+
+
+def test_two_sigma_coverage(smoothed):
+    truth, _, res = smoothed
+    inside = np.abs(res.mean - truth) <= 2 * res.std
+    assert 0.90 <= inside.mean() <= 0.98
+    for k in range(K):
+        assert 0.88 <= inside[:, k].mean() <= 0.99
+
+
+def test_fitted_noise_model(smoothed):
+    _, _, res = smoothed
+    np.testing.assert_allclose(res.params.sigma0, 2.0, rtol=0.25)
+    assert np.all(res.params.beta > 0.4)  # low confidence counts little
+
+
+def test_gap_filled_within_band(smoothed):
+    truth, _, res = smoothed
+    assert res.filled[GAP, 1].all() and res.filled.sum() == 10
+    assert np.isfinite(res.mean).all()
+    err = np.abs(res.mean[GAP, 1] - truth[GAP, 1])
+    assert (err <= 2 * res.std[GAP, 1]).mean() >= 0.9
+    assert res.std[GAP, 1].mean() > res.std[600:690, 1].mean()  # wider where filled
+
+
+def test_outliers_rejected(smoothed):
+    _, _, res = smoothed
+    assert res.rejected.sum() > 0.02 * T * K
+
+
+def test_no_lag(smoothed):
+    truth, _, res = smoothed
+    lags = np.arange(-5, 6)
+    for k in range(K):
+        a = np.diff(truth[:, k, 0])
+        b = np.diff(res.mean[:, k, 0])
+        cc = [np.dot(a[10:-10], np.roll(b, lag)[10:-10]) for lag in lags]
+        assert lags[int(np.argmax(cc))] == 0
+
+
+def test_too_few_frames_refused():
+    z = np.full((20, 2, 3), np.nan)
+    z[:, 0] = 1.0
+    z[:2, 1] = 1.0
+    with pytest.raises(SmoothingError, match=r"keypoints \[1\] have fewer than 3"):
+        smooth_arrays(z, np.ones((20, 2)), np.full(20, 0.01))
+
+
+def _poses_file(path, n=300):
+    truth, z, conf = _session(1)
+    data = PoseData(
+        poses=z[:n].astype(np.float32),
+        confidence=conf[:n].astype(np.float32),
+        keypoints=("a", "b", "c", "d"),
+        frame_index=np.arange(n),
+        fps=FPS,
+        provenance={"session": "rec1"},
+    )
+    write_poses_h5(data, path)
+    return data
+
+
+def test_smooth_poses_schema_and_provenance(tmp_path):
+    data = _poses_file(tmp_path / "rec1.poses.h5")
+    out = smooth_poses(data, source="rec1.poses.h5")
+    assert out.poses.shape == data.poses.shape and np.isfinite(out.poses).all()
+    np.testing.assert_array_equal(out.confidence, data.confidence)
+    assert out.extra["smooth_std"].shape == (300, K, 3)
+    assert out.extra["filled"].dtype == bool
+    prov = out.provenance["smoother"]
+    assert prov["source"] == "rec1.poses.h5" and set(prov["params"]) == {"a", "b", "c", "d"}
+    assert out.provenance["session"] == "rec1"
+
+
+def test_cli_smooth(tmp_path):
+    src = tmp_path / "rec1.poses.h5"
+    _poses_file(src)
+    run = CliRunner().invoke(cli, ["smooth", str(src), "-o", str(tmp_path / "s")])
+    assert run.exit_code == 0, run.output
+    dst = tmp_path / "s" / "rec1.poses.h5"
+    back = read_poses_h5(dst)
+    assert back.extra["filled"].shape == (300, K)
+    assert "smoother" in back.provenance
+    again = CliRunner().invoke(cli, ["smooth", str(src), "-o", str(tmp_path / "s")])
+    assert again.exit_code != 0 and "--overwrite" in again.output
+    same = CliRunner().invoke(cli, ["smooth", str(src), "-o", str(tmp_path)])
+    assert same.exit_code != 0 and "replace their input" in same.output
