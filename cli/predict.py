@@ -53,6 +53,12 @@ from freipose.errors import FreiPoseError
     "--skeleton",
     help="Expected skeleton (name or TOML); fail early if the model predicts other keypoints.",
 )
+@click.option(
+    "--smooth",
+    is_flag=True,
+    help="Also smooth each session's poses over time (as `freipose smooth`) into "
+    "OUTDIR/smoothed/<session>.poses.h5.",
+)
 @click.option("--overwrite", is_flag=True, help="Redo outputs that exist and are complete.")
 @click.pass_context
 def predict(
@@ -72,6 +78,7 @@ def predict(
     refine: bool,
     shard: str | None,
     skeleton: str | None,
+    smooth: bool,
     overwrite: bool,
 ) -> None:
     """Predict 3D poses from synchronized videos of one or more sessions.
@@ -91,6 +98,7 @@ def predict(
       freipose predict rec1/ --model model.pt --detector det.pt -o poses/ \\
           --shard $SLURM_ARRAY_TASK_ID/8
       freipose merge poses/
+      freipose predict rec1/ --model model.pt --detector det.pt -o poses/ --smooth
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.checkpoints import DETECTOR, POSE_NETWORK, check_checkpoints
@@ -103,10 +111,17 @@ def predict(
         if batch < 1:
             raise FreiPoseError(f"--batch must be at least 1, got {batch}")
         shard_t = parse_shard(shard)
+        if smooth and shard_t is not None:
+            raise FreiPoseError(
+                "--smooth needs the whole recording, not one shard: run `freipose merge` "
+                "and then `freipose smooth OUTDIR/<session>.poses.h5 -o OUTDIR/smoothed`"
+            )
         spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
         check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
         found = discover_sessions(sessions, calibration)
-        predict_sessions(
+        if smooth:
+            _refuse_stale_smoothed(outdir, [s.name for s in found], overwrite)
+        results = predict_sessions(
             found,
             model,
             spec,
@@ -121,3 +136,31 @@ def predict(
             progress=not quiet,
             report=echo_result,
         )
+        if smooth:
+            _smooth_results(results, outdir, overwrite)
+
+
+def _refuse_stale_smoothed(outdir: Path, names: list[str], overwrite: bool) -> None:
+    """Refuse, before predicting, a smoothed output whose poses file is to be made anew.
+
+    Raises:
+        OutputExistsError: ``OUTDIR/smoothed/<name>.poses.h5`` exists, the poses file does
+            not, and ``overwrite`` is false.
+    """
+    from freipose.io.atomic import refuse_existing
+
+    for name in names:
+        if not (outdir / f"{name}.poses.h5").exists():
+            refuse_existing(outdir / "smoothed" / f"{name}.poses.h5", overwrite)
+
+
+def _smooth_results(results: list, outdir: Path, overwrite: bool) -> None:
+    """Smooth every finished poses file; a kept prediction keeps its smoothed file."""
+    from freipose.predict.smooth import smooth_file
+
+    for r in results:
+        out = outdir / "smoothed" / r.path.name
+        if r.skipped and out.exists() and not overwrite:
+            click.echo(f"kept {out} (--overwrite redoes it)")
+            continue
+        click.echo(f"wrote {smooth_file(r.path, out, overwrite=overwrite or not r.skipped)}")

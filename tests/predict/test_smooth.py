@@ -133,3 +133,33 @@ def test_cli_smooth(tmp_path):
     assert again.exit_code != 0 and "--overwrite" in again.output
     same = CliRunner().invoke(cli, ["smooth", str(src), "-o", str(tmp_path)])
     assert same.exit_code != 0 and "replace their input" in same.output
+
+
+def test_predict_smooth_refuses_a_shard(tmp_path):
+    model = tmp_path / "model.pt"
+    model.write_bytes(b"x")
+    run = CliRunner().invoke(
+        cli, ["predict", str(tmp_path), "--model", str(model), "-o", str(tmp_path / "o"),
+              "--shard", "0/2", "--smooth"],
+    )  # fmt: skip
+    assert run.exit_code != 0 and "freipose merge" in run.output
+
+
+def test_predict_smooth_after_prediction(tmp_path):
+    from predict_helpers import BlobEstimator, make_session
+
+    from freipose.cli.predict import _smooth_results
+    from freipose.io.session import discover_sessions
+    from freipose.predict.run import predict_session
+
+    make_session(tmp_path / "rec", 24)
+    (s,) = discover_sessions([tmp_path / "rec"])
+    res = predict_session(s, BlobEstimator(), tmp_path / "poses", batch_size=4, progress=False)
+    _smooth_results([res], tmp_path / "poses", overwrite=False)
+    out = tmp_path / "poses" / "smoothed" / "rec.poses.h5"
+    assert read_poses_h5(out).extra["smooth_std"].shape[0] == 24
+    before = out.stat().st_mtime_ns
+    again = predict_session(s, BlobEstimator(), tmp_path / "poses", batch_size=4, progress=False)
+    assert again.skipped
+    _smooth_results([again], tmp_path / "poses", overwrite=False)
+    assert out.stat().st_mtime_ns == before  # kept: the prediction was kept
