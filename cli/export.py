@@ -1,4 +1,4 @@
-"""``freipose export``: convert ``poses.h5`` to CSV, Anipose CSV, DLC-3D CSV or NWB."""
+"""``freipose export``: convert ``poses.h5`` to CSV, Anipose CSV, DLC-3D CSV, NWB or movement."""
 
 from __future__ import annotations
 
@@ -38,12 +38,13 @@ def _parse_time(value: str | None) -> datetime.datetime | None:
 @click.option(
     "--format",
     "fmt",
-    type=click.Choice(["csv", "anipose", "dlc3d", "nwb"]),
+    type=click.Choice(["csv", "anipose", "dlc3d", "nwb", "movement"]),
     default="csv",
     show_default=True,
     help="csv: tidy table (one row per frame, <keypoint>_x/_y/_z/_confidence); anipose: "
     "Anipose pose-3d CSV; dlc3d: DeepLabCut-3D style CSV; nwb: NWB with ndx-pose "
-    "(needs pip install 'freipose[nwb]').",
+    "(needs pip install 'freipose[nwb]'); movement: movement's netCDF poses dataset (.nc; "
+    "needs pip install 'freipose[movement]').",
 )
 @click.option(
     "-o",
@@ -52,7 +53,7 @@ def _parse_time(value: str | None) -> datetime.datetime | None:
     default=None,
     help="Output file (one input), or folder (several inputs, or a name without suffix). "
     "Default: next to each input, "
-    "<session>.csv / .anipose.csv / .dlc3d.csv / .nwb.",
+    "<session>.csv / .anipose.csv / .dlc3d.csv / .nwb / .nc.",
 )
 @click.option(
     "--start-time",

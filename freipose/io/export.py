@@ -11,6 +11,9 @@
   ``PoseEstimationSeries`` per keypoint, unit mm, confidences, timestamps in seconds) and
   a ``Skeleton`` in the processing module ``behavior`` (pynwb, movement and
   keypoint-MoSeq read it). Needs the optional extra ``nwb`` (``pip install pynwb ndx-pose``).
+* ``movement``: a movement poses dataset (netCDF ``.nc``, ``position`` (time, space,
+  keypoints, individuals), ``confidence``), read by ``xarray.open_dataset`` and by FreiPose
+  (see ``freipose.io.movement``). Needs the optional extra ``movement``.
 
 Every writer writes atomically. ``read_*`` functions read the files back (used by the
 round-trip tests and handy for users).
@@ -30,12 +33,18 @@ import pandas as pd
 from freipose.errors import FreiPoseError
 from freipose.geometry.projection import project_rig
 from freipose.io.atomic import atomic_path
-from freipose.io.poses import PoseData, read_poses_h5
+from freipose.io.poses import PoseData, read_poses_h5, write_movement_poses
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("csv", "anipose", "dlc3d", "nwb")
-SUFFIXES = {"csv": ".csv", "anipose": ".anipose.csv", "dlc3d": ".dlc3d.csv", "nwb": ".nwb"}
+FORMATS = ("csv", "anipose", "dlc3d", "nwb", "movement")
+SUFFIXES = {
+    "csv": ".csv",
+    "anipose": ".anipose.csv",
+    "dlc3d": ".dlc3d.csv",
+    "nwb": ".nwb",
+    "movement": ".nc",
+}
 
 
 class ExportError(FreiPoseError):
@@ -43,7 +52,7 @@ class ExportError(FreiPoseError):
 
 
 def default_output(poses_path: str | Path, fmt: str) -> Path:
-    """``x.poses.h5`` -> ``x.csv`` / ``x.anipose.csv`` / ``x.dlc3d.csv`` / ``x.nwb``.
+    """``x.poses.h5`` -> ``x.csv`` / ``x.anipose.csv`` / ``x.dlc3d.csv`` / ``x.nwb`` / ``x.nc``.
 
     An unfinished ``x.poses.h5.partial`` gives the same names.
     """
@@ -316,4 +325,6 @@ def export_poses(
         return write_anipose_csv(data, out)
     if fmt == "dlc3d":
         return write_dlc3d_csv(data, out)
+    if fmt == "movement":
+        return write_movement_poses(data, out)
     return write_nwb(data, out, **kwargs)

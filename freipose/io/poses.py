@@ -29,6 +29,8 @@ from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
 from freipose.io.hdf5 import decode_strings, open_h5, str_array
+from freipose.io.movement import SUFFIX as MOVEMENT_SUFFIX
+from freipose.io.movement import MovementPoses, read_movement, write_movement
 from freipose.io.toml import parse_toml
 from freipose.skeleton import Skeleton, skeleton_from_dict
 
@@ -153,14 +155,69 @@ def write_poses_group(f: h5py.Group, data: PoseData) -> None:
             g.create_dataset(k, data=v, compression="gzip", compression_opts=4)
 
 
+def write_movement_poses(data: PoseData, path: str | Path) -> Path:
+    """Write ``data`` as a movement poses dataset (netCDF ``.nc``, see ``freipose.io.movement``).
+
+    Raises:
+        MovementFormatError: xarray or a netCDF engine is missing.
+    """
+    attrs: dict[str, Any] = {"up": data.up}
+    if data.calibration is not None:
+        attrs["calibration"] = rig_to_toml_text(data.calibration)
+    if data.skeleton is not None:
+        attrs["skeleton"] = tomli_w.dumps(data.skeleton.to_dict())
+    if data.provenance:
+        attrs["provenance"] = json.dumps(dict(data.provenance), default=str)
+    arrays = MovementPoses(
+        data.poses, data.confidence, data.keypoints, data.frame_index, data.fps, attrs
+    )
+    return write_movement(path, arrays)
+
+
+def _read_movement_poses(path: Path) -> PoseData:
+    """A movement poses dataset (``.nc``) as :class:`PoseData`."""
+    m = read_movement(path)
+    try:
+        calib = (
+            rig_from_toml_text(str(m.attrs["calibration"]), f"{path}:calibration")
+            if "calibration" in m.attrs
+            else None
+        )
+        skel = None
+        if "skeleton" in m.attrs:
+            where = f"{path}:skeleton"
+            text = str(m.attrs["skeleton"])
+            skel = skeleton_from_dict(parse_toml(text, where, "skeleton", PosesFormatError), where)
+        prov = json.loads(str(m.attrs["provenance"])) if "provenance" in m.attrs else {}
+        return PoseData(
+            poses=m.poses,
+            confidence=m.confidence,
+            keypoints=m.keypoints,
+            frame_index=m.frame_index,
+            fps=m.fps,
+            up=np.asarray(m.attrs.get("up", [0.0, 0.0, 1.0])),
+            calibration=calib,
+            skeleton=skel,
+            provenance=prov,
+        )
+    except ValueError as exc:
+        if isinstance(exc, PosesFormatError):
+            raise
+        raise PosesFormatError(f"{path}: {exc}") from exc
+
+
 def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
-    """Read and validate ``poses.h5``.
+    """Read and validate ``poses.h5``, or a movement poses dataset (suffix ``.nc``).
 
     Raises:
         PosesFormatError: the file is not a valid poses file (the message says why).
+        MovementFormatError: a ``.nc`` file is not a movement poses dataset, or xarray
+            is not installed.
         FileNotFoundError: the file does not exist.
     """
     path = Path(path)
+    if path.suffix == MOVEMENT_SUFFIX:
+        return _read_movement_poses(path)
     with open_h5(path, "poses file", PosesFormatError) as f:
         missing = [d for d in ("poses", "confidence", "keypoints", "frame_index") if d not in f]
         if missing:
