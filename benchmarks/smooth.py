@@ -15,7 +15,8 @@ with :func:`freipose.predict.smooth.smooth_poses` and prints, raw against smooth
 The smoother's standard deviation is fitted on the recording alone, so it describes the
 frame-to-frame noise of the predictions; an error that persists over many frames (the
 network's bias) is invisible to it. ``--floor-from SESSION`` therefore also fits, on
-another session with truth, a per-keypoint error floor ``b`` (mm) added in quadrature
+another session with truth, a per-keypoint error floor ``b`` (mm,
+:func:`freipose.predict.smooth.fit_error_floor`) added in quadrature
 (``sqrt(std^2 + b^2)``) so that 95.4 % of that session's axes lie within 2 sigma, and
 prints the coverage of this session with it (held out: the floor never sees it).
 
@@ -39,7 +40,7 @@ from freipose.demo.context import truth_to_calibrated
 from freipose.demo.markers import step_results
 from freipose.io.labels import read_labels_h5
 from freipose.io.poses import PoseData, read_poses_h5
-from freipose.predict.smooth import smooth_poses
+from freipose.predict.smooth import fit_error_floor, smooth_poses
 
 CLASSES = {"head": ("Ear", "Eye", "Nose"), "front paws": ("Paw Front",), "back paws": (
     "Paw Back",), "tail": ("Tail",)}  # fmt: skip
@@ -79,21 +80,6 @@ def _lags(a: np.ndarray, b: np.ndarray, max_lag: int = 5) -> list[int]:
             cc = [float(np.dot(x[sl], np.roll(y, lag)[sl])) for lag in lags]
             out.append(int(lags[int(np.argmax(cc))]))
     return out
-
-
-def fit_floor(sm: PoseData, truth: np.ndarray, target: float = 0.954) -> np.ndarray:
-    """(K,) error floor b (mm): 2-sigma coverage with sqrt(std^2 + b^2) reaches ``target``."""
-    err = np.abs(sm.poses - truth)
-    std = sm.extra["smooth_std"].astype(np.float64)
-    floor = np.zeros(err.shape[1])
-    for k in range(err.shape[1]):
-        lo, hi = 0.0, 1000.0
-        for _ in range(40):
-            b = (lo + hi) / 2
-            cov = (err[:, k] <= 2 * np.sqrt(std[:, k] ** 2 + b * b)).mean()
-            lo, hi = (b, hi) if cov < target else (lo, b)
-        floor[k] = hi
-    return floor
 
 
 def _coverage(raw: PoseData, err: np.ndarray, std: np.ndarray, title: str) -> None:
@@ -162,8 +148,11 @@ def main() -> None:
     _report(raw, sm, truth, gap)
     if args.floor_from:
         other = read_poses_h5(args.demo / "poses" / f"{args.floor_from}.poses.h5")
-        floor = fit_floor(smooth_poses(other), _truth(args.demo, args.floor_from, other))
-        std = np.sqrt(sm.extra["smooth_std"].astype(np.float64) ** 2 + floor[None, :, None] ** 2)
+        o_sm = smooth_poses(other)
+        floor = fit_error_floor(
+            o_sm.poses, o_sm.extra["smooth_std"], _truth(args.demo, args.floor_from, other)
+        )
+        std = smooth_poses(raw_in, error_floor=floor).extra["smooth_std"].astype(np.float64)
         err = np.abs(sm.poses - truth)
         _coverage(raw, err, std, f"with the error floor fitted on {args.floor_from} (median "
                   f"{np.median(floor):.1f} mm):")  # fmt: skip

@@ -300,15 +300,56 @@ def frame_intervals(frame_index: np.ndarray, fps: float) -> np.ndarray:
     return steps / float(fps)
 
 
-def smooth_poses(data: PoseData, source: str = "") -> PoseData:
+def fit_error_floor(
+    mean: np.ndarray, std: np.ndarray, truth: np.ndarray, target: float = 0.954
+) -> np.ndarray:
+    """Per-keypoint error floor ``b`` (mm) so that ``sqrt(std^2 + b^2)`` covers ``target``.
+
+    The smoother's standard deviation describes the frame-to-frame noise of the
+    predictions; an error that persists over many frames (a network bias) is invisible in
+    one recording. Fitted on a recording with truth, the floor adds it back: the smallest
+    ``b`` with which a share ``target`` of the axes lie within 2 sigma.
+
+    Args:
+        mean: (T, K, 3) smoothed positions in mm.
+        std: (T, K, 3) their standard deviations in mm.
+        truth: (T, K, 3) true positions in mm (NaN where unknown).
+        target: the 2-sigma coverage to reach (0.954: a Gaussian's).
+
+    Returns:
+        (K,) floor in mm (0 where the smoother's own std already reaches ``target``).
+    """
+    err = np.abs(np.asarray(mean, np.float64) - truth)
+    var = np.asarray(std, np.float64) ** 2
+    floor = np.zeros(err.shape[1])
+    for k in range(err.shape[1]):
+        ok = np.isfinite(err[:, k])
+        e, v = err[:, k][ok], var[:, k][ok]
+        if not e.size:
+            continue
+        lo, hi = 0.0, float(e.max()) / 2 + 1e-9
+        for _ in range(50):
+            b = (lo + hi) / 2
+            lo, hi = (b, hi) if (e <= 2 * np.sqrt(v + b * b)).mean() < target else (lo, b)
+        floor[k] = hi if (e <= 2 * np.sqrt(v)).mean() < target else 0.0
+    return floor
+
+
+def smooth_poses(
+    data: PoseData, source: str = "", error_floor: np.ndarray | None = None
+) -> PoseData:
     """The smoothed poses of one recording, same schema plus the posterior.
 
-    ``extra/smooth_std`` (T, K, 3) holds the posterior standard deviation in mm per axis,
+    ``extra/smooth_std`` (T, K, 3) holds the posterior standard deviation in mm per axis
+    (with ``error_floor`` (K,) mm, from :func:`fit_error_floor`, added in quadrature),
     ``extra/filled`` (T, K) the frames without a prediction, ``extra/rejected`` (T, K) the
     predictions rejected as outliers; the confidences stay the network's. The provenance
     gains ``smoother`` with the method and the fitted parameters per keypoint.
     """
     res = smooth_arrays(data.poses, data.confidence, frame_intervals(data.frame_index, data.fps))
+    std = res.std
+    if error_floor is not None:
+        std = np.sqrt(std**2 + np.asarray(error_floor, np.float64)[None, :, None] ** 2)
     prov: dict[str, Any] = dict(data.provenance)
     prov["smoother"] = {
         "method": "constant-velocity Kalman filter + RTS smoother (freipose.predict.smooth)",
@@ -318,9 +359,13 @@ def smooth_poses(data: PoseData, source: str = "") -> PoseData:
         "params": res.params.as_dict(data.keypoints),
         "source": source,
     }
+    if error_floor is not None:
+        prov["smoother"]["error_floor_mm"] = dict(
+            zip(data.keypoints, map(float, error_floor), strict=True)
+        )
     extra: Mapping[str, np.ndarray] = {
         **dict(data.extra),
-        "smooth_std": res.std.astype(np.float32),
+        "smooth_std": std.astype(np.float32),
         "filled": res.filled,
         "rejected": res.rejected,
     }

@@ -163,3 +163,17 @@ def test_predict_smooth_after_prediction(tmp_path):
     assert again.skipped
     _smooth_results([again], tmp_path / "poses", overwrite=False)
     assert out.stat().st_mtime_ns == before  # kept: the prediction was kept
+
+
+def test_error_floor_restores_coverage_of_a_bias():
+    truth, z, conf = _session(2)
+    bias = np.array([8.0, 0.0, 0.0])  # a persistent error the recording cannot reveal
+    res = smooth_arrays(z + bias, conf, np.full(T, 1 / FPS))
+    err = np.abs(res.mean - truth)
+    assert (err <= 2 * res.std).mean() < 0.8
+    from freipose.predict.smooth import fit_error_floor
+
+    floor = fit_error_floor(res.mean, res.std, truth)
+    std = np.sqrt(res.std**2 + floor[None, :, None] ** 2)
+    assert abs((err <= 2 * std).mean() - 0.954) < 0.02
+    assert np.all(fit_error_floor(truth, np.full_like(truth, 1.0), truth) == 0)
