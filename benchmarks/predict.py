@@ -48,12 +48,12 @@ def main() -> None:
         torch.set_num_threads(args.threads)
 
     from freipose.detect.fallback import FixedBoxes
+    from freipose.io.session import discover_sessions
     from freipose.nn.config import config_from_dict
     from freipose.nn.model import build_model
     from freipose.predict.network import NetworkEstimator, load_model
     from freipose.predict.reader import SyncReader
     from freipose.predict.run import predict_session
-    from freipose.io.session import discover_sessions
     from freipose.skeleton import load_skeleton
     from freipose.synth import SceneConfig, generate_session
 

@@ -7,9 +7,9 @@ import pytest
 from calib_helpers import board_detections, rig_errors
 
 from freipose.calibration.boards import CharucoBoard
-from freipose.calibration.robust import noise_sigma
 from freipose.calibration.options import CalibrationOptions
 from freipose.calibration.pipeline import CalibrationError, calibrate_detections
+from freipose.calibration.robust import noise_sigma
 from freipose.testing import make_circle_rig
 
 BOARD = CharucoBoard(8, 6, 40.0, 30.0, "DICT_4X4_50")

@@ -6,10 +6,10 @@ import numpy as np
 from calib_helpers import board_detections, rig_errors
 
 from freipose.calibration.boards import CharucoBoard
-from freipose.calibration.robust import view_noise_scales
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.options import CalibrationOptions
 from freipose.calibration.pipeline import calibrate_detections
+from freipose.calibration.robust import view_noise_scales
 from freipose.testing import make_circle_rig
 
 BOARD = CharucoBoard(6, 5, 40.0, 30.0, "DICT_4X4_50")

@@ -153,7 +153,8 @@ def test_wrong_checkpoints_and_skeleton_fail_before_work(trained, tmp_path):
     out = tmp_path / "o"
     base = ["predict", str(session), "-o", str(out), "--device", "cpu"]
     res = _run([*base, "--model", str(det), "--method", "bgsub"])
-    assert res.exit_code != 0 and "is a detector checkpoint; --model takes a pose-network checkpoint" in res.output
+    expected = "is a detector checkpoint; --model takes a pose-network checkpoint"
+    assert res.exit_code != 0 and expected in res.output
     res = _run([*base, "--model", str(model), "--detector", str(model)])
     assert res.exit_code != 0 and "detector checkpoint" in res.output
     junk = tmp_path / "junk.pt"
