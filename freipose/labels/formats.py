@@ -228,6 +228,17 @@ def read_freipose_json(
 
 
 # -- Anipose 2D pose files -------------------------------------------------------------
+def _pose_tables(folder: Path) -> list[Path]:
+    """The 2D pose tables in ``folder``: one per stem, the ``.h5`` where a ``.csv`` copy exists.
+
+    DeepLabCut-layout writers (FreiPose's export among them) write a ``.csv`` and, where
+    PyTables is installed, an ``.h5`` of the same table.
+    """
+    tables = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".h5", ".csv"))
+    h5_stems = {p.stem for p in tables if p.suffix.lower() == ".h5"}
+    return [p for p in tables if p.suffix.lower() == ".h5" or p.stem not in h5_stems]
+
+
 def read_anipose(
     sources: Sequence[Path],
     calibration: CameraRig | None,
@@ -238,7 +249,8 @@ def read_anipose(
     """Anipose 2D pose tables with its ``calibration.toml``.
 
     The tables are ``pose-2d/<session>_<camera>.h5`` or ``.csv`` (DLC layout, one row per
-    video frame). Sources are files or folders of them; a ``calibration.toml`` among the
+    video frame; in a folder with both copies of a table, the ``.h5``). Sources are files or
+    folders of them; a ``calibration.toml`` among the
     sources, in the folder or its parent is used when ``--calibration`` is not given. Points
     below ``min_likelihood`` are unlabeled; rows without points are skipped.
     """
@@ -248,7 +260,7 @@ def read_anipose(
     for s in sources:
         s = existing_path(Path(s), "Anipose pose file or folder")
         if s.is_dir():
-            files += sorted(p for p in s.iterdir() if p.suffix.lower() in (".h5", ".csv"))
+            files += _pose_tables(s)
         elif s.suffix.lower() == ".toml":
             if calibration is None:
                 calibration = load_calibration(s, "anipose")
