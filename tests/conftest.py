@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -50,3 +53,42 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+_LOCK_HOLDER = """
+import sys
+from freipose.io.lock import output_lock
+with output_lock(sys.argv[1], sys.argv[2]):
+    print("held", flush=True)
+    sys.stdin.read()
+"""
+
+
+class LockHolders:
+    """Processes that each hold the output lock of one path until they are released."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def hold(self, path: Path | str, what: str = "output") -> subprocess.Popen:
+        """Start a process holding ``path``'s lock; returns once the lock is taken."""
+        p = subprocess.Popen([sys.executable, "-c", _LOCK_HOLDER, str(path), what],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
+        self.procs.append(p)
+        assert p.stdout is not None and p.stdout.readline().strip() == "held"
+        return p
+
+    def release(self, p: subprocess.Popen) -> int:
+        """Let ``p`` leave its lock block and exit; returns its exit status."""
+        if p.returncode is None:
+            p.communicate("", timeout=30)
+        return p.returncode
+
+
+@pytest.fixture
+def lock_holders() -> Iterator[LockHolders]:
+    """Hold output locks from other processes (two runs on one output); released at the end."""
+    holders = LockHolders()
+    yield holders
+    for p in holders.procs:
+        holders.release(p)

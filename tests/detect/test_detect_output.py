@@ -3,9 +3,6 @@ output that another run is writing."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 from click.testing import CliRunner
 
 from freipose.cli.main import cli
@@ -26,17 +23,10 @@ def test_detect_keeps_an_existing_output(session_dir, tmp_path):
     assert not leftover.exists() and not (tmp_path / "boxes.h5.lock").exists()
 
 
-def test_detect_refuses_an_output_that_another_run_writes(session_dir, tmp_path):
+def test_detect_refuses_an_output_that_another_run_writes(session_dir, tmp_path, lock_holders):
     out = tmp_path / "boxes.h5"
-    code = (
-        "import sys; from freipose.io.lock import output_lock\n"
-        f"with output_lock({str(out)!r}):\n"
-        "    print('held', flush=True); sys.stdin.read()\n"
-    )
-    holder = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)  # fmt: skip
+    holder = lock_holders.hold(out)
     try:
-        assert holder.stdout.readline().strip() == "held"
         args = ["detect", str(session_dir), "--method", "bgsub", "--frames", "0:4", "-o", str(out)]
         res = CliRunner().invoke(cli, args)
         assert res.exit_code != 0
@@ -44,4 +34,4 @@ def test_detect_refuses_an_output_that_another_run_writes(session_dir, tmp_path)
         assert f"is writing {out}; wait for it or pass another -o" in res.output
         assert not out.exists()
     finally:
-        holder.communicate("", timeout=30)
+        lock_holders.release(holder)

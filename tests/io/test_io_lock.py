@@ -7,22 +7,10 @@ import os
 import socket
 import subprocess
 import sys
-import textwrap
 
 import pytest
 
 from freipose.io.lock import OutputLockedError, lock_path, output_lock
-
-_HOLDER = textwrap.dedent(
-    """
-    import sys
-    from freipose.io.lock import output_lock
-
-    with output_lock(sys.argv[1]):
-        print("locked", flush=True)
-        sys.stdin.readline()
-    """
-)
 
 
 def _write_lock(out, host, pid):
@@ -50,16 +38,10 @@ def test_lock_taken_and_released(tmp_path):
         pass
 
 
-def test_second_run_is_refused_and_leaves_the_lock(tmp_path):
+def test_second_run_is_refused_and_leaves_the_lock(tmp_path, lock_holders):
     out = tmp_path / "x.poses.h5"
-    holder = subprocess.Popen(
-        [sys.executable, "-c", _HOLDER, str(out)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    holder = lock_holders.hold(out)
     try:
-        assert holder.stdout.readline().strip() == "locked"
         before = lock_path(out).read_bytes()
         with pytest.raises(OutputLockedError) as e, output_lock(out):
             pass
@@ -69,7 +51,7 @@ def test_second_run_is_refused_and_leaves_the_lock(tmp_path):
         assert "delete" not in msg  # this host: the pid was checked
         assert lock_path(out).read_bytes() == before
     finally:
-        holder.communicate("\n", timeout=30)
+        lock_holders.release(holder)
     assert holder.returncode == 0
     assert not lock_path(out).exists()
 

@@ -4,8 +4,6 @@ folder's lock, names the run that holds it and the real option, and touches noth
 from __future__ import annotations
 
 import socket
-import subprocess
-import sys
 
 import pytest
 from click.testing import CliRunner
@@ -13,40 +11,13 @@ from nn_toydata import toy_samples, write_toy_labels
 
 from freipose.cli.main import cli
 
-HOLD = """
-import sys, time
-from freipose.io.lock import output_lock
-with output_lock(sys.argv[1]):
-    print("held", flush=True)
-    time.sleep(300)
-"""
-
-
-@pytest.fixture
-def held():
-    """Start a process that holds the lock of a path; yields a function path -> pid."""
-    procs: list[subprocess.Popen] = []
-
-    def hold(path) -> int:
-        p = subprocess.Popen(
-            [sys.executable, "-c", HOLD, str(path)], stdout=subprocess.PIPE, text=True
-        )
-        procs.append(p)
-        assert p.stdout is not None and p.stdout.readline().strip() == "held"
-        return p.pid
-
-    yield hold
-    for p in procs:
-        p.kill()
-        p.wait()
-
 
 def _snapshot(folder):
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
 
 
 @pytest.mark.parametrize("stage", ["pose", "detector"])
-def test_second_training_into_a_locked_run_folder_is_refused(tmp_path, held, stage):
+def test_second_training_into_a_locked_run_folder_is_refused(tmp_path, lock_holders, stage):
     write_toy_labels(tmp_path / "train", toy_samples(2))
     cfg = tmp_path / "cfg.toml"
     cfg.write_text(
@@ -60,7 +31,7 @@ def test_second_training_into_a_locked_run_folder_is_refused(tmp_path, held, sta
     checkpoint.write_bytes(b"the other run's checkpoint")
     (run / "log.csv").write_text("step,lr,loss\n1,0.001,0.5\n")
     (run / "config.toml").write_text("[model]\n")
-    pid = held(checkpoint)
+    pid = lock_holders.hold(checkpoint).pid
     before = _snapshot(run)
     for resume in ([], ["--resume"]):
         args = ["train", str(cfg), "--stage", stage, "--out", str(run), *resume]

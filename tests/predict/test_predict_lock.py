@@ -4,9 +4,6 @@ untouched."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pytest
 import torch
 from click.testing import CliRunner
@@ -58,25 +55,12 @@ def setup(tmp_path_factory):
     return model, root / "toy", root / "out"
 
 
-def _hold(path):
-    """A subprocess that holds the output lock of ``path`` until its stdin closes."""
-    code = (
-        "import sys; from freipose.io.lock import output_lock\n"
-        f"with output_lock({str(path)!r}, 'poses file'):\n"
-        "    print('held', flush=True); sys.stdin.read()\n"
-    )
-    p = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
-                         stdout=subprocess.PIPE, text=True)  # fmt: skip
-    assert p.stdout.readline().strip() == "held"
-    return p
-
-
-def test_second_predict_run_is_refused_and_touches_nothing(setup):
+def test_second_predict_run_is_refused_and_touches_nothing(setup, lock_holders):
     model, session, out = setup
     final = out / "toy.poses.h5"
     partial = out / "toy.poses.h5.partial"
     before = (partial.read_bytes(), partial.stat().st_mtime_ns)
-    holder = _hold(final)
+    holder = lock_holders.hold(final, "poses file")
     try:
         args = ["predict", str(session), "--model", str(model), "--method", "bgsub",
                 "--device", "cpu", "-o", str(out)]  # fmt: skip
@@ -93,5 +77,5 @@ def test_second_predict_run_is_refused_and_touches_nothing(setup):
             predict_session(s, BlobEstimator(), out, batch_size=4, chunk_frames=4, progress=False)
         assert (partial.read_bytes(), partial.stat().st_mtime_ns) == before
     finally:
-        holder.communicate("", timeout=30)
+        lock_holders.release(holder)
     assert not (out / "toy.poses.h5.lock").exists()

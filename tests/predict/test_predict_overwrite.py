@@ -5,8 +5,6 @@ left, and refuses an output that another run holds."""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 
 import pytest
 from click.testing import CliRunner
@@ -82,25 +80,18 @@ def test_render_keeps_an_existing_video_and_removes_leftovers(run, tmp_path):
     assert not any(p.exists() for p in left) and all(p.exists() for p in kept)
 
 
-def test_render_refuses_an_output_that_another_run_writes(run, tmp_path):
+def test_render_refuses_an_output_that_another_run_writes(run, tmp_path, lock_holders):
     folder, poses, _ = run
     out = tmp_path / "o.mkv"
     leftover = tmp_path / ".o.partial.mkv"
     leftover.write_bytes(b"being written")
-    code = (
-        "import sys; from freipose.io.lock import output_lock\n"
-        f"with output_lock({str(out)!r}):\n"
-        "    print('held', flush=True); sys.stdin.read()\n"
-    )
-    holder = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)  # fmt: skip
+    holder = lock_holders.hold(out)
     try:
-        assert holder.stdout.readline().strip() == "held"
         res = _cli("render", folder, poses, "-o", out, "--frames", "0:3", "--tile-width", "64")
         assert res.exit_code != 0
         assert f"pid {holder.pid}" in res.output
         assert f"is writing {out}; wait for it or pass another -o" in res.output
         assert leftover.read_bytes() == b"being written" and not out.exists()
     finally:
-        holder.communicate("", timeout=30)
+        lock_holders.release(holder)
     assert not os.path.exists(f"{out}.lock")
