@@ -17,6 +17,7 @@ COMMANDS = {
     "synth": "freipose.cli.synth:synth",
     "calib": "freipose.cli.calib:calib",
     "labels": "freipose.cli.labels:labels",
+    "label": "freipose.cli.label:label",
     "detect": "freipose.cli.detect:detect",
     "train": "freipose.cli.train:train",
     "eval": "freipose.cli.evaluate:evaluate",

@@ -32,6 +32,8 @@ ALLOWED = {
     "detect": {"geometry", "io", "skeleton", "workers", "nn"},
     "predict": {"geometry", "io", "skeleton", "workers", "nn", "detect"},
     "synth": {"geometry", "io", "skeleton", "workers", "calibration"},
+    "labelui": {"geometry", "io", "skeleton", "labels"},
+    "models": set(),
 }
 
 

@@ -1,0 +1,1 @@
+"""The browser labeling tool of ``freipose label``: server, API and the page it serves."""

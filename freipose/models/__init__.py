@@ -1,0 +1,1 @@
+"""Pretrained base models shipped with FreiPose (weights and their model card data)."""
