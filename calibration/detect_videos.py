@@ -24,7 +24,7 @@ from freipose.calibration.detection_cache import cache_file, load_cache, save_ca
 from freipose.calibration.tracking import BoardTracker
 from freipose.workers import pool_context, process_pool, worker_errors
 
-if TYPE_CHECKING:  # tqdm is imported where the bar is made
+if TYPE_CHECKING:  # the bar: a tqdm bar or a freipose.progress.LineProgress
     from tqdm import tqdm
 
 logger = logging.getLogger(__name__)
@@ -148,9 +148,8 @@ def detect_cameras(
     Raises:
         WorkerError: a worker process died (the message says how, in one line).
     """
-    from tqdm import tqdm
-
     from freipose.io.video import FrameSource
+    from freipose.progress import progress_bar
 
     sources = [Path(s) for s in sources]
     infos = []
@@ -178,7 +177,7 @@ def detect_cameras(
     todo = plan_chunks(todo_frames)
     total = sum(b - a for _, a, b in todo)
     jobs = max(1, min(int(jobs), len(todo) or 1))
-    bar = tqdm(
+    bar = progress_bar(
         total=total, desc="detecting board", unit="frame", disable=None if progress else True
     )
     try:

@@ -84,6 +84,10 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
     ctx.obj["quiet"] = quiet
     setup_logging(verbose, quiet)
     quiet_native_warnings(verbose)
+    if sys.stderr.isatty():  # log lines above the progress bars instead of through them
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        ctx.with_resource(logging_redirect_tqdm())
 
 
 def main() -> None:

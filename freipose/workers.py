@@ -34,9 +34,8 @@ from multiprocessing.context import BaseContext
 from pathlib import Path
 from typing import Any, TypeVar
 
-from tqdm import tqdm
-
 from freipose.errors import FreiPoseError
+from freipose.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -248,10 +247,10 @@ def run_jobs(
         from freipose.io.video import opencv_threads
 
         with opencv_threads(1):
-            return [fn(j) for j in tqdm(jobs, desc=desc, disable=disable)]
+            return [fn(j) for j in progress_bar(jobs, desc=desc, disable=disable)]
     hint = "run again with one worker (--workers 1) to see the error in this process"
     with process_pool(n_workers, start_method=start_method) as ex, worker_errors(ex, hint):
-        return list(tqdm(ex.map(fn, jobs), total=len(jobs), desc=desc, disable=disable))
+        return list(progress_bar(ex.map(fn, jobs), total=len(jobs), desc=desc, disable=disable))
 
 
 __all__ = [

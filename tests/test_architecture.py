@@ -18,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {"freipose": "freipose", "cli": "freipose.cli", "calibration": "freipose.calibration"}
 
 # package -> the freipose packages it may import (besides itself and the bottom layer)
-BOTTOM = {"freipose", "errors", "_compat", "_frozen"}  # "freipose": the root (__version__)
+# "freipose": the root (__version__)
+BOTTOM = {"freipose", "errors", "_compat", "_frozen", "progress"}
 ALLOWED = {
     "geometry": set(),
     "io": {"geometry", "skeleton"},

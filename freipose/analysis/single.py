@@ -127,7 +127,8 @@ def single_variable_scores(
         of test frames, effective number of frames, chi-squared p (frames independent).
     """
     from joblib import Parallel, delayed
-    from tqdm import tqdm
+
+    from freipose.progress import progress_bar
 
     v = xtr.shape[1]
     blocks = [(a, min(v, a + config.block)) for a in range(0, v, config.block)]
@@ -145,7 +146,7 @@ def single_variable_scores(
         for a, b in blocks
     )
     res: list[tuple[float, ...]] = []
-    with tqdm(total=v, desc=desc, unit="var", disable=None, leave=False) as bar:
+    with progress_bar(total=v, desc=desc, unit="var", disable=None, leave=False) as bar:
         par = Parallel(n_jobs=config.n_jobs, return_as="generator")
         for block in par(jobs):
             res.extend(block)

@@ -9,7 +9,6 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from freipose.detect.base import BoxSource, DetectConfigError
 from freipose.detect.multiview import ConsistencyConfig, detect_multiview_batch
@@ -18,6 +17,7 @@ from freipose.io.atomic import atomic_path
 from freipose.io.boxes import BoxesData
 from freipose.io.session import Session
 from freipose.io.video import FrameSource, MediaError
+from freipose.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +120,7 @@ def detect_session(
         done = _load_progress(Path(progress_file), signature, arrays)
         if done:
             log.info("resuming from %s: %d of %d frames done", progress_file, done, t)
-    bar = tqdm(total=t, initial=done, desc="detect", unit="frame", disable=None)
+    bar = progress_bar(total=t, initial=done, desc="detect", unit="frame", disable=None)
     last_save = done
     first_missing: dict[str, int] = {}
     for b0 in range(done, t, batch_size):

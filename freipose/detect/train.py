@@ -60,7 +60,6 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from freipose.detect.augment import AugmentConfig, augment
 from freipose.detect.boxes import clip_boxes, visible_fraction
@@ -80,6 +79,7 @@ from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.checkpoints import DETECTOR_TRAINING_STATE
 from freipose.io.lock import output_lock
 from freipose.io.toml import did_you_mean
+from freipose.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +225,7 @@ def collect_views(
     """
     images: list[np.ndarray] = []
     boxes: list[np.ndarray] = []
-    for i in tqdm(indices, desc="loading training views", disable=None, leave=False):
+    for i in progress_bar(indices, desc="loading training views", disable=None, leave=False):
         s = samples[int(i)]
         gt = gt_boxes(s, cfg.box_margin)
         for v, img in enumerate(s["images"]):
@@ -370,7 +370,9 @@ def fit(
     )
     net.train()
     losses: list[float] = []
-    bar = tqdm(total=cfg.steps, initial=start, desc="detector", disable=None if progress else True)
+    bar = progress_bar(
+        total=cfg.steps, initial=start, desc="detector", unit="step", disable=not progress
+    )
     step = start
     window: list[float] = []
     window_parts: list[dict[str, float]] = []

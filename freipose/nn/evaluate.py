@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from freipose.errors import FreiPoseError
 from freipose.io.atomic import atomic_write_text
@@ -26,6 +25,7 @@ from freipose.nn.data import collate_prepared, label_center, prepare_sample
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.inference import predict_prepared
 from freipose.nn.types import SampleSource
+from freipose.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ def predict_dataset(
     rng = np.random.default_rng(seed)
     outs: dict[str, list[np.ndarray]] = {"P0": [], "P1": [], "confidence": [], "gt": []}
     model.eval()
-    for start in tqdm(
+    for start in progress_bar(
         range(0, len(idx), batch_size), desc="evaluate", disable=not progress or None
     ):
         items = []

@@ -393,16 +393,15 @@ def _train_steps(
     Returns:
         The number of steps done.
     """
-    from tqdm import tqdm
+    from freipose.progress import progress_bar
 
     sched, rank = run.config.schedule, run.procs.rank
-    pbar = tqdm(
+    pbar = progress_bar(
         total=sched.steps,
         initial=start,
         desc=f"train {run.config.model.kind}",
         unit="step",
         disable=(rank != 0 or not progress) or None,
-        dynamic_ncols=True,
     )
     acc: dict[str, float] = {}
     nacc = 0

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import Camera, CameraRig
@@ -24,6 +23,7 @@ from freipose.geometry.projection import project
 from freipose.io.poses import PoseData
 from freipose.io.video import VideoWriter
 from freipose.predict.reader import SyncReader
+from freipose.progress import progress_bar
 from freipose.skeleton import Skeleton
 
 log = logging.getLogger(__name__)
@@ -211,7 +211,9 @@ def render_overlay(
     H += H % 2
     panel = Panel3D(data.poses[rows], (tile_width, tile_h), data.up) if show_3d else None
     shapes = [(cam.height, cam.width) for cam in rig]
-    bar = tqdm(total=b - a, unit="frame", desc="render", disable=not progress or None, leave=False)
+    bar = progress_bar(
+        total=b - a, unit="frame", desc="render", disable=not progress, leave=False
+    )
     with (
         bar,
         VideoWriter(output, data.fps, (W, H)) as writer,

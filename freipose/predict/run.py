@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from freipose import __version__
 from freipose.errors import FreiPoseError
@@ -36,6 +35,7 @@ from freipose.predict.writer import (
     OutputHeader,
     is_complete,
 )
+from freipose.progress import progress_bar
 from freipose.skeleton import Skeleton
 
 log = logging.getLogger(__name__)
@@ -198,14 +198,13 @@ def _predict_frames(
     """Estimate and write the frames ``plan.a + done .. plan.b`` batch by batch."""
     done_now = 0
     shapes = [(cam.height, cam.width) for cam in session.rig]
-    bar = tqdm(
+    bar = progress_bar(
         total=plan.b - plan.a,
         initial=done,
         unit="frame",
         desc=session.name,
         disable=not progress or None,
         leave=False,
-        dynamic_ncols=True,
     )
     with (
         bar,
