@@ -23,7 +23,7 @@ from freipose.errors import FreiPoseError
     "--output",
     type=click.Path(dir_okay=False, path_type=Path),
     required=True,
-    help="Overlay video (.mp4, .avi or lossless .mkv).",
+    help="Overlay video (.mp4: H.264, plays in web browsers; .avi; lossless .mkv).",
 )
 @click.option(
     "--cameras",

@@ -35,6 +35,14 @@ def distorted_rig() -> CameraRig:
     return make_circle_rig(distortion=True)
 
 
+@pytest.fixture(scope="module")
+def chromium() -> Iterator[object]:
+    """A headless Chromium WebDriver (tests/browser.py); skips without Chromium or Selenium."""
+    from browser import chromium_driver
+
+    yield from chromium_driver()
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """The read-only shared data folder; tests using it skip when it is absent."""

@@ -1,8 +1,9 @@
-"""Video and image-folder input/output (OpenCV), with clear errors for unreadable media.
+"""Video and image-folder input/output, with clear errors for unreadable media.
 
 A *frame source* is a video file or a folder of images (sorted by name, numbers
-numerically); both give BGR uint8 frames (H, W, 3) by index. Writers encode to a
-temporary name and rename on close.
+numerically); both give BGR uint8 frames (H, W, 3) by index, decoded by OpenCV. Writers
+encode to a temporary name and rename on close; H.264 (videos for people to watch) goes
+through the ffmpeg binary of ``imageio-ffmpeg``, the other codecs through OpenCV.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import subprocess
+import tempfile
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -249,28 +252,40 @@ class FrameSource:
 class VideoWriter:
     """Write BGR uint8 frames to a video; the file appears under its name only on ``close``.
 
+    ``codec="h264"`` writes H.264 in MP4 (yuv420p, ``+faststart``) through the ffmpeg binary
+    that ``imageio-ffmpeg`` ships: the video plays in web browsers. An odd width or height
+    is padded by one black pixel row or column. The other codecs go through OpenCV.
+
     Args:
-        path: output file; the suffix picks the codec (.mp4 mp4v, .avi MJPG, .mkv lossless FFV1).
+        path: output file; the suffix picks the codec unless ``codec`` is given (.mp4 mp4v,
+            .avi MJPG, .mkv lossless FFV1).
         fps: frame rate.
-        size: (width, height).
+        size: (width, height) of the frames passed to :meth:`write`.
+        codec: ``"h264"`` (an .mp4 that browsers play) or None (the suffix's codec).
     """
 
-    def __init__(self, path: str | Path, fps: float, size: tuple[int, int]):
+    def __init__(
+        self, path: str | Path, fps: float, size: tuple[int, int], codec: str | None = None
+    ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         sfx = self.path.suffix.lower()
-        if sfx not in FOURCC:
-            raise MediaError(
-                f"{self.path}: cannot write {sfx!r} videos; use one of {sorted(FOURCC)}"
-            )
+        if codec not in (None, "h264"):
+            raise MediaError(f"{self.path}: unknown codec {codec!r}; use 'h264' or None")
+        if sfx not in FOURCC or (codec == "h264" and sfx != ".mp4"):
+            allowed = [".mp4"] if codec == "h264" else sorted(FOURCC)
+            raise MediaError(f"{self.path}: cannot write {sfx!r} videos; use one of {allowed}")
         self._tmp = self.path.with_name(f".{self.path.stem}.partial{sfx}")
         self.size = (int(size[0]), int(size[1]))
-        fourcc = cv2.VideoWriter.fourcc(*FOURCC[sfx])
-        self._w: cv2.VideoWriter | None = cv2.VideoWriter(
-            str(self._tmp), fourcc, float(fps), self.size
-        )
-        if not self._w.isOpened():
-            raise MediaError(f"{self.path}: OpenCV cannot open a {FOURCC[sfx]} writer")
+        self.codec = codec or FOURCC[sfx]
+        self._w: cv2.VideoWriter | _FFmpegH264 | None
+        if codec == "h264":
+            self._w = _FFmpegH264(self._tmp, fps, self.size)
+        else:
+            fourcc = cv2.VideoWriter.fourcc(*FOURCC[sfx])
+            self._w = cv2.VideoWriter(str(self._tmp), fourcc, float(fps), self.size)
+            if not self._w.isOpened():
+                raise MediaError(f"{self.path}: OpenCV cannot open a {FOURCC[sfx]} writer")
         self.frames = 0
 
     def write(self, frame: np.ndarray) -> None:
@@ -288,15 +303,22 @@ class VideoWriter:
     def close(self) -> None:
         """Finish the video and move it to its name."""
         if self._w is not None:
-            self._w.release()
-            self._w = None
+            w, self._w = self._w, None
+            try:
+                w.release()
+            except MediaError:
+                self._tmp.unlink(missing_ok=True)
+                raise
             os.replace(self._tmp, self.path)
 
     def abort(self) -> None:
         """Stop writing and remove the partial file (nothing appears under the name)."""
         if self._w is not None:
-            self._w.release()
-            self._w = None
+            w, self._w = self._w, None
+            if isinstance(w, _FFmpegH264):
+                w.kill()
+            else:
+                w.release()
         self._tmp.unlink(missing_ok=True)
 
     def __enter__(self) -> VideoWriter:
@@ -312,6 +334,62 @@ class VideoWriter:
             self.close()
         else:
             self.abort()
+
+
+class _FFmpegH264:
+    """An ffmpeg process encoding raw BGR frames from its standard input to H.264 MP4."""
+
+    def __init__(self, path: Path, fps: float, size: tuple[int, int]):
+        import imageio_ffmpeg
+
+        self.path = path
+        self.frame_bytes = size[0] * size[1] * 3
+        cmd = [
+            imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-nostdin", "-loglevel", "error",
+            "-f", "rawvideo", "-pix_fmt", "bgr24", "-s", f"{size[0]}x{size[1]}",
+            "-r", f"{float(fps):g}", "-i", "pipe:0", "-an",
+            "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", "-c:v", "libx264", "-preset", "fast",
+            "-crf", "20", "-pix_fmt", "yuv420p", "-movflags", "+faststart",
+            "-f", "mp4", str(path),
+        ]  # fmt: skip
+        self._err = tempfile.TemporaryFile()  # noqa: SIM115 - lives as long as the encoder
+        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=self._err)
+
+    def _message(self) -> str:
+        self._err.seek(0)
+        text = self._err.read().decode(errors="replace").strip()
+        return text.splitlines()[-1] if text else f"exit status {self._proc.returncode}"
+
+    def write(self, frame: np.ndarray) -> None:
+        """Send one BGR frame (H, W, 3) uint8 to the encoder."""
+        stdin = self._proc.stdin
+        if stdin is None:
+            raise MediaError(f"{self.path}: the H.264 encoder has no input pipe")
+        try:
+            stdin.write(frame.tobytes())
+        except (BrokenPipeError, OSError):
+            self._proc.wait()
+            raise MediaError(f"{self.path}: the H.264 encoder stopped: {self._message()}") from None
+
+    def release(self) -> None:
+        """Close the input and wait for the encoder; raises MediaError if it failed."""
+        if self._proc.stdin is not None:
+            with contextlib.suppress(BrokenPipeError, OSError):
+                self._proc.stdin.close()
+        rc = self._proc.wait()
+        msg = self._message() if rc != 0 else ""
+        self._err.close()
+        if rc != 0:
+            raise MediaError(f"{self.path}: the H.264 encoder failed: {msg}")
+
+    def kill(self) -> None:
+        """Stop the encoder without finishing the file."""
+        if self._proc.stdin is not None:
+            with contextlib.suppress(BrokenPipeError, OSError):
+                self._proc.stdin.close()
+        self._proc.kill()
+        self._proc.wait()
+        self._err.close()
 
 
 def find_camera_videos(folder: str | Path) -> dict[str, Path]:

@@ -44,6 +44,11 @@ def confidence_color(conf: float) -> tuple[int, int, int]:
     return (0, g, r)
 
 
+def _codec(output: str | Path) -> str | None:
+    """H.264 for an .mp4 overlay (it plays in web browsers); the suffix's codec otherwise."""
+    return "h264" if Path(output).suffix.lower() == ".mp4" else None
+
+
 def _limbs(skeleton: Skeleton | None, k: int) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
     if skeleton is None:
         return []
@@ -177,7 +182,7 @@ def render_overlay(
         videos: one video per camera of ``rig`` (the cameras to show, in order).
         rig: those cameras.
         data: the poses (``frame_index`` says which video frame each row belongs to).
-        output: the video to write (.mp4, .avi or .mkv).
+        output: the video to write (.mp4: H.264 for web browsers, .avi MJPG, .mkv lossless).
         frames: video frame range [start, stop) to render; default all rows of ``data``.
         tile_width: width in pixels of each view tile.
         show_3d: add the 3D panel.
@@ -211,12 +216,10 @@ def render_overlay(
     H += H % 2
     panel = Panel3D(data.poses[rows], (tile_width, tile_h), data.up) if show_3d else None
     shapes = [(cam.height, cam.width) for cam in rig]
-    bar = progress_bar(
-        total=b - a, unit="frame", desc="render", disable=not progress, leave=False
-    )
+    bar = progress_bar(total=b - a, unit="frame", desc="render", disable=not progress, leave=False)
     with (
         bar,
-        VideoWriter(output, data.fps, (W, H)) as writer,
+        VideoWriter(output, data.fps, (W, H), codec=_codec(output)) as writer,
         SyncReader(list(videos), a, b, 1, shapes) as reader,
     ):
         for fb in reader:
