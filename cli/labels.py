@@ -77,6 +77,14 @@ def _load_skeleton(spec: str | None) -> Skeleton | None:
 )
 @click.option("--session", default=None, help="Session name for all imported labels.")
 @click.option(
+    "--instances",
+    type=click.Choice(["user", "predicted", "all"]),
+    default=None,
+    help="SLEAP only: import user-labeled instances (default), predictions (predicted; e.g. "
+    "proofread ones) or both (all: predictions where a frame has no user instance). The "
+    "labels file records the choice.",
+)
+@click.option(
     "--threshold",
     type=float,
     default=20.0,
@@ -102,6 +110,7 @@ def import_labels(
     camera_maps: tuple[str, ...],
     mapping_file: Path | None,
     session: str | None,
+    instances: str | None,
     threshold: float,
     ignore_unknown: bool,
     skip_empty: bool,
@@ -111,6 +120,8 @@ def import_labels(
 
     2D labels seen in at least two calibrated views are triangulated robustly (RANSAC over
     views, then refinement); single-view labels stay 2D only. Nothing is written on error.
+    SLEAP: one .slp per camera (file stems or --camera-map name the cameras) or a session
+    folder session/<camera>/*.slp (cameras from the folder names).
 
     \b
     Examples:
@@ -118,6 +129,8 @@ def import_labels(
           --calibration calibration.toml --skeleton rat --map snout=Nose -o labels.h5
       freipose labels import --format dannce label3d_dannce.mat -o labels.h5
       freipose labels import --format sleap session.slp -o labels.h5
+      freipose labels import --format sleap session1/ --instances predicted \\
+          --calibration calibration.toml -o labels.h5
     """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.io.calibration import load_calibration
@@ -134,7 +147,17 @@ def import_labels(
         )
         rig = load_calibration(calibration, calibration_format) if calibration else None
         skel = _load_skeleton(skeleton)
-        srcs = IMPORTERS[fmt](list(sources), rig, mapping, session)
+        if instances is not None and fmt != "sleap":
+            raise click.BadParameter(
+                f"--instances applies to --format sleap only (got --format {fmt})",
+                param_hint="--instances",
+            )
+        if fmt == "sleap":
+            from freipose.labels.sleap import read_sleap
+
+            srcs = read_sleap(list(sources), rig, mapping, session, instances or "user")
+        else:
+            srcs = IMPORTERS[fmt](list(sources), rig, mapping, session)
         opts = ImportOptions(
             skeleton_keypoints=tuple(skel.keypoints) if skel is not None else None,
             mapping=mapping,

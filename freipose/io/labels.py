@@ -10,7 +10,8 @@ N labeled time instants over V cameras and K keypoints:
 * ``cameras`` (V,) and ``keypoints`` (K,) UTF-8 names;
 * group ``sessions/<name>`` per session: attribute ``calibration`` (calibration.toml
   text, may be absent for 2D-only data), attribute ``videos`` (JSON: camera name -> video
-  path, relative to the labels file), attribute ``fps`` (optional).
+  path, relative to the labels file), attribute ``fps`` (optional), attribute
+  ``instances`` (optional: which SLEAP instances were imported, ``user``/``predicted``/``all``).
 
 Sessions may use different rigs: the camera axis is the union of camera names, and a
 camera that a session lacks has NaN labels there.
@@ -45,11 +46,16 @@ class LabelsFormatError(FreiPoseError):
 
 @dataclass(frozen=True, eq=False)
 class SessionInfo(PicklableFrozen):
-    """Per-session facts: its cameras, its videos (camera name -> path) and frame rate."""
+    """Per-session facts: cameras, videos (camera name -> path), frame rate, instances.
+
+    ``instances`` says which instances of the source were imported (SLEAP: ``user``,
+    ``predicted`` or ``all``; None for other sources).
+    """
 
     calibration: CameraRig | None = None
     videos: Mapping[str, str] = field(default_factory=dict)
     fps: float | None = None
+    instances: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "videos", MappingProxyType(dict(self.videos)))
@@ -158,6 +164,8 @@ def write_labels_h5(labels: LabelSet, path: str | Path) -> None:
             sg.attrs["videos"] = json.dumps(dict(info.videos))
             if info.fps is not None:
                 sg.attrs["fps"] = float(info.fps)
+            if info.instances is not None:
+                sg.attrs["instances"] = str(info.instances)
 
 
 def read_labels_h5(path: str | Path) -> LabelSet:
@@ -186,6 +194,7 @@ def read_labels_h5(path: str | Path) -> LabelSet:
                         else None,
                         json.loads(sg.attrs.get("videos", "{}")),
                         float(sg.attrs["fps"]) if "fps" in sg.attrs else None,
+                        str(sg.attrs["instances"]) if "instances" in sg.attrs else None,
                     )
             return LabelSet(
                 np.array(decode_strings(f["session"][()]), dtype=object),

@@ -51,6 +51,8 @@ class SourceLabels:
         individual: (N,) animal of each row (multi-animal sources), or None.
         positional: the source has no keypoint names (``kp0..``); a skeleton with the same
             number of keypoints names them in order.
+        instances: which instances of a source that has several kinds were imported
+            (SLEAP: ``user``, ``predicted`` or ``all``), recorded in the labels file.
     """
 
     source: str
@@ -67,6 +69,7 @@ class SourceLabels:
     row_names: list[str] | None = None
     individual: list[str] | None = None
     positional: bool = False  # keypoints are unnamed: a skeleton of K names names them
+    instances: str | None = None
 
 
 @dataclass(frozen=True)
@@ -109,32 +112,30 @@ def _check_rows(src: SourceLabels, skip_empty: bool) -> SourceLabels:
         )
     log.warning("%s: dropping %d rows without labels", src.source, len(empty))
     keep = np.flatnonzero(labeled)
-    return SourceLabels(
-        src.source,
-        src.session,
-        src.cameras,
-        src.keypoints,
-        src.frame_index[keep],
-        src.points2d[keep],
-        None if src.visible2d is None else src.visible2d[keep],
-        None if src.points3d is None else src.points3d[keep],
-        src.calibration,
-        src.videos,
-        src.fps,
-        None if src.row_names is None else [src.row_names[i] for i in keep],
-        None if src.individual is None else [src.individual[i] for i in keep],
-        src.positional,
+    return dataclasses.replace(
+        src,
+        frame_index=src.frame_index[keep],
+        points2d=src.points2d[keep],
+        visible2d=None if src.visible2d is None else src.visible2d[keep],
+        points3d=None if src.points3d is None else src.points3d[keep],
+        row_names=None if src.row_names is None else [src.row_names[i] for i in keep],
+        individual=None if src.individual is None else [src.individual[i] for i in keep],
     )
 
 
 def check_frames_in_videos(
     session: str, frame_index: np.ndarray, videos: Mapping[str, Path]
-) -> None:
-    """Raise when a frame index lies past the end of a session video (names the file)."""
+) -> float | None:
+    """Raise when a frame index lies past the end of a session video (names the file).
+
+    Returns:
+        The frame rate of the first video that states one (None: no video does).
+    """
     from freipose.io.video import FrameSource, MediaError
 
+    fps = None
     if not len(frame_index):
-        return
+        return fps
     hi, lo = int(np.max(frame_index)), int(np.min(frame_index))
     if lo < 0:
         raise LabelImportError(f"session {session!r}: negative frame index {lo}")
@@ -142,6 +143,8 @@ def check_frames_in_videos(
         try:
             with FrameSource(path) as src:
                 n = src.num_frames
+                if fps is None and np.isfinite(src.fps) and src.fps > 0:
+                    fps = float(src.fps)
         except MediaError as exc:
             raise LabelImportError(f"session {session!r}, camera {cam!r}: {exc}") from exc
         if hi >= n:
@@ -149,6 +152,7 @@ def check_frames_in_videos(
                 f"{path}: labels of session {session!r} use frame {hi}, but the video has only "
                 f"{n} frames (0..{n - 1}); the labels belong to another video or it is truncated"
             )
+    return fps
 
 
 def triangulate_labels(
@@ -170,7 +174,8 @@ def triangulate_labels(
 
 
 def _relpath(path: Path, base: Path) -> str:
-    return os.path.relpath(Path(path).resolve(), Path(base).resolve())
+    """``path`` relative to ``base``, symlinks kept (a linked video keeps the link's path)."""
+    return os.path.relpath(os.path.abspath(path), os.path.abspath(base))
 
 
 def _named_keypoints(src: SourceLabels, options: ImportOptions) -> SourceLabels:
@@ -286,7 +291,9 @@ def prepare_source(
     if len(set(cams)) != len(cams):
         raise LabelImportError(f"{src.source}: cameras {cams} repeat after renaming")
     videos = {mapping.camera(c): Path(p) for c, p in src.videos.items()}
-    check_frames_in_videos(src.session, src.frame_index, videos)
+    fps = check_frames_in_videos(src.session, src.frame_index, videos)
+    if src.fps is None and fps is not None:
+        src = dataclasses.replace(src, fps=fps)
     return PreparedSource(src, target, kidx, cams, rig, videos)
 
 
@@ -366,7 +373,7 @@ def _session_info(info: SessionInfo | None, p: PreparedSource, out_dir: Path) ->
     rig, src = p.rig, p.src
     videos = {c: _relpath(path, out_dir) for c, path in p.videos.items()}
     if info is None:
-        return SessionInfo(rig, videos, src.fps)
+        return SessionInfo(rig, videos, src.fps, src.instances)
     same_rig = (info.calibration is None) == (rig is None) and (
         rig is None
         or (
@@ -381,7 +388,9 @@ def _session_info(info: SessionInfo | None, p: PreparedSource, out_dir: Path) ->
         )
     merged_videos = dict(info.videos)
     merged_videos.update(videos)
-    return SessionInfo(info.calibration, merged_videos, info.fps or src.fps)
+    return SessionInfo(
+        info.calibration, merged_videos, info.fps or src.fps, info.instances or src.instances
+    )
 
 
 def build_labelset(
@@ -405,7 +414,7 @@ def build_labelset(
     """
     if not sources:
         raise LabelImportError("no labels found in the given sources")
-    out_dir = Path(output).resolve().parent
+    out_dir = Path(os.path.abspath(output)).parent
     prepared: list[PreparedSource] = []
     keypoints = options.skeleton_keypoints
     for src in sources:

@@ -39,7 +39,7 @@ def rebase_videos(labels: LabelSet, src_dir: str | Path, dst_dir: str | Path) ->
         for cam, p in info.videos.items():
             pp = Path(p)
             vids[cam] = p if pp.is_absolute() else os.path.relpath(src_dir / pp, dst_dir)
-        sessions[name] = SessionInfo(info.calibration, vids, info.fps)
+        sessions[name] = SessionInfo(info.calibration, vids, info.fps, info.instances)
     return _replace(labels, sessions=sessions)
 
 
@@ -100,7 +100,8 @@ def merge_labels(parts: Sequence[LabelSet], names: Sequence[str] | None = None) 
                     )
                 vids = dict(sessions[s].videos)
                 vids.update(info.videos)
-                sessions[s] = SessionInfo(sessions[s].calibration, vids, sessions[s].fps)
+                prev = sessions[s]
+                sessions[s] = SessionInfo(prev.calibration, vids, prev.fps, prev.instances)
             else:
                 sessions[s], owner[s] = info, nm
         keys = set()

@@ -2,10 +2,17 @@
 
 A multi-camera file (with a recording session) gives one session: cameras from the
 session's video-to-camera map, cross-view identity from its instance groups when present,
-else from tracks. Otherwise each ``.slp`` is one camera (its name from ``--camera-map``, a
-calibration camera in the file name, or the file stem). Only user-labeled instances are
-imported (predictions are not labels). Videos are found by base name next to the file or
-in a ``videos`` folder.
+else from tracks. Otherwise each ``.slp`` is one camera: its name from ``--camera-map``, a
+calibration camera in the file name, or the file stem; a folder ``session/<camera>/*.slp``
+(sleap-anipose's layout) gives one session named after the folder, a camera per
+subfolder, and the folder's ``calibration.toml`` when no calibration is given.
+
+Which instances are imported is a choice (``instances``): ``user`` (hand-labeled, the
+default), ``predicted`` (SLEAP's predictions, e.g. proofread ones as sleap-anipose's
+workflow leaves them) or ``all`` (user instances, and predictions where a frame has no
+user instance of that track). Of several predictions of one track in a frame the one with
+the highest score is kept. Videos are found as stored in the file, else by base name next
+to the file or in a ``videos`` folder.
 """
 
 from __future__ import annotations
@@ -56,12 +63,60 @@ def _sleap_rig(session: object) -> CameraRig | None:
 
 
 def _resolve_video(filename: str, near: Path) -> Path | None:
-    """A video by its base name next to ``near``, in ``near/videos`` or ``near/../videos``."""
-    base = Path(str(filename).replace("\\", "/")).name
+    """A video as stored in the file (absolute, or relative to ``near``), else by base name.
+
+    The path is kept as found (a symlinked video keeps its link's path).
+    """
+    stored = Path(str(filename).replace("\\", "/"))
+    for cand in (stored, near / stored) if str(filename) else ():
+        if cand.is_file():
+            return cand
+    base = stored.name
     for d in (near, near / "videos", near.parent / "videos"):
-        if (d / base).is_file():
+        if base and (d / base).is_file():
             return d / base
     return None
+
+
+INSTANCE_KINDS = ("user", "predicted", "all")
+
+
+def _is_predicted(inst: Any) -> bool:
+    """Whether a sleap-io instance is a prediction (``PredictedInstance``)."""
+    return type(inst).__name__ == "PredictedInstance"
+
+
+def _track(inst: Any) -> str:
+    return inst.track.name if inst.track is not None else ""
+
+
+def select_instances(labeled_frames: Sequence[Any], kind: str) -> list[tuple[Any, Any]]:
+    """The (labeled frame, instance) pairs to import (see the module docstring).
+
+    Args:
+        labeled_frames: sleap-io ``LabeledFrame`` s.
+        kind: ``user``, ``predicted`` or ``all``.
+
+    Returns:
+        The chosen pairs in file order: user instances as they are; of the predictions of
+        one track in one frame the highest-scoring one (with ``all`` only where the frame
+        has no user instance of that track).
+    """
+    out = []
+    for lf in labeled_frames:
+        user = [i for i in lf.instances if not _is_predicted(i)]
+        best: dict[str, Any] = {}
+        if kind != "user":
+            taken = {_track(i) for i in user} if kind == "all" else set()
+            for i in lf.instances:
+                tr = _track(i)
+                if not _is_predicted(i) or tr in taken:
+                    continue
+                if tr not in best or float(i.score or 0) > float(best[tr].score or 0):
+                    best[tr] = i
+        chosen = ([] if kind == "predicted" else user) + list(best.values())
+        out += [(lf, i) for i in chosen]
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,29 +127,34 @@ class SlpFile:
         path: the file.
         labels: the sleap-io ``Labels``.
         keypoints: (K,) node names of its first skeleton.
-        user: (labeled frame, instance) of every user-labeled instance.
+        chosen: (labeled frame, instance) of every instance to import.
+        kind: which instances were chosen (``user``, ``predicted``, ``all``).
     """
 
     path: Path
     labels: Any
     keypoints: list[str]
-    user: list[tuple[Any, Any]]
+    chosen: list[tuple[Any, Any]]
+    kind: str = "user"
 
 
-def load_slp_file(sio: Any, src: Path) -> SlpFile:
-    """Load one ``.slp`` file and its user-labeled instances.
+def load_slp_file(sio: Any, src: Path, kind: str = "user") -> SlpFile:
+    """Load one ``.slp`` file and the instances of ``kind``.
 
     Args:
         sio: the ``sleap_io`` module.
         src: the file.
+        kind: ``user``, ``predicted`` or ``all`` (see :func:`select_instances`).
 
     Returns:
         The loaded file.
 
     Raises:
         InputFileError: no such file.
-        LabelImportError: not readable, no skeleton, or no user-labeled instance.
+        LabelImportError: not readable, no skeleton, or no instance of ``kind``.
     """
+    if kind not in INSTANCE_KINDS:
+        raise LabelImportError(f"--instances must be one of {list(INSTANCE_KINDS)}, got {kind!r}")
     path = existing_path(Path(src), "SLEAP file")
     try:
         labels = sio.load_slp(str(path))
@@ -103,18 +163,16 @@ def load_slp_file(sio: Any, src: Path) -> SlpFile:
     if not labels.skeletons:
         raise LabelImportError(f"{path}: the file has no skeleton")
     kps = list(labels.skeletons[0].node_names)
-    user = [
-        (lf, inst)
-        for lf in labels.labeled_frames
-        for inst in lf.instances
-        if type(inst).__name__ == "Instance"
-    ]
-    if not user:
+    chosen = select_instances(labels.labeled_frames, kind)
+    if not chosen:
+        n_pred = sum(_is_predicted(i) for lf in labels.labeled_frames for i in lf.instances)
+        n_all = sum(len(lf.instances) for lf in labels.labeled_frames)
         raise LabelImportError(
-            f"{path}: no user-labeled instances (only predictions); label frames in SLEAP "
-            f"or promote predictions to user instances first"
+            f"{path}: no {kind} instances (the file holds {n_all - n_pred} user-labeled and "
+            f"{n_pred} predicted ones); pass --instances predicted to import predictions "
+            f"(e.g. proofread ones), --instances all for both, or label frames in SLEAP"
         )
-    return SlpFile(path, labels, kps, user)
+    return SlpFile(path, labels, kps, chosen, kind)
 
 
 def _session_cameras(slp: SlpFile, rs: Any) -> dict[int, str]:
@@ -149,12 +207,18 @@ def _session_groups(slp: SlpFile, rs: Any, cam_of: dict[int, str]) -> list[Group
     fgs = getattr(rs, "frame_groups", {}) or {}
     for fidx, fg in sorted(fgs.items()):
         for g, ig in enumerate(fg.instance_groups):
-            by_cam = {str(c.name): inst for c, inst in ig.instance_by_camera.items()}
+            by_cam = {
+                str(c.name): inst
+                for c, inst in ig.instance_by_camera.items()
+                if slp.kind == "all" or (slp.kind == "predicted") == _is_predicted(inst)
+            }
+            if not by_cam:
+                continue
             groups.append((int(fidx), f"group{g}", by_cam))
     if groups:
         return groups
     tmp: dict[tuple[int, str], dict[str, object]] = {}
-    for lf, inst in slp.user:
+    for lf, inst in slp.chosen:
         cam = cam_of.get(id(lf.video))
         if cam is None:
             continue
@@ -233,15 +297,21 @@ class SingleView:
 
 
 def read_single_view(
-    slp: SlpFile, calibration: CameraRig | None, mapping: NameMapping, session: str | None
+    slp: SlpFile,
+    calibration: CameraRig | None,
+    mapping: NameMapping,
+    session: str | None,
+    where: SlpSource | None = None,
 ) -> SingleView:
     """The labels of a ``.slp`` file of one camera.
 
     Args:
         slp: the loaded file.
-        calibration: the cameras; a calibration camera must be named in the file name.
+        calibration: the cameras; a calibration camera must be named in the file name
+            (or in the name of its camera folder).
         mapping: ``--camera-map`` renames.
-        session: the session name (default: from the file name, else ``session``).
+        session: the session name (default: from the file or folder name, else ``session``).
+        where: the camera and session names the file's place gives (default: the file stem).
 
     Returns:
         The camera's labels and video.
@@ -250,14 +320,17 @@ def read_single_view(
         LabelImportError: the file has several videos, or names no calibration camera.
     """
     path = slp.path
-    cam, sess = camera_from_name(path.stem, path, calibration, mapping)
+    name, kind = (where.camera, "folder") if where and where.camera else (path.stem, "file")
+    cam, sess = camera_from_name(name, path, calibration, mapping, kind)
+    if where is not None and where.session:
+        sess = where.session
     if len(slp.labels.videos) > 1:
         raise LabelImportError(
             f"{path}: {len(slp.labels.videos)} videos but no recording session linking them "
             f"to cameras; use one .slp per camera or a SLEAP multi-view session"
         )
     rows = sorted(
-        ((int(lf.frame_idx), inst.track.name if inst.track else "", inst) for lf, inst in slp.user),
+        ((int(lf.frame_idx), _track(inst), inst) for lf, inst in slp.chosen),
         key=lambda r: (r[0], r[1]),
     )
     table = ViewTable(
@@ -273,19 +346,99 @@ def read_single_view(
     return SingleView(session or sess or "session", table, video)
 
 
+@dataclass(frozen=True)
+class SlpSource:
+    """A ``.slp`` file to read and what its place says.
+
+    Attributes:
+        path: the file.
+        camera: the camera folder's name (sleap-anipose layout), or "" (the file stem).
+        session: the session folder's name, or "".
+        calibration: ``calibration.toml`` of the session folder, when there is one.
+    """
+
+    path: Path
+    camera: str = ""
+    session: str = ""
+    calibration: Path | None = None
+
+
+def expand_sources(sources: Sequence[Path], calibration: CameraRig | None) -> list[SlpSource]:
+    """The ``.slp`` files of the arguments (files, or session folders).
+
+    A folder holding ``.slp`` files gives each of them; a folder whose subfolders hold them
+    (``session/<camera>/*.slp``) gives one per subfolder, the camera named after it. A file
+    whose stem names no calibration camera but whose folder does takes the folder's name.
+
+    Args:
+        sources: files and folders.
+        calibration: the calibration (to tell camera names in file names).
+
+    Returns:
+        The files to read.
+
+    Raises:
+        LabelImportError: a folder without ``.slp`` files, or a camera folder with several.
+    """
+    out = []
+    for src in map(Path, sources):
+        if not src.is_dir():
+            stem_cam = calibration is not None and match_camera(src.stem, calibration.names)
+            in_cam_dir = calibration is not None and src.parent.name in calibration.names
+            if calibration is not None and not stem_cam and in_cam_dir:
+                out.append(SlpSource(src, src.parent.name, src.parent.parent.name))
+            else:
+                out.append(SlpSource(src))
+            continue
+        direct = sorted(src.glob("*.slp"))
+        cal = src / "calibration.toml"
+        cal_path = cal if cal.is_file() else None
+        if direct:
+            out += [SlpSource(f, "", "", cal_path) for f in direct]
+            continue
+        subs = [d for d in sorted(src.iterdir()) if d.is_dir() and any(d.glob("*.slp"))]
+        if not subs:
+            raise LabelImportError(
+                f"{src}: no .slp files in the folder or its subfolders (expected "
+                f"session/<camera>/*.slp, one file per camera)"
+            )
+        for d in subs:
+            files = sorted(d.glob("*.slp"))
+            if len(files) > 1:
+                raise LabelImportError(
+                    f"{d}: {len(files)} .slp files ({[f.name for f in files]}) for camera "
+                    f"{d.name!r}; keep one per camera folder or pass the files themselves"
+                )
+            out.append(SlpSource(files[0], d.name, src.name, cal_path))
+    return out
+
+
+def _folder_rig(items: Sequence[SlpSource]) -> CameraRig | None:
+    """The session folder's own ``calibration.toml`` (the first one found), or None."""
+    from freipose.io.calibration import load_calibration
+
+    for it in items:
+        if it.calibration is not None:
+            return load_calibration(it.calibration)
+    return None
+
+
 def read_sleap(
     sources: Sequence[Path],
     calibration: CameraRig | None,
     mapping: NameMapping,
     session: str | None = None,
+    instances: str = "user",
 ) -> list[SourceLabels]:
-    """SLEAP ``.slp`` files (see the module docstring).
+    """SLEAP ``.slp`` files and session folders (see the module docstring).
 
     Args:
-        sources: the ``.slp`` files.
-        calibration: cameras for every session (default: a multi-view file's own).
+        sources: the ``.slp`` files, or session folders (``session/<camera>/*.slp``).
+        calibration: cameras for every session (default: a multi-view file's own, or the
+            session folder's ``calibration.toml``).
         mapping: ``--camera-map`` renames.
         session: the session name of every file.
+        instances: ``user``, ``predicted`` or ``all`` (recorded in every source).
 
     Returns:
         One source per multi-camera file, then one per session of one-camera files.
@@ -299,19 +452,23 @@ def read_sleap(
         raise LabelImportError(
             "reading SLEAP files needs sleap-io: pip install 'freipose[sleap]'"
         ) from exc
+    items = expand_sources(sources, calibration)
+    rig = calibration if calibration is not None else _folder_rig(items)
     single: dict[str, list[ViewTable]] = {}
     single_videos: dict[str, dict[str, Path]] = {}
     out = []
-    for src in sources:
-        slp = load_slp_file(sio, src)
+    for it in items:
+        slp = load_slp_file(sio, it.path, instances)
         sessions = list(getattr(slp.labels, "sessions", []) or [])
         if sessions:
             out.append(read_session_file(slp, sessions[0], calibration, session))
             continue
-        view = read_single_view(slp, calibration, mapping, session)
+        view = read_single_view(slp, rig, mapping, session, it)
         single.setdefault(view.session, []).append(view.table)
         if view.video is not None:
             single_videos.setdefault(view.session, {})[view.table.camera] = view.video
     for sname, vts in single.items():
-        out.append(combine_views(sname, vts, calibration, single_videos.get(sname, {})))
+        out.append(combine_views(sname, vts, rig, single_videos.get(sname, {})))
+    for src in out:
+        src.instances = instances
     return out
