@@ -34,6 +34,7 @@ def labels() -> None:
       freipose labels import --format dlc project/ --calibration calibration.toml -o labels.h5
       freipose labels check labels.h5 --report check/
       freipose labels split labels.h5 --eval 0.3 -o train.h5 eval.h5
+      freipose labels split labels.h5 --by time --gap 50 -o train.h5 eval.h5
     """  # noqa: D301 (click needs the \b escape)
 
 
@@ -272,10 +273,26 @@ def merge(inputs: tuple[Path, ...], output: Path) -> None:
 @click.argument("labels_file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option(
     "--by",
-    type=click.Choice(["session", "group"]),
+    type=click.Choice(["session", "group", "time"]),
     default="session",
     show_default=True,
-    help="Keep whole sessions (or groups of sessions, see --group-pattern) together.",
+    help="Keep whole sessions (or groups of sessions, see --group-pattern) together, or hold "
+    "out contiguous time blocks of every session (time; works on one recording).",
+)
+@click.option(
+    "--gap",
+    type=int,
+    default=50,
+    show_default=True,
+    help="--by time: frames between a held-out instant and the nearest training instant "
+    "(training instants closer to a held-out one are dropped).",
+)
+@click.option(
+    "--blocks",
+    type=int,
+    default=1,
+    show_default=True,
+    help="--by time: held-out blocks per session.",
 )
 @click.option(
     "--group-pattern", default=None, help="Regex: its match in a session name is the group."
@@ -298,25 +315,38 @@ def split(
     eval_fraction: float,
     eval_sessions: str | None,
     seed: int,
+    gap: int,
+    blocks: int,
     output: tuple[Path, Path],
 ) -> None:
-    """Split into training and evaluation sets that never share a recording.
+    """Split into training and evaluation sets that never share a recording or a moment.
+
+    Why not random frames: neighbouring video frames are near-copies of each other, so a
+    network evaluated on frames drawn at random between its training frames is tested on
+    what it has almost seen, and the error it shows is lower than on a new recording.
+    Split by session (or group of sessions), or, with one recording, by time: --by time
+    holds out contiguous blocks (--eval of each session's instants in --blocks blocks)
+    and drops the training instants within --gap frames of them.
 
     \b
-    Example:
+    Examples:
       freipose labels split labels.h5 --by session --eval 0.3 -o train.h5 eval.h5
+      freipose labels split labels.h5 --by time --gap 50 --eval 0.25 -o train.h5 eval.h5
     """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.io.labels import read_labels_h5, write_labels_h5
-        from freipose.labels.ops import rebase_videos, split_labels
+        from freipose.labels.ops import rebase_videos, split_by_time, split_labels
 
         if by == "group" and not group_pattern:
             raise click.BadParameter("--by group needs --group-pattern", param_hint="--by")
         lab = read_labels_h5(labels_file)
         chosen = [s.strip() for s in eval_sessions.split(",")] if eval_sessions else None
-        tr, ev, groups = split_labels(
-            lab, eval_fraction, group_pattern if by == "group" else None, chosen, seed
-        )
+        if by == "time":
+            tr, ev, groups = split_by_time(lab, eval_fraction, gap, blocks, seed)
+        else:
+            tr, ev, groups = split_labels(
+                lab, eval_fraction, group_pattern if by == "group" else None, chosen, seed
+            )
         tr = rebase_videos(tr, labels_file.parent, output[0].parent)
         ev = rebase_videos(ev, labels_file.parent, output[1].parent)
         write_labels_h5(tr, output[0])
@@ -325,9 +355,11 @@ def split(
         except BaseException:
             output[0].unlink(missing_ok=True)
             raise
+        dropped = len(lab) - len(tr) - len(ev)
         click.echo(
             f"train {output[0]}: {len(tr)} labels; eval {output[1]}: {len(ev)} labels "
             f"({len(ev) / len(lab):.0%}) from {groups}"
+            + (f"; {dropped} labels within --gap {gap} frames of them dropped" if dropped else "")
         )
 
 

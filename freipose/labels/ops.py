@@ -210,6 +210,69 @@ def split_labels(
     return labels.select(~is_eval), labels.select(is_eval), chosen
 
 
+def split_by_time(
+    labels: LabelSet,
+    eval_fraction: float = 0.3,
+    gap: int = 50,
+    blocks: int = 1,
+    seed: int = 0,
+) -> tuple[LabelSet, LabelSet, list[str]]:
+    """Split every recording into contiguous time blocks, held out with a gap around them.
+
+    Each session's labeled instants, in frame order, fall into ``blocks`` equal segments;
+    in each, a contiguous run of ``eval_fraction`` of the segment's instants (at a seeded
+    random place) is held out. Training instants less than ``gap`` frames from a held-out
+    instant of the same session are dropped, so no training frame is a near-copy of a
+    held-out one (neighbouring video frames look almost the same).
+
+    Args:
+        labels: the labels set (one or more sessions).
+        eval_fraction: share of each session's instants held out, in (0, 1).
+        gap: frames between a held-out instant and the nearest training instant.
+        blocks: held-out blocks per session.
+        seed: the blocks' places.
+
+    Returns:
+        ``(train, eval, blocks)``: the block descriptions ``session frames A-B``.
+
+    Raises:
+        LabelsOpError: bad arguments, or a split that leaves one part empty.
+    """
+    if not 0 < eval_fraction < 1:
+        raise LabelsOpError(f"--eval must be between 0 and 1, got {eval_fraction}")
+    if gap < 0 or blocks < 1:
+        raise LabelsOpError(f"--gap must be >= 0 and --blocks >= 1, got {gap} and {blocks}")
+    rng = np.random.default_rng(seed)
+    is_eval = np.zeros(len(labels), bool)
+    keep = np.ones(len(labels), bool)
+    described = []
+    for sess in sorted(set(labels.session)):
+        rows = np.flatnonzero(labels.session == sess)
+        rows = rows[np.argsort(labels.frame_index[rows], kind="stable")]
+        for seg in np.array_split(rows, min(blocks, len(rows))):
+            size = int(round(eval_fraction * len(seg)))
+            if size < 1:
+                continue
+            start = int(rng.integers(0, len(seg) - size + 1))
+            block = seg[start : start + size]
+            is_eval[block] = True
+            f = labels.frame_index[block]
+            described.append(f"{sess} frames {int(f.min())}-{int(f.max())}")
+        fi = labels.frame_index[rows]
+        ev_f = fi[is_eval[rows]]
+        if len(ev_f):
+            near = np.abs(fi[:, None] - ev_f[None, :]).min(1) < gap
+            keep[rows] = is_eval[rows] | ~near
+    train = ~is_eval & keep
+    if not is_eval.any() or not train.any():
+        raise LabelsOpError(
+            f"the time split leaves {int(train.sum())} training and {int(is_eval.sum())} held-out "
+            f"instants; label more frames, or lower --gap ({gap}) or change --eval "
+            f"({eval_fraction})"
+        )
+    return labels.select(train), labels.select(is_eval), described
+
+
 def _session_dir(out: Path, session: str) -> Path:
     safe = re.sub(r"[^\w.\-]+", "_", session)
     return out / safe
