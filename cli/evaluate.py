@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from freipose.cli._common import device_option, user_errors
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from freipose.nn.evaluate import Evaluation, Sanity
 
 
 @click.command()
@@ -26,6 +32,12 @@ from freipose.cli._common import device_option, user_errors
     type=click.Path(file_okay=False, path_type=Path),
     help="Folder the videos are relative to [default: the labels file's folder].",
 )
+@click.option(
+    "--train-labels",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Training labels for the constant-pose references [default: the labels the "
+    "checkpoint was trained on, where it records them and they exist].",
+)
 @device_option("cpu")
 @click.option("--batch-size", type=int, default=4, show_default=True, help="Samples per batch.")
 @click.option(
@@ -40,6 +52,7 @@ def evaluate(
     out_dir: Path,
     baseline: Path | None,
     root: Path | None,
+    train_labels: Path | None,
     device: str,
     batch_size: int,
     center_noise: float,
@@ -50,6 +63,15 @@ def evaluate(
     network both the initial (P0) and refined (P1) poses are reported; a baseline
     checkpoint given with --baseline is reported alongside.
 
+    Failure modes: per left/right pair of the skeleton the median distance between the
+    two keypoints predicted vs true and the share of instants with left and right
+    swapped, per bone the median length predicted vs true; a warning for each pair a
+    network collapses (predicted closer than half the true distance).
+
+    Sanity references: the training labels' median pose (body-centred) placed at each
+    held-out instant's centre, and at the training labels' mean centre; a network whose
+    median JPE is not below the first has learned nothing beyond that pose (warned).
+
     \b
     Example:
       freipose eval runs/small/model.pt eval/labels.h5 -o runs/small/eval
@@ -57,20 +79,56 @@ def evaluate(
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.checkpoints import POSE_NETWORK, check_checkpoints
-        from freipose.nn.evaluate import evaluate_checkpoints, write_report
+        from freipose.nn.evaluate import evaluate_checkpoints, sanity_checks, write_report
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         check_checkpoints(("CKPT", ckpt, POSE_NETWORK), ("--baseline", baseline, POSE_NETWORK))
         methods = {"": ckpt} if baseline is None else {"": ckpt, "baseline": baseline}
-        results, keypoints = evaluate_checkpoints(
+        ev = evaluate_checkpoints(
             methods, labels, root=root, device=device, batch_size=batch_size,
             center_noise=center_noise, progress=not quiet,
         )  # fmt: skip
-        summary = write_report(out_dir, results, keypoints)
-        for name, s in summary.items():
-            o = s["overall"]
-            click.echo(
-                f"{name}: median JPE {o['median']:.2f} mm "
-                f"(30-70 %: {o['p30']:.2f}-{o['p70']:.2f}), n = {o['n']}"
-            )
+        train3d = _training_points(ev, train_labels)
+        sanity = sanity_checks(ev, train3d)
+        summary = write_report(out_dir, ev.errors, ev.keypoints, sanity)
+        _echo_results(summary, sanity)
         click.echo(f"wrote {out_dir}")
+
+
+def _training_points(ev: Evaluation, given: Path | None) -> np.ndarray | None:
+    """The training labels' 3D points for the references (None, said, where there are none)."""
+    from freipose.io.labels import read_labels_h5
+    from freipose.nn.evaluate import trained_on
+
+    if given is not None:
+        path, why = given, "given with --train-labels"
+    else:
+        found, why = trained_on(ev)
+        if found is None:
+            click.echo(f"no sanity references: {why}; name the training labels with --train-labels")
+            return None
+        path = found
+    click.echo(f"training labels for the references: {path} ({why})")
+    return read_labels_h5(path).points3d
+
+
+def _echo_results(summary: dict[str, Any], sanity: Sanity) -> None:
+    """Print each method's JPE, the references, the failure modes and the warnings."""
+    from freipose.nn.failure_modes import format_failure_modes
+
+    for name, s in summary.items():
+        o = s["overall"]
+        click.echo(
+            f"{name}: median JPE {o['median']:.2f} mm "
+            f"(30-70 %: {o['p30']:.2f}-{o['p70']:.2f}), n = {o['n']}"
+        )
+    for name, r in sanity.references.items():
+        click.echo(f"reference, {name} (no network): median JPE {r['median_mm']:.2f} mm")
+    for name, modes in sanity.failure_modes.items():
+        lines = format_failure_modes({**modes, "warnings": []})
+        if lines:
+            click.echo(f"failure modes of {name}:")
+            for ln in lines:
+                click.echo(ln)
+    for w in sanity.warnings:
+        click.echo(w)

@@ -6,6 +6,7 @@ users pass their own TOML file with the same fields (see ``docs/formats.md``).
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
@@ -23,6 +24,9 @@ from freipose.io.toml import parse_toml
 PointRef = tuple[int, ...]
 
 BUILTIN_SKELETONS = ("rat", "mouse", "paw")
+
+# Spellings of left and right inside keypoint names (a name's side is the first one found).
+_LR = (("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT"), ("_l", "_r"), ("_L", "_R"))
 
 
 class SkeletonError(FreiPoseError):
@@ -132,6 +136,62 @@ class Skeleton(PicklableFrozen):
         if self.angles:
             d["angles"] = {k: [vec(a), vec(b)] for k, (a, b) in self.angles.items()}
         return d
+
+
+def infer_symmetry(keypoints: Sequence[str]) -> list[tuple[int, int]]:
+    """Left/right pairs from the keypoint names.
+
+    Names such as ``Ear Left``/``Ear Right``, ``leftear``/``rightear``,
+    ``Haunch_left``/``Haunch_right`` and ``EarL``/``EarR`` pair up.
+
+    Args:
+        keypoints: (K,) keypoint names.
+
+    Returns:
+        (left, right) index pairs.
+    """
+    names = list(keypoints)
+    pairs = []
+    for i, a in enumerate(names):
+        cands = []
+        for left, right in _LR:
+            if left in a:
+                cands.append(a.replace(left, right))
+        m = re.fullmatch(r"(.+)L", a)
+        if m:
+            cands.append(m.group(1) + "R")
+        for b in cands:
+            if b in names and b != a:
+                pairs.append((i, names.index(b)))
+                break
+    return pairs
+
+
+def _is_right(name: str) -> bool:
+    """Whether a keypoint name says right (``Right``, ``right``, ``_r``, a final ``R``)."""
+    return any(r in name for _, r in _LR) or bool(re.fullmatch(r".+[a-z]R", name))
+
+
+def left_right_pairs(skeleton: Skeleton) -> tuple[tuple[int, int], ...]:
+    """The (left, right) keypoint index pairs of a skeleton.
+
+    The skeleton's declared ``symmetry`` pairs, each ordered left first where the names
+    say which side is which; without declared pairs, the pairs that :func:`infer_symmetry`
+    finds in the keypoint names.
+
+    Args:
+        skeleton: the skeleton.
+
+    Returns:
+        (left, right) index pairs (empty for a skeleton without mirror-image keypoints).
+    """
+    if not skeleton.symmetry:
+        return tuple(infer_symmetry(skeleton.keypoints))
+    kps = skeleton.keypoints
+    return tuple(
+        (b, a) if _is_right(kps[a]) and not _is_right(kps[b]) else (a, b)
+        for a, b in skeleton.symmetry
+    )
 
 
 def _ref(names: Sequence[str], value: Any, where: str, skel: str) -> PointRef:

@@ -33,7 +33,7 @@ from freipose.geometry.triangulation import reprojection_errors, triangulate_rob
 from freipose.io.atomic import atomic_path, atomic_write_text
 from freipose.io.figures import new_figure, save_figure
 from freipose.io.labels import LabelSet
-from freipose.skeleton import Skeleton
+from freipose.skeleton import Skeleton, infer_symmetry
 
 log = logging.getLogger(__name__)
 
@@ -83,38 +83,6 @@ class CheckResult:
     points3d: np.ndarray
     projections: np.ndarray
     suspicious: list[Suspicious]
-
-
-_LR = (("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT"), ("_l", "_r"), ("_L", "_R"))
-
-
-def infer_symmetry(keypoints: Sequence[str]) -> list[tuple[int, int]]:
-    """Left/right pairs from the keypoint names.
-
-    Names such as ``Ear Left``/``Ear Right``, ``leftear``/``rightear``,
-    ``Haunch_left``/``Haunch_right`` and ``EarL``/``EarR`` pair up.
-
-    Args:
-        keypoints: (K,) keypoint names.
-
-    Returns:
-        (left, right) index pairs.
-    """
-    names = list(keypoints)
-    pairs = []
-    for i, a in enumerate(names):
-        cands = []
-        for left, right in _LR:
-            if left in a:
-                cands.append(a.replace(left, right))
-        m = re.fullmatch(r"(.+)L", a)
-        if m:
-            cands.append(m.group(1) + "R")
-        for b in cands:
-            if b in names and b != a:
-                pairs.append((i, names.index(b)))
-                break
-    return pairs
 
 
 class LabelCheckError(FreiPoseError):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +22,13 @@ from freipose.io.atomic import atomic_write_text
 from freipose.io.figures import new_figure, save_figure
 from freipose.io.labels import read_labels_h5
 from freipose.nn.checkpoint import load_checkpoint
+from freipose.nn.config import TrainConfig
 from freipose.nn.data import collate_prepared, label_center, prepare_sample
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.inference import predict_prepared
 from freipose.nn.types import SampleSource
 from freipose.progress import progress_bar
+from freipose.skeleton import Skeleton
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +118,33 @@ def predict_dataset(
     return res
 
 
+@dataclass(frozen=True, eq=False)
+class Evaluation:
+    """Networks' predictions of labeled instants and their errors (``freipose eval``).
+
+    Attributes:
+        errors: result name -> (N, K) JPE in mm (a voxel network gives ``<name>_P0`` and
+            ``<name>_P1``, a baseline ``<name>``).
+        predictions: result name -> (N, K, 3) predicted keypoints (mm).
+        gt: (N, K, 3) the labels (mm), NaN where unknown.
+        skeleton: the networks' skeleton (its keypoints are the labels').
+        checkpoints: result name -> the checkpoint it came from.
+        configs: result name -> the training config of that checkpoint.
+    """
+
+    errors: dict[str, np.ndarray]
+    predictions: dict[str, np.ndarray]
+    gt: np.ndarray
+    skeleton: Skeleton
+    checkpoints: dict[str, Path]
+    configs: dict[str, TrainConfig]
+
+    @property
+    def keypoints(self) -> tuple[str, ...]:
+        """The K keypoint names."""
+        return tuple(self.skeleton.keypoints)
+
+
 def evaluate_checkpoints(
     checkpoints: Mapping[str, str | Path],
     labels: str | Path,
@@ -124,7 +154,7 @@ def evaluate_checkpoints(
     batch_size: int = 4,
     center_noise: float = 0.0,
     progress: bool = False,
-) -> tuple[dict[str, np.ndarray], tuple[str, ...]]:
+) -> Evaluation:
     """Joint position errors of trained networks on a labels file (``freipose eval``).
 
     Args:
@@ -138,8 +168,7 @@ def evaluate_checkpoints(
         progress: show progress bars.
 
     Returns:
-        ``(results, keypoints)``: result name -> (N, K) JPE in mm (a voxel network gives
-        ``<name>_P0`` and ``<name>_P1``, a baseline ``<name>``) and the K keypoint names.
+        The predictions and errors of every network.
 
     Raises:
         EvaluationError: a network predicts other keypoints than the labels have, or no
@@ -148,8 +177,12 @@ def evaluate_checkpoints(
     labels = Path(labels)
     lab = read_labels_h5(labels)
     ds = MultiViewDataset(lab, root=Path(root) if root else labels.resolve().parent)
-    results: dict[str, np.ndarray] = {}
-    keypoints: tuple[str, ...] = ()
+    errors: dict[str, np.ndarray] = {}
+    preds: dict[str, np.ndarray] = {}
+    paths: dict[str, Path] = {}
+    configs: dict[str, TrainConfig] = {}
+    gt = np.zeros((0, len(lab.keypoints), 3))
+    skel = Skeleton(name="labels", keypoints=tuple(lab.keypoints))
     for name, path in checkpoints.items():
         model, config, skeleton = load_checkpoint(path, device)
         if tuple(skeleton.keypoints) != tuple(lab.keypoints):
@@ -157,19 +190,102 @@ def evaluate_checkpoints(
                 f"{path}: the network predicts keypoints {list(skeleton.keypoints)} but "
                 f"{labels} has {list(lab.keypoints)}"
             )
-        keypoints = tuple(skeleton.keypoints)
+        skel = skeleton if not (skel.limbs or skel.symmetry) else skel
         pred = predict_dataset(
             model, ds, batch_size=batch_size, center_noise=center_noise, progress=progress
         )
         if len(pred["index"]) == 0:
             raise EvaluationError(f"{labels}: no labeled instant with 3D labels and a calibration")
+        gt = pred["gt"]
         label = name or ("voxel" if config.model.kind == "voxel" else "baseline")
-        if config.model.kind == "voxel":
-            results[f"{label}_P0"] = jpe(pred["P0"], pred["gt"])
-            results[f"{label}_P1"] = jpe(pred["P1"], pred["gt"])
-        else:
-            results[label] = jpe(pred["P1"], pred["gt"])
-    return results, keypoints
+        outs = ("P0", "P1") if config.model.kind == "voxel" else ("P1",)
+        for out in outs:
+            key = f"{label}_{out}" if len(outs) == 2 else label
+            errors[key], preds[key] = jpe(pred[out], gt), pred[out]
+            paths[key], configs[key] = Path(path), config
+    return Evaluation(errors, preds, gt, skel, paths, configs)
+
+
+def trained_on(evaluation: Evaluation) -> tuple[Path | None, str]:
+    """The training labels the evaluated networks' checkpoints record, if they exist.
+
+    The first checkpoint whose config's ``[data] labels`` names an existing file wins: an
+    absolute path as recorded, a relative one (older checkpoints) next to the checkpoint
+    or in the folder above it (a run folder beside its config file).
+
+    Args:
+        evaluation: what :func:`evaluate_checkpoints` returned.
+
+    Returns:
+        ``(path, why)``: the labels file, or None, and a phrase saying where it came from
+        (or why none was found).
+    """
+    tried = []
+    for name, cfg in evaluation.configs.items():
+        rec = cfg.data.labels
+        if not rec:
+            continue
+        ckpt = evaluation.checkpoints[name]
+        q = Path(rec).expanduser()
+        for cand in [q] if q.is_absolute() else [ckpt.parent / q, ckpt.parent.parent / q]:
+            if cand.is_file():
+                return cand, f"the labels {ckpt} was trained on"
+            tried.append(str(cand))
+    if tried:
+        return None, f"the checkpoints' training labels are not found ({', '.join(tried)})"
+    return None, "the checkpoints do not record their training labels"
+
+
+@dataclass(frozen=True)
+class Sanity:
+    """Failure modes per result and the constant-pose references of an evaluation.
+
+    Attributes:
+        failure_modes: result name -> :func:`freipose.nn.failure_modes.failure_modes`.
+        references: reference name -> ``{"median_mm", "n"}`` (empty without training labels).
+        reference_errors: reference name -> (N, K) JPE in mm.
+        warnings: the failure modes' warnings and one per network not beating the
+            held-out-centre reference.
+    """
+
+    failure_modes: dict[str, dict[str, Any]]
+    references: dict[str, dict[str, Any]]
+    reference_errors: dict[str, np.ndarray]
+    warnings: list[str]
+
+
+def sanity_checks(evaluation: Evaluation, train3d: np.ndarray | None) -> Sanity:
+    """Failure modes of every result and, given training labels, the sanity references.
+
+    Args:
+        evaluation: what :func:`evaluate_checkpoints` returned.
+        train3d: (M, K, 3) the training labels' 3D points (mm), or None.
+
+    Returns:
+        The :class:`Sanity` of the evaluation.
+    """
+    from freipose.nn.failure_modes import failure_modes
+    from freipose.nn.references import (
+        beats_reference_warnings,
+        reference_predictions,
+        reference_summary,
+    )
+
+    modes = {
+        n: failure_modes(p, evaluation.gt, evaluation.skeleton, n)
+        for n, p in evaluation.predictions.items()
+    }
+    warnings = [w for m in modes.values() for w in m["warnings"]]
+    refs: dict[str, dict[str, Any]] = {}
+    ref_err: dict[str, np.ndarray] = {}
+    if train3d is not None:
+        ref_pred = reference_predictions(train3d, evaluation.gt)
+        ref_err = {n: jpe(p, evaluation.gt) for n, p in ref_pred.items()}
+        refs = reference_summary(ref_err)
+        medians = {n: jpe_summary(e, evaluation.keypoints)["overall"]["median"]
+                   for n, e in evaluation.errors.items()}  # fmt: skip
+        warnings += beats_reference_warnings(medians, refs)
+    return Sanity(modes, refs, ref_err, warnings)
 
 
 def jpe(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -273,25 +389,35 @@ def write_report(
     out_dir: str | Path,
     results: Mapping[str, np.ndarray],
     keypoints: Sequence[str],
+    sanity: Sanity | None = None,
 ) -> dict[str, Any]:
     """Write the evaluation outputs for one or more methods.
 
-    Writes ``metrics.json`` (summaries), ``jpe_per_keypoint.csv`` (median/p30/p70 per method
-    and keypoint), ``pck.csv`` and ``pck.png`` (PCK 0-20 mm), ``jpe_boxplot.png`` (box plots
-    per keypoint, whiskers 1.5 IQR).
+    Writes ``metrics.json`` (summaries; with ``sanity`` also each method's
+    ``failure_modes`` and a top-level ``references``), ``jpe_per_keypoint.csv``
+    (median/p30/p70 per method and keypoint), ``pck.csv`` and ``pck.png`` (PCK 0-20 mm),
+    ``jpe_boxplot.png`` (box plots per keypoint, whiskers 1.5 IQR).
 
     Args:
         out_dir: the output folder (created).
         results: method name -> JPE array (N, K) in mm.
         keypoints: the K keypoint names.
+        sanity: the failure modes and references (:func:`sanity_checks`), if computed.
 
     Returns:
-        The summaries (method name -> :func:`jpe_summary`).
+        The summaries (method name -> :func:`jpe_summary`, plus ``failure_modes``).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary = {name: jpe_summary(e, keypoints) for name, e in results.items()}
-    atomic_write_text(out / "metrics.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
+    doc: dict[str, Any] = dict(summary)
+    if sanity is not None:
+        for name, modes in sanity.failure_modes.items():
+            if name in summary:
+                summary[name]["failure_modes"] = modes
+        if sanity.references:
+            doc["references"] = sanity.references
+    atomic_write_text(out / "metrics.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
     rows = ["method,keypoint,median_mm,p30_mm,p70_mm,n"]
     for name, s in summary.items():
         for k in [*keypoints, "ALL"]:

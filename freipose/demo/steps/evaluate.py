@@ -13,33 +13,27 @@ from freipose.demo.markers import step_results
 
 @dataclass(frozen=True)
 class _LabelScores:
-    """The errors on the held-out labels and the labels' keypoint names."""
+    """The errors on the held-out labels, their failure modes and references, keypoint names."""
 
     methods: dict[str, Any]  # per method: median, p30, p70 JPE (mm)
+    failure_modes: dict[str, Any]  # the voxel network's (P1), see freipose.nn.failure_modes
+    references: dict[str, Any]  # per reference: median_mm, n
     keypoints: tuple[str, ...]
 
 
 def _on_labels(ctx: DemoContext, trained: dict[str, Any]) -> _LabelScores:
     """Voxel network vs. baseline on the held-out instants (cube on the true centre)."""
     from freipose.io.labels import read_labels_h5
-    from freipose.nn.checkpoint import load_checkpoint
-    from freipose.nn.dataset import MultiViewDataset
-    from freipose.nn.evaluate import jpe, predict_dataset, write_report
+    from freipose.nn.evaluate import evaluate_checkpoints, sanity_checks, write_report
+    from freipose.nn.failure_modes import format_failure_modes
 
-    ev_path = ctx.out / "labels" / "eval.h5"
-    lab = read_labels_h5(ev_path)
-    ds = MultiViewDataset(lab, root=ev_path.parent)
-    results: dict[str, np.ndarray] = {}
-    keypoints = tuple(lab.keypoints)
-    for sub in ("pose", "baseline"):
-        model, config, _ = load_checkpoint(trained[sub]["checkpoint"], ctx.device)
-        pred = predict_dataset(model, ds, batch_size=4)
-        if config.model.kind == "voxel":
-            results["voxel_P0"] = jpe(pred["P0"], pred["gt"])
-            results["voxel_P1"] = jpe(pred["P1"], pred["gt"])
-        else:
-            results["baseline"] = jpe(pred["P1"], pred["gt"])
-    summary = write_report(ctx.out / "evaluation" / "labels", results, keypoints)
+    ev = evaluate_checkpoints(
+        {"voxel": trained["pose"]["checkpoint"], "baseline": trained["baseline"]["checkpoint"]},
+        ctx.out / "labels" / "eval.h5",
+        device=ctx.device,
+    )
+    sanity = sanity_checks(ev, read_labels_h5(ctx.out / "labels" / "train.h5").points3d)
+    summary = write_report(ctx.out / "evaluation" / "labels", ev.errors, ev.keypoints, sanity)
     res: dict[str, Any] = {}
     ctx.say("  cube on the true centre, held-out instants (what `freipose eval` reports):")
     for name, s in summary.items():
@@ -47,7 +41,16 @@ def _on_labels(ctx: DemoContext, trained: dict[str, Any]) -> _LabelScores:
         res[name] = {"median": o["median"], "p30": o["p30"], "p70": o["p70"]}
         ctx.say(f"    {name:10s} median JPE {o['median']:7.2f} mm "
                 f"(30-70 %: {o['p30']:.2f}-{o['p70']:.2f})")  # fmt: skip
-    return _LabelScores(res, keypoints)
+    ctx.say("  references that look at no image (the training labels' median pose):")
+    for name, r in sanity.references.items():
+        ctx.say(f"    {name}: median JPE {r['median_mm']:.2f} mm")
+    modes = sanity.failure_modes["voxel_P1"]
+    ctx.say("  failure modes of the voxel network (P1):")
+    for line in format_failure_modes({**modes, "warnings": []}):
+        ctx.say("  " + line)
+    for w in sanity.warnings:
+        ctx.say("  " + w)
+    return _LabelScores(res, modes, sanity.references, ev.keypoints)
 
 
 def _pipeline(ctx: DemoContext, keypoints: tuple[str, ...]) -> dict[str, Any]:
@@ -81,8 +84,16 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         ctx: the demo run.
 
     Returns:
-        ``labels`` (per method: median, p30, p70 JPE in mm) and ``pipeline`` (per session:
+        ``labels`` (per method: median, p30, p70 JPE in mm), ``failure_modes`` (of the
+        voxel network's P1: ``pairs``, ``bones``, ``warnings``, see
+        :func:`freipose.nn.failure_modes.failure_modes`), ``references`` (per
+        constant-pose reference: ``median_mm``, ``n``) and ``pipeline`` (per session:
         median JPE and missing keypoints).
     """
     scores = _on_labels(ctx, step_results(ctx.out, "train"))
-    return {"labels": scores.methods, "pipeline": _pipeline(ctx, scores.keypoints)}
+    return {
+        "labels": scores.methods,
+        "failure_modes": scores.failure_modes,
+        "references": scores.references,
+        "pipeline": _pipeline(ctx, scores.keypoints),
+    }
