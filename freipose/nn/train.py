@@ -548,6 +548,15 @@ def train_from_config(
             config,
             model=dataclasses.replace(config.model, pretrained=str(rel(config.model.pretrained))),
         )
+    # the checkpoint records its data's absolute paths (freipose eval finds the training labels)
+    config = dataclasses.replace(
+        config,
+        data=dataclasses.replace(
+            config.data,
+            **{k: str(rel(v).resolve()) for k in ("labels", "eval_labels", "root")
+               if (v := getattr(config.data, k))},
+        ),
+    )  # fmt: skip
     root = rel(config.data.root) if config.data.root else None
     cams = list(config.data.cameras) or None
     labels = read_labels_h5(rel(config.data.labels))
