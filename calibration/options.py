@@ -20,6 +20,8 @@ class CalibrationOptions:
         origin_frame: video frame whose board pose defines the world (board on the floor: origin
             at the board's top-left pattern corner, x along the board's rows, z up out of the
             floor); ``None`` = the first camera's frame.
+        up: (3,) the world's up direction, stored with the calibration (only without
+            ``origin_frame``, whose world has z up); ``None`` = unknown.
         intrinsics_only: stop after per-camera intrinsics (extrinsics are identity).
         fixed_intrinsics: a rig whose K and distortion are used (and kept fixed) for every
             camera of the same name.
@@ -58,6 +60,7 @@ class CalibrationOptions:
     """
 
     origin_frame: int | None = None
+    up: tuple[float, float, float] | None = None
     intrinsics_only: bool = False
     fixed_intrinsics: CameraRig | None = None
     dist_model: str = "auto"

@@ -322,6 +322,8 @@ def _metadata(
         metadata["board_point_corrections_rms_mm"] = round(_rms_offset(adj.offsets), 4)
     if opt.origin_frame is not None:
         metadata["origin_frame"] = int(opt.origin_frame)
+    if world.up is not None:
+        metadata.update(world.up.metadata())
     metadata["intrinsics_standard_errors"] = {
         cam: {k: float(f"{v:.4g}") for k, v in se.items()}
         for cam, se in quality.standard_errors.items()
@@ -378,7 +380,14 @@ def _calibrate_detections(
     start = initial_parameters(dets, intr, rig0, opt)
     adj = _adjust(start, seen, rig0.frames, dets, intr, obj, opt)
     quality = _quality(dets, board, adj, intr.fixed, opt)
-    world = world_frame(adj.bundle, dets[0].num_frames, [d.name for d in dets], opt.origin_frame)
+    names = [d.name for d in dets]
+    world = world_frame(adj.bundle, dets[0].num_frames, names, opt.origin_frame, opt.up)
+    if world.up is None:
+        warnings.append(
+            f"the world is camera {names[0]}'s frame and its up direction is unknown (later "
+            f"steps estimate it from the labeled animal or assume z): pass --origin-frame N (a "
+            f"frame with the board on the floor) or --up X,Y,Z, or set it with freipose calib up"
+        )
     cams = rig_cameras(dets, adj.bundle, world.cameras)
     stats = bundle_stats(dets, adj.bundle, adj.obs, intr.results)
     warnings.extend(high_error_warnings(stats))

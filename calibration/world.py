@@ -13,6 +13,7 @@ from freipose.calibration.intrinsics import CalibrationError
 from freipose.calibration.params import DIST, FRAME_RVEC, FRAME_TVEC, RVEC, TVEC
 from freipose.geometry import Camera
 from freipose.geometry.transforms import invert_transform, rodrigues, transform
+from freipose.io.calibration_world import WorldUp
 
 __all__ = ["BOARD_TO_FLOOR", "WorldFrame", "rig_cameras", "world_frame"]
 
@@ -28,11 +29,13 @@ class WorldFrame:
         cameras: (C, 4, 4) world→camera of every camera (mm).
         board_poses: (F, 4, 4) board→world per frame, NaN where not estimated.
         description: the world frame in words (for the calibration file).
+        up: the world's up direction, None when unknown.
     """
 
     cameras: np.ndarray
     board_poses: np.ndarray
     description: str
+    up: WorldUp | None = None
 
 
 def _origin_pose(board_poses: np.ndarray, origin_frame: int) -> np.ndarray:
@@ -56,7 +59,11 @@ def _origin_pose(board_poses: np.ndarray, origin_frame: int) -> np.ndarray:
 
 
 def world_frame(
-    ba: BundleResult, num_frames: int, names: Sequence[str], origin_frame: int | None
+    ba: BundleResult,
+    num_frames: int,
+    names: Sequence[str],
+    origin_frame: int | None,
+    up: Sequence[float] | None = None,
 ) -> WorldFrame:
     """Move the adjusted rig into the world frame.
 
@@ -66,6 +73,11 @@ def world_frame(
         names: the camera names, in rig order.
         origin_frame: the frame whose board, laid on the floor, defines the world; ``None``:
             the first camera's frame.
+        up: (3,) the up direction in the first camera's frame (without ``origin_frame``).
+
+    Raises:
+        CalibrationError: ``origin_frame`` and ``up`` both given, or an origin frame
+            without a board pose.
 
     Returns:
         the cameras' and board poses' transforms in the world frame.
@@ -74,6 +86,12 @@ def world_frame(
     Bw = np.full((num_frames, 4, 4), np.nan)
     for k, f in enumerate(ba.frames):
         Bw[f] = transform(rodrigues(ba.frame_params[k, FRAME_RVEC]), ba.frame_params[k, FRAME_TVEC])
+    world_up = None
+    if origin_frame is not None and up is not None:
+        raise CalibrationError(
+            "--origin-frame and --up both set the up direction (the board on the floor has z "
+            "up): pass one"
+        )
     if origin_frame is not None:
         N = int(origin_frame)
         W = BOARD_TO_FLOOR @ invert_transform(_origin_pose(Bw, N))
@@ -81,15 +99,18 @@ def world_frame(
             f"board on the floor in frame {N}: origin at the board's top-left pattern corner, "
             f"x along the board's rows, y toward its first row, z up out of the floor; mm"
         )
+        world_up = WorldUp(np.array([0.0, 0.0, 1.0]), f"the board on the floor in frame {N}", 0.0)
     else:
         W = Tc[0].copy()
         world = (
             f"camera {names[0]}'s frame (origin at its optical centre, x right, y down, "
             f"z forward); mm"
         )
+        if up is not None:
+            world_up = WorldUp(np.asarray(up, dtype=np.float64), "given with --up")
     Tc = np.stack([T @ invert_transform(W) for T in Tc])
     Bw = np.einsum("ij,fjk->fik", W, Bw)
-    return WorldFrame(Tc, Bw, world)
+    return WorldFrame(Tc, Bw, world, world_up)
 
 
 def rig_cameras(

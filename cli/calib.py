@@ -11,6 +11,7 @@ SUBCOMMANDS = {
     "board": "freipose.cli.calib_run:board",
     "convert": "freipose.cli.calib_files:convert",
     "show": "freipose.cli.calib_files:show",
+    "up": "freipose.cli.calib_up:up",
 }
 
 
@@ -33,9 +34,15 @@ def calib() -> None:
     camera saw from behind. A chessboard seen from behind cannot be told from a mirrored
     grid: use a ChArUco board or an AprilGrid for such rigs.
 
+    The world's up direction is stored with the calibration: z with --origin-frame N (the
+    board on the floor in frame N), the direction given with --up X,Y,Z, or later with
+    freipose calib up (given, or estimated from the labeled animal). Without it, the later
+    steps estimate it from the labels or assume z and warn.
+
     \b
     Examples:
       freipose calib cams/cam0.mp4 cams/cam1.mp4 --board board.toml -o calibration.toml
       freipose calib show calibration.toml
+      freipose calib up calibration.toml --up 0,-1,0
       freipose calib convert calibration.toml M.json
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker

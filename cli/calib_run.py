@@ -12,6 +12,7 @@ import click
 
 from freipose.cli._common import user_errors
 from freipose.cli.calib_files import FORMATS_HELP
+from freipose.cli.calib_up import parse_up
 from freipose.errors import FreiPoseError, InputFileError
 
 if TYPE_CHECKING:  # the calibration package is imported when a command runs
@@ -318,6 +319,16 @@ def _echo_result(result: Any, output: Path) -> None:
     default=None,
     help="Frame whose board pose defines the world (board on the floor, z up).",
 )
+@click.option(
+    "--up",
+    "up",
+    default=None,
+    metavar="X,Y,Z",
+    callback=lambda _ctx, _param, v: None if v is None else parse_up(v),
+    help="The world's up direction in the first camera's frame, stored with the calibration "
+    "(without --origin-frame, whose world has z up). Without either, the up direction is "
+    "unknown: set it later with freipose calib up.",
+)
 @click.option("--intrinsics-only", is_flag=True, help="Calibrate intrinsics only.")
 @click.option(
     "--fix-intrinsics",
@@ -396,6 +407,7 @@ def run(
     output: Path,
     fmt: str | None,
     origin_frame: int | None,
+    up: tuple[float, float, float] | None,
     intrinsics_only: bool,
     fix_intrinsics: Path | None,
     intrinsics_from: Path | None,
@@ -455,6 +467,11 @@ def run(
         cameras = [p.stem if p.is_file() else p.name for p in inputs]
         out_format = check_outputs(output, fmt, report_dir, cameras)
         board = _resolve_board(board_file, board_type, board_fields)
+        if origin_frame is not None and up is not None:
+            raise FreiPoseError(
+                "--origin-frame and --up both set the up direction (the board on the floor has "
+                "z up): pass one"
+            )
         if fix_intrinsics is not None and intrinsics_from is not None:
             raise FreiPoseError(
                 "--fix-intrinsics and --intrinsics-from both give the intrinsics: pass one"
@@ -464,6 +481,7 @@ def run(
             shutil.rmtree(detection_cache_dir(output), ignore_errors=True)
         opts = CalibrationOptions(
             origin_frame=origin_frame,
+            up=up,
             intrinsics_only=intrinsics_only,
             fixed_intrinsics=fixed,
             dist_model=dist_model,

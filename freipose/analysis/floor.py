@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from freipose.errors import FreiPoseError
+from freipose.geometry.floor import fit_plane_below
 from freipose.io.atomic import atomic_write_text
 from freipose.io.toml import check_keys, read_toml
 
@@ -135,9 +136,8 @@ def fit_floor(
 
     The paw positions are binned in a grid of ``cell_mm`` cells on the plane perpendicular to
     ``up``; in each cell the points below the cell's ``quantile`` of height are kept (paws in
-    stance), so a tilted floor is sampled everywhere the animal walked. A plane
-    ``h = a·u + b·v + c`` is then fitted by least squares with iterative rejection of points
-    further than 3 robust standard deviations (MAD).
+    stance), so a tilted floor is sampled everywhere the animal walked; the plane is fitted
+    to them with outlier rejection (:func:`freipose.geometry.floor.fit_plane_below`).
 
     Args:
         feet: (..., 3) paw positions (world mm), NaN allowed.
@@ -159,46 +159,15 @@ def fit_floor(
             f"cannot fit the floor: only {len(pts)} finite paw positions (need {min_points}); "
             f"give the floor with --floor FILE or use the world z = 0 plane (--floor world)"
         )
-    # Orthonormal basis (e1, e2, up).
-    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(up, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
-    u, v, h = pts @ e1, pts @ e2, pts @ up
-    cu = np.floor(u / cell_mm).astype(np.int64)
-    cv = np.floor(v / cell_mm).astype(np.int64)
-    _, cell = np.unique(np.stack([cu, cv], axis=1), axis=0, return_inverse=True)
-    cell = cell.reshape(-1)
-    # Per-cell quantile of the height: sort by (cell, h) and take the rank within the cell.
-    order = np.lexsort((h, cell))
-    counts = np.bincount(cell)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    rank = np.empty(len(h), dtype=np.int64)
-    rank[order] = np.arange(len(h)) - starts[cell[order]]
-    keep = rank <= np.floor(quantile * (counts[cell] - 1))
-    u, v, h = u[keep], v[keep], h[keep]
-    if len(h) < 3:
+    plane = fit_plane_below(pts, up, cell_mm, quantile, iterations)
+    if plane is None:
         raise FloorError("cannot fit the floor: fewer than 3 low paw positions")
-    a = np.stack([u, v, np.ones_like(u)], axis=1)
-    inl = np.ones(len(h), dtype=bool)
-    coef = np.zeros(3)
-    for _ in range(iterations):
-        coef, *_ = np.linalg.lstsq(a[inl], h[inl], rcond=None)
-        res = h - a @ coef
-        mad = 1.4826 * np.median(np.abs(res[inl] - np.median(res[inl])))
-        new = np.abs(res) <= max(3.0 * mad, 1e-6)
-        if new.sum() < 3 or np.array_equal(new, inl):
-            break
-        inl = new
-    ca, cb, cc = coef
-    normal = up - ca * e1 - cb * e2
-    s = np.linalg.norm(normal)
-    floor = FloorPlane(normal / s, cc / s, "auto")
+    floor = FloorPlane(plane.normal, plane.offset, "auto")
     tilt = np.degrees(np.arccos(np.clip(floor.normal @ up, -1, 1)))
     log.info(
         "fitted floor from %d low paw positions (%d inliers): tilt %.2f deg, offset %.1f mm",
-        len(h),
-        int(inl.sum()),
+        plane.low_points,
+        plane.inliers,
         tilt,
         floor.offset,
     )

@@ -23,6 +23,8 @@ import torch
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.geometry.crops import crop_affine, crop_camera, cube_crop_boxes
+from freipose.geometry.transforms import rodrigues
+from freipose.io.calibration_world import world_up
 from freipose.nn.config import AugmentConfig, ModelConfig
 from freipose.nn.types import Batch, PreparedSample, Sample, SampleSource
 
@@ -133,14 +135,18 @@ def _cube_center(sample: Sample, aug: Augmentation | None, center: np.ndarray | 
     return np.asarray(center, dtype=np.float64).reshape(3)
 
 
-def _grid_rotation(aug: Augmentation | None) -> np.ndarray:
-    """(3, 3) voxel grid orientation: a random turn about the world z axis when augmenting."""
+def _grid_rotation(aug: Augmentation | None, rig: CameraRig) -> np.ndarray:
+    """(3, 3) voxel grid orientation: a random turn about the world's up when augmenting.
+
+    The up is the one the rig's calibration stores (:mod:`freipose.io.calibration_world`;
+    the training dataset resolves it per session), else world z.
+    """
     if aug is None or aug.config.grid_rotation <= 0:
         return np.eye(3)
     a = math.radians(aug.rng.uniform(-aug.config.grid_rotation, aug.config.grid_rotation))
-    return np.array(
-        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]]
-    )
+    known = world_up(rig)
+    up = np.array([0.0, 0.0, 1.0]) if known is None else known.up
+    return rodrigues(a * up)
 
 
 @dataclass(frozen=True)
@@ -296,7 +302,7 @@ def prepare_sample(
             raise ValueError("prepare_sample: augmentation needs an rng")
         aug = Augmentation(augment, rng)
     center = _cube_center(sample, aug, center)
-    grid_rot = _grid_rotation(aug)
+    grid_rot = _grid_rotation(aug, rig)
     images = sample.get("images") or []
     if images and len(images) != len(rig):
         raise SampleError(f"sample has {len(images)} images for {len(rig)} cameras")

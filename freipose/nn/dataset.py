@@ -28,6 +28,7 @@ import torch.utils.data
 
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
+from freipose.io.calibration_world import rig_with_up
 from freipose.io.labels import LabelSet, read_labels_h5
 from freipose.io.video import FrameSource, MediaError
 from freipose.nn.types import Sample
@@ -158,6 +159,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 )
             cols = np.array([all_cams.index(c) for c in names], dtype=np.int64)
             sub = rig.subset(names) if rig is not None else None
+            if sub is not None:  # the grid rotation turns about the world's up
+                pts = self.labels.points3d[np.asarray(self.labels.session) == s]
+                sub = rig_with_up(sub, pts, f"session {s!r}'s grid rotation")
             self._views[s] = (tuple(names), cols, sub)
             for c in names:
                 if c in videos:

@@ -22,6 +22,7 @@ import numpy as np
 
 from freipose import __version__
 from freipose.errors import FreiPoseError
+from freipose.io.calibration_world import resolve_up
 from freipose.io.lock import output_lock
 from freipose.io.session import Session
 from freipose.io.video import frame_range
@@ -334,6 +335,7 @@ def _predict_locked(
         fps=session.fps,
         skeleton=skeleton,
         provenance=session_provenance(session, estimator, provenance),
+        up=tuple(resolve_up(session.rig, purpose="the poses' up attribute").up.tolist()),
         run_start=plan.start,
         run_stop=plan.stop,
         shard=shard,

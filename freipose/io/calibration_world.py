@@ -1,0 +1,196 @@
+"""The world's up direction and floor height stored with a calibration.
+
+A calibration's ``[metadata]`` table may hold ``up`` (the world's unit up vector),
+``up_source`` (how it was obtained: the board on the floor, the user, the labeled animal)
+and ``floor_mm`` (the floor is the plane ``up · X = floor_mm``). Files without them (older
+files, other tools' formats, a calibration whose world is a camera's frame) have no known
+up: :func:`resolve_up` then estimates it from the animal's 3D points when it is given
+some, else assumes world z and says so in a warning.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from freipose.errors import FreiPoseError
+from freipose.geometry.camera import CameraRig
+from freipose.geometry.floor import estimate_up
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "UP_KEYS",
+    "WorldUp",
+    "resolve_up",
+    "rig_with_up",
+    "up_from_labels",
+    "with_world_up",
+    "world_up",
+]
+
+UP_KEYS = ("up", "up_source", "floor_mm")
+# The largest scatter ratio (smallest / middle eigenvalue) at which the labels fix the up.
+MAX_FLATNESS = 0.5
+
+
+class WorldUpError(FreiPoseError):
+    """An up direction cannot be set or estimated (the message says what to pass)."""
+
+
+@dataclass(frozen=True, eq=False)
+class WorldUp:
+    """The world's up direction.
+
+    Attributes:
+        up: (3,) unit up vector in the world frame.
+        source: how it was obtained (for files and messages).
+        floor: the floor's height along ``up`` (mm; ``up · X = floor``), None if unknown.
+    """
+
+    up: np.ndarray
+    source: str
+    floor: float | None = None
+
+    def __post_init__(self) -> None:
+        """Check the vector and scale it to unit length."""
+        u = np.asarray(self.up, dtype=np.float64).reshape(-1)
+        if u.shape != (3,) or not np.isfinite(u).all() or np.linalg.norm(u) < 1e-9:
+            raise WorldUpError(
+                f"the up direction must be 3 finite numbers, not all zero (e.g. --up 0,0,1); "
+                f"got {self.up!r}"
+            )
+        object.__setattr__(self, "up", u / np.linalg.norm(u))
+
+    def metadata(self) -> dict[str, Any]:
+        """The calibration-metadata entries for this up direction."""
+        md: dict[str, Any] = {"up": [round(float(x), 9) for x in self.up], "up_source": self.source}
+        if self.floor is not None:
+            md["floor_mm"] = round(float(self.floor), 4)
+        return md
+
+
+def world_up(rig: CameraRig | Mapping[str, Any]) -> WorldUp | None:
+    """The up direction a rig's metadata (or a metadata mapping) stores, or None."""
+    md = rig.metadata if isinstance(rig, CameraRig) else rig
+    if "up" not in md:
+        return None
+    floor = md.get("floor_mm")
+    try:
+        return WorldUp(
+            np.asarray(md["up"], dtype=np.float64),
+            str(md.get("up_source", "calibration file")),
+            None if floor is None else float(floor),
+        )
+    except (TypeError, ValueError) as exc:
+        raise WorldUpError(
+            f"the calibration's metadata.up must be 3 numbers, got {md['up']!r}"
+        ) from exc
+
+
+def with_world_up(rig: CameraRig, up: WorldUp | None) -> CameraRig:
+    """The rig with ``up`` in its metadata (None: without any up direction)."""
+    md = {k: v for k, v in rig.metadata.items() if k not in UP_KEYS}
+    if up is not None:
+        md.update(up.metadata())
+    return CameraRig(rig.cameras, md)
+
+
+def up_from_labels(rig: CameraRig, points: np.ndarray) -> WorldUp:
+    """Estimate the up direction from the labeled animal's 3D points.
+
+    Args:
+        rig: the cameras (their centres decide which side of the floor is up).
+        points: (..., 3) labeled 3D points over time (world mm).
+
+    Returns:
+        The estimate, its floor height and a source naming the evidence.
+
+    Raises:
+        WorldUpError: too few points, or points that do not fix a plane (an animal that
+            never moved over the floor).
+    """
+    est = estimate_up(points, rig.centers)
+    if est is None:
+        raise WorldUpError(
+            "cannot estimate the up direction: fewer than 10 labeled 3D points; give it with "
+            "freipose calib up CALIBRATION --up X,Y,Z"
+        )
+    if est.flatness > MAX_FLATNESS:
+        raise WorldUpError(
+            f"cannot estimate the up direction from the labels: their points do not spread "
+            f"over a plane (scatter ratio {est.flatness:.2f}, need at most {MAX_FLATNESS}; the "
+            f"animal hardly moved); give it with freipose calib up CALIBRATION --up X,Y,Z, or "
+            f"calibrate with --origin-frame N (a frame with the board on the floor)"
+        )
+    return WorldUp(
+        est.up,
+        f"estimated from {est.points} labeled 3D points (the plane the animal moves on; "
+        f"{est.cameras_above} of {len(rig)} cameras above it)",
+        est.floor,
+    )
+
+
+def resolve_up(
+    rig: CameraRig | None, points: np.ndarray | None = None, purpose: str = "the up direction"
+) -> WorldUp:
+    """The rig's stored up, else one estimated from ``points``, else world z (warned).
+
+    Args:
+        rig: the calibration (None: no calibration).
+        points: (..., 3) 3D points of the animal over time (world mm), or None.
+        purpose: what the up is used for (for the warning).
+
+    Returns:
+        The up direction; its ``source`` says which of the three it is.
+    """
+    stored = world_up(rig) if rig is not None else None
+    if stored is not None:
+        return stored
+    reason = "the calibration stores no up direction"
+    if rig is not None and points is not None:
+        try:
+            est = up_from_labels(rig, points)
+        except WorldUpError as exc:
+            reason = f"{reason}, and the labels give none ({exc})"
+        else:
+            log.warning(
+                "%s; for %s it is %s: up = %s (set it with freipose calib up)",
+                reason,
+                purpose,
+                est.source,
+                np.round(est.up, 3).tolist(),
+            )
+            return est
+    log.warning(
+        "%s; %s assumes world z is up (set it with freipose calib up CALIBRATION --up X,Y,Z, "
+        "or calibrate with --origin-frame N)",
+        reason,
+        purpose,
+    )
+    return WorldUp(np.array([0.0, 0.0, 1.0]), "assumed (world z)")
+
+
+def rig_with_up(
+    rig: CameraRig, points: np.ndarray | None = None, purpose: str = "the up direction"
+) -> CameraRig:
+    """``rig`` with the up of :func:`resolve_up` in its metadata (unchanged if stored).
+
+    An assumed world z is not stored: the rig then has no up, as before.
+
+    Args:
+        rig: the calibration.
+        points: (..., 3) 3D points of the animal over time (world mm), or None.
+        purpose: what the up is used for (for the warning).
+
+    Returns:
+        The rig, with an estimated up when it had none and ``points`` give one.
+    """
+    if world_up(rig) is not None:
+        return rig
+    found = resolve_up(rig, points, purpose)
+    return rig if found.source.startswith("assumed") else with_world_up(rig, found)
