@@ -207,3 +207,35 @@ def test_stereo_cli_with_report(tmp_path, shared_data):
     )
     assert code == 0, text
     assert "intrinsics only" in load_calibration(out).metadata["world"]
+
+
+
+def test_cli_stores_the_up_direction(tmp_path, shared_data):
+    from freipose.io.calibration import load_calibration
+    from freipose.io.calibration_world import world_up
+
+    src = shared_data / "opencv-bouguet-stereo" / "images"
+    dirs = []
+    for side in ("left", "right"):
+        d = tmp_path / side
+        d.mkdir()
+        for f in sorted(src.glob(f"{side}0[1-6].jpg")):
+            (d / f.name).symlink_to(f)
+        dirs.append(str(d))
+    out = tmp_path / "stereo.toml"
+    base = ["calib", *dirs, "--board-type", "chessboard", "--inner-corners-x", "9",
+            "--inner-corners-y", "6", "--square-size", "30", "-o", str(out), "-j", "1",
+            "--no-refine-board"]  # fmt: skip
+    code, text = _run(base)
+    assert code == 0, text
+    assert "up direction is unknown" in text and world_up(load_calibration(out)) is None
+    code, text = _run([*base, "--up", "0,-2,0"])
+    assert code == 0 and "up direction is unknown" not in text, text
+    up = world_up(load_calibration(out))
+    assert up.up.tolist() == [0, -1, 0] and up.source == "given with --up" and up.floor is None
+    code, text = _run([*base, "--origin-frame", "0"])
+    assert code == 0, text
+    up = world_up(load_calibration(out))
+    assert up.up.tolist() == [0, 0, 1] and up.floor == 0.0 and "frame 0" in up.source
+    code, text = _run([*base, "--origin-frame", "0", "--up", "0,0,1"])
+    assert code != 0 and "pass one" in text
