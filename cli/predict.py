@@ -15,6 +15,7 @@ from freipose.cli._common import (
     frames_option,
     user_errors,
 )
+from freipose.cli._threads import threads_option, use_threads
 from freipose.errors import FreiPoseError
 
 
@@ -60,6 +61,7 @@ from freipose.errors import FreiPoseError
     "OUTDIR/smoothed/<session>.poses.h5.",
 )
 @click.option("--overwrite", is_flag=True, help="Redo outputs that exist and are complete.")
+@threads_option()
 @click.pass_context
 def predict(
     ctx: click.Context,
@@ -80,6 +82,7 @@ def predict(
     skeleton: str | None,
     smooth: bool,
     overwrite: bool,
+    threads: int | None,
 ) -> None:
     """Predict 3D poses from synchronized videos of one or more sessions.
 
@@ -117,6 +120,7 @@ def predict(
                 "and then `freipose smooth OUTDIR/<session>.poses.h5 -o OUTDIR/smoothed`"
             )
         spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
+        use_threads(threads)
         check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
         found = discover_sessions(sessions, calibration)
         if smooth:

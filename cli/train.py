@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from freipose.cli._common import device_option, user_errors
+from freipose.cli._threads import threads_option, use_threads
 
 
 @click.command()
@@ -27,9 +28,16 @@ from freipose.cli._common import device_option, user_errors
     type=click.Path(file_okay=False, path_type=Path),
     help="Run folder for checkpoints and logs [default: CONFIG without its suffix].",
 )
+@threads_option()
 @click.pass_context
 def train(
-    ctx: click.Context, config: Path, stage: str, resume: bool, device: str, out_dir: Path | None
+    ctx: click.Context,
+    config: Path,
+    stage: str,
+    resume: bool,
+    device: str,
+    out_dir: Path | None,
+    threads: int | None,
 ) -> None:
     """Train the FreiPose network described by a TOML config.
 
@@ -49,6 +57,7 @@ def train(
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
+        use_threads(threads)
         if stage == "detector":
             try:
                 from freipose.detect.train import train_detector

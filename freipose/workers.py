@@ -15,6 +15,10 @@ it would inherit that module. :func:`pool_context` therefore preloads only the m
 that the working folder does not shadow; the others are imported by each worker itself,
 after it has taken over the parent's ``sys.path``. :func:`worker_errors` turns a pool whose
 worker died into a one-line :class:`WorkerError`.
+
+:func:`choose_threads` picks the number of compute threads (PyTorch, OpenCV) from the cores
+that other processes leave free: on a 2-core machine where another process keeps one core
+busy, two PyTorch threads run several times slower than one.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import multiprocessing as mp
 import os
 import signal
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -47,6 +52,93 @@ START_METHODS = ("forkserver", "spawn")
 
 class WorkerError(FreiPoseError):
     """A worker process died before it could report its error."""
+
+
+def cpu_cores() -> int:
+    """The number of cores this process may run on (its CPU affinity, else all)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _cpu_times(cpus: set[int]) -> tuple[float, float] | None:
+    """(busy, total) jiffies of the given CPUs from ``/proc/stat`` (None where unreadable)."""
+    try:
+        lines = Path("/proc/stat").read_text().splitlines()
+    except OSError:
+        return None
+    busy = total = 0.0
+    for ln in lines:
+        name, _, rest = ln.partition(" ")
+        if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cpus:
+            v = [float(x) for x in rest.split()]
+            idle = v[3] + (v[4] if len(v) > 4 else 0.0)  # idle + iowait
+            total += sum(v[:8])
+            busy += sum(v[:8]) - idle
+    return (busy, total) if total > 0 else None
+
+
+def other_load(window: float = 0.5) -> float:
+    """How many cores other processes keep busy, in cores (0 on an idle machine).
+
+    On Linux the share of busy time of this process's cores over ``window`` seconds
+    (while this process sleeps, its own CPU time subtracted); elsewhere the 1-minute load
+    average minus this process's thread.
+    """
+    try:
+        cpus = os.sched_getaffinity(0)
+    except (AttributeError, OSError):
+        cpus = set()
+    before, own0 = _cpu_times(cpus), time.process_time()
+    if before is not None:
+        time.sleep(window)
+        after, own = _cpu_times(cpus), time.process_time() - own0
+        if after is not None and after[1] > before[1]:
+            share = (after[0] - before[0]) / (after[1] - before[1])
+            return max(0.0, share * len(cpus) - own / window)
+    try:
+        return max(0.0, os.getloadavg()[0] - 1.0)
+    except (AttributeError, OSError):
+        return 0.0
+
+
+def choose_threads(requested: int | None, workers: int = 1) -> int:
+    """The number of compute threads (PyTorch, OpenCV) for each of ``workers`` processes.
+
+    An explicit ``requested`` count wins, then an ``OMP_NUM_THREADS`` set in the
+    environment; otherwise the cores this process may use minus those other processes
+    keep busy (:func:`other_load`, rounded), divided by ``workers``, at least 1. The
+    choice is logged at INFO, e.g. ``using 1 PyTorch thread (2 cores, load 1.3)``.
+
+    Args:
+        requested: the user's count (``--threads``), or None to choose.
+        workers: processes that each run that many threads.
+
+    Returns:
+        The thread count (>= 1).
+
+    Raises:
+        FreiPoseError: ``requested`` or ``OMP_NUM_THREADS`` is below 1 or not a number.
+    """
+    if requested is not None:
+        if requested < 1:
+            raise FreiPoseError(f"--threads must be at least 1, got {requested}")
+        n, why = int(requested), "--threads"
+    elif os.environ.get("OMP_NUM_THREADS", "").strip():
+        env = os.environ["OMP_NUM_THREADS"].strip()
+        if not env.isdigit() or int(env) < 1:
+            raise FreiPoseError(
+                f"OMP_NUM_THREADS must be a whole number of at least 1, got {env!r}; unset it "
+                "or pass --threads N"
+            )
+        n, why = int(env), "OMP_NUM_THREADS"
+    else:
+        cores, load = cpu_cores(), other_load()
+        n = max(1, (cores - int(round(load))) // max(1, workers))
+        why = f"{cores} cores, load {load:.1f}" + (f", {workers} workers" if workers > 1 else "")
+    log.info("using %d PyTorch thread%s (%s)", n, "" if n == 1 else "s", why)
+    return n
 
 
 def _spec_location(spec: ModuleSpec | None) -> tuple[str, ...]:
@@ -255,6 +347,9 @@ def run_jobs(
 
 __all__ = [
     "WorkerError",
+    "choose_threads",
+    "cpu_cores",
+    "other_load",
     "pool_context",
     "process_pool",
     "run_jobs",
