@@ -1,0 +1,107 @@
+"""``freipose label``: label time instants in the browser, all camera views at once."""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import click
+
+from freipose.cli._common import user_errors
+
+
+@click.command()
+@click.argument("sessions", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@click.option(
+    "--calibration",
+    required=True,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Calibration of the sessions' cameras (camera name = video file stem).",
+)
+@click.option(
+    "--skeleton", required=True, help="Skeleton name (rat, mouse, paw) or skeleton TOML file."
+)
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="labels.h5 to write after every edit (read first if it exists: resume).",
+)
+@click.option(
+    "--frames",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Selection CSV of `freipose labels select` (its order: least confident first) "
+    "[default: --n instants evenly over each session].",
+)
+@click.option(
+    "--n", "per_session", type=int, default=20, show_default=True,
+    help="Instants per session without --frames.",
+)  # fmt: skip
+@click.option(
+    "--poses-dir",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="Folder with <session>.poses.h5 predictions that pre-fill the instants (shown as "
+    "predicted until confirmed).",
+)
+@click.option(
+    "--host", default="127.0.0.1", show_default=True,
+    help="Address to listen on (0.0.0.0: every network interface; anyone with the token "
+    "can then edit the labels).",
+)  # fmt: skip
+@click.option(
+    "--port", type=int, default=0, show_default=True, help="Port to listen on (0: a free one)."
+)
+@click.option(
+    "--max-residual", type=float, default=3.0, show_default=True,
+    help="Reprojection residual (px) above which a label is highlighted.",
+)  # fmt: skip
+@click.option("--no-browser", is_flag=True, help="Do not open the page in a web browser.")
+def label(
+    sessions: tuple[Path, ...],
+    calibration: Path,
+    skeleton: str,
+    output: Path,
+    frames: Path | None,
+    per_session: int,
+    poses_dir: Path | None,
+    host: str,
+    port: int,
+    max_residual: float,
+    no_browser: bool,
+) -> None:
+    """Label keypoints in every camera view of an instant at once, in the browser.
+
+    Starts a local web server and prints the page's address with its access token.
+    Clicking a keypoint in one view draws its epipolar curve in the others; a second view
+    triangulates it and projects it into the rest, where Enter accepts the projections.
+    Every edit is written to OUTPUT at once (labels.h5, read by train, labels check and
+    labels export); Ctrl-C stops the server. See docs/labeling.md.
+
+    \b
+    Example:
+      freipose labels select rec/day1 --poses-dir poses -o selection.csv
+      freipose label rec/day1 --calibration calibration.toml --skeleton rat \\
+          --frames selection.csv --poses-dir poses -o labels.h5
+    """  # noqa: D301 - click needs the \b (backspace) paragraph marker
+    with user_errors():
+        from freipose.labelui.server import serving
+        from freipose.labelui.startup import open_store
+        from freipose.labelui.store import StoreSettings
+
+        store = open_store(
+            sessions, calibration, skeleton, output, frames=frames, poses_dir=poses_dir,
+            per_session=per_session, settings=StoreSettings(max_residual=max_residual),
+        )  # fmt: skip
+        with serving(store, host, port) as (running, handle):
+            click.echo(
+                f"labeling {len(store)} instants of {len(store.sessions)} sessions into {output}"
+            )
+            click.echo(f"open {running.url}")
+            if not no_browser:
+                import webbrowser
+
+                webbrowser.open(running.url)
+            with contextlib.suppress(KeyboardInterrupt):
+                handle.run()
+        click.echo(f"labels saved in {output}")
