@@ -1,9 +1,15 @@
-"""Step 8, ``report``: ``OUTDIR/report.html`` with every step's numbers and figures."""
+"""Step 8, ``report``: ``OUTDIR/report.html`` with every step's numbers and figures.
+
+The page is rendered from the Jinja2 template ``templates/report.html.j2`` (its style is
+inline, so it opens offline with nothing fetched). This module turns the step markers into
+the template's plain values: sentences' numbers, tables with named columns and units, and
+figures given by their path relative to the demo folder.
+"""
 
 from __future__ import annotations
 
-import html
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -13,196 +19,309 @@ from freipose.demo.context import DemoContext
 from freipose.demo.markers import STEPS, read_marker
 from freipose.demo.presets import STIM_PART
 from freipose.io.atomic import atomic_write_text
+from freipose.io.toml import read_toml
 
-_STYLE = (
-    "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;line-height:1.4}"
-    "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #bbb;"
-    "padding:2px 8px;font-size:90%}figure{display:inline-block;margin:0.5em}"
-    "figcaption{font-size:85%;color:#444}img{max-width:100%}</style></head><body>"
+TEMPLATES = Path(__file__).parent / "templates"
+
+# Human names and units of the synthetic stimulation settings (freipose.synth.stimulation).
+_STIMULATION = {
+    "body_part": ("stimulated body part", ""),
+    "effect": ("effect", ""),
+    "frequency_hz": ("oscillation frequency", "Hz"),
+    "amplitude_mm": ("amplitude", "mm"),
+    "duration_s": ("duration of each stimulation", "s"),
+    "spacing_s": ("pause between stimulations", "s"),
+    "onset_s": ("start of the first stimulation", "s"),
+}
+
+# The analyses of the demo: marker key, what they analysed, results folder under analysis/.
+_ANALYSES = (
+    ("predicted", "the predicted poses", "results"),
+    ("truth", "the true keypoints (perfect tracking, for comparison)", "results_truth"),
 )
 
-
-def _rel(ctx: DemoContext, p: Path | str) -> str:
-    """``p`` relative to the demo folder, with forward slashes (a link in the report)."""
-    return Path(os.path.relpath(Path(p), ctx.out)).as_posix()
-
-
-def _img(ctx: DemoContext, p: Path, caption: str, width: int | None = None) -> str:
-    """A ``<figure>`` of the image ``p`` (or a "missing figure" note)."""
-    if not p.is_file():
-        return f"<p><em>missing figure {html.escape(_rel(ctx, p))}</em></p>"
-    w = f' width="{width}"' if width else ""
-    return (
-        f'<figure><img src="{html.escape(_rel(ctx, p))}"{w} alt="{html.escape(caption)}">'
-        f"<figcaption>{html.escape(caption)}</figcaption></figure>"
-    )
+_METHODS = {
+    "voxel_P0": "voxel network, P0 (3D network output)",
+    "voxel_P1": "voxel network, P1 (refined with the 2D views)",
+    "baseline": "baseline (2D network per view, triangulated)",
+}
 
 
-def _table(header: list[str], rows: list[list[Any]]) -> str:
-    """An HTML table; floats with 3 significant digits (whole numbers from 1000 on)."""
-
-    def cell(v: Any) -> str:
-        if isinstance(v, float):
-            return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
-        return html.escape(str(v))
-
-    h = "".join(f"<th>{html.escape(x)}</th>" for x in header)
-    body = "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in r) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
+def num(v: Any) -> str:
+    """A table cell: floats with 3 significant digits (whole numbers from 1000 on), NaN as "-"."""
+    if isinstance(v, bool) or not isinstance(v, float):
+        return str(v)
+    if not math.isfinite(v):
+        return "-"
+    return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
 
 
-def _head(ctx: DemoContext, markers: dict[str, dict[str, Any]]) -> list[str]:
-    """The page head, the introduction and the table of step run times."""
+def _figure(ctx: DemoContext, path: Path | str, caption: str, size: str = "full") -> dict[str, Any]:
+    """A figure of the page: ``src`` relative to the demo folder, caption, CSS size class.
+
+    ``size`` is ``"full"`` (page width), ``"half"`` or ``"third"`` (side by side).
+    """
+    p = Path(path)
+    return {
+        "src": Path(os.path.relpath(p, ctx.out)).as_posix(),
+        "caption": caption,
+        "size": size,
+        "exists": p.is_file(),
+    }
+
+
+def _stimulation_rows(stim: dict[str, Any]) -> list[tuple[str, str]]:
+    """The stimulation settings as (setting, value with unit) rows; unknown keys by name."""
+    rows = []
+    for key, value in stim.items():
+        name, unit = _STIMULATION.get(key, (key.replace("_", " "), ""))
+        text = num(float(value)) if isinstance(value, int | float) else str(value)
+        rows.append((name, f"{text} {unit}".strip()))
+    return rows
+
+
+def _intro(ctx: DemoContext, markers: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The preset, the recordings, the stimulation settings and the step run times."""
     p = ctx.preset
-    times = [[s, markers[s].get("seconds", float("nan"))] for s in STEPS if s != "report"]
-    return [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
-        f"<title>FreiPose demo ({html.escape(p.name)})</title>",
-        _STYLE,
-        f"<h1>FreiPose demo: preset <code>{html.escape(p.name)}</code></h1>",
-        f"<p>freipose {html.escape(__version__)}. Synthetic data: a rat in a 600 mm open field "
-        f"filmed by {p.n_cameras} cameras ({p.size[0]}x{p.size[1]} px, {p.fps:g} fps), "
-        f"{len(p.sessions)} sessions of {p.session_frames} frames with the {STIM_PART} "
-        f"stimulated ({html.escape(json.dumps(p.stimulation))}). Every step ran the same "
-        "library code as the <code>freipose</code> commands; "
-        "<code>examples/workflow.sh</code> runs them one by one.</p>",
-        "<h2>Steps and run times</h2>" + _table(["step", "seconds"], times),
-    ]
+    times = [(s, float(markers[s].get("seconds", float("nan")))) for s in STEPS if s != "report"]
+    total = sum(t for _, t in times if math.isfinite(t))
+    return {
+        "preset": p.name,
+        "version": __version__,
+        "n_cameras": p.n_cameras,
+        "size": p.size,
+        "fps": num(float(p.fps)),
+        "frames": p.session_frames,
+        "seconds": num(p.session_frames / p.fps),
+        "sessions": [(s.name, s.split) for s in p.sessions],
+        "stim_part": STIM_PART,
+        "stimulation": _stimulation_rows(dict(p.stimulation)),
+        "times": [(s, num(t)) for s, t in times],
+        "total_minutes": num(total / 60.0),
+    }
 
 
-def _calibration(ctx: DemoContext, cal: dict[str, Any]) -> list[str]:
+def _calibration(ctx: DemoContext, cal: dict[str, Any]) -> dict[str, Any]:
     """Steps 1-2: the per-camera errors against the true rig and the calibration figures."""
-    parts = ["<h2>1-2. Calibration</h2>"]
+    out: dict[str, Any] = {"summary": cal.get("summary"), "rows": [], "aspect_fixed": False}
     comp_path = ctx.out / "calibration" / "comparison.json"
     if comp_path.is_file():
         comp = json.loads(comp_path.read_text())
-        rows = [
-            [c, dc, rot, f[0], f[1]]
-            for c, dc, rot, f in zip(
-                comp["cameras"], comp["center_mm"], comp["rotation_deg"], comp["focal_percent"]
-            )
-        ]
-        parts.append(
-            "<p>Board videos calibrated with <code>freipose calib --origin-frame 0</code>; "
-            "errors against the true rig after aligning the world frames "
-            f"(scale {comp['scale']:.4f}).</p>"
-            + _table(["camera", "centre mm", "rotation deg", "fx %", "fy %"], rows)
-        )
-    parts.append(_img(ctx, ctx.out / "calibration" / "comparison.png", "calibration errors"))
+        focal = [tuple(float(x) for x in f) for f in comp["focal_percent"]]
+        out["aspect_fixed"] = all(math.isclose(fx, fy, abs_tol=1e-9) for fx, fy in focal)
+        out["scale"] = f"{comp['scale']:.4f}"
+        for c, dc, rot, (fx, fy) in zip(
+            comp["cameras"], comp["center_mm"], comp["rotation_deg"], focal
+        ):
+            row = [c, f"{dc:.2f}", f"{rot:.3f}", f"{fx:+.2f}"]
+            out["rows"].append(row if out["aspect_fixed"] else [*row, f"{fy:+.2f}"])
     rep = ctx.out / "calibration" / "report"
-    parts.append(_img(ctx, rep / "rig_3d.png", "calibrated rig", 420))
-    for e in sorted(rep.glob("errors_*.png"))[:2]:
-        parts.append(_img(ctx, e, f"reprojection errors {e.stem[7:]}", 360))
-    if cal.get("summary"):
-        s = cal["summary"]
-        parts.append(
-            f"<p>Largest errors: camera centre {s['max_center_mm']:.2f} mm, rotation "
-            f"{s['max_rotation_deg']:.3f} deg, focal length {s['max_focal_percent']:.2f} %, "
-            f"reprojection RMS {s['max_rms_px']:.2f} px.</p>"
-        )
-    return parts
-
-
-def _labels(lab: dict[str, Any]) -> list[str]:
-    """Step 3: the imported training and evaluation labels."""
-    if not lab:
-        return []
-    tr, ev = lab["train"], lab["eval"]
-    return [
-        "<h2>3. Labels</h2>"
-        f"<p><code>labels/train.h5</code>: {tr['instants']} time instants; 2D labels of the "
-        "visible keypoints (1 px noise) triangulated with the calibrated rig: median "
-        f"reprojection error {tr['median_reprojection_px']:.2f} px, "
-        f"{tr['median_3d_vs_truth_mm']:.2f} mm from the true 3D keypoints. "
-        f"<code>labels/eval.h5</code>: {ev['instants']} held-out instants of the test "
-        "session with the true keypoints.</p>"
+    out["figures"] = [
+        _figure(ctx, ctx.out / "calibration" / "comparison.png", "Errors of the calibrated "
+                "rig against the true rig, per camera (after aligning the world frames)."),
+        _figure(ctx, rep / "rig_3d.png", "The calibrated rig: camera positions and viewing "
+                "directions (mm).", "half"),
+    ]  # fmt: skip
+    out["errors"] = [
+        _figure(ctx, e, f"Reprojection errors of camera {e.stem[7:]} (px).", "third")
+        for e in sorted(rep.glob("errors_*.png"))[:3]
     ]
+    return out
 
 
-def _training(ctx: DemoContext, trained: dict[str, Any]) -> list[str]:
-    """Step 4: the detector's metrics and the training curves."""
-    parts = ["<h2>4. Training</h2>"]
-    det = trained.get("detector", {}).get("metrics", {})
-    if det:
-        keys = [k for k in ("recall", "median_center_error_mm", "cpu_fps", "train_seconds")
-                if k in det]  # fmt: skip
-        parts.append(_table(["detector metric", "value"], [[k, det[k]] for k in keys]))
-    parts.append(_img(ctx, ctx.train_dir / "detector" / "losses.png", "detector loss", 360))
-    parts.append(_img(ctx, ctx.train_dir / "pose" / "log.png", "voxel network training", 420))
-    parts.append(_img(ctx, ctx.train_dir / "baseline" / "log.png", "baseline training", 420))
-    return parts
+def _eval_samples(ctx: DemoContext) -> int | None:
+    """``schedule.eval_samples`` of the demo's training config (validation set size), or None."""
+    path = ctx.train_dir / "config.toml"
+    if not path.is_file():
+        return None
+    value = read_toml(path, "training config").get("schedule", {}).get("eval_samples")
+    return int(value) if isinstance(value, int) else None
 
 
-def _evaluation(ctx: DemoContext, ev: dict[str, Any], predicted: dict[str, Any]) -> list[str]:
-    """Steps 5-6: the error tables, the error figures and the overlay frames."""
-    parts = ["<h2>5-6. Prediction and evaluation</h2>"]
-    if ev:
-        rows = [[k, v["median"], v["p30"], v["p70"]] for k, v in ev["labels"].items()]
-        parts.append(
-            "<p>Held-out instants, cube on the true centre (<code>freipose eval</code>): "
-            "voxel network (P0: 3D network, P1: refined) vs. triangulation baseline.</p>"
-            + _table(["method", "median JPE mm", "30 %", "70 %"], rows)
-        )
-        rows = [[k, v["median"]] for k, v in ev["pipeline"].items()]
-        parts.append(
-            "<p>Whole pipeline (detector + voxel network) on every frame of each session "
-            "against the true 3D keypoints:</p>" + _table(["session", "median JPE mm"], rows)
-        )
+def _detector_rows(det: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """The detector's metrics as (quantity, value with unit, what it counts) rows."""
+    rows = []
+    if "recall" in det:
+        rows.append(("boxes found (IoU at least 0.5 with the true box)",
+                     f"{100 * det['recall']:.1f} %",
+                     f"of {det.get('n_views', '?')} views showing the animal, boxes made "
+                     "consistent across the views; the best box of each view alone: "
+                     f"{100 * det.get('recall_top1', float('nan')):.1f} %"))  # fmt: skip
+    if "center_rate" in det:
+        agree = float(det.get("mean_agree", float("nan")))
+        rows.append(("3D centre found", f"{100 * det['center_rate']:.1f} %",
+                     f"of {det.get('n_instants', '?')} evaluation instants; "
+                     f"{agree:.1f} views agree on average"))  # fmt: skip
+    med = det.get("median_center_error", det.get("median_center_error_mm"))
+    if med is not None:
+        rows.append(("median 3D centre error", f"{num(float(med))} mm",
+                     "distance of the detected centre from the true centre; the pose "
+                     "network's cube is placed there"))  # fmt: skip
+    if "cpu_fps" in det:
+        rows.append(("speed", f"{num(float(det['cpu_fps']))} images/s",
+                     "detector forward pass on this machine's CPU"))  # fmt: skip
+    if "train_seconds" in det:
+        rows.append(("training time", f"{num(float(det['train_seconds']))} s", ""))
+    return rows
+
+
+def _training(ctx: DemoContext, trained: dict[str, Any], ev: dict[str, Any]) -> dict[str, Any]:
+    """Step 4: the detector's metrics, the training curves and the validation JPE."""
+    last = trained.get("pose", {}).get("last_log", {})
+    labels = ev.get("labels", {})
+    val = None
+    if last.get("val_jpe_p1") and "voxel_P1" in labels:
+        val = {
+            "p0": num(float(last["val_jpe_p0"])),
+            "p1": num(float(last["val_jpe_p1"])),
+            "eval_p0": num(float(labels["voxel_P0"]["median"])),
+            "eval_p1": num(float(labels["voxel_P1"]["median"])),
+            "samples": _eval_samples(ctx),
+            "instants": ctx.preset.eval_instants,
+        }
+    t = ctx.train_dir
+    return {
+        "detector": _detector_rows(trained.get("detector", {}).get("metrics", {})),
+        "val": val,
+        "figures": [
+            _figure(ctx, t / "pose" / "log.png", "Voxel network training: losses and the "
+                    "validation JPE (mm) against the training step."),
+            _figure(ctx, t / "baseline" / "log.png", "Baseline training: losses and the "
+                    "validation JPE (mm) against the training step."),
+            _figure(ctx, t / "detector" / "losses.png", "Detector training loss against "
+                    "the training step.", "half"),
+        ],
+    }  # fmt: skip
+
+
+def _failure_modes(ev: dict[str, Any]) -> dict[str, Any] | None:
+    """The evaluate step's failure modes (symmetric pairs, bone lengths, warnings), or None."""
+    fm = ev.get("failure_modes")
+    if not fm:
+        return None
+    pairs = [
+        [f"{p['left']} / {p['right']}", num(float(p["predicted_mm"])), num(float(p["true_mm"])),
+         f"{100 * float(p['swap_rate']):.1f} %", "yes" if p.get("collapsed") else "no"]
+        for p in fm.get("pairs", [])
+    ]  # fmt: skip
+    bones = [
+        [b["bone"], num(float(b["predicted_mm"])), num(float(b["true_mm"]))]
+        for b in fm.get("bones", [])
+    ]
+    return {"pairs": pairs, "bones": bones, "warnings": list(fm.get("warnings", []))}
+
+
+def _evaluation(ctx: DemoContext, ev: dict[str, Any]) -> dict[str, Any]:
+    """Steps 5-6: the error tables and figures."""
+    labels = [
+        [_METHODS.get(k, k), num(float(v["median"])), num(float(v["p30"])), num(float(v["p70"]))]
+        for k, v in ev.get("labels", {}).items()
+    ]
+    pipeline = [
+        [k, num(float(v["median"])), str(v.get("missing", "-"))]
+        for k, v in ev.get("pipeline", {}).items()
+    ]
+    refs = [[k, num(float(v["median_mm"]))] for k, v in ev.get("references", {}).items()]
     folder = ctx.out / "evaluation"
-    parts.append(_img(ctx, folder / "labels" / "jpe_boxplot.png",
-                      "per-keypoint errors, held-out instants", 700))  # fmt: skip
-    parts.append(_img(ctx, folder / "labels" / "pck.png", "PCK", 360))
-    parts.append(_img(ctx, folder / "pipeline" / "jpe_boxplot.png",
-                      "per-keypoint errors, whole pipeline", 700))  # fmt: skip
+    return {
+        "labels": labels,
+        "pipeline": pipeline,
+        "references": refs,
+        "failure_modes": _failure_modes(ev),
+        "instants": ctx.preset.eval_instants,
+        "figures": [
+            _figure(ctx, folder / "labels" / "jpe_boxplot.png", "Error per keypoint on the "
+                    "held-out instants (mm; boxes: quartiles, whiskers: 1.5 IQR)."),
+            _figure(ctx, folder / "labels" / "pck.png", "Share of keypoints within a "
+                    "distance of the truth (PCK) on the held-out instants.", "half"),
+            _figure(ctx, folder / "pipeline" / "jpe_boxplot.png", "Error per keypoint of "
+                    "the whole pipeline on every frame (mm)."),
+        ],
+    }  # fmt: skip
+
+
+def _overlay(ctx: DemoContext, predicted: dict[str, Any]) -> dict[str, Any]:
+    """Step 5's overlay clip, its still frames and the smoothing figure, when present."""
     ov = predicted.get("overlay", {})
-    if ov:
-        parts.append(
-            f"<p>Overlay clip: <a href='{html.escape(_rel(ctx, ov['clip']))}'>"
-            f"{html.escape(_rel(ctx, ov['clip']))}</a> (frames below).</p>"
-        )
-        for f in ov["frames"]:
-            parts.append(_img(ctx, Path(f), Path(f).stem, 1000))
-    return parts
+    smooth = predicted.get("smooth", {})
+    return {
+        "video": _figure(ctx, ov["clip"], "") if ov.get("clip") else None,
+        "frames": [
+            _figure(ctx, f, f"Frame {int(Path(f).stem.rsplit('frame', 1)[-1])} of the test "
+                    "recording.") for f in ov.get("frames", [])
+        ],
+        "smooth": _figure(ctx, smooth["figure"], "Raw and smoothed trajectories "
+                          "(freipose smooth).") if smooth.get("figure") else None,
+    }  # fmt: skip
 
 
-def _analysis_tables(a: dict[str, Any]) -> list[str]:
-    """The classifier scores and the best single variables of one analysis."""
-    rows = [
-        [c["evaluated_on"], c["balanced_accuracy"], c["f1"], c["p_value"], c["n_effective"]]
-        for c in a["classification"]
-    ]
-    top = [[t["variable"], t["f1"], t["p_value"], t["significant"]] for t in a["top_variables"]]
-    n_top = int(round(a["top10_share_stimulated_part"] * 10))
-    return [
-        "<p>Linear SVM on all variables, trained on the train recording, scored on "
-        "the test recording:</p>"
-        + _table(["evaluated on", "balanced accuracy", "F1", "p", "n effective"], rows),
-        f"<p>Best single variables ({n_top} of the top 10 belong to the stimulated "
-        f"{STIM_PART}; {a['significant']} significant after the "
-        "autocorrelation-corrected, Bonferroni-adjusted chi-squared test):</p>"
-        + _table(["variable", "F1", "p", "significant"], top),
-    ]
+def _analysis_one(ctx: DemoContext, a: dict[str, Any] | None, sub: str) -> dict[str, Any]:
+    """The classifier scores, the best single variables and the figures of one analysis."""
+    splits = {s.split: s.name for s in ctx.preset.sessions}
+    res_dir = ctx.out / "analysis" / sub
+    out: dict[str, Any] = {"classification": [], "top": [], "figures": []}
+    if a:
+        for c in a["classification"]:
+            out["classification"].append([
+                f"{splits.get('train', c['animal'])} (train day)",
+                f"{splits.get('test', c['evaluated_on'])} (test day)",
+                num(float(c["balanced_accuracy"])), num(float(c["f1"])),
+                num(float(c["p_value"])), num(float(c["n_effective"])),
+            ])  # fmt: skip
+        for t in a["top_variables"]:
+            out["top"].append([
+                t["variable"], num(float(t["f1"])), num(float(t["p_value"])),
+                num(float(t.get("p_adjusted", float("nan")))),
+                "yes" if t["significant"] else "no",
+            ])  # fmt: skip
+        out["n_top"] = int(round(a["top10_share_stimulated_part"] * 10))
+        out["significant"] = a["significant"]
+        out["n_variables"] = a["classification"][0].get("n_variables_used", "all")
+    heat = "F-score of each single variable by body part (rows) and variable (columns)."
+    top = "The best single variables around stimulation onset (z-scored; mean and SEM)."
+    for f in sorted(res_dir.glob("attribution_*.png")):
+        out["figures"].append(_figure(ctx, f, heat))
+    for f in sorted(res_dir.glob("top_variables_*.png")):
+        out["figures"].append(_figure(ctx, f, top, "half"))
+    out["figures"].append(_figure(ctx, res_dir / "classifier_response.png", "The full "
+                                  "classifier's mean prediction around stimulation onset.",
+                                  "half"))  # fmt: skip
+    return out
 
 
-def _analysis(ctx: DemoContext, an: dict[str, Any]) -> list[str]:
-    """Step 7: the analysis of the predicted poses and of the true keypoints."""
-    parts = ["<h2>7. Analysis</h2>"]
-    for key, label, sub in (
-        ("predicted", "the predicted poses", "results"),
-        ("truth", "the true keypoints (perfect tracking, for comparison)", "results_truth"),
-    ):
-        a = an.get(key)
-        res_dir = ctx.out / "analysis" / sub
-        parts.append(f"<h3>On {html.escape(label)}</h3>")
-        if a:
-            parts += _analysis_tables(a)
-        for f in sorted(res_dir.glob("attribution_*.png")):
-            parts.append(_img(ctx, f, f"attribution heat map ({key})", 1000))
-        parts.append(_img(ctx, res_dir / "classifier_response.png",
-                          f"onset dynamics ({key})", 480))  # fmt: skip
-        for f in sorted(res_dir.glob("top_variables_*.png")):
-            parts.append(_img(ctx, f, f"top variables around onset ({key})", 700))
-    return parts
+def context(ctx: DemoContext) -> dict[str, Any]:
+    """The template's values, read from the markers and figures of the finished steps."""
+    m = {s: (read_marker(ctx.out, s) or {}) for s in STEPS}
+    r = {s: m[s].get("results", {}) for s in STEPS}
+    an = r["analyze"]
+    return {
+        "intro": _intro(ctx, m),
+        "calibration": _calibration(ctx, r["calibrate"]) if r["calibrate"] else None,
+        "labels": r["labels"] or None,
+        "training": _training(ctx, r["train"], r["evaluate"]) if r["train"] else None,
+        "evaluation": _evaluation(ctx, r["evaluate"]) if r["evaluate"] else None,
+        "overlay": _overlay(ctx, r["predict"]),
+        "analysis": [
+            (label, _analysis_one(ctx, an.get(key), sub))
+            for key, label, sub in _ANALYSES
+            if an.get(key) or (ctx.out / "analysis" / sub).is_dir()
+        ],
+        "stim_part": STIM_PART,
+    }
+
+
+def render_html(values: dict[str, Any]) -> str:
+    """The report page from the template and :func:`context`'s values."""
+    import jinja2
+
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(TEMPLATES),
+        autoescape=True,
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    return env.get_template("report.html.j2").render(**values)
 
 
 def run(ctx: DemoContext) -> dict[str, Any]:
@@ -214,16 +333,7 @@ def run(ctx: DemoContext) -> dict[str, Any]:
     Returns:
         ``{"report": path}``.
     """
-    m = {s: (read_marker(ctx.out, s) or {}) for s in STEPS}
-    r = {s: m[s].get("results", {}) for s in STEPS}
-    parts = _head(ctx, m)
-    parts += _calibration(ctx, r["calibrate"])
-    parts += _labels(r["labels"])
-    parts += _training(ctx, r["train"])
-    parts += _evaluation(ctx, r["evaluate"], r["predict"])
-    parts += _analysis(ctx, r["analyze"])
-    parts.append("</body></html>")
     path = ctx.out / "report.html"
-    atomic_write_text(path, "\n".join(parts) + "\n")
+    atomic_write_text(path, render_html(context(ctx)))
     ctx.say(f"  wrote {path}")
     return {"report": str(path)}

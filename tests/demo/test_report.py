@@ -1,0 +1,163 @@
+"""The demo's report page, rendered from constructed step markers and small figures.
+
+The fixture writes what the demo's steps leave behind (markers, PNG figures, an H.264
+overlay clip) without running them; the browser test opens the page in headless Chromium.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+from browser import broken_images, screenshot, video_state
+
+from freipose.demo import report
+from freipose.demo.context import DemoContext
+from freipose.demo.markers import write_marker
+from freipose.demo.presets import PRESETS
+from freipose.io.figures import new_figure, save_figure
+from freipose.io.video import VideoWriter
+
+FAILURE_MODES = {
+    "pairs": [
+        {"left": "Ear Left", "right": "Ear Right", "predicted_mm": 5.6, "true_mm": 28.3,
+         "swap_rate": 0.42, "collapsed": True, "instants": 8},
+        {"left": "Eye Left", "right": "Eye Right", "predicted_mm": 21.0, "true_mm": 23.5,
+         "swap_rate": 0.05, "collapsed": False, "instants": 8},
+    ],
+    "bones": [{"bone": "Nose - Tail", "predicted_mm": 150.2, "true_mm": 171.9}],
+    "warnings": ["Ear Left / Ear Right collapsed: predicted 5.6 mm apart, truly 28.3 mm"],
+}  # fmt: skip
+
+
+def _png(path: Path, title: str) -> str:
+    fig = new_figure((3, 2))
+    ax = fig.subplots()
+    ax.plot([0, 1], [0, 1])
+    ax.set_title(title)
+    save_figure(fig, path, dpi=60)
+    return str(path)
+
+
+def _clip(path: Path) -> str:
+    with VideoWriter(path, 25.0, (120, 80), codec="h264") as w:
+        for i in range(10):
+            img = np.full((80, 120, 3), 40, np.uint8)
+            img[30:50, 5 * i : 5 * i + 20] = 220
+            w.write(img)
+    return str(path)
+
+
+def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
+    """Markers and figures of a finished demo run of the tiny preset (numbers made up)."""
+    p = PRESETS["tiny"]
+    ctx = DemoContext(out=out, preset=p)
+    cal = out / "calibration"
+    (cal / "report").mkdir(parents=True)
+    (cal / "comparison.json").write_text(json.dumps({
+        "cameras": ["cam0", "cam1"], "center_mm": [0.45, 1.31], "rotation_deg": [0.089, 0.073],
+        "focal_percent": [[-0.31, -0.31], [0.24, 0.24]], "scale": 1.0016}))  # fmt: skip
+    _png(cal / "comparison.png", "comparison")
+    _png(cal / "report" / "rig_3d.png", "rig")
+    summary = {"max_center_mm": 1.31, "max_rotation_deg": 0.089, "max_focal_percent": 0.31,
+               "max_rms_px": 0.18}  # fmt: skip
+    write_marker(out, p, "calibrate", {"summary": summary}, 10.0)
+    write_marker(out, p, "labels", {
+        "train": {"instants": 24, "median_reprojection_px": 0.93, "median_3d_vs_truth_mm": 3.5},
+        "eval": {"instants": 8}}, 3.0)  # fmt: skip
+    (out / "train" / "pose").mkdir(parents=True)
+    (out / "train" / "config.toml").write_text("[schedule]\neval_samples = 4\n")
+    _png(out / "train" / "pose" / "log.png", "log")
+    detector = {"recall": 0.54, "recall_top1": 0.46, "median_center_error": 31.1,
+                "center_rate": 1.0, "mean_agree": 6.35, "n_views": 280, "n_instants": 40,
+                "cpu_fps": 446.6, "train_seconds": 27.6}  # fmt: skip
+    last_log = {"val_jpe_p0": "20.86", "val_jpe_p1": "18.65"}
+    trained = {"detector": {"metrics": detector}, "pose": {"last_log": last_log}}
+    write_marker(out, p, "train", trained, 60.0)
+    (out / "overlay").mkdir()
+    predicted: dict = {"overlay": {
+        "clip": _clip(out / "overlay" / "rat1_day2.mp4"),
+        "frames": [_png(out / "overlay" / "rat1_day2_frame00020.png", "frame")]}}  # fmt: skip
+    if smooth:
+        predicted["smooth"] = {"figure": _png(out / "overlay" / "smooth.png", "smooth")}
+    write_marker(out, p, "predict", predicted, 20.0)
+    ev: dict = {
+        "labels": {"voxel_P0": {"median": 21.22, "p30": 16.5, "p70": 28.7},
+                   "voxel_P1": {"median": 18.72, "p30": 14.7, "p70": 26.8}},
+        "pipeline": {"rat1_day2 (test)": {"median": 22.99, "missing": 0}},
+    }  # fmt: skip
+    if failure_modes:
+        ev["failure_modes"] = FAILURE_MODES
+        ev["references"] = {"median pose at the held-out centre": {"median_mm": 41.5, "n": 96}}
+    write_marker(out, p, "evaluate", ev, 5.0)
+    analysis = {"classification": [
+        {"animal": "rat1", "evaluated_on": "rat1", "balanced_accuracy": 0.43, "f1": 0.43,
+         "p_value": 0.49, "n_effective": 54.3, "n_variables_used": 528}],
+        "top_variables": [{"variable": "local_z[Ear Right]", "part": "Ear Right", "f1": 0.66,
+                           "p_value": 0.024, "p_adjusted": 1.0, "significant": False}],
+        "top10_share_stimulated_part": 0.0, "significant": 0}  # fmt: skip
+    write_marker(out, p, "analyze", {"predicted": analysis}, 30.0)
+    return ctx
+
+
+def test_report_tables_name_their_columns(tmp_path):
+    ctx = _markers(tmp_path / "demo", failure_modes=True, smooth=True)
+    page = Path(report.run(ctx)["report"]).read_text()
+    text = re.sub(r"<[^>]+>", " ", re.sub(r"<style>.*</style>", "", page, flags=re.S))
+    text = re.sub(r"\s+", " ", text)
+    # no raw dumps: the stimulation settings as a table, the detector's metrics by name
+    assert "{" not in text and "frequency_hz" not in text and "median_center_error" not in text
+    assert "oscillation frequency" in text and "5 Hz" in text and "20 mm" in text
+    assert "boxes found" in text and "54.0 %" in text and "3D centre found" in text
+    assert "446 images/s" not in text and "447 images/s" in text
+    # explanations a reader asks for
+    assert "pixel aspect ratio fixed" in text and "fx error" not in text
+    assert "validates on 4 evenly spread of the 8 held-out" in text
+    assert "p (unadjusted)" in text and "p (Bonferroni-adjusted)" in text
+    assert "rat1_day1 (train day)" in text and "rat1_day2 (test day)" in text
+    assert "best of 528 tries" in text
+    # failure modes: tables and the warning
+    assert "Failure modes" in text and "Ear Left / Ear Right" in text
+    assert re.search(r"Ear Left / Ear Right\s+5\.6\s+28\.3\s+42\.0 %\s+yes", text)
+    assert "Nose - Tail" in text and "171.9" not in text and "172" in text
+    assert 'class="warning"' in page and "collapsed: predicted 5.6 mm" in text
+    assert "median pose at the held-out centre" in text
+    # the overlay video embedded, the smoothing figure shown, every path relative
+    assert '<video controls preload="auto" src="overlay/rat1_day2.mp4">' in page
+    assert 'src="overlay/smooth.png"' in page
+    assert str(tmp_path) not in page
+    assert "http://" not in page and "https://" not in page  # nothing fetched
+
+
+def test_report_without_optional_sections(tmp_path):
+    ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
+    page = Path(report.run(ctx)["report"]).read_text()
+    assert "Failure modes" not in page and "Smoothing" not in page
+    assert "For comparison" not in page
+    assert "Figure not written: <code>train/baseline/log.png</code>" in page
+
+
+def test_report_unequal_focal_errors_get_two_columns(tmp_path):
+    ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
+    comp = tmp_path / "demo" / "calibration" / "comparison.json"
+    doc = json.loads(comp.read_text())
+    doc["focal_percent"] = [[-0.31, -0.2], [0.24, 0.3]]
+    comp.write_text(json.dumps(doc))
+    page = Path(report.run(ctx)["report"]).read_text()
+    assert "f<sub>x</sub> error (%)" in page and "pixel aspect ratio fixed" not in page
+
+
+def test_report_loads_in_chromium(tmp_path, chromium):
+    ctx = _markers(tmp_path / "demo", failure_modes=True, smooth=True)
+    path = Path(report.run(ctx)["report"])
+    chromium.get(path.as_uri())
+    assert broken_images(chromium) == []
+    n_images = chromium.execute_script("return document.images.length")
+    assert n_images == 5  # comparison, rig, pose log, overlay frame, smoothing
+    state = video_state(chromium)
+    assert state["error"] is None and state["readyState"] >= 2, state
+    assert state["videoWidth"] == 120
+    shot = screenshot(chromium, tmp_path / "report.png")
+    assert shot.stat().st_size > 0
