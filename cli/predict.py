@@ -123,6 +123,7 @@ def predict(
         use_threads(threads)
         check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
         found = discover_sessions(sessions, calibration)
+        _say_calibrations(found, calibration is not None, quiet)
         if smooth:
             _refuse_stale_smoothed(outdir, [s.name for s in found], overwrite)
         results = predict_sessions(
@@ -142,6 +143,26 @@ def predict(
         )
         if smooth:
             _smooth_results(results, outdir, overwrite)
+
+
+def _say_calibrations(found: list, explicit: bool, quiet: bool) -> None:
+    """Say which calibration each session uses and where it came from; warn on a true rig."""
+    import logging
+
+    from freipose.io.session import TRUE_CALIBRATION_NAME
+
+    for s in found:
+        origin = "given with --calibration" if explicit else "found in the session folder"
+        if not quiet:
+            click.echo(f"{s.name}: calibration {s.calibration_path} ({origin})")
+        if not explicit and s.calibration_path.name == TRUE_CALIBRATION_NAME:
+            logging.getLogger(__name__).warning(
+                "%s: %s is the true rig of a synthetic session (freipose synth), in the "
+                "generator's world frame, not a calibration made from board videos; pass "
+                "--calibration FILE to predict with your calibration",
+                s.name,
+                s.calibration_path,
+            )
 
 
 def _refuse_stale_smoothed(outdir: Path, names: list[str], overwrite: bool) -> None:
