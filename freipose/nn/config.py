@@ -260,7 +260,12 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """A complete training config (see the module docstring)."""
+    """A complete training config (see the module docstring).
+
+    ``cube_auto``: ``model.cube_size`` was ``"auto"`` or absent; training sizes the cube
+    from its labels (:func:`freipose.nn.sizing.resolve_cube`), until then it holds the
+    preset's value.
+    """
 
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -268,6 +273,7 @@ class TrainConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     preset: str = "paper"
     extra: Mapping[str, Any] = field(default_factory=dict)
+    cube_auto: bool = False
 
 
 # Presets: (model overrides, schedule overrides).
@@ -403,6 +409,9 @@ def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
     if preset not in PRESETS:
         raise ConfigError(f"model.preset must be one of {sorted(PRESETS)}, got {preset!r}")
     p_model, p_sched = PRESETS[preset]
+    cube_auto = model_tbl.get("cube_size", "auto") == "auto"  # sized from the labels
+    if cube_auto:
+        model_tbl.pop("cube_size", None)
     model = ModelConfig(**{**p_model, **_coerce(ModelConfig, model_tbl, "model")})
     sched = ScheduleConfig(
         **{**p_sched, **_coerce(ScheduleConfig, dict(data.get("schedule", {})), "schedule")}
@@ -410,7 +419,7 @@ def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
     aug = AugmentConfig(**_coerce(AugmentConfig, dict(data.get("augment", {})), "augment"))
     dat = DataConfig(**_coerce(DataConfig, dict(data.get("data", {})), "data"))
     extra = {k: v for k, v in data.items() if k not in ("data", "model", "schedule", "augment")}
-    return TrainConfig(dat, model, sched, aug, preset, extra)
+    return TrainConfig(dat, model, sched, aug, preset, extra, cube_auto)
 
 
 def config_to_dict(config: TrainConfig) -> dict[str, Any]:

@@ -40,6 +40,7 @@ from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.evaluate import jpe, predict_dataset, usable_indices
 from freipose.nn.losses import baseline_losses, voxel_losses
 from freipose.nn.model import build_model, optimizer_groups
+from freipose.nn.sizing import resolve_cube
 from freipose.nn.train_log import append_log, plot_log, read_log, write_log
 from freipose.nn.types import Batch, SampleSource
 from freipose.skeleton import Skeleton, load_skeleton
@@ -560,6 +561,7 @@ def train_from_config(
     root = rel(config.data.root) if config.data.root else None
     cams = list(config.data.cameras) or None
     labels = read_labels_h5(rel(config.data.labels))
+    config = resolve_cube(config, labels)  # model.cube_size "auto": from the labels' extent
     train_ds = MultiViewDataset(labels, root=root or rel(config.data.labels).parent, cameras=cams)
     eval_ds = None
     if config.data.eval_labels:
