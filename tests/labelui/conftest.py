@@ -29,7 +29,7 @@ def synth_session(tmp_path_factory: pytest.TempPathFactory) -> SynthSession:
     out = tmp_path_factory.mktemp("labelui") / "rat1"
     cfg = SceneConfig(n_cameras=3, frames=12, size=(320, 256), seed=3, motion_blur=False)
     paths = generate_session(out, cfg, workers=1, progress=False)
-    return SynthSession(out, out / "calibration.toml", read_labels_h5(paths.labels))
+    return SynthSession(out, paths.calibration, read_labels_h5(paths.labels))
 
 
 @pytest.fixture

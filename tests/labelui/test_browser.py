@@ -1,0 +1,222 @@
+"""The labeling page in a real headless Chromium (Selenium) on a session with known truth.
+
+Skips, saying why, where ``chromium`` or ``chromedriver`` is not installed. Screenshots go
+to the test's temporary folder and, where ``FREIPOSE_TEST_ARTEFACTS`` is set, there too.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from freipose.geometry.projection import pixel_to_ray, project
+from freipose.geometry.triangulation import triangulate_weighted
+from freipose.io.labels import read_labels_h5
+from freipose.labelui.server import Running, background_server
+from freipose.labelui.store import LabelStore
+
+webdriver = pytest.importorskip("selenium.webdriver")
+from selenium.webdriver.common.actions.action_builder import ActionBuilder  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.keys import Keys  # noqa: E402
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+DRIVER = shutil.which("chromedriver")
+
+
+@pytest.fixture
+def driver() -> Iterator[Any]:
+    if CHROMIUM is None or DRIVER is None:
+        pytest.skip(
+            "browser tests need chromium and chromedriver (Debian: chromium, chromium-driver)"
+        )
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1400,900", "--force-device-scale-factor=1"):  # fmt: skip
+        opts.add_argument(arg)
+    d = webdriver.Chrome(service=Service(DRIVER), options=opts)
+    try:
+        yield d
+    finally:
+        d.quit()
+
+
+def _wait(fn: Callable[[], Any], timeout: float = 10.0) -> Any:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = fn()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError("timed out waiting for the page")
+
+
+def _shot(driver: Any, folder: Path, name: str) -> Path:
+    path = folder / f"{name}.png"
+    driver.save_screenshot(str(path))
+    art = os.environ.get("FREIPOSE_TEST_ARTEFACTS")
+    if art:
+        Path(art).mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, Path(art) / path.name)
+    return path
+
+
+def _open(driver: Any, running: Running) -> None:
+    driver.get(running.url)
+    _wait(lambda: driver.execute_script("return document.body.dataset.instant !== undefined"))
+
+
+def _pointer(driver: Any, path: list[tuple[int, int]], hold: bool = False) -> None:
+    """Mouse: move to path[0], press (and hold along the rest of the path), release."""
+    ab = ActionBuilder(driver)
+    p = ab.pointer_action
+    p.move_to_location(*path[0])
+    p.pointer_down()
+    for x, y in path[1:]:
+        p.move_to_location(x, y)
+    p.pointer_up()
+    ab.perform()
+
+
+def _click_image(driver: Any, cam: str, uv: np.ndarray, zoom: float = 4.0) -> None:
+    """Zoom the view of ``cam`` on pixel ``uv`` and click there with the mouse."""
+    u, v = float(uv[0]), float(uv[1])
+    driver.execute_script("FP.setView(arguments[0], arguments[1], arguments[2], arguments[3])",
+                          cam, zoom, u, v)  # fmt: skip
+    x, y = driver.execute_script("return FP.imageToClient(arguments[0], arguments[1], "
+                                 "arguments[2])", cam, u, v)  # fmt: skip
+    _pointer(driver, [(round(x), round(y))])
+
+
+def _state(driver: Any) -> dict[str, Any]:
+    return driver.execute_script("return FP.S.cur")
+
+
+def _select_keypoint(driver: Any, k: int) -> None:
+    driver.find_element(By.CSS_SELECTOR, f'.kp[data-k="{k}"]').click()
+
+
+def _visible_everywhere(synth_session, frame: int) -> list[int]:
+    t = synth_session.truth
+    vis = t.visible2d[frame]  # (V, K)
+    return [k for k in range(len(t.keypoints)) if vis[:, k].all()]
+
+
+def test_label_two_views_projected_third_drag_reload(driver, store: LabelStore, synth_session,
+                                                    tmp_path):  # fmt: skip
+    truth = synth_session.truth
+    frame = store.instants[0].frame
+    k1, k2 = _visible_everywhere(synth_session, frame)[:2]
+    kp1, kp2 = truth.keypoints[k1], truth.keypoints[k2]
+    t2d = truth.points2d[frame]  # (V, K, 2)
+    with background_server(store) as running:
+        _open(driver, running)
+        _select_keypoint(driver, k1)
+        _click_image(driver, "cam0", t2d[0, k1])
+        _click_image(driver, "cam1", t2d[1, k1])
+        st = _wait(lambda: (s := _state(driver))["points3d"].get(kp1) and s)
+        proj = np.array(st["projected"]["cam2"][kp1])
+        assert np.linalg.norm(proj - t2d[2, k1]) < 1.0  # px, against the true projection
+        assert (
+            driver.execute_script("return FP.shown('cam2', arguments[0]).kind", kp1) == "projected"
+        )
+        _shot(driver, tmp_path, "label_projected")
+        # drag the hollow projected marker: it becomes a label where it is dropped
+        driver.execute_script("FP.setView('cam2', 4, arguments[0], arguments[1])", *proj.tolist())
+        x, y = driver.execute_script("return FP.imageToClient('cam2', arguments[0], arguments[1])",
+                                     *proj.tolist())  # fmt: skip
+        x, y = round(x), round(y)
+        before = st["version"]
+        _pointer(driver, [(x, y), (x + 4, y + 2), (x + 8, y + 4)])
+        st = _wait(lambda: (s := _state(driver))["version"] > before and s)
+        lab = st["labels"]["cam2"][kp1]
+        assert lab["state"] == "visible"
+        np.testing.assert_allclose([lab["x"], lab["y"]], proj + [2.0, 1.0], atol=0.3)
+        # a second keypoint: two clicks, Enter accepts the projection into the third view
+        _select_keypoint(driver, k2)
+        _click_image(driver, "cam1", t2d[1, k2])
+        _click_image(driver, "cam2", t2d[2, k2])
+        _wait(lambda: _state(driver)["points3d"].get(kp2))
+        v = _state(driver)["version"]
+        driver.find_element(By.TAG_NAME, "body").send_keys(Keys.ENTER)
+        st = _wait(lambda: (s := _state(driver))["version"] > v and s)
+        acc = st["labels"]["cam0"][kp2]
+        assert np.linalg.norm([acc["x"] - t2d[0, k2, 0], acc["y"] - t2d[0, k2, 1]]) < 1.0
+        driver.execute_script("Object.values(FP.S.views).forEach((v) => { v.fitted = false; });"
+                              "FP.load(FP.S.idx)")  # fmt: skip
+        time.sleep(0.5)
+        _shot(driver, tmp_path, "label_page")
+        # the saved file
+        ls = read_labels_h5(store.output)
+        assert list(ls.frame_index) == [frame]
+        np.testing.assert_allclose(ls.points2d[0, 0, k1], t2d[0, k1], atol=0.3)
+        np.testing.assert_allclose(ls.points2d[0, 1, k1], t2d[1, k1], atol=0.3)
+        np.testing.assert_allclose(ls.points2d[0, 2, k1], proj + [2.0, 1.0], atol=0.3)
+        assert ls.visible2d[0, :, k1].all() and ls.visible2d[0, :, k2].all()
+        X = triangulate_weighted(ls.points2d[0, :, k1], np.ones(3), store.session(0).rig, True)
+        np.testing.assert_allclose(ls.points3d[0, k1], X, atol=1e-6)  # from the saved labels
+        assert np.linalg.norm(X - truth.points3d[frame, k1]) < 10.0  # mm (cam2 moved 2 px)
+        # reload: the page opens the first unlabeled instant; Left goes back to ours
+        driver.refresh()
+        _wait(lambda: driver.execute_script("return document.body.dataset.instant === '1'"))
+        driver.find_element(By.TAG_NAME, "body").send_keys(Keys.ARROW_LEFT)
+        _wait(lambda: driver.execute_script("return document.body.dataset.instant === '0'"))
+        again = driver.execute_script("return FP.S.labels")
+        assert again["cam2"][kp1] == lab and again["cam0"][kp2] == acc
+
+
+def test_epipolar_curve_and_projection_in_js_match_python(driver, store, synth_session):
+    rig = store.session(0).rig
+    with background_server(store) as running:
+        _open(driver, running)
+        uv = np.array([150.3, 120.7])
+        dists = [200.0, 500.0, 900.0, 1400.0]
+        js = driver.execute_script(
+            "const c = FP.S.cfg.cameras; return FPGeom.epipolar(c['rat1/cam0'], arguments[0], "
+            "arguments[1], c['rat1/cam2'], arguments[2])",
+            float(uv[0]),
+            float(uv[1]),
+            dists,
+        )
+        o, d = pixel_to_ray(uv, rig["cam0"])
+        want = project(o + np.array(dists)[:, None] * d, rig["cam2"])
+        np.testing.assert_allclose(np.array(js, dtype=float), want, atol=1e-6)
+        und = driver.execute_script("return FPGeom.undistort(0.31, -0.22, arguments[0])",
+                                    rig["cam1"].dist.tolist())  # fmt: skip
+        from freipose.geometry.distortion import undistort_normalized
+
+        want_und = undistort_normalized(np.array([0.31, -0.22]), rig["cam1"].dist)
+        np.testing.assert_allclose(und, want_und, atol=1e-12)
+        assert rig["cam1"].has_distortion
+
+
+def test_conflict_from_another_tab_is_shown_and_reloaded(driver, store, synth_session, tmp_path):
+    truth = synth_session.truth
+    frame = store.instants[0].frame
+    k = _visible_everywhere(synth_session, frame)[0]
+    with background_server(store) as running:
+        _open(driver, running)
+        # another client saves the same instant first
+        body = {"version": 0, "labels": {"cam1": {"Tail": {"state": "occluded"}}}}
+        r = httpx.post(f"http://127.0.0.1:{running.port}/api/instant/0", json=body,
+                       headers={"X-FreiPose-Token": running.token})  # fmt: skip
+        assert r.status_code == 200
+        _select_keypoint(driver, k)
+        _click_image(driver, "cam0", truth.points2d[frame, 0, k])
+        _wait(lambda: driver.execute_script("return FP.S.conflicts") == 1)
+        banner = driver.find_element(By.ID, "banner")
+        assert banner.is_displayed() and "another tab" in banner.text
+        labels = driver.execute_script("return FP.S.labels")
+        assert labels["cam1"] == {"Tail": {"state": "occluded"}} and labels["cam0"] == {}
+        _shot(driver, tmp_path, "label_conflict")
