@@ -362,7 +362,7 @@ def _bundle_adjust(
         cam, fr = sol.cam_params, sol.frame_params
         nfev += sol.nfev
         nxt = _reject(sol, obs, keep, scale, vscale, groups, opt)
-        logger.info(
+        logger.debug(
             "bundle round %d: RMS %.3f px over %d detections (noise σ %.3f px, loss scale "
             "%.3f px), %d rejected (> %.2f px)",
             rounds,

@@ -178,7 +178,10 @@ def detect_cameras(
     total = sum(b - a for _, a, b in todo)
     jobs = max(1, min(int(jobs), len(todo) or 1))
     bar = progress_bar(
-        total=total, desc="detecting board", unit="frame", disable=None if progress else True
+        total=total,
+        desc="detecting board",
+        unit="frame",
+        disable=None if progress and total else True,
     )
     try:
         if jobs == 1:

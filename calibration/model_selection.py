@@ -108,14 +108,14 @@ def _simplify_camera(
     if opt.principal_point == "auto" and free[i, 2]:
         centre = np.array([(d.size[0] - 1) / 2, (d.size[1] - 1) / 2])
         chi2 = _wald(p[PRINCIPAL] - centre, cov[i, PRINCIPAL, PRINCIPAL])
-        logger.info("camera %s: principal-point offset chi2 %.1f", d.name, chi2)
+        logger.debug("camera %s: principal-point offset chi2 %.1f", d.name, chi2)
         if chi2 < CHI2_2DOF_1PCT:
             cam[i, PRINCIPAL] = centre
             free[i, PRINCIPAL] = False
             changed = True
     if opt.dist_model == "auto" and free[i, 6]:
         chi2 = _wald(p[TANGENTIAL], cov[i, TANGENTIAL, TANGENTIAL])
-        logger.info("camera %s: tangential distortion chi2 %.1f", d.name, chi2)
+        logger.debug("camera %s: tangential distortion chi2 %.1f", d.name, chi2)
         if chi2 < CHI2_2DOF_1PCT:
             cam[i, TANGENTIAL] = 0.0
             free[i, TANGENTIAL] = False
@@ -124,7 +124,7 @@ def _simplify_camera(
         # var(fx - fy) = var fx + var fy - 2 cov(fx, fy)
         c = cov[i, FOCAL, FOCAL]
         chi2 = _wald(np.array([p[0] - p[1]]), (c[0, 0] + c[1, 1] - 2 * c[0, 1])[None, None])
-        logger.info("camera %s: fx - fy = %.3f px, chi2 %.1f", d.name, p[0] - p[1], chi2)
+        logger.debug("camera %s: fx - fy = %.3f px, chi2 %.1f", d.name, p[0] - p[1], chi2)
         if chi2 < CHI2_1DOF_1PCT:
             cam[i, FOCAL] = 0.5 * (p[0] + p[1])
             free[i, 1] = False

@@ -279,7 +279,7 @@ def _adjust(
             ba, sel.start, obs, offsets, seen.point_ids, obj, sel.free, sel.square, opt
         )
         ba, obs, offsets = ref.bundle, ref.obs, ref.offsets
-        logger.info(
+        logger.debug(
             "board points corrected by %.3f mm RMS (max %.3f mm)",
             _rms_offset(offsets),
             float(np.linalg.norm(offsets, axis=1).max()),

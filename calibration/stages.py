@@ -181,7 +181,7 @@ def initial_intrinsics(
             )
         Ks.append(res.K)
         dists.append(res.dist)
-        logger.info(
+        logger.debug(
             "camera %s: intrinsics from %d views, RMS %.3f px, f = %.1f, %.1f",
             d.name,
             len(res.frames),

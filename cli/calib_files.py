@@ -130,10 +130,7 @@ def rig_summary(rig: Any, title: str) -> str:
     from freipose.io.calibration_formats import ESTIMATED_KEY
 
     est = set(rig.metadata.get(ESTIMATED_KEY, []))
-    lines = [title, f"{len(rig)} cameras; lengths in mm"]
-    for k, v in rig.metadata.items():
-        if k not in ("units", ESTIMATED_KEY, _SE_KEY, _SUSPECT_KEY):
-            lines.append(f"  {k}: {v}")
+    lines = [title, f"{len(rig)} cameras; lengths in mm", *_metadata_lines(rig.metadata)]
     suspect = rig.metadata.get(_SUSPECT_KEY) or []
     if suspect:
         lines.append("SUSPECT: written with --force although it failed the plausibility checks:")
@@ -173,6 +170,7 @@ def rig_summary(rig: Any, title: str) -> str:
             + [_fmt(x) for x in pos]
         )
     lines += ["", *_table(head, rows)]
+    lines += _model_lines(rig.metadata.get(_MODEL_KEY) or {})
     lines += _standard_error_lines(rig.metadata.get(_SE_KEY) or {})
     if est:
         lines.append("* image size not stored in the file; estimated as 2 * principal point + 1")
@@ -190,6 +188,58 @@ def rig_summary(rig: Any, title: str) -> str:
 
 _SE_KEY = "intrinsics_standard_errors"
 _SUSPECT_KEY = "suspect"
+_MODEL_KEY = "intrinsics_model"
+# metadata key -> (label, format of its value); keys not listed are shown by name
+_LABELS = {
+    "world": ("world frame", "{}"),
+    "up": ("up direction", "{}"),
+    "up_source": ("up direction from", "{}"),
+    "floor_mm": ("floor height along up", "{} mm"),
+    "calibrated_by": ("calibrated by", "{}"),
+    "board": ("board", "{}"),
+    "reprojection_rms_px": ("reprojection RMS", "{} px"),
+    "distortion_model": ("distortion model option", "{}"),
+    "view_weights": ("per-view weights", "{}"),
+    "board_point_corrections_rms_mm": ("board point corrections", "{} mm RMS"),
+    "origin_frame": ("origin frame", "{}"),
+    "source_format": ("read from", "{}"),
+}
+_HIDDEN = ("units", _SE_KEY, _SUSPECT_KEY, _MODEL_KEY)
+
+
+def _plain(v: Any) -> str:
+    """A metadata value as text: mappings as ``key value, ...``, lists joined by commas."""
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, dict):
+        return ", ".join(f"{str(k).replace('_', ' ')} {_plain(x)}" for k, x in v.items())
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_plain(x) for x in v) + "]"
+    return str(v)
+
+
+def _metadata_lines(md: Any) -> list[str]:
+    """The file's metadata as ``label: value`` lines (tables of its own come later)."""
+    from freipose.io.calibration_formats import ESTIMATED_KEY
+
+    out = []
+    for k, v in md.items():
+        if k in _HIDDEN or k == ESTIMATED_KEY:
+            continue
+        label, fmt = _LABELS.get(k, (k.replace("_", " "), "{}"))
+        out.append(f"  {label}: {fmt.format(_plain(v))}")
+    return out
+
+
+def _model_lines(models: dict[str, dict[str, str]]) -> list[str]:
+    """The table of each camera's lens model (what the bundle adjustment estimated)."""
+    if not models:
+        return []
+    keys = ("principal_point", "distortion", "focal")
+    rows = [[c] + [str(m.get(k, "")) for k in keys] for c, m in models.items()]
+    return ["", "Lens model (estimated where the data support it):"] + _table(
+        ["camera", "principal point", "distortion", "focal length"], rows
+    )
 
 
 def _standard_error_lines(se: dict[str, dict[str, float]]) -> list[str]:

@@ -269,26 +269,50 @@ def check_outputs(
     return f
 
 
+def _camera_line(result: Any, s: Any, back: int) -> str:
+    """One line for a calibrated camera: its board views, error, intrinsics and lens model."""
+    rms = f"{s.rms:.3f} px" if s.rms == s.rms else "n/a"
+    behind = f" ({back} seen from behind)" if back else ""
+    line = (
+        f"{s.name}: {s.frames_detected} frames with the board{behind}, {s.points_used} points "
+        f"used, reprojection RMS {rms}"
+    )
+    if s.name not in result.rig or "intrinsics_model" not in result.rig.metadata:
+        return line
+    K = result.rig[s.name].K
+    model = result.rig.metadata["intrinsics_model"].get(s.name, {})
+    se = result.standard_errors.get(s.name) or {}
+
+    def pm(key: str) -> str:
+        return f" ± {se[key]:.2g}" if key in se else ""
+
+    focal = f"f {K[0, 0]:.1f}{pm('fx')} px"
+    if model.get("focal") == "fx, fy":
+        focal = f"fx {K[0, 0]:.1f}{pm('fx')}, fy {K[1, 1]:.1f}{pm('fy')} px"
+    centre = f"principal point ({K[0, 2]:.1f}{pm('cx')}, {K[1, 2]:.1f}{pm('cy')}) px"
+    if model.get("principal_point") == "image centre":
+        centre = "principal point at the image centre"
+    dist = model.get("distortion", "")
+    return f"{line}; {focal}, {centre}, distortion {dist or 'none'}"
+
+
 def _echo_result(result: Any, output: Path) -> None:
-    """Print the per-camera figures, warnings, standard errors and findings of a calibration."""
+    """Print one line per camera, the warnings and findings of a calibration.
+
+    The intrinsics' standard errors in full are a debug message (``-v``).
+    """
     import logging
 
     log = logging.getLogger("freipose.calib")
     back = {d.name: d.back_views for d in result.detections}
     for s in result.stats:
-        rms = f"{s.rms:.3f} px" if s.rms == s.rms else "n/a"
-        behind = f" ({back[s.name]} seen from behind)" if back.get(s.name) else ""
-        click.echo(
-            f"{s.name}: {s.frames_detected} frames with the board{behind}, {s.points_used} "
-            f"points used, reprojection RMS {rms}"
-        )
+        click.echo(_camera_line(result, s, back.get(s.name, 0)))
     for w in result.warnings:
         log.warning(w)
-    for s in result.stats:
-        se = result.standard_errors.get(s.name)
+    for name, se in result.standard_errors.items():
         if se:
             parts = ", ".join(f"{k} {v:.3g}" for k, v in se.items())
-            click.echo(f"{s.name}: intrinsics standard errors {parts}")
+            log.debug("%s: intrinsics standard errors %s", name, parts)
     click.echo(f"world frame: {result.world}")
     for f in result.findings:
         click.echo(f"SUSPECT (written with --force): {f.message}", err=True)

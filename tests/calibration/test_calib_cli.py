@@ -209,7 +209,6 @@ def test_stereo_cli_with_report(tmp_path, shared_data):
     assert "intrinsics only" in load_calibration(out).metadata["world"]
 
 
-
 def test_cli_stores_the_up_direction(tmp_path, shared_data):
     from freipose.io.calibration import load_calibration
     from freipose.io.calibration_world import world_up
@@ -229,6 +228,12 @@ def test_cli_stores_the_up_direction(tmp_path, shared_data):
     code, text = _run(base)
     assert code == 0, text
     assert "up direction is unknown" in text and world_up(load_calibration(out)) is None
+    # one line per camera by default; the solver's rounds and tests are debug messages (-v)
+    assert "bundle adjustment: RMS" in text and "bundle round" not in text and "chi2" not in text
+    code, verbose = _run(["-v", *base])
+    assert code == 0 and "bundle round" in verbose and "chi2" in verbose, verbose
+    lines = [ln for ln in text.splitlines() if ln.startswith(("left:", "right:"))]
+    assert len(lines) == 2 and all("reprojection RMS" in ln and " ± " in ln for ln in lines)
     code, text = _run([*base, "--up", "0,-2,0"])
     assert code == 0 and "up direction is unknown" not in text, text
     up = world_up(load_calibration(out))

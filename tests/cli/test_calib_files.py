@@ -98,7 +98,7 @@ def test_show_summary(tmp_path):
     # Six cameras on a 1 m circle: neighbours 1000 mm apart, opposite ones 2000 mm.
     assert "1000.0" in out and "2000.0" in out and "1732.1" in out
     assert "min 1000.0, median 1732.1, max 2000.0 mm" in out
-    assert "world: origin at the arena centre" in out
+    assert "world frame: origin at the arena centre" in out
 
 
 def test_convert_and_show_errors(tmp_path):
