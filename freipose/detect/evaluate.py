@@ -80,10 +80,13 @@ class DetectionMetrics:
     def summary(self) -> str:
         """The metrics as one line of text (what ``freipose train --stage detector`` prints)."""
         return (
-            f"recall@IoU0.5 {self.recall:.3f} (best box per view alone {self.recall_top1:.3f}) "
-            f"over {self.n_views} views; median 3D centre error {self.median_center_error:.2f} mm; "
-            f"3D centre found in {100 * self.center_rate:.1f}% of {self.n_instants} time instants, "
-            f"{self.mean_agree:.2f} agreeing views on average"
+            f"the animal's 3D centre found in {100 * self.center_rate:.1f}% of "
+            f"{self.n_instants} time instants (median 3D centre error "
+            f"{self.median_center_error:.2f} mm, {self.mean_agree:.2f} agreeing views on "
+            "average); per view, the box overlaps the "
+            f"true box (IoU >= 0.5) in {100 * self.recall:.1f}% of {self.n_views} views "
+            f"(recall@IoU0.5 {self.recall:.3f}; the best box of each view alone: "
+            f"{self.recall_top1:.3f})"
         )
 
 

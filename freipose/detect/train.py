@@ -459,8 +459,10 @@ def _training_views(
     views = _collect_items(train_sets, [items[i] for i in sel], cfg)
     n_neg = int((~np.isfinite(views.boxes).all(-1)).sum())
     log.info(
-        "detector: %d training views from %d time instants (%d without the animal), "
-        "%d evaluation time instants", len(views.images), len(sel), n_neg, n_eval,
+        "detector: %d training views from %d time instants (%d without the animal); "
+        "evaluated on %d time instants (of %d held out; at most [detector] "
+        "max_eval_instants)", len(views.images), len(sel), n_neg,
+        min(n_eval, cfg.max_eval_instants), n_eval,
     )  # fmt: skip
     return views
 
@@ -568,7 +570,8 @@ def _train_into(
 
     metrics = _evaluate(Detector(net, dev), eval_sets or train_sets, split.eval, cfg)
     cpu = Detector(net.to("cpu"), "cpu")
-    fps = measure_fps(cpu)
+    size = _image_size(train_sets)
+    fps = measure_fps(cpu, size)
     net.to(dev)
     final = out_dir / FINAL
     save_checkpoint(final, net, extra=_final_extra(cfg, metrics, fps, train_s, losses))
@@ -577,8 +580,21 @@ def _train_into(
         print(f"detector eval: {metrics.summary()}")
     else:
         print("detector eval: no evaluation data (set [data] eval_labels or eval_fraction > 0)")
-    print(f"detector speed: {fps:.1f} frames/s on CPU (640x480, {torch.get_num_threads()} threads)")
+    print(
+        f"detector speed: {fps:.1f} frames/s on CPU ({size[0]}x{size[1]} images, as the "
+        f"training videos; {torch.get_num_threads()} threads)"
+    )
     return final
+
+
+def _image_size(sets: list) -> tuple[int, int]:
+    """(width, height) of the first calibrated camera of the datasets (640x480 if none)."""
+    for ds in sets:
+        for name in ds.labels.sessions:
+            rig = ds.labels.rig_for(name)
+            if rig is not None and len(rig):
+                return tuple(rig[0].size)  # type: ignore[return-value]
+    return (640, 480)
 
 
 def _collect_items(

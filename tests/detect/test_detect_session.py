@@ -9,6 +9,7 @@ from freipose.cli.main import cli
 from freipose.detect.detector import load_checkpoint
 from freipose.detect.train import DetectorTrainConfig, train_detector
 from freipose.io.boxes import BoxesData, BoxesFormatError, read_boxes_h5, write_boxes_h5
+from freipose.io.labels import read_labels_h5
 from freipose.io.video import frame_range
 
 TINY = {"input_size": 64, "width": 0.25, "neck_channels": 16, "batch_size": 8, "warmup_steps": 5}
@@ -34,6 +35,10 @@ def test_train_detector_from_config(session_dir, tmp_path, capsys):
     assert (
         "recall@IoU0.5" in printed and "median 3D centre error" in printed and "frames/s" in printed
     )
+    assert "3D centre found in" in printed and "of 4 time instants" in printed
+    lab = read_labels_h5(session_dir / "labels.h5")  # the speed is measured at the videos' size
+    w, h = next(iter(lab.sessions.values())).calibration[0].size
+    assert f"CPU ({w}x{h} images, as the training videos;" in printed
 
 
 def test_train_config_errors(session_dir, tmp_path):
