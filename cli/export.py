@@ -41,7 +41,8 @@ def _parse_time(value: str | None) -> datetime.datetime | None:
     type=click.Choice(["csv", "anipose", "dlc3d", "nwb", "movement"]),
     default="csv",
     show_default=True,
-    help="csv: tidy table (one row per frame, <keypoint>_x/_y/_z/_confidence); anipose: "
+    help="csv: wide table, one row per frame (frame, time_s, <keypoint>_x_mm/_y_mm/_z_mm/"
+    "_confidence; spaces in names as _), units and layout in <file>.csv.json; anipose: "
     "Anipose pose-3d CSV; dlc3d: DeepLabCut-3D style CSV; nwb: NWB with ndx-pose "
     "(needs pip install 'freipose[nwb]'); movement: movement's netCDF poses dataset (.nc; "
     "needs pip install 'freipose[movement]').",

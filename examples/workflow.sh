@@ -41,7 +41,7 @@ jitter_rig = false
 body_part = "Paw Front Right"
 effect = "oscillate"
 frequency_hz = 5.0
-amplitude_mm = 20.0
+amplitude_mm = 30.0
 duration_s = 2.0
 spacing_s = 2.0
 onset_s = 1.0
@@ -115,6 +115,8 @@ neck_channels = 24
 steps = $(( STEPS * 5 / 6 > 0 ? STEPS * 5 / 6 : 1 ))
 batch_size = 8
 checkpoint_every = 50
+max_images = 1400
+max_eval_instants = 40
 warmup_steps = 20
 cube_size = 320.0
 EOF

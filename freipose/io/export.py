@@ -1,7 +1,9 @@
 """Export ``poses.h5`` to the formats other tools read (described in ``docs/formats.md``).
 
-* ``csv``: a tidy CSV, one row per frame: ``frame, time, <kp>_x, <kp>_y, <kp>_z,
-  <kp>_confidence, ...`` (mm, seconds; empty cell = NaN).
+* ``csv``: a wide CSV, one row per frame: ``frame, time_s, <kp>_x_mm, <kp>_y_mm, <kp>_z_mm,
+  <kp>_confidence, ...`` (``<kp>`` the keypoint name with spaces as ``_``; empty cell = NaN),
+  and a sidecar ``<file>.csv.json`` naming the layout, every column's keypoint, quantity
+  and unit, and the world frame's up direction.
 * ``anipose``: Anipose's ``pose-3d`` CSV: ``<kp>_x/_y/_z/_error/_ncams/_score`` per
   keypoint, then ``M_00..M_22``, ``center_0..2`` and ``fnum`` (movement and
   keypoint-MoSeq load it as Anipose output).
@@ -22,7 +24,9 @@ round-trip tests and handy for users).
 from __future__ import annotations
 
 import datetime
+import json
 import logging
+import re
 import warnings
 from pathlib import Path
 from typing import Any
@@ -32,7 +36,7 @@ import pandas as pd
 
 from freipose.errors import FreiPoseError
 from freipose.geometry.projection import project_rig
-from freipose.io.atomic import atomic_path
+from freipose.io.atomic import atomic_path, atomic_write_text
 from freipose.io.poses import PoseData, read_poses_h5, write_movement_poses
 
 log = logging.getLogger(__name__)
@@ -62,34 +66,82 @@ def default_output(poses_path: str | Path, fmt: str) -> Path:
     return p.with_name(stem + SUFFIXES[fmt])
 
 
-# -- tidy CSV ------------------------------------------------------------------------------
+# -- wide CSV ------------------------------------------------------------------------------
+
+WIDE_LAYOUT = "wide: one row per frame"
 
 
-def tidy_frame(data: PoseData) -> pd.DataFrame:
-    """The tidy table: one row per frame (see the module docstring)."""
-    cols: dict[str, Any] = {"frame": data.frame_index, "time": data.times}
-    for k, name in enumerate(data.keypoints):
-        for a, axis in enumerate("xyz"):
-            cols[f"{name}_{axis}"] = data.poses[:, k, a].astype(np.float64)
-        cols[f"{name}_confidence"] = data.confidence[:, k].astype(np.float64)
-    return pd.DataFrame(cols)
+def column_name(keypoint: str) -> str:
+    """A keypoint name as a CSV column prefix: whitespace and commas become ``_``."""
+    return re.sub(r"[\s,]+", "_", keypoint.strip())
 
 
-def write_tidy_csv(data: PoseData, path: str | Path) -> Path:
-    """Write the tidy CSV (mm, seconds)."""
+def _wide_columns(keypoints: tuple[str, ...]) -> dict[str, dict[str, str]]:
+    """Column name -> ``keypoint``, ``quantity``, ``unit`` for every column of the wide CSV."""
+    cols = {
+        "frame": {"quantity": "video frame index", "unit": ""},
+        "time_s": {"quantity": "time (frame / fps)", "unit": "s"},
+    }
+    prefixes = [column_name(k) for k in keypoints]
+    dupes = sorted({p for p in prefixes if prefixes.count(p) > 1})
+    if dupes:
+        raise ExportError(
+            f"keypoints {[k for k in keypoints if column_name(k) in dupes]} give the same CSV "
+            f"column names {dupes}; export them with --format anipose or movement instead"
+        )
+    for name, pre in zip(keypoints, prefixes):
+        for axis in "xyz":
+            cols[f"{pre}_{axis}_mm"] = {"keypoint": name, "quantity": axis, "unit": "mm"}
+        cols[f"{pre}_confidence"] = {"keypoint": name, "quantity": "confidence", "unit": "0-1"}
+    return cols
+
+
+def wide_frame(data: PoseData) -> pd.DataFrame:
+    """The wide table: one row per frame (see the module docstring)."""
+    names = list(_wide_columns(tuple(data.keypoints)))
+    values: list[Any] = [data.frame_index, data.times]
+    for k in range(len(data.keypoints)):
+        values += [data.poses[:, k, a].astype(np.float64) for a in range(3)]
+        values.append(data.confidence[:, k].astype(np.float64))
+    return pd.DataFrame(dict(zip(names, values)))
+
+
+def write_wide_csv(data: PoseData, path: str | Path) -> Path:
+    """Write the wide CSV (mm, seconds) and its sidecar ``<path>.json``; returns ``path``."""
+    path = Path(path)
+    table = wide_frame(data)
+    sidecar = {
+        "layout": WIDE_LAYOUT,
+        "keypoints": list(data.keypoints),
+        "columns": _wide_columns(tuple(data.keypoints)),
+        "world_frame": "the calibration's world frame (mm)",
+        "up": [float(u) for u in data.up],
+        "fps": float(data.fps),
+    }
     with atomic_path(path) as tmp:
-        tidy_frame(data).to_csv(tmp, index=False, float_format="%.9g")
-    return Path(path)
+        table.to_csv(tmp, index=False, float_format="%.9g")
+    atomic_write_text(Path(f"{path}.json"), json.dumps(sidecar, indent=2) + "\n")
+    return path
 
 
-def read_tidy_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
-    """Read a tidy CSV back: (frame_index (T,), poses (T, K, 3), confidence (T, K), keypoints)."""
+def read_wide_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """Read a wide CSV back: (frame_index (T,), poses (T, K, 3), confidence (T, K), keypoints).
+
+    The keypoint names come from the sidecar ``<path>.json`` where it exists, else from
+    the column names (spaces then read as ``_``).
+    """
     df = pd.read_csv(path)
     if "frame" not in df.columns:
-        raise ExportError(f"{path}: no 'frame' column; not a FreiPose tidy CSV")
-    kps = tuple(c[: -len("_confidence")] for c in df.columns if c.endswith("_confidence"))
-    poses = np.stack([df[[f"{k}_{a}" for a in "xyz"]].to_numpy(np.float64) for k in kps], 1)
-    conf = np.stack([df[f"{k}_confidence"].to_numpy(np.float64) for k in kps], 1)
+        raise ExportError(f"{path}: no 'frame' column; not a FreiPose wide CSV")
+    pres = [c[: -len("_confidence")] for c in df.columns if c.endswith("_confidence")]
+    side = Path(f"{path}.json")
+    kps = tuple(pres)
+    if side.is_file():
+        named = json.loads(side.read_text(encoding="utf-8")).get("keypoints", [])
+        if [column_name(k) for k in named] == pres:
+            kps = tuple(named)
+    poses = np.stack([df[[f"{p}_{a}_mm" for a in "xyz"]].to_numpy(np.float64) for p in pres], 1)
+    conf = np.stack([df[f"{p}_confidence"].to_numpy(np.float64) for p in pres], 1)
     return df["frame"].to_numpy(np.int64), poses, conf, kps
 
 
@@ -320,7 +372,7 @@ def export_poses(
     data = read_poses_h5(poses_path)
     out = Path(output) if output is not None else default_output(poses_path, fmt)
     if fmt == "csv":
-        return write_tidy_csv(data, out)
+        return write_wide_csv(data, out)
     if fmt == "anipose":
         return write_anipose_csv(data, out)
     if fmt == "dlc3d":

@@ -1,4 +1,4 @@
-"""Export round trips: tidy CSV, Anipose CSV, DLC-3D CSV and NWB read back equal."""
+"""Export round trips: wide CSV, Anipose CSV, DLC-3D CSV and NWB read back equal."""
 
 from __future__ import annotations
 
@@ -47,10 +47,12 @@ def poses_file(tmp_path_factory):
     return path
 
 
-def test_tidy_csv_round_trip(poses_file, tmp_path):
+def test_wide_csv_round_trip_names_units_and_layout(poses_file, tmp_path):
+    import json
+
     out = export.export_poses(poses_file, "csv", tmp_path / "p.csv")
     d = read_poses_h5(poses_file)
-    frames, poses, conf, kps = export.read_tidy_csv(out)
+    frames, poses, conf, kps = export.read_wide_csv(out)
     assert kps == d.keypoints
     np.testing.assert_array_equal(frames, d.frame_index)
     np.testing.assert_array_equal(poses.astype(np.float32), d.poses)  # exact, NaN included
@@ -58,14 +60,26 @@ def test_tidy_csv_round_trip(poses_file, tmp_path):
     df = pd.read_csv(out)
     assert list(df.columns[:6]) == [
         "frame",
-        "time",
-        "Ear Right_x",
-        "Ear Right_y",
-        "Ear Right_z",
-        "Ear Right_confidence",
+        "time_s",
+        "Ear_Right_x_mm",
+        "Ear_Right_y_mm",
+        "Ear_Right_z_mm",
+        "Ear_Right_confidence",
     ]
-    assert df["time"].iloc[0] == pytest.approx(100 / 30)
-    assert df.loc[4, "Ear Right_x"] != df.loc[4, "Ear Right_x"]  # empty cell -> NaN
+    assert not any(" " in c for c in df.columns)
+    assert df["time_s"].iloc[0] == pytest.approx(100 / 30)
+    assert df.loc[4, "Ear_Right_x_mm"] != df.loc[4, "Ear_Right_x_mm"]  # empty cell -> NaN
+    side = json.loads((tmp_path / "p.csv.json").read_text())
+    assert side["layout"] == "wide: one row per frame"
+    assert side["columns"]["Paw_Front_Right_z_mm"] == {
+        "keypoint": "Paw Front Right", "quantity": "z", "unit": "mm"
+    }  # fmt: skip
+    assert set(side["columns"]) == set(df.columns)
+    # without the sidecar the names come from the columns
+    (tmp_path / "p.csv.json").unlink()
+    assert export.read_wide_csv(out)[3][0] == "Ear_Right"
+    with pytest.raises(export.ExportError, match="same CSV column names"):
+        export._wide_columns(("a b", "a_b"))
 
 
 def test_anipose_csv(poses_file, tmp_path):
