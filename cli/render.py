@@ -74,6 +74,7 @@ def render(
         from freipose.io.calibration import load_calibration
         from freipose.io.lock import output_lock
         from freipose.io.poses import read_poses_h5
+        from freipose.io.session import CALIBRATION_NAMES
         from freipose.io.video import find_camera_videos, frame_range
         from freipose.predict.render import check_session, render_overlay
 
@@ -84,8 +85,9 @@ def render(
         data = read_poses_h5(poses)
         rig = data.calibration
         if rig is None:
-            calib = session / "calibration.toml" if session.is_dir() else None
-            if calib is None or not calib.is_file():
+            found = [session / n for n in CALIBRATION_NAMES] if session.is_dir() else []
+            calib = next((p for p in found if p.is_file()), None)
+            if calib is None:
                 raise FreiPoseError(
                     f"{poses} stores no calibration and {session} has no calibration.toml"
                 )

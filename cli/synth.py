@@ -17,6 +17,10 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _formats(text: str) -> tuple[str, ...]:
+    return tuple(v.strip() for v in text.split(",") if v.strip())
+
+
 @click.command()
 @click.argument("outdir", type=click.Path(file_okay=False))
 @click.option(
@@ -39,9 +43,69 @@ def _parse_size(text: str) -> tuple[int, int]:
 @click.option("--seed", type=int, default=None, help="Random seed [0]; same seed, same scene.")
 @click.option(
     "--appearance",
-    type=click.Choice(["hooded", "albino", "random"]),
+    type=click.Choice(["hooded", "albino", "dark", "random"]),
     default=None,
-    help="Coat of the animal [random].",
+    help="Coat of the animal [random: hooded or albino for a rat, dark or albino for a mouse].",
+)
+@click.option(
+    "--animal",
+    type=click.Choice(["rat", "mouse"]),
+    default=None,
+    help="The animal [rat]; a mouse is 0.42 times a rat's size (give it --arena-size 250x250).",
+)
+@click.option(
+    "--animal-scale", type=float, default=None, help="Body size factor, rat = 1 [the animal's]."
+)
+@click.option(
+    "--arena-size", type=str, default=None, help="Inner arena size WIDTHxDEPTH in mm [600x600]."
+)
+@click.option("--wall-height", type=float, default=None, help="Arena wall height, mm [100].")
+@click.option(
+    "--grayscale", is_flag=True, default=None, help="Grayscale cameras (R = G = B in every pixel)."
+)
+@click.option(
+    "--lens",
+    type=click.Choice(["standard", "fisheye", "pinhole"]),
+    default=None,
+    help="Lenses of the default rig [standard: mild barrel distortion; fisheye: strong].",
+)
+@click.option(
+    "--layout",
+    type=click.Choice(["ring", "above", "side", "below"]),
+    default=None,
+    help="Default rig layout [ring]; below: the last camera films through a transparent floor.",
+)
+@click.option(
+    "--reflections",
+    type=float,
+    default=None,
+    help="Wall reflectivity 0..0.9: mirror images of the animal in the walls [0].",
+)
+@click.option(
+    "--rest-fraction",
+    type=float,
+    default=None,
+    help="Share of the time the animal rests, almost still for seconds [0].",
+)
+@click.option(
+    "--floor", type=click.Choice(["mat", "bedding"]), default=None, help="Floor texture [mat]."
+)
+@click.option(
+    "--label-files",
+    type=str,
+    default=None,
+    help="Also write per-camera label files of predicted instances, comma-separated formats: "
+    "sleap (<camera>/<camera>.slp), dlc (<camera>/CollectedData.csv); visible points only.",
+)
+@click.option(
+    "--label-noise", type=float, default=None, help="Noise of the label files' points, px [1]."
+)
+@click.option(
+    "--randomize",
+    is_flag=True,
+    default=None,
+    help="Domain randomisation: coat, size, arena, cameras (3-8), image size, layout, lens, "
+    "grayscale, floor, colours, lighting, blur, noise, reflections and resting drawn from --seed.",
 )
 @click.option(
     "--stimulation",
@@ -89,6 +153,19 @@ def synth(
     size: str | None,
     seed: int | None,
     appearance: str | None,
+    animal: str | None,
+    animal_scale: float | None,
+    arena_size: str | None,
+    wall_height: float | None,
+    grayscale: bool | None,
+    lens: str | None,
+    layout: str | None,
+    reflections: float | None,
+    rest_fraction: float | None,
+    floor: str | None,
+    label_files: str | None,
+    label_noise: float | None,
+    randomize: bool | None,
     stim: str | None,
     calibration_video: bool | None,
     calibration_frames: int | None,
@@ -98,9 +175,9 @@ def synth(
     workers: int | None,
     overwrite: bool,
 ) -> None:
-    """Render a synthetic multi-camera session of a moving rat with exact ground truth.
+    """Render a synthetic multi-camera session of a moving rat or mouse with exact ground truth.
 
-    Writes one video per camera, calibration.toml (the true cameras), labels.h5 (exact 3D
+    Writes one video per camera, true_calibration.toml (the true cameras), labels.h5 (exact 3D
     keypoints, their 2D projections and per-view visibility for every frame), events.csv
     (with --stimulation) and scene.toml (all settings and the seed; --config reproduces it).
 
@@ -109,6 +186,10 @@ def synth(
       freipose synth demo/session1 --frames 300 --cameras 7 --seed 1
       freipose synth demo/stim --stimulation 'body_part=Paw Front Right,duration_s=2'
       freipose synth demo/rig_test --rig examples/rig.toml --calibration-video
+      freipose synth lab/mouse --animal mouse --arena-size 250x250 --grayscale
+          --lens fisheye --reflections 0.3 --rest-fraction 0.6 --floor bedding
+          --label-files sleap
+      freipose synth base/s1000 --seed 1000 --randomize
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.synth import SceneConfig, StimulationConfig, generate_session
@@ -126,6 +207,19 @@ def synth(
             "calibration_video": True if calibration_video else None,
             "calibration_frames": calibration_frames,
             "video_format": ".mkv" if lossless else None,
+            "animal": animal,
+            "animal_scale": animal_scale,
+            "arena_size": _parse_size(arena_size) if arena_size is not None else None,
+            "wall_height": wall_height,
+            "grayscale": True if grayscale else None,
+            "lens": lens,
+            "layout": layout,
+            "reflections": reflections,
+            "rest_fraction": rest_fraction,
+            "floor": floor,
+            "label_files": _formats(label_files) if label_files is not None else None,
+            "label_noise_px": label_noise,
+            "randomize": True if randomize else None,
         }
         changes: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
         if board_file is not None:

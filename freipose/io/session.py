@@ -31,7 +31,8 @@ from freipose.io.video import VIDEO_SUFFIXES, FrameSource, MediaError, find_came
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_NAMES = ("calibration.toml",)
+TRUE_CALIBRATION_NAME = "true_calibration.toml"  # a synthetic session's true rig (freipose synth)
+CALIBRATION_NAMES = ("calibration.toml", TRUE_CALIBRATION_NAME)  # looked for in this order
 
 Cameras = Literal["videos", "calibration"]
 

@@ -3,7 +3,7 @@
 Public API:
 
 * :class:`SceneConfig`, :func:`generate_session` -> :class:`SessionPaths`: a session folder
-  with one video per camera, ``calibration.toml``, ``labels.h5`` (exact 3D keypoints, their
+  with one video per camera, ``true_calibration.toml``, ``labels.h5`` (exact 3D keypoints, their
   projections and per-view visibility for every frame), ``events.csv`` and ``scene.toml``;
 * :func:`default_rig`, :func:`load_rig_file`, :class:`ArenaConfig`: camera rigs and the arena;
 * :mod:`freipose.synth.motion`: :func:`simulate_motion` -> :class:`MotionState`,

@@ -380,7 +380,7 @@ def write_board_videos(
 ) -> tuple[dict[str, Path], np.ndarray]:
     """Write a calibration recording: one board video per camera plus the ground truth.
 
-    Writes ``outdir/<camera><fmt>``, ``calibration.toml`` (the true rig), ``board.toml``
+    Writes ``outdir/<camera><fmt>``, ``true_calibration.toml`` (the true rig), ``board.toml``
     (the board) and ``board_poses.npy`` ((F, 4, 4) board->world transforms). Running it
     again with the same arguments keeps the videos already written (resume). ``transparent``:
     cameras behind the board see its pattern mirrored (see :func:`render_board_frames`).
@@ -395,6 +395,7 @@ def write_board_videos(
     from freipose.io.atomic import atomic_path, atomic_write_text
     from freipose.io.calibration import save_calibration
     from freipose.io.calibration_toml import rig_to_toml_text
+    from freipose.io.session import TRUE_CALIBRATION_NAME
 
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
@@ -408,7 +409,7 @@ def write_board_videos(
     stamp_path = out / ".synth_board_stamp"
     same = stamp_path.is_file() and stamp_path.read_text(encoding="utf-8") == stamp
     stamp_path.unlink(missing_ok=True)
-    save_calibration(rig, out / "calibration.toml")
+    save_calibration(rig, out / TRUE_CALIBRATION_NAME)
     save_board(board, out / "board.toml")
     with atomic_path(out / "board_poses.npy") as tmp, open(tmp, "wb") as fh:
         np.save(fh, poses)

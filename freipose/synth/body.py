@@ -68,7 +68,9 @@ KEYPOINT_OWNERS: tuple[tuple[int, ...], ...] = (
     (PART["tail_0"],),
 )
 
-APPEARANCES = ("hooded", "albino")
+APPEARANCES = ("hooded", "albino")  # the coats ``appearance = "random"`` draws for a rat
+COATS = (*APPEARANCES, "dark")  # every coat ("dark": a black mouse or rat)
+MOUSE_COATS = ("dark", "albino")  # the coats ``appearance = "random"`` draws for a mouse
 
 
 @dataclass(frozen=True)
@@ -80,8 +82,9 @@ class RatBody:
         length: extra factor on the torso length.
         girth: extra factor on the torso width and height.
         tail_length: extra factor on the tail length.
-        appearance: ``"hooded"`` (black head and back stripe, white belly and flanks) or
-            ``"albino"`` (white with pink ears, eyes, paws and tail).
+        appearance: ``"hooded"`` (black head and back stripe, white belly and flanks),
+            ``"albino"`` (white with pink ears, eyes, paws and tail) or ``"dark"`` (black
+            fur, grey-pink ears, paws and tail).
         tint: (3,) BGR multiplier on the fur colour (small individual differences).
     """
 
@@ -93,20 +96,33 @@ class RatBody:
     tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     def __post_init__(self) -> None:
-        if self.appearance not in APPEARANCES:
-            raise SynthError(f"appearance must be one of {APPEARANCES}, got {self.appearance!r}")
+        if self.appearance not in COATS:
+            raise SynthError(f"appearance must be one of {COATS}, got {self.appearance!r}")
         for name in ("scale", "length", "girth", "tail_length"):
             v = float(getattr(self, name))
             if not (0.3 <= v <= 3.0):
                 raise SynthError(f"RatBody.{name} must be in [0.3, 3], got {v}")
 
     @classmethod
-    def random(cls, rng: np.random.Generator, appearance: str = "random") -> RatBody:
-        """A random individual: size varies by about +-12 %, proportions by +-5 %."""
+    def random(
+        cls,
+        rng: np.random.Generator,
+        appearance: str = "random",
+        size: float = 1.0,
+        coats: tuple[str, ...] = APPEARANCES,
+    ) -> RatBody:
+        """A random individual: size ``size`` +-12 %, proportions +-5 %.
+
+        Args:
+            rng: the random generator.
+            appearance: the coat, or ``"random"``: one of ``coats``.
+            size: nominal size factor (rat 1, mouse 0.42).
+            coats: the coats a random appearance is drawn from.
+        """
         if appearance == "random":
-            appearance = APPEARANCES[int(rng.integers(len(APPEARANCES)))]
+            appearance = coats[int(rng.integers(len(coats)))]
         return cls(
-            scale=float(rng.uniform(0.88, 1.12)),
+            scale=float(size) * float(rng.uniform(0.88, 1.12)),
             length=float(rng.uniform(0.95, 1.05)),
             girth=float(rng.uniform(0.94, 1.06)),
             tail_length=float(rng.uniform(0.9, 1.1)),
@@ -133,6 +149,15 @@ class RatBody:
                 "eye": (np.array([0.02, 0.02, 0.02]),) * 2,
                 "ear": (np.array([0.36, 0.37, 0.5]),) * 2, "limb": (white, white),
                 "paw": (pink, pink), "tail": (np.array([0.45, 0.48, 0.58]),) * 2,
+            }  # fmt: skip
+        elif self.appearance == "dark":
+            black = np.array([0.07, 0.075, 0.085]) * np.array(self.tint)
+            skin = np.array([0.33, 0.34, 0.42])
+            cols = {
+                "haunch": (black, black), "chest": (black, black), "head": (black, black),
+                "snout": (black, black), "nose": (skin,) * 2,
+                "eye": (np.array([0.02, 0.02, 0.02]),) * 2, "ear": (skin * 0.8,) * 2,
+                "limb": (black, black), "paw": (skin,) * 2, "tail": (skin * 0.75,) * 2,
             }  # fmt: skip
         else:
             white = white * np.array([0.93, 1.0, 1.02])  # slightly creamy

@@ -1,9 +1,12 @@
 """Motion model of the synthetic rodent: behaviour, locomotion with a stride cycle, stimulation.
 
 The animal alternates between walking (with smooth random turning), pausing (head scanning),
-turning on the spot and rearing; it steers away from the arena walls. Each foot is planted on
-the floor while in stance and swings in an arc to a new footfall when it falls behind its rest
-position (diagonal feet alternate), so feet do not slide while standing. An optional
+turning on the spot and rearing; it steers away from the arena walls. With a
+``rest_fraction`` it also rests: seconds-long phases in which it stays almost still (the head
+drifts slowly, the tail lies still), as a resting animal that background subtraction loses.
+Each foot is planted on the floor while in stance and swings in an arc to a new footfall
+when it falls behind its rest position (diagonal feet alternate), so feet do not slide
+while standing. An optional
 stimulation protocol (:class:`~freipose.synth.stimulation.StimulationConfig`) lifts/oscillates
 a body part during windows of given length and spacing, with an effect growing over each
 window.
@@ -149,7 +152,7 @@ class _Behaviour:
     """State of the behaviour state machine.
 
     Attributes:
-        name: ``"walk"``, ``"pause"``, ``"turn"`` or ``"rear"``.
+        name: ``"walk"``, ``"pause"``, ``"turn"``, ``"rear"`` or ``"rest"``.
         timer: time left in this behaviour, s.
         v_target: target speed, mm/s.
         w_noise: target turning rate, rad/s.
@@ -161,9 +164,29 @@ class _Behaviour:
     w_noise: float
 
 
-def _next_behaviour(b: _Behaviour, dt: float, s: float, rng: np.random.Generator) -> _Behaviour:
-    """One sub-step of the state machine: a new random behaviour when the timer runs out."""
+_MEAN_ACTIVE_S = 1.47  # mean duration of a walk, pause, turn or rear phase, s
+_REST_S = (3.0, 8.0)  # duration range of a resting phase, s
+
+
+def rest_probability(rest_fraction: float) -> float:
+    """Probability that a new behaviour is a rest: rests then take ``rest_fraction`` of the time."""
+    f = float(rest_fraction)
+    if f <= 0:
+        return 0.0
+    mean_rest = sum(_REST_S) / 2
+    return f * _MEAN_ACTIVE_S / (mean_rest * (1 - f) + f * _MEAN_ACTIVE_S)
+
+
+def _next_behaviour(
+    b: _Behaviour, dt: float, s: float, rng: np.random.Generator, p_rest: float = 0.0
+) -> _Behaviour:
+    """One sub-step of the state machine: a new random behaviour when the timer runs out.
+
+    A new behaviour is a rest with probability ``p_rest`` (no draw when it is 0).
+    """
     behaviour, b_timer, v_target, w_noise = b.name, b.timer - dt, b.v_target, b.w_noise
+    if b_timer <= 0 and p_rest > 0 and rng.random() < p_rest:
+        return _Behaviour("rest", float(rng.uniform(*_REST_S)), 0.0, 0.0)
     if b_timer <= 0:
         r = rng.random()
         if r < 0.45:
@@ -224,6 +247,8 @@ def _locomote(
         to_c = math.atan2(-y, -x)
         wt = 3.5 * _wrap(to_c - yaw)
         vt = min(vt, 110.0 * s)
+    if b.name == "rest":
+        vt, wt = 0.0, 0.0
     if freeze and strength > 0:
         vt, wt = vt * (1 - strength), wt * (1 - strength)
     if rear > 0.05 or rear_target > 0:
@@ -257,6 +282,12 @@ class _Head:
 def _move_head(h: _Head, behaviour: str, dt: float, rng: np.random.Generator) -> _Head:
     """One sub-step of the head: a new random target now and then (wider when not walking)."""
     timer, target = h.timer - dt, h.target
+    if timer <= 0 and behaviour == "rest":  # slow, small drifts of the head
+        timer = float(rng.uniform(1.5, 4.0))
+        target = h.angles + rng.uniform(-0.06, 0.06, size=3)
+        return _Head(h.angles + (target - h.angles) * min(1.0, dt / 1.5), target, timer)
+    if behaviour == "rest":
+        return _Head(h.angles + (target - h.angles) * min(1.0, dt / 1.5), target, timer)
     if timer <= 0:
         timer = float(rng.uniform(0.25, 0.9))
         wide = behaviour != "walk"
@@ -392,8 +423,9 @@ def _simulate(
     gait: _Gait,
     rng: np.random.Generator,
     start: tuple[float, float, float] | None,
+    p_rest: float = 0.0,
 ) -> _Track:
-    """Run the sub-steps of the simulation and record every frame."""
+    """Run the sub-steps of the simulation and record every frame (rests: ``p_rest``)."""
     s, half, margin, dt = space.s, space.half, space.margin, clock.dt
     if start is None:
         x, y = rng.uniform(-0.3, 0.3, size=2) * (half - margin)
@@ -407,11 +439,12 @@ def _simulate(
     feet = _planted_feet(gait, x, y, yaw)
     track = _Track.empty(n_frames)
     for step in range(clock.n_steps):
-        behaviour = _next_behaviour(behaviour, dt, s, rng)
+        behaviour = _next_behaviour(behaviour, dt, s, rng, p_rest)
         pose = _locomote(pose, behaviour, clock.step_strength[step], clock.freeze, dt, space)
         head = _move_head(head, behaviour.name, dt, rng)
         feet = _step_feet(feet, pose, gait, dt)
-        sway_phase += dt * (2.0 + 0.01 * abs(pose.v))
+        still = behaviour.name == "rest"
+        sway_phase += dt * (0.02 if still else 2.0 + 0.01 * abs(pose.v))
         if (step + 1) % clock.sub == 0:
             track.record(step // clock.sub, pose, head, feet, sway_phase)
     return track
@@ -425,6 +458,7 @@ def simulate_motion(
     stimulation: StimulationConfig | None = None,
     arena_size: tuple[float, float] = (600.0, 600.0),
     start: tuple[float, float, float] | None = None,
+    rest_fraction: float = 0.0,
 ) -> MotionState:
     """Simulate ``n_frames`` of behaviour at ``fps``.
 
@@ -436,6 +470,7 @@ def simulate_motion(
         stimulation: optional stimulation protocol.
         arena_size: inner (width x, depth y) of the arena in mm, centred on the origin.
         start: optional ``(x, y, yaw)`` start; default random near the centre.
+        rest_fraction: share of the time spent resting (0: never; the classic motion).
 
     Returns:
         :class:`MotionState` with T frames.
@@ -452,7 +487,10 @@ def simulate_motion(
     if np.any(half - margin < 20):
         raise SynthError(f"arena {tuple(arena_size)} mm is too small for a {s:.2f}-scale rat")
     clock = _clock(n_frames, fps, stimulation)
-    tr = _simulate(n_frames, clock, _Space(s, half, margin), _gait(body), rng, start)
+    if not 0.0 <= rest_fraction < 1.0:
+        raise SynthError(f"rest_fraction must be in [0, 1), got {rest_fraction}")
+    space, p_rest = _Space(s, half, margin), rest_probability(rest_fraction)
+    tr = _simulate(n_frames, clock, space, _gait(body), rng, start, p_rest)
     effect = stimulation_effects(stimulation, clock.strength, clock.since, s, tr.yaw, tr.hp)
     return MotionState(
         root_xy=np.stack([tr.x, tr.y], -1),

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import cv2
 import numpy as np
@@ -29,6 +29,17 @@ from freipose.geometry import (
     undistort_normalized,
 )
 from freipose.synth.body import MAT, PART, BodyGeometry
+from freipose.synth.look import (
+    CameraLook,
+    SceneStyle,
+    bedding_texture,
+    bgr,
+    blur_kernel,
+    gradient_map,
+    mat_texture,
+    value_noise3,
+    value_noise_table,
+)
 from freipose.synth.rig import ArenaConfig
 
 LIGHT = np.array([0.35, -0.25, 1.0]) / np.linalg.norm([0.35, -0.25, 1.0])
@@ -37,29 +48,6 @@ _SHADOW_PARTS = (PART["haunch"], PART["chest"], PART["head"], PART["neck"])
 _CONTACT_PARTS = (PART["paw_front_r"], PART["paw_front_l"], PART["foot_r"], PART["foot_l"])
 
 BG_NONE, BG_FLOOR, BG_WALL = 0, 1, 2
-
-
-@dataclass(frozen=True)
-class CameraLook:
-    """Per-camera photometric settings: exposure gain, white balance, noise, vignetting."""
-
-    gain: float = 1.0
-    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    noise_sigma: float = 2.0
-    vignetting: float = 0.2
-
-    @classmethod
-    def random(cls, rng: np.random.Generator) -> CameraLook:
-        """A random look: gain, white balance, noise and vignetting drawn from ``rng``."""
-        return cls(
-            gain=float(rng.uniform(0.82, 1.15)),
-            white_balance=cast(
-                "tuple[float, float, float]",
-                tuple(float(v) for v in rng.uniform(0.94, 1.06, size=3)),
-            ),
-            noise_sigma=float(rng.uniform(1.5, 3.5)),
-            vignetting=float(rng.uniform(0.1, 0.3)),
-        )
 
 
 def pixel_rays(uv: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -77,42 +65,6 @@ def pixel_rays(uv: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     d = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1) @ camera.R
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return camera.center, d
-
-
-def _value_noise_table(rng: np.random.Generator, n: int = 16) -> np.ndarray:
-    return rng.uniform(-1.0, 1.0, size=(n, n, n)).astype(np.float32)
-
-
-def value_noise3(table: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Smooth periodic 3D value noise in [-1, 1] at points p (..., 3) (lattice spacing 1)."""
-    n = table.shape[0]
-    f = np.floor(p)
-    w = p - f
-    w = w * w * (3 - 2 * w)
-    i = f.astype(np.int64) % n
-    j = (i + 1) % n
-    out: Any = 0.0
-    for dx in (0, 1):
-        ix = j[..., 0] if dx else i[..., 0]
-        wx = w[..., 0] if dx else 1 - w[..., 0]
-        for dy in (0, 1):
-            iy = j[..., 1] if dy else i[..., 1]
-            wy = w[..., 1] if dy else 1 - w[..., 1]
-            for dz in (0, 1):
-                iz = j[..., 2] if dz else i[..., 2]
-                wz = w[..., 2] if dz else 1 - w[..., 2]
-                out = out + table[ix, iy, iz] * (wx * wy * wz)
-    return out
-
-
-def _floor_texture(rng: np.random.Generator, extent: float, ppm: float) -> np.ndarray:
-    """Grayscale multiplier texture (S, S) float32 around 1 for the floor: mottled mat."""
-    size = int(round(2 * extent * ppm))
-    tex = np.ones((size, size), np.float32)
-    for cells, amp in ((6, 0.08), (25, 0.06), (90, 0.05), (size // 3, 0.06)):
-        small = rng.normal(size=(cells, cells)).astype(np.float32)
-        tex += amp * cv2.resize(small, (size, size), interpolation=cv2.INTER_CUBIC)
-    return tex
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,10 +109,16 @@ class CameraRenderer:
     """
 
     def __init__(
-        self, camera: Camera, arena: ArenaConfig, seed: int, look: CameraLook | None = None
+        self,
+        camera: Camera,
+        arena: ArenaConfig,
+        seed: int,
+        look: CameraLook | None = None,
+        style: SceneStyle | None = None,
     ) -> None:
         self.camera = camera
         self.arena = arena
+        self.style = style or SceneStyle()
         rng = np.random.default_rng(seed)
         self.look = look or CameraLook.random(rng)
         w, h = camera.size
@@ -177,16 +135,23 @@ class CameraRenderer:
             * self.look.gain
             * np.asarray(self.look.white_balance)
         ).astype(np.float32)  # (H, W, 3) exposure x white balance x vignetting
-        self.fur_noise = _value_noise_table(np.random.default_rng(seed + 7919))
+        if self.style.brightness != 1.0:
+            self.shade *= np.float32(self.style.brightness)
+        if self.style.light_gradient > 0:
+            g_rng = np.random.default_rng(seed + 104729)
+            self.shade *= gradient_map(g_rng, (w, h), self.style.light_gradient)[..., None]
+        self.fur_noise = value_noise_table(np.random.default_rng(seed + 7919))
         self._background(rng, dirs)
         pad = 24
-        noise = rng.normal(0, self.look.noise_sigma, size=(h + pad, w + pad, 3))
+        sigma = self.look.noise_sigma * self.style.noise_level
+        noise = rng.normal(0, sigma, size=(h + pad, w + pad, 3))
         noise = np.clip(np.round(noise), -255, 255)
         self.noise_pos = np.clip(noise, 0, 255).astype(np.uint8)
         self.noise_neg = np.clip(-noise, 0, 255).astype(np.uint8)
         self.pad = pad
         self._ray_du: np.ndarray | None = None  # ray derivatives (board anti-aliasing)
         self._ray_dv: np.ndarray | None = None
+        self._mirror: Any = None  # the walls' mirror images (freipose.synth.mirror), on first use
 
     def ray_derivatives(self) -> tuple[np.ndarray, np.ndarray]:
         """(3, H, W) float32 change of the pixel rays per pixel along u and along v.
@@ -200,6 +165,11 @@ class CameraRenderer:
 
     # -- static background -------------------------------------------------------------------
     def _background(self, rng: np.random.Generator, dirs: np.ndarray) -> None:
+        """The static background: its depth, floor points, kinds, wall ids and colours.
+
+        Floor, walls, table and room; the floor is transparent inside the arena for a
+        camera below it.
+        """
         o = self.origin
         h, w = dirs.shape[:2]
         hx, hy = self.arena.half
@@ -211,10 +181,15 @@ class CameraRenderer:
             t = -o[2] / dirs[..., 2]
         hitp = o + t[..., None] * dirs
         ok = (t > 0) & (np.abs(hitp[..., 0]) < 4000) & (np.abs(hitp[..., 1]) < 4000)
+        through = np.zeros((h, w), bool)  # seen through the transparent floor (from below)
+        if o[2] < 0:
+            through = ok & (np.abs(hitp[..., 0]) <= hx) & (np.abs(hitp[..., 1]) <= hy)
+            ok &= ~through
         t_best[ok] = t[ok]
         kind[ok] = BG_FLOOR
         normal[ok] = (0, 0, 1)
-        for axis, val in ((0, hx), (0, -hx), (1, hy), (1, -hy)):
+        self.wall_id = np.full((h, w), -1, np.int8)  # which wall (0..3) a wall pixel shows
+        for wall, (axis, val) in enumerate(((0, hx), (0, -hx), (1, hy), (1, -hy))):
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = (val - o[axis]) / dirs[..., axis]
             p = o + t[..., None] * dirs
@@ -229,6 +204,7 @@ class CameraRenderer:
             )
             t_best[ok] = t[ok]
             kind[ok] = BG_WALL
+            self.wall_id[ok] = wall
             n = np.zeros(3)
             n[axis] = 1.0
             side = np.where((dirs[..., axis] > 0)[..., None], -n, n)  # normal facing the camera
@@ -239,14 +215,33 @@ class CameraRenderer:
             np.float32
         )
         self.bg_kind = kind
-        # colours (BGR, linear-ish 0..1)
+        col = self._background_colours(rng, hit, kind, normal)
+        col[through] *= 0.85  # the acrylic floor dims what is seen through it
+        lin = (col * self.shade).astype(np.float32)
+        self.bg_lin = cv2.GaussianBlur(lin, (0, 0), 0.6)
+        self.bg_u8 = self.style.to_u8(self.bg_lin)
+
+    def _background_colours(
+        self, rng: np.random.Generator, hit: np.ndarray, kind: np.ndarray, normal: np.ndarray
+    ) -> np.ndarray:
+        """(H, W, 3) BGR albedo x light of the background at the hit points ``hit`` (H, W, 3)."""
+        h, w = kind.shape
+        hx, hy = self.arena.half
+        wh = self.arena.wall_height
         extent = max(hx, hy) + 60.0
-        ppm = 1.0
-        tex = _floor_texture(rng, extent, ppm)
+        style = self.style
+        if style.floor == "bedding":
+            ppm = float(np.clip(max(self.camera.size) / (2 * extent), 1.0, 4.0))
+            tex = bedding_texture(rng, extent, ppm)
+            default_floor = (0.45, 0.62, 0.72)  # beige (BGR)
+        else:
+            ppm = 1.0
+            tex = mat_texture(rng, extent, ppm)
+            default_floor = (0.40, 0.42, 0.44)
         mx = ((hit[..., 0] + extent) * ppm - 0.5).astype(np.float32)
         my = ((hit[..., 1] + extent) * ppm - 0.5).astype(np.float32)
         floor_t = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        base_floor = np.array([0.40, 0.42, 0.44]) * rng.uniform(0.9, 1.1)
+        base_floor = bgr(style.floor_color, default_floor) * rng.uniform(0.9, 1.1)
         table = np.array([0.18, 0.2, 0.24])
         inside = (np.abs(hit[..., 0]) <= hx) & (np.abs(hit[..., 1]) <= hy)
         col = np.empty((h, w, 3))
@@ -256,16 +251,14 @@ class CameraRenderer:
         floor_col = np.where(inside[..., None], base_floor, table) * floor_t[..., None] * lam_floor
         col[fl] = floor_col[fl]
         wl = kind == BG_WALL
-        wall_base = np.array([0.66, 0.68, 0.68])
+        wall_base = bgr(style.wall_color, (0.66, 0.68, 0.68))
         lam = 0.5 + 0.5 * np.clip(normal @ LIGHT, 0, 1)
         hz = np.clip(hit[..., 2] / max(wh, 1.0), 0, 1)
         wall_col = (
             wall_base * (lam * (0.85 + 0.15 * hz))[..., None] * (0.97 + 0.03 * floor_t[..., None])
         )
         col[wl] = wall_col[wl]
-        lin = (col * self.shade).astype(np.float32)
-        self.bg_lin = cv2.GaussianBlur(lin, (0, 0), 0.6)
-        self.bg_u8 = np.clip(self.bg_lin * 255 + 0.5, 0, 255).astype(np.uint8)
+        return col
 
     # -- animal ------------------------------------------------------------------------------
     def _part_boxes(self, centers: np.ndarray, radii_max: np.ndarray) -> np.ndarray:
@@ -314,12 +307,20 @@ class CameraRenderer:
         x1, y1 = boxes[valid, 2].max(), boxes[valid, 3].max()
         return _AnimalBox(boxes, valid, sh_c, (x0, y0, x1, y1))
 
-    def _intersect(self, C: np.ndarray, A: np.ndarray, Rr: np.ndarray, ab: _AnimalBox) -> _Hits:
+    def _intersect(
+        self,
+        C: np.ndarray,
+        A: np.ndarray,
+        Rr: np.ndarray,
+        ab: _AnimalBox,
+        beyond_background: bool = False,
+    ) -> _Hits:
         """The first part each pixel's ray hits in front of the background, and where.
 
         All (pixel, part) candidate pairs (the pixels inside each part's box) are
         intersected at once with the parts' ellipsoids (centres ``C`` (N, 3), axes
-        ``A`` (N, 3, 3), radii ``Rr`` (N, 3)).
+        ``A`` (N, 3, 3), radii ``Rr`` (N, 3)). ``beyond_background``: only hits behind the
+        background count instead (a mirror image seen through a wall).
         """
         x0, y0, x1, y1 = ab.box
         bh, bw = y1 - y0, x1 - x0
@@ -346,6 +347,9 @@ class CameraRenderer:
         sdist = (-b - np.sqrt(np.maximum(disc, 0))) / a
         sdist = np.where(hit & (sdist > 0), sdist, np.float32(np.inf))
         zflat = self.bg_depth[y0:y1, x0:x1].ravel().copy()
+        if beyond_background:
+            sdist = np.where(sdist > zflat[pix], sdist, np.float32(np.inf))
+            zflat[:] = np.inf
         np.minimum.at(zflat, pix, sdist)
         win = np.flatnonzero(np.isfinite(sdist) & (sdist <= zflat[pix]))
         pid_flat = np.full(bh * bw, -1, np.int64)
@@ -450,6 +454,7 @@ class CameraRenderer:
         shadow: np.ndarray,
         box: tuple[int, int, int, int],
         blur_px: np.ndarray | None,
+        background: np.ndarray | None = None,
     ) -> np.ndarray:
         """(h, w, 3) linear BGR of the box: the animal motion-blurred over its background.
 
@@ -459,13 +464,15 @@ class CameraRenderer:
             shadow: (h, w) shadow factor of the background.
             box: (x0, y0, x1, y1) the box in the image.
             blur_px: (2,) image motion during the exposure, px, or None.
+            background: (H, W, 3) linear background of this frame (None: the static one).
         """
         x0, y0, x1, y1 = box
         bh, bw = mask.shape
-        out = self.bg_lin[y0:y1, x0:x1] * shadow[..., None]
+        bg = self.bg_lin if background is None else background
+        out = bg[y0:y1, x0:x1] * shadow[..., None]
         if not mask.any():
             return out
-        kernel = _blur_kernel(blur_px)
+        kernel = blur_kernel(blur_px)
         r = kernel.shape[0] // 2 + 1
         rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
         sy = slice(max(0, rows[0] - r), min(bh, rows[-1] + r + 1))
@@ -479,7 +486,12 @@ class CameraRenderer:
         return out
 
     def render_animal(
-        self, geom: BodyGeometry, f: int, palette: np.ndarray, blur_px: np.ndarray | None = None
+        self,
+        geom: BodyGeometry,
+        f: int,
+        palette: np.ndarray,
+        blur_px: np.ndarray | None = None,
+        background: np.ndarray | None = None,
     ) -> tuple[tuple[int, int, int, int], np.ndarray, np.ndarray] | None:
         """Render frame ``f`` of the animal: ``(box, rgb_linear (h, w, 3), part_id (h, w))``.
 
@@ -491,6 +503,7 @@ class CameraRenderer:
             f: the frame.
             palette: (n_materials, 2, 3) BGR albedo (``RatBody.palette``).
             blur_px: (2,) image motion during the exposure, px (None: no motion blur).
+            background: (H, W, 3) linear background of this frame (None: the static one).
 
         Returns:
             The rendering, or None when nothing of the animal (or its shadow) is in the
@@ -505,7 +518,7 @@ class CameraRenderer:
         hits = self._intersect(C, A, Rr, ab)
         rgb = self._shade(geom.materials, A, Rr, palette, hits, ab.box)
         shadow = self._shadow(C, A, Rr, ab)
-        out = self._composite(rgb, hits.pid >= 0, shadow, ab.box, blur_px)
+        out = self._composite(rgb, hits.pid >= 0, shadow, ab.box, blur_px, background)
         x0, y0, x1, y1 = ab.box
         return (int(x0), int(y0), int(x1), int(y1)), out, hits.pid
 
@@ -514,18 +527,28 @@ class CameraRenderer:
         frame_lin: np.ndarray | None,
         box: tuple[int, int, int, int] | None,
         rng: np.random.Generator,
+        background: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Compose the final uint8 BGR frame: background, the rendered box, sensor noise."""
-        img = self.bg_u8.copy()
+        """Compose the final uint8 BGR frame: background, the rendered box, sensor noise.
+
+        Args:
+            frame_lin: (h, w, 3) linear BGR of the box, or None.
+            box: (x0, y0, x1, y1) of ``frame_lin`` in the image, or None.
+            rng: the frame's noise generator.
+            background: (H, W, 3) uint8 background of this frame (None: the static one).
+        """
+        img = (self.bg_u8 if background is None else background).copy()
         if box is not None and frame_lin is not None:
             x0, y0, x1, y1 = box
-            img[y0:y1, x0:x1] = np.clip(frame_lin * 255 + 0.5, 0, 255).astype(np.uint8)
+            img[y0:y1, x0:x1] = self.style.to_u8(frame_lin)
+        if self.style.blur > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.style.blur)
         h, w = img.shape[:2]
         oy, ox = (int(v) for v in rng.integers(0, self.pad, size=2))
         img = cv2.add(img, self.noise_pos[oy : oy + h, ox : ox + w])
         oy, ox = (int(v) for v in rng.integers(0, self.pad, size=2))
         img = cv2.subtract(img, self.noise_neg[oy : oy + h, ox : ox + w])
-        return img
+        return self.style.sensor(img)
 
     def render(
         self,
@@ -535,37 +558,22 @@ class CameraRenderer:
         rng: np.random.Generator,
         blur_px: np.ndarray | None = None,
     ) -> np.ndarray:
-        """One uint8 BGR frame (H, W, 3) of the animal in frame ``f``."""
-        res = self.render_animal(geom, f, palette, blur_px)
+        """One uint8 BGR frame (H, W, 3) of the animal in frame ``f``.
+
+        With reflective walls (``style.reflections``) the animal's mirror images in the
+        walls are blended into the frame's background first.
+        """
+        bg_lin = bg_u8 = None
+        if self.style.reflections > 0:
+            from freipose.synth.mirror import WallMirror
+
+            if self._mirror is None:
+                self._mirror = WallMirror(self)
+            mirrored = self._mirror.background(geom, f, palette)
+            if mirrored is not None:
+                bg_lin, bg_u8 = mirrored
+        res = self.render_animal(geom, f, palette, blur_px, background=bg_lin)
         if res is None:
-            return self.finish(None, None, rng)
+            return self.finish(None, None, rng, bg_u8)
         box, lin, _ = res
-        return self.finish(lin, box, rng)
-
-
-def _blur_kernel(blur_px: np.ndarray | None, sigma: float = 0.55) -> np.ndarray:
-    """Normalized kernel: a motion of ``blur_px`` (dx, dy) pixels convolved with optics blur."""
-    dx, dy = (0.0, 0.0) if blur_px is None else (float(v) for v in blur_px)
-    length = math.hypot(dx, dy)
-    if not np.isfinite(length):
-        length = 0.0
-    length = min(length, 12.0)
-    k = 2 * int(math.ceil(length / 2 + 2 * sigma)) + 1
-    ker = np.zeros((k, k), np.float32)
-    c = (k - 1) / 2
-    n = max(1, int(math.ceil(length * 3)))
-    ux, uy = (dx / math.hypot(dx, dy), dy / math.hypot(dx, dy)) if length > 0 else (1.0, 0.0)
-    for s in np.linspace(-length / 2, length / 2, n) if n > 1 else [0.0]:
-        x, y = c + s * ux, c + s * uy
-        xi, yi = int(math.floor(x)), int(math.floor(y))
-        fx, fy = x - xi, y - yi
-        for ddx, ddy, wgt in (
-            (0, 0, (1 - fx) * (1 - fy)),
-            (1, 0, fx * (1 - fy)),
-            (0, 1, (1 - fx) * fy),
-            (1, 1, fx * fy),
-        ):
-            if 0 <= xi + ddx < k and 0 <= yi + ddy < k:
-                ker[yi + ddy, xi + ddx] += wgt
-    blurred = cv2.GaussianBlur(ker, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
-    return blurred / blurred.sum()
+        return self.finish(lin, box, rng, bg_u8)

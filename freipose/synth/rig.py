@@ -51,8 +51,10 @@ class ArenaConfig:
             raise SynthError(
                 f"arena size must be [width, depth] in mm, got {self.size!r}"
             ) from None
-        if not (w >= 300 and d >= 300):
-            raise SynthError(f"arena size must be at least 300 x 300 mm for a rat, got {w} x {d}")
+        if not (w >= 150 and d >= 150):
+            raise SynthError(
+                f"arena size must be at least 150 x 150 mm (300 x 300 for a rat), got {w} x {d}"
+            )
         if not (0 <= float(self.wall_height) <= 2000):
             raise SynthError(f"arena wall_height must be in [0, 2000] mm, got {self.wall_height}")
         object.__setattr__(self, "size", (w, d))
@@ -88,73 +90,122 @@ def _fit_focal(
     return float(min(fill * (w / 2) / xy[:, 0].max(), fill * (h / 2) / xy[:, 1].max()))
 
 
+FISHEYE = (-0.32, 0.09, -0.01)  # k1, k2, k3 of the "fisheye" lens (monotonic in the image)
+
+
+def _lens(lens: str, rng: np.random.Generator | None) -> tuple[list[float] | None, float]:
+    """Distortion (k1, k2, p1, p2, k3) of a ``lens`` and the zoom that keeps the arena framed.
+
+    Barrel distortion shrinks the image towards the corners; the zoom factor on the focal
+    length compensates part of that.
+    """
+    if lens == "pinhole":
+        return None, 1.0
+    if lens == "fisheye":
+        k1, k2, k3 = FISHEYE
+        if rng is not None:
+            k1 *= float(rng.uniform(0.9, 1.1))
+            k2 *= float(rng.uniform(0.9, 1.1))
+        p = (0.0, 0.0) if rng is None else tuple(float(v) for v in rng.normal(size=2) * 5e-4)
+        return [k1, k2, p[0], p[1], k3], 1.0 - 0.2 * k1
+    k1 = -0.08 if rng is None else float(rng.uniform(-0.14, -0.03))
+    k2 = 0.02 if rng is None else float(rng.uniform(0.0, 0.04))
+    p = (0.0, 0.0) if rng is None else tuple(float(v) for v in rng.normal(size=2) * 5e-4)
+    return [k1, k2, p[0], p[1], 0.0], 1.0 - 0.2 * k1  # zoom in a bit
+
+
+def _placement_of(
+    i: int, n: int, layout: str, reach: float, rng: np.random.Generator | None
+) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float]]:
+    """(position, aim point, up) of camera ``i`` of ``n`` in a layout (see :func:`default_rig`)."""
+    top = n >= 5 and layout in ("ring", "above")
+    n_ring = n - 1 if top else n
+    jitter = rng.normal(size=3) * 25.0 if rng is not None else np.zeros(3)
+    aim = rng.normal(size=3) * [15.0, 15.0, 5.0] if rng is not None else np.zeros(3)
+    if top and i == n - 1:
+        pos = np.array([0.0, -180.0 * reach, 1250.0 * reach]) + jitter
+        return pos, np.array([0.0, 0.0, 0.0]) + aim, (0.0, 1.0, 0.0)
+    az = 2 * math.pi * i / n_ring + math.radians(20)
+    radius, height = {
+        "ring": (720.0, 620.0) if i % 2 == 0 else (640.0, 820.0),
+        "above": (380.0, 1050.0) if i % 2 == 0 else (320.0, 1150.0),
+        "side": (780.0, 380.0) if i % 2 == 0 else (720.0, 460.0),
+    }[layout]
+    radius, height = radius * reach, height * reach
+    pos = np.array([radius * math.cos(az), radius * math.sin(az), height]) + jitter
+    return pos, np.array([0.0, 0.0, 30.0]) + aim, (0.0, 0.0, 1.0)
+
+
 def default_rig(
     n_cameras: int = 7,
     size: tuple[int, int] = (320, 256),
     seed: int | None = None,
     arena: ArenaConfig | None = None,
     distortion: bool = True,
+    lens: str = "standard",
+    layout: str = "ring",
 ) -> CameraRig:
     """N cameras placed like a lab rig around and above the arena, all looking at its centre.
 
-    With 5 or more cameras one looks down from the ceiling and the others stand on a ring
-    (alternately higher and lower); fewer cameras all stand on the ring. Focal lengths are
-    chosen so that the arena fills the image. ``seed`` jitters positions, aim points, focal
-    lengths, principal points and distortion (None: the nominal rig).
+    Layouts: ``"ring"``: with 5 or more cameras one looks down from the ceiling and the
+    others stand on a ring (alternately higher and lower); fewer cameras all stand on the
+    ring. ``"above"``: the ring high above the arena, looking down steeply. ``"side"``: low
+    cameras looking over the walls. ``"below"``: the ``"ring"`` of N - 1 cameras and a last
+    one under a transparent floor (:func:`camera_below_floor`). Focal lengths are chosen so
+    that the arena fills the image. ``seed`` jitters positions, aim points, focal lengths,
+    principal points and distortion (None: the nominal rig).
 
     Args:
         n_cameras: number of cameras (1..32), named ``cam0``... .
         size: image size (width, height) of every camera.
         seed: jitter seed, or None.
         arena: the arena (default :class:`ArenaConfig`).
-        distortion: give the lenses mild barrel distortion.
+        distortion: give the lenses distortion (False: pinhole, whatever ``lens``).
+        lens: ``"standard"`` (mild barrel distortion), ``"fisheye"`` (strong radial
+            distortion, :data:`FISHEYE`, still rising to the image corners) or
+            ``"pinhole"``.
+        layout: ``"ring"``, ``"above"``, ``"side"`` or ``"below"``.
 
     Returns:
         :class:`CameraRig` with metadata describing the world frame.
     """
     if not 1 <= int(n_cameras) <= 32:
         raise SynthError(f"n_cameras must be in 1..32, got {n_cameras}")
+    if layout not in ("ring", "above", "side", "below"):
+        raise SynthError(f"layout must be ring, above, side or below, got {layout!r}")
     arena = arena or ArenaConfig()
     w, h = (int(v) for v in size)
     if w < 16 or h < 16:
         raise SynthError(f"image size must be at least 16 x 16 px, got {w} x {h}")
     rng = np.random.default_rng(seed) if seed is not None else None
     n = int(n_cameras)
-    top = n >= 5
-    n_ring = n - 1 if top else n
+    below = layout == "below" and n >= 2
     reach = float(max(arena.size)) / 600.0
+    n_above = n - 1 if below else n
+    lens = lens if distortion else "pinhole"
     cams = []
-    for i in range(n):
-        jitter = rng.normal(size=3) * 25.0 if rng is not None else np.zeros(3)
-        aim = rng.normal(size=3) * [15.0, 15.0, 5.0] if rng is not None else np.zeros(3)
-        if top and i == n - 1:
-            pos = np.array([0.0, -180.0 * reach, 1250.0 * reach]) + jitter
-            target = np.array([0.0, 0.0, 0.0]) + aim
-            up = (0.0, 1.0, 0.0)
-        else:
-            az = 2 * math.pi * i / n_ring + math.radians(20)
-            radius = (720.0 if i % 2 == 0 else 640.0) * reach
-            height = (620.0 if i % 2 == 0 else 820.0) * reach
-            pos = np.array([radius * math.cos(az), radius * math.sin(az), height]) + jitter
-            target = np.array([0.0, 0.0, 30.0]) + aim
-            up = (0.0, 0.0, 1.0)
+    for i in range(n_above):
+        pos, target, up = _placement_of(i, n_above, "ring" if below else layout, reach, rng)
         focal = _fit_focal(pos, target, (w, h), up, arena)
         pp = None
-        dist = None
         if rng is not None:
             focal *= float(rng.uniform(0.97, 1.03))
             pp = ((w - 1) / 2 + rng.normal() * 0.01 * w, (h - 1) / 2 + rng.normal() * 0.01 * h)
-        if distortion:
-            k1 = -0.08 if rng is None else float(rng.uniform(-0.14, -0.03))
-            k2 = 0.02 if rng is None else float(rng.uniform(0.0, 0.04))
-            p = (0.0, 0.0) if rng is None else tuple(float(v) for v in rng.normal(size=2) * 5e-4)
-            dist = [k1, k2, p[0], p[1], 0.0]
-            focal *= 1.0 - 0.2 * k1  # barrel distortion shrinks the corners: zoom in a bit
+        dist, zoom = _lens(lens, rng)
         cams.append(
             Camera.look_at(
-                f"cam{i}", pos, target, (w, h), focal, up=up, dist=dist, principal_point=pp
-            )
+                f"cam{i}",
+                pos,
+                target,
+                (w, h),
+                focal * zoom,
+                up=up,
+                dist=dist,
+                principal_point=pp,
+            )  # fmt: skip
         )
+    if below:
+        cams.append(camera_below_floor(f"cam{n - 1}", (w, h), arena, lens != "pinhole"))
     return CameraRig(tuple(cams), _metadata(arena))
 
 

@@ -3,12 +3,13 @@
 Session folder written by :func:`generate_session` (formats in ``docs/formats.md``)::
 
     OUTDIR/<camera>.mp4        one video per camera (``.mkv``: lossless FFV1)
-    OUTDIR/calibration.toml    the true cameras
+    OUTDIR/true_calibration.toml  the true cameras (the synthetic truth, not a calibration)
     OUTDIR/labels.h5           exact 3D keypoints, projections and visibility, every frame
     OUTDIR/events.csv          stimulation windows ``start_s,end_s`` (only when stimulated)
     OUTDIR/scene.toml          every parameter and the seed (reproduces the scene bit for bit)
+    OUTDIR/<camera>/           with ``label_files``: <camera>.slp, CollectedData.csv
     OUTDIR/calibration/        with ``calibration_video``: board videos, board.toml,
-                               calibration.toml (true rig), board_poses.npy
+                               true_calibration.toml (true rig), board_poses.npy
 
 The same config (same seed) gives the same frames and labels; a run that was interrupted
 resumes (videos already written completely are kept) when started again with the same config.
@@ -19,7 +20,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -27,12 +28,29 @@ import numpy as np
 import tomli_w
 
 from freipose import __version__
-from freipose.geometry import Camera, CameraRig, project
+from freipose.geometry import CameraRig
 from freipose.io.atomic import atomic_write_text
 from freipose.io.calibration import save_calibration
+from freipose.io.session import TRUE_CALIBRATION_NAME
 from freipose.io.toml import check_keys, read_toml
 from freipose.synth.board import default_board, write_board_videos
-from freipose.synth.body import APPEARANCES, PART, RAT_KEYPOINTS, BodyGeometry, RatBody, build_body
+from freipose.synth.body import (
+    APPEARANCES,
+    COATS,
+    MOUSE_COATS,
+    RAT_KEYPOINTS,
+    BodyGeometry,
+    RatBody,
+    build_body,
+)
+from freipose.synth.camera_job import CameraJob, render_camera
+from freipose.synth.conditions import (
+    CONDITION_DEFAULTS,
+    body_scale,
+    check_conditions,
+    randomized,
+    scene_style,
+)
 from freipose.synth.errors import SynthError
 from freipose.synth.motion import simulate_motion
 from freipose.synth.rig import ArenaConfig, default_rig, load_rig_file
@@ -42,6 +60,14 @@ from freipose.workers import run_jobs
 log = logging.getLogger(__name__)
 
 VIDEO_FORMATS = (".mp4", ".mkv", ".avi")
+# files of a session that --overwrite replaces (calibration.toml: older sessions' true rig)
+_SESSION_FILES = (
+    "labels.h5",
+    "events.csv",
+    "scene.toml",
+    TRUE_CALIBRATION_NAME,
+    "calibration.toml",
+)
 
 
 def _seed(seed: int, *key: int) -> int:
@@ -73,6 +99,38 @@ class SceneConfig:
         jitter_rig: jitter the default rig (positions, focal lengths, distortion) from the seed.
         motion_blur: directional motion blur of the animal.
         noise: sensor noise.
+        animal: ``"rat"`` or ``"mouse"`` (a mouse is 0.42 times a rat's size; give it a
+            smaller ``arena_size``, e.g. 250 x 250 mm).
+        animal_scale: body size factor (rat = 1), None: the animal's.
+        grayscale: every camera records grayscale (R = G = B), or a tuple of the camera
+            names that do.
+        lens: ``"standard"`` (mild barrel distortion), ``"fisheye"`` (strong radial
+            distortion, still monotonic in the image) or ``"pinhole"`` (none); default rig.
+        layout: default rig layout: ``"ring"`` (around and above), ``"above"`` (all high
+            up), ``"side"`` (low, over the walls), ``"below"`` (the last camera under a
+            transparent floor, seeing the animal from below).
+        reflections: reflectivity (0..0.9) of the walls: mirror images of the animal in
+            them (the labels are of the real animal only).
+        rest_fraction: share of the time the animal rests (almost still for seconds).
+        floor: ``"mat"`` or ``"bedding"`` (coarse grain texture).
+        floor_color: floor colour, RGB 0..1 (None: the mat's grey, the bedding's beige).
+        wall_color: wall colour, RGB 0..1 (None: light grey).
+        brightness: exposure factor.
+        contrast: contrast factor about mid grey.
+        light_gradient: strength (0..0.9) of an illumination gradient across the image.
+        blur: defocus blur of the whole image, Gaussian sigma in px.
+        noise_level: factor on the sensor noise.
+        label_files: also write per-camera label files of predicted instances as other
+            tools do: ``"sleap"`` (``<camera>/<camera>.slp``), ``"dlc"``
+            (``<camera>/CollectedData.csv``); visible points only, with noise and a score.
+        label_noise_px: standard deviation of the label files' 2D noise, px.
+        randomize: domain randomisation: draw the coat, size, arena, cameras, image size,
+            layout, lens, grayscale, floor, colours, lighting, blur, noise, reflections and
+            resting from the seed (``freipose.synth.conditions.randomized``).
+
+    Call it as ``generate_session(OUT, SceneConfig(seed=S, randomize=True, frames=...))`` or
+    ``freipose synth OUT --seed S --randomize``; ``SceneConfig(...).resolved()`` shows the
+    drawn settings.
     """
 
     n_cameras: int = 7
@@ -92,6 +150,24 @@ class SceneConfig:
     jitter_rig: bool = True
     motion_blur: bool = True
     noise: bool = True
+    animal: str = "rat"
+    animal_scale: float | None = None
+    grayscale: bool | tuple[str, ...] = False
+    lens: str = "standard"
+    layout: str = "ring"
+    reflections: float = 0.0
+    rest_fraction: float = 0.0
+    floor: str = "mat"
+    floor_color: tuple[float, float, float] | None = None
+    wall_color: tuple[float, float, float] | None = None
+    brightness: float = 1.0
+    contrast: float = 1.0
+    light_gradient: float = 0.0
+    blur: float = 0.0
+    noise_level: float = 1.0
+    label_files: tuple[str, ...] = ()
+    label_noise_px: float = 1.0
+    randomize: bool = False
 
     def __post_init__(self) -> None:
         if not 1 <= int(self.n_cameras) <= 32:
@@ -103,9 +179,9 @@ class SceneConfig:
         w, h = (int(v) for v in self.size)
         if w < 16 or h < 16 or w > 8192 or h > 8192:
             raise SynthError(f"size must be between 16x16 and 8192x8192 px, got {w}x{h}")
-        if self.appearance not in (*APPEARANCES, "random"):
+        if self.appearance not in (*COATS, "random"):
             raise SynthError(
-                f"appearance must be hooded, albino or random, got {self.appearance!r}"
+                f"appearance must be hooded, albino, dark or random, got {self.appearance!r}"
             )
         if self.video_format not in VIDEO_FORMATS:
             raise SynthError(
@@ -123,6 +199,12 @@ class SceneConfig:
         object.__setattr__(self, "arena_size", tuple(float(v) for v in self.arena_size))
         if self.board is not None:
             object.__setattr__(self, "board", dict(self.board))
+        for key, value in check_conditions(self).items():
+            object.__setattr__(self, key, value)
+
+    def resolved(self) -> SceneConfig:
+        """The config with every setting explicit: with ``randomize``, the drawn settings."""
+        return randomized(self, _seed(self.seed, 5)) if self.randomize else self
 
     # -- scene.toml ----------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -130,7 +212,7 @@ class SceneConfig:
         d: dict[str, Any] = {}
         for f in fields(self):
             v = getattr(self, f.name)
-            if v is None:
+            if v is None or (f.name in CONDITION_DEFAULTS and v == CONDITION_DEFAULTS[f.name]):
                 continue
             if f.name == "stimulation":
                 v = v.to_dict()
@@ -159,9 +241,11 @@ class SceneConfig:
         kw = dict(d)
         if isinstance(kw.get("stimulation"), Mapping):
             kw["stimulation"] = StimulationConfig.from_dict(dict(kw["stimulation"]))
-        for k in ("size", "arena_size"):
-            if k in kw:
+        for k in ("size", "arena_size", "floor_color", "wall_color", "label_files"):
+            if k in kw and not isinstance(kw[k], str):
                 kw[k] = tuple(kw[k])
+        if isinstance(kw.get("grayscale"), list):
+            kw["grayscale"] = tuple(kw["grayscale"])
         return cls(**kw)
 
     @classmethod
@@ -198,6 +282,7 @@ class SessionPaths:
     events: Path | None = None
     calibration_videos: Mapping[str, Path] = field(default_factory=dict)
     board: Path | None = None
+    label_files: tuple[Path, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,79 +304,28 @@ def resolve_rig(config: SceneConfig) -> tuple[CameraRig, ArenaConfig]:
         return rig, arena
     arena = ArenaConfig(config.arena_size, config.wall_height)
     seed = _seed(config.seed, 1) if config.jitter_rig else None
-    return default_rig(config.n_cameras, config.size, seed=seed, arena=arena), arena
+    rig = default_rig(
+        config.n_cameras, config.size, seed=seed, arena=arena, lens=config.lens,
+        layout=config.layout,
+    )  # fmt: skip
+    return rig, arena
 
 
 def build_scene(config: SceneConfig) -> Scene:
     """Resolve the rig, draw the animal and simulate its motion (deterministic in the seed)."""
+    config = config.resolved()
     rig, arena = resolve_rig(config)
-    body = RatBody.random(np.random.default_rng(_seed(config.seed, 2)), config.appearance)
+    coats = MOUSE_COATS if config.animal == "mouse" else APPEARANCES
+    body = RatBody.random(
+        np.random.default_rng(_seed(config.seed, 2)), config.appearance, body_scale(config), coats
+    )
     state = simulate_motion(
         config.frames, config.fps, np.random.default_rng(_seed(config.seed, 3)), body,
-        config.stimulation, arena.size,
+        config.stimulation, arena.size, rest_fraction=config.rest_fraction,
     )  # fmt: skip
     geom = build_body(body, state)
     events = config.stimulation.windows(config.frames / config.fps) if config.stimulation else []
     return Scene(config, rig, arena, body, geom, events)
-
-
-def _blur_vectors(geom: BodyGeometry, cam: Camera, fps: float, shutter: float = 0.5) -> np.ndarray:
-    """(T, 2) image motion of the torso during the exposure (``shutter`` of a frame)."""
-    uv = project(geom.centers[:, PART["chest"]], cam)
-    if len(uv) < 2:
-        return np.zeros((len(uv), 2))
-    v = np.gradient(uv, axis=0)
-    return np.nan_to_num(v) * shutter
-
-
-@dataclass(frozen=True, eq=False)
-class _CameraJob:
-    """What a worker needs to render one camera's video.
-
-    Attributes:
-        camera: the camera.
-        arena: the arena.
-        geometry: the animal over all frames.
-        palette: (n_materials, 2, 3) BGR albedo of the animal.
-        path: the video file to write.
-        fps: frame rate.
-        seed_look: seed of the camera's look and textures.
-        seed_frames: seed of the per-frame sensor noise.
-        blur: motion blur.
-        noise: sensor noise.
-    """
-
-    camera: Camera
-    arena: ArenaConfig
-    geometry: BodyGeometry
-    palette: np.ndarray
-    path: Path
-    fps: float
-    seed_look: int
-    seed_frames: int
-    blur: bool
-    noise: bool
-
-
-def _render_camera(job: _CameraJob) -> str:
-    """Worker: render and write one camera's video (module level so it can be pickled)."""
-    import cv2
-
-    from freipose.io.video import VideoWriter
-    from freipose.synth.render import CameraLook, CameraRenderer
-
-    cv2.setNumThreads(1)
-    cam, geom = job.camera, job.geometry
-    look = CameraLook.random(np.random.default_rng(job.seed_look))
-    if not job.noise:
-        look = replace(look, noise_sigma=0.0)
-    renderer = CameraRenderer(cam, job.arena, job.seed_look, look)
-    rng = np.random.default_rng(job.seed_frames)
-    vel = _blur_vectors(geom, cam, job.fps) if job.blur else np.zeros((len(geom), 2))
-    with VideoWriter(job.path, job.fps, cam.size) as writer:
-        for f in range(len(geom)):
-            writer.write(renderer.render(geom, f, job.palette, rng, vel[f]))
-    return str(job.path)
 
 
 def _scene_toml(config: SceneConfig, scene: Scene) -> str:
@@ -364,13 +398,26 @@ def _prepare_folder(out: Path, scene_text: str, overwrite: bool) -> None:
                 "or choose an empty folder"
             )
         if not same:
+            for p in [*out.glob("*/*.slp"), *out.glob("*/CollectedData.csv")]:
+                p.unlink()
             for p in out.glob("*"):
-                if p.is_file() and (
-                    p.suffix in VIDEO_FORMATS
-                    or p.name in ("labels.h5", "events.csv", "scene.toml", "calibration.toml")
-                ):
+                if p.is_file() and (p.suffix in VIDEO_FORMATS or p.name in _SESSION_FILES):
                     p.unlink()
     out.mkdir(parents=True, exist_ok=True)
+
+
+def _write_label_files(scene: Scene, out: Path, videos: Mapping[str, Path]) -> tuple[Path, ...]:
+    """Write the per-camera label files of ``label_files`` (``freipose.synth.label_files``)."""
+    from freipose.synth.label_files import noisy_labels, write_label_files
+    from freipose.synth.visibility import keypoint_visibility
+
+    cfg = scene.config
+    if not cfg.label_files:
+        return ()
+    pts2d, vis = keypoint_visibility(scene.geometry, scene.rig, scene.arena)
+    rng = np.random.default_rng(_seed(cfg.seed, 6))
+    noisy = noisy_labels(pts2d, vis, cfg.label_noise_px, rng)
+    return tuple(write_label_files(out, cfg.label_files, dict(videos), RAT_KEYPOINTS, noisy))
 
 
 def _write_events(scene: Scene, out: Path) -> Path | None:
@@ -401,7 +448,7 @@ def _render_videos(
             log.info("keeping %s (already rendered for this scene)", videos[cam.name])
             continue
         jobs.append(
-            _CameraJob(
+            CameraJob(
                 camera=cam,
                 arena=scene.arena,
                 geometry=scene.geometry,
@@ -412,13 +459,14 @@ def _render_videos(
                 seed_frames=_seed(config.seed, 200 + i),
                 blur=config.motion_blur,
                 noise=config.noise,
+                style=scene_style(config, cam.name),
             )
         )
     if workers is None:  # processes only pay off for big jobs (each one starts Python anew)
         pixels = config.frames * len(scene.rig) * config.size[0] * config.size[1]
         workers = min(2, os.cpu_count() or 1) if pixels > 2e7 else 1
     n_workers = min(len(jobs), workers)
-    run_jobs(_render_camera, jobs, n_workers, "render cameras", progress)
+    run_jobs(render_camera, jobs, n_workers, "render cameras", progress)
     return n_workers
 
 
@@ -466,25 +514,26 @@ def generate_session(
     Raises:
         SynthError: ``outdir`` holds another scene or unrelated files (and not ``overwrite``).
     """
-    config = config or SceneConfig()
     out = Path(outdir)
-    scene = build_scene(config)
+    scene = build_scene(config or SceneConfig())
+    config = scene.config  # resolved: with randomize, the drawn settings
     text = _scene_toml(config, scene)
     scene_path = out / "scene.toml"
     _prepare_folder(out, text, overwrite)
     atomic_write_text(scene_path, text)
     session = out.resolve().name
-    save_calibration(scene.rig, out / "calibration.toml")
+    save_calibration(scene.rig, out / TRUE_CALIBRATION_NAME)
     events_path = _write_events(scene, out)
     labels_path = write_labels(scene, out, session)
     videos = {c.name: out / f"{c.name}{config.video_format}" for c in scene.rig}
+    label_files = _write_label_files(scene, out, videos)
     n_workers = _render_videos(scene, videos, workers, progress)
     cal_videos: dict[str, Path] = {}
     board_path = None
     if config.calibration_video:
         cal_videos, board_path = _write_calibration_video(scene, out, n_workers or 1, progress)
-    return SessionPaths(out, videos, out / "calibration.toml", labels_path, scene_path,
-                        events_path, cal_videos, board_path)  # fmt: skip
+    return SessionPaths(out, videos, out / TRUE_CALIBRATION_NAME, labels_path, scene_path,
+                        events_path, cal_videos, board_path, label_files)  # fmt: skip
 
 
 def _board_from(d: Mapping[str, Any]) -> Any:

@@ -22,7 +22,7 @@ def test_rendered_charuco_rig(tmp_path):
     rig = default_rig(4, size=(320, 240))
     board = synth_board.default_board()
     vids, _ = synth_board.write_board_videos(tmp_path, rig, board, 90, seed=0, progress=False)
-    truth = load_calibration(tmp_path / "calibration.toml")
+    truth = load_calibration(tmp_path / "true_calibration.toml")
     assert load_board(tmp_path / "board.toml") == board
     res = calibrate(
         [vids[n] for n in rig.names],

@@ -86,7 +86,8 @@ def test_write_board_videos(tmp_path):
     assert sorted(videos) == ["c0", "c1"] and poses.shape == (3, 4, 4)
     assert load_board(tmp_path / "board.toml") == board
     np.testing.assert_array_equal(np.load(tmp_path / "board_poses.npy"), poses)
-    assert (tmp_path / "calibration.toml").is_file() and all(p.is_file() for p in videos.values())
+    assert (tmp_path / "true_calibration.toml").is_file()
+    assert all(p.is_file() for p in videos.values())
 
 
 def test_write_board_videos_resumes(tmp_path):

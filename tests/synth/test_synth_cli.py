@@ -18,10 +18,10 @@ def test_synth_command_end_to_end(tmp_path):
     )
     assert res.exit_code == 0, res.output
     assert {p.name for p in out.iterdir()} == {
-        "cam0.mp4", "cam1.mp4", "cam2.mp4", "calibration.toml", "labels.h5", "scene.toml",
+        "cam0.mp4", "cam1.mp4", "cam2.mp4", "true_calibration.toml", "labels.h5", "scene.toml",
     }  # fmt: skip
     labels = read_labels_h5(out / "labels.h5")
-    rig = load_calibration(out / "calibration.toml")
+    rig = load_calibration(out / "true_calibration.toml")
     assert labels.points2d.shape == (5, 3, 12, 2) and rig.sizes.tolist() == [[160, 128]] * 3
     assert np.abs(rig.project(labels.points3d) - labels.points2d).max() < 0.01
 

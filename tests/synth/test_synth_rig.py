@@ -74,7 +74,7 @@ CAM = '[[camera]]\nname = "a"\nposition = [600.0, 0.0, 600.0]\nlook_at = [0.0, 0
         (CAM + "distortion = [0.1, 0.2]\n", "distortion"),
         (CAM.replace("[0.0, 0.0, 0.0]", "[600.0, 0.0, 600.0]"), "coincide"),
         (CAM.replace("[0.0, 0.0, 0.0]", "[1200.0, 0.0, 700.0]"), "behind the camera"),
-        ("[arena]\nsize = [100, 100]\n" + CAM, "at least 300"),
+        ("[arena]\nsize = [100, 100]\n" + CAM, "at least 150"),
         ("[defaults]\nsizes = [1, 2]\n" + CAM, "did you mean 'size'"),
     ],
 )

@@ -92,7 +92,7 @@ def run(ctx: DemoContext) -> dict[str, Any]:
     folder = ctx.calib_videos
     videos = find_camera_videos(folder)
     board = load_board(folder / "board.toml")
-    truth = load_calibration(folder / "calibration.toml")
+    truth = load_calibration(folder / "true_calibration.toml")
     out = ctx.calibration
     out.parent.mkdir(parents=True, exist_ok=True)
     opts = CalibrationOptions(origin_frame=0, jobs=min(2, os.cpu_count() or 1), progress=False)

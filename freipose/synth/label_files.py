@@ -1,0 +1,163 @@
+"""Per-camera label files as other tools write them: SLEAP predictions and DeepLabCut tables.
+
+``label_files = ["sleap"]`` writes ``OUTDIR/<camera>/<camera>.slp`` (sleap-anipose's layout:
+one folder per camera), each holding one SLEAP *predicted* instance per frame with a score
+per point; ``"dlc"`` writes ``OUTDIR/<camera>/CollectedData.csv`` (DeepLabCut's labeled-data
+table: scorer / bodyparts / coords header rows, one row per frame, x and y per keypoint).
+Only the points visible in that camera are given (the others are missing: NaN, or empty
+cells); each is the exact projection plus Gaussian noise of ``label_noise_px``. The point
+score falls with the point's noise: ``exp(-e² / (2 (2 s)²))`` times a factor in 0.85..1
+(``e`` the point's error, ``s`` the noise level, at least 0.5 px).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from freipose.io.atomic import atomic_write_text
+from freipose.synth.errors import SynthError
+
+
+@dataclass(frozen=True, eq=False)
+class NoisyLabels:
+    """The label files' 2D points of every frame and camera.
+
+    Attributes:
+        points: (T, C, K, 2) noisy points, px; NaN where the keypoint is not visible.
+        scores: (T, C, K) per-point scores in (0, 1]; NaN where not visible.
+    """
+
+    points: np.ndarray
+    scores: np.ndarray
+
+
+def noisy_labels(
+    points2d: np.ndarray, visible: np.ndarray, noise_px: float, rng: np.random.Generator
+) -> NoisyLabels:
+    """Noisy, scored copies of the visible exact projections.
+
+    Args:
+        points2d: (T, C, K, 2) exact projections, px.
+        visible: (T, C, K) visibility.
+        noise_px: standard deviation of the noise per coordinate, px.
+        rng: the random generator.
+
+    Returns:
+        :class:`NoisyLabels`.
+    """
+    err = rng.normal(0.0, noise_px, size=points2d.shape)
+    pts = np.where(visible[..., None], points2d + err, np.nan)
+    s = max(float(noise_px), 0.5)
+    e2 = np.sum(err * err, axis=-1)
+    score = np.exp(-e2 / (2 * (2 * s) ** 2)) * rng.uniform(0.85, 1.0, size=e2.shape)
+    return NoisyLabels(pts, np.where(visible, score, np.nan))
+
+
+def write_sleap(
+    path: Path, video: Path, keypoints: Sequence[str], points: np.ndarray, scores: np.ndarray
+) -> Path:
+    """Write one camera's predictions as a SLEAP ``.slp`` file (one instance per frame).
+
+    Args:
+        path: the ``.slp`` file.
+        video: the camera's video (stored as the labels' video).
+        keypoints: (K,) node names.
+        points: (T, K, 2) points, NaN where missing.
+        scores: (T, K) point scores, NaN where missing.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        SynthError: sleap-io is not installed.
+    """
+    try:
+        import sleap_io as sio
+    except ImportError:
+        raise SynthError(
+            "label_files = sleap needs sleap-io: pip install 'freipose[sleap]' "
+            "(or leave sleap out of --label-files)"
+        ) from None
+    skeleton = sio.Skeleton([sio.Node(k) for k in keypoints], name="rat")
+    vid = sio.Video(filename=str(video.resolve()), open_backend=False)
+    frames = []
+    for t in range(len(points)):
+        seen = np.isfinite(points[t, :, 0])
+        if not seen.any():
+            continue
+        sc = np.where(seen, scores[t], 0.0)
+        inst = sio.PredictedInstance.from_numpy(
+            points[t], skeleton, point_scores=sc, score=float(np.mean(sc[seen]))
+        )
+        frames.append(sio.LabeledFrame(video=vid, frame_idx=t, instances=[inst]))
+    labels = sio.Labels(labeled_frames=frames, videos=[vid], skeletons=[skeleton])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    sio.save_slp(labels, str(tmp), verbose=False)
+    tmp.replace(path)
+    return path
+
+
+def write_dlc(path: Path, video: Path, keypoints: Sequence[str], points: np.ndarray) -> Path:
+    """Write one camera's points as a DeepLabCut ``CollectedData.csv`` table.
+
+    Args:
+        path: the ``.csv`` file.
+        video: the camera's video (its stem names the labeled-data folder in the row index).
+        keypoints: (K,) body part names.
+        points: (T, K, 2) points, NaN where missing (empty cells).
+
+    Returns:
+        ``path``.
+    """
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["scorer"] + ["synthetic"] * (2 * len(keypoints)))
+    w.writerow(["bodyparts"] + [k for k in keypoints for _ in (0, 1)])
+    w.writerow(["coords"] + ["x", "y"] * len(keypoints))
+    for t in range(len(points)):
+        if not np.isfinite(points[t, :, 0]).any():
+            continue
+        cells = ["" if not np.isfinite(v) else f"{v:.3f}" for v in points[t].ravel()]
+        w.writerow([f"labeled-data/{video.stem}/img{t:05d}.png"] + cells)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, buf.getvalue())
+    return path
+
+
+def write_label_files(
+    folder: Path,
+    formats: Sequence[str],
+    videos: dict[str, Path],
+    keypoints: Sequence[str],
+    labels: NoisyLabels,
+) -> list[Path]:
+    """Write the per-camera label files of ``formats`` (see the module docstring).
+
+    Args:
+        folder: the session folder.
+        formats: ``"sleap"`` and/or ``"dlc"``.
+        videos: camera name -> its video, in the labels' camera order.
+        keypoints: (K,) keypoint names.
+        labels: the noisy points and scores, (T, C, K, ...).
+
+    Returns:
+        The files written.
+    """
+    out = []
+    for ci, (cam, video) in enumerate(videos.items()):
+        pts, sc = labels.points[:, ci], labels.scores[:, ci]
+        if "sleap" in formats:
+            out.append(write_sleap(folder / cam / f"{cam}.slp", video, keypoints, pts, sc))
+        if "dlc" in formats:
+            out.append(write_dlc(folder / cam / "CollectedData.csv", video, keypoints, pts))
+    return out
+
+
+__all__ = ["NoisyLabels", "noisy_labels", "write_dlc", "write_label_files", "write_sleap"]
