@@ -69,9 +69,11 @@ def detection_options(f: Any) -> Any:
         ),
         click.option(
             "--method",
-            type=click.Choice(["detector", "bgsub", "fixed"]),
+            type=click.Choice(["detector", "bgsub", "fixed", "auto"]),
             help="How to find the animal [default: detector with --detector, fixed with "
-            "--fixed-boxes]; bgsub = background subtraction (static cameras, one animal).",
+            "--fixed-boxes, else auto]; bgsub = background subtraction (static cameras, one "
+            "animal); auto = the first of detector, bgsub and fixed boxes from the model's "
+            "training labels that finds the animal in sampled frames (said in the log).",
         ),
         click.option(
             "--fixed-boxes",
@@ -107,7 +109,7 @@ def detector_spec(
     if method is None:
         if detector is not None and fixed_boxes is not None:
             raise FreiPoseError("give either --detector or --fixed-boxes, not both")
-        method = "fixed" if fixed_boxes is not None else "detector"
+        method = "detector" if detector else "fixed" if fixed_boxes is not None else "auto"
     return DetectorSpec(method, detector, fixed_boxes, bg_samples, min_views)
 
 

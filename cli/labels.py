@@ -19,6 +19,7 @@ SUBCOMMANDS = {
     "merge": "freipose.cli.labels:merge",
     "split": "freipose.cli.labels:split",
     "export": "freipose.cli.labels:export",
+    "boxes": "freipose.cli.labels:boxes",
     "select": "freipose.cli.labels_select:select",
 }
 
@@ -388,3 +389,51 @@ def export(labels_file: Path, fmt: str, output: Path, scorer: str) -> None:
         lab = read_labels_h5(labels_file)
         files = export_labels(lab, output, fmt, labels_file.resolve().parent, scorer)
         click.echo(f"wrote {len(files)} files to {output}")
+
+
+@click.command()
+@click.argument("labels_file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--calibration",
+    type=click.Path(exists=True, path_type=Path),
+    help="Cameras to make boxes for (default: the labels' first calibrated session).",
+)
+@click.option(
+    "--margin",
+    type=float,
+    default=0.1,
+    show_default=True,
+    help="Added on every side, as a fraction of the box's longer side.",
+)
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True)
+def boxes(labels_file: Path, calibration: Path | None, margin: float, output: Path) -> None:
+    """Fixed boxes from the labels: where the labeled animal was in every camera.
+
+    Each camera's box holds every labeled keypoint of the labels (2D labels and projected
+    3D labels) plus --margin, centred on the projection of the labels' median centre. For
+    a new rig whose detector is untrained and whose animal rests (background subtraction
+    needs motion): `freipose predict --fixed-boxes OUTPUT` (predict's --method auto derives
+    the same boxes from the model's training labels by itself when nothing else works).
+
+    \b
+    Example:
+      freipose labels boxes train.h5 -o fixed_boxes.toml
+    """  # noqa: D301 (click needs the \b escape)
+    with user_errors():
+        from freipose.detect.label_boxes import label_boxes, write_fixed_boxes
+        from freipose.io.calibration import load_calibration
+        from freipose.io.labels import read_labels_h5
+        from freipose.labels.ops import LabelsOpError
+
+        lab = read_labels_h5(labels_file)
+        rig = load_calibration(calibration) if calibration else None
+        rig = rig or next((i.calibration for i in lab.sessions.values() if i.calibration), None)
+        if rig is None:
+            raise LabelsOpError(
+                f"{labels_file} has no calibrated session; pass --calibration FILE"
+            )
+        res = label_boxes(lab, rig, margin)
+        write_fixed_boxes(res, output, str(labels_file))
+        for cam, b in res.boxes.items():
+            click.echo(f"{cam}: [{', '.join(f'{v:.0f}' for v in b)}]")
+        click.echo(f"wrote {output}: boxes for {len(res.boxes)} of {len(rig)} cameras")

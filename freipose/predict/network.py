@@ -9,6 +9,7 @@ step without a centre gives NaN poses with confidence 0.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 from collections.abc import Mapping, Sequence
@@ -75,11 +76,14 @@ class DetectorSpec:
 
     Attributes:
         method: ``detector`` (a trained detector, ``checkpoint``), ``bgsub`` (background
-            subtraction) or ``fixed`` (boxes from the ``fixed_boxes`` TOML file).
+            subtraction), ``fixed`` (boxes from the ``fixed_boxes`` TOML file) or ``auto``
+            (the first of these that finds the animal, fixed boxes derived from ``labels``
+            last: :mod:`freipose.detect.auto`).
         checkpoint: the detector checkpoint (method ``detector``).
         fixed_boxes: the fixed boxes file (method ``fixed``).
         bg_samples: frames sampled for the background model (method ``bgsub``).
         min_views: fewest agreeing views for a 3D centre.
+        labels: training labels for ``auto``'s fixed boxes (default: the model's).
 
     Raises:
         PredictError: an unknown method, or a method without its file.
@@ -90,11 +94,12 @@ class DetectorSpec:
     fixed_boxes: Path | None = None
     bg_samples: int = 40
     min_views: int = 2
+    labels: Path | None = None
 
     def __post_init__(self) -> None:
-        if self.method not in ("detector", "bgsub", "fixed"):
+        if self.method not in ("detector", "bgsub", "fixed", "auto"):
             raise PredictError(
-                f"unknown detection method {self.method!r}; use detector, bgsub or fixed"
+                f"unknown detection method {self.method!r}; use detector, bgsub, fixed or auto"
             )
         if self.method == "detector" and self.checkpoint is None:
             raise PredictError(
@@ -246,6 +251,12 @@ def make_box_source(
     Raises:
         PredictError: a detector checkpoint that cannot be used.
     """
+    if spec.method == "auto":
+        from freipose.detect.auto import auto_box_source
+
+        return auto_box_source(
+            session, frames, spec.checkpoint, spec.labels, spec.min_views, spec.bg_samples, device
+        ).source
     if spec.method == "detector":
         from freipose.detect.detector import Detector
 
@@ -326,6 +337,8 @@ def predict_sessions(
     ranges = {name: (r.start, r.stop) for name, r in bounds.items()}
     net, config, skel, sha = load_model(model_path, dev)
     check_keypoints(skel, expected_skeleton, model_path)
+    if spec.method == "auto" and spec.labels is None and config.data.labels:
+        spec = dataclasses.replace(spec, labels=Path(config.data.labels))  # the training labels
     shared = None
     if spec.method == "detector":
         shared = make_box_source(spec, sessions[0], ranges[sessions[0].name], dev)

@@ -163,6 +163,6 @@ def test_wrong_checkpoints_and_skeleton_fail_before_work(trained, tmp_path):
     assert res.exit_code != 0 and "junk.pt" in res.output
     res = _run([*base, "--model", str(model), "--method", "bgsub", "--skeleton", "rat"])
     assert res.exit_code != 0 and "trained for keypoints" in res.output
-    res = _run([*base, "--model", str(model)])
+    res = _run([*base, "--model", str(model), "--method", "detector"])  # (no option: auto)
     assert res.exit_code != 0 and "--detector CKPT" in res.output
     assert not out.exists() or not any(out.iterdir())
