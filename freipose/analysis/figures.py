@@ -67,13 +67,9 @@ def attribution_heatmap(
     heights = [sub["part"].nunique() for _, sub in panels]
     fig_w = min(26, 3 + 0.28 * sum(widths))
     fig_h = 2.2 + 0.32 * max(heights)
-    fig = new_figure((fig_w, fig_h))
-    axes = fig.subplots(
-        1,
-        len(panels),
-        gridspec_kw={"width_ratios": widths, "wspace": 0.12 if len(panels) < 4 else 0.35},
-        squeeze=False,
-    )
+    # constrained layout leaves room for each panel's own row labels (no overlaps)
+    fig = new_figure((fig_w, fig_h), layout="constrained")
+    axes = fig.subplots(1, len(panels), gridspec_kw={"width_ratios": widths}, squeeze=False)
     finite = att["f1"].to_numpy(dtype=float)
     finite = finite[np.isfinite(finite)]
     vmin = 0.0 if not len(finite) else max(0.0, min(0.5, float(finite.min())))
@@ -109,7 +105,8 @@ def attribution_heatmap(
         ax.set_title(label, fontsize=9)
     fig.suptitle(title + "  (F-score; dots: significant)", fontsize=10)
     if im is not None:
-        fig.colorbar(im, ax=list(axes[0]), fraction=0.02, pad=0.01, label="F-score (macro)")
+        fig.colorbar(im, ax=list(axes[0]), fraction=0.02, pad=0.01, label="F-score (macro)",
+                     shrink=0.9)  # fmt: skip
     save_figure(fig, Path(path), dpi=110, bbox_inches="tight")
 
 

@@ -357,11 +357,11 @@ def _pck_figure(out: Path, summary: Mapping[str, Any]) -> None:
 
 
 def _boxplot_figure(out: Path, results: Mapping[str, np.ndarray], keypoints: Sequence[str]) -> None:
-    """``jpe_boxplot.png``: box plots of the errors per keypoint and method."""
+    """``jpe_boxplot.png``: horizontal box plots of the errors, one row per keypoint."""
     names = list(results)
-    fig = new_figure((max(6, 0.9 * len(keypoints) * len(names)), 4))
+    fig = new_figure((8, 1.2 + 0.3 * len(keypoints) * max(1, len(names)) ** 0.5))
     ax = fig.subplots()
-    width = 0.8 / len(names)
+    height = 0.8 / len(names)
     for j, n in enumerate(names):
         e = results[n]
         data = []
@@ -369,18 +369,22 @@ def _boxplot_figure(out: Path, results: Mapping[str, np.ndarray], keypoints: Seq
             col = e[:, i]
             col = col[np.isfinite(col)]
             data.append(col if col.size else np.array([np.nan]))
-        pos = np.arange(len(keypoints)) + (j - (len(names) - 1) / 2) * width
+        pos = np.arange(len(keypoints)) + (j - (len(names) - 1) / 2) * height
         bp = ax.boxplot(
-            data, positions=pos, widths=width * 0.9, whis=1.5, showfliers=False, patch_artist=True
-        )
+            data, positions=pos, widths=height * 0.85, whis=1.5, showfliers=False,
+            patch_artist=True, orientation="horizontal", medianprops={"color": "black"},
+        )  # fmt: skip
         for patch in bp["boxes"]:
             patch.set_facecolor(f"C{j}")
             patch.set_alpha(0.6)
         ax.plot([], [], color=f"C{j}", lw=6, alpha=0.6, label=n)
-    ax.set_xticks(np.arange(len(keypoints)))
-    ax.set_xticklabels(keypoints, rotation=45, ha="right", fontsize=8)
-    ax.set_ylabel("joint position error (mm)")
-    ax.legend()
+    ax.set_yticks(np.arange(len(keypoints)))
+    ax.set_yticklabels(keypoints, fontsize=9)
+    ax.set_ylim(len(keypoints) - 0.5, -0.5)  # the first keypoint on top
+    ax.set_xlabel("joint position error (mm)")
+    ax.set_xlim(left=0)
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=len(names), fontsize=8)
     fig.tight_layout()
     save_figure(fig, out / "jpe_boxplot.png", dpi=120, format="png")
 

@@ -250,10 +250,137 @@ def render_overlay(
                 y, x = divmod(C, cols)
                 mean_c = float(np.mean(conf)) if K else 0.0
                 view = panel.draw(pose, conf, limbs, f"3D  mean confidence {mean_c:.2f}")
+                if tile_h >= 150:
+                    view[-34:] = confidence_legend(tile_width)
                 canvas[y * tile_h : (y + 1) * tile_h, x * tile_width : (x + 1) * tile_width] = view
             writer.write(canvas)
             bar.update(1)
     return Path(output)
+
+
+def confidence_legend(width: int, height: int = 34) -> np.ndarray:
+    """A legend strip (height, width, 3) BGR: the confidence colours from 0 to 1, labelled."""
+    img = np.full((height, width, 3), 30, np.uint8)
+    x0, x1 = 110, max(width - 30, 140)
+    for x in range(x0, x1):
+        img[6:16, x] = confidence_color((x - x0) / max(x1 - x0 - 1, 1))
+    cv2.putText(img, "confidence", (8, 16), FONT, 0.45, (230, 230, 230), 1, cv2.LINE_AA)
+    for v in (0.0, 0.5, 1.0):
+        x = int(round(x0 + v * (x1 - x0 - 1))) - 8
+        cv2.putText(img, f"{v:g}", (x, 30), FONT, 0.4, (230, 230, 230), 1, cv2.LINE_AA)
+    return img[:, :width]
+
+
+def _crop_box(uv: np.ndarray, size: tuple[int, int], margin: float) -> tuple[int, int, int]:
+    """Square crop ``(x0, y0, side)`` around the finite points ``uv`` (K, 2) inside the image."""
+    w, h = size
+    ok = np.isfinite(uv).all(-1) & (np.abs(uv) < 4 * max(w, h)).all(-1)
+    if not ok.any():
+        return 0, 0, min(w, h)
+    lo, hi = uv[ok].min(0), uv[ok].max(0)
+    side = int(np.clip(max(hi - lo) * (1 + 2 * margin), 48, min(w, h)))
+    cx, cy = (lo + hi) / 2
+    x0 = int(np.clip(round(cx - side / 2), 0, w - side))
+    y0 = int(np.clip(round(cy - side / 2), 0, h - side))
+    return x0, y0, side
+
+
+def still_tile(
+    img: np.ndarray,
+    uv: np.ndarray,
+    conf: np.ndarray,
+    limbs: Sequence[tuple[tuple[int, ...], tuple[int, ...]]],
+    label: str,
+    tile: int = 360,
+    margin: float = 0.35,
+) -> np.ndarray:
+    """One camera's still (tile, tile, 3) BGR: the view cropped to the animal, full view inset.
+
+    Args:
+        img: the camera image (H, W, 3) BGR.
+        uv: (K, 2) projected keypoints, pixels of ``img``.
+        conf: (K,) confidences (the colours).
+        limbs: the skeleton's limbs.
+        label: text in the top-left corner (the camera name).
+        tile: output side in pixels; the crop is scaled to it and the skeleton drawn after.
+        margin: crop margin around the keypoints, as a share of their extent.
+    """
+    h, w = img.shape[:2]
+    x0, y0, side = _crop_box(uv, (w, h), margin)
+    s = tile / side
+    out = cv2.resize(img[y0 : y0 + side, x0 : x0 + side], (tile, tile),
+                     interpolation=cv2.INTER_CUBIC)  # fmt: skip
+    draw_skeleton_2d(out, (uv - (x0, y0)) * s + (s - 1) / 2, conf, limbs, radius=5, thickness=2)
+    iw = tile // 3
+    ih = int(round(h * iw / w))
+    inset = cv2.resize(img, (iw, ih), interpolation=cv2.INTER_AREA)
+    r = iw / w
+    p0 = (int(x0 * r), int(y0 * r))
+    p1 = (int((x0 + side) * r) - 1, int((y0 + side) * r) - 1)
+    cv2.rectangle(inset, p0, p1, (255, 255, 255), 1)
+    out[2 : 2 + ih, tile - iw - 2 : tile - 2] = inset
+    cv2.rectangle(out, (tile - iw - 3, 1), (tile - 2, 2 + ih), (255, 255, 255), 1)
+    cv2.putText(out, label, (8, 22), FONT, 0.6, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(out, label, (8, 22), FONT, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def render_stills(
+    videos: Sequence[str | Path],
+    rig: CameraRig,
+    data: PoseData,
+    frames: Sequence[int],
+    paths: Sequence[str | Path],
+    tile: int = 360,
+) -> list[Path]:
+    """Still PNGs of video frames: every camera cropped to the animal, a colour legend.
+
+    Args:
+        videos: one video per camera of ``rig``, in its order.
+        rig: the cameras.
+        data: the predicted poses.
+        frames: video frame numbers, each with a prediction in ``data``.
+        paths: one output PNG per frame.
+        tile: side of each camera's tile in pixels.
+
+    Returns:
+        The written paths.
+
+    Raises:
+        RenderError: a frame has no prediction.
+    """
+    from freipose.io.atomic import atomic_path
+    from freipose.io.video import FrameSource
+
+    row_of = {int(f): r for r, f in enumerate(data.frame_index)}
+    limbs = _limbs(data.skeleton, len(data.keypoints))
+    cols = min(4, len(rig))
+    rows = int(np.ceil(len(rig) / cols))
+    sources = [FrameSource(v) for v in videos]
+    written = []
+    try:
+        for frame, path in zip(frames, paths):
+            if int(frame) not in row_of:
+                raise RenderError(f"frame {frame} has no prediction in the poses")
+            r = row_of[int(frame)]
+            uv_all = rig.project(data.poses[r].astype(np.float64))
+            canvas = np.full((rows * tile, cols * tile, 3), 30, np.uint8)
+            for c, (cam, src) in enumerate(zip(rig, sources)):
+                t = still_tile(src.read(int(frame)), uv_all[c], data.confidence[r], limbs,
+                               f"{cam.name}  frame {frame}", tile)  # fmt: skip
+                y, x = divmod(c, cols)
+                canvas[y * tile : (y + 1) * tile, x * tile : (x + 1) * tile] = t
+            img = np.vstack([canvas, confidence_legend(canvas.shape[1])])
+            ok, png = cv2.imencode(".png", img)
+            if not ok:
+                raise RenderError(f"{path}: OpenCV cannot encode the still as PNG")
+            with atomic_path(path) as tmp:
+                tmp.write_bytes(png.tobytes())
+            written.append(Path(path))
+    finally:
+        for src in sources:
+            src.close()
+    return written
 
 
 def session_mismatches(data: PoseData, session: Path, videos: Mapping[str, Path]) -> list[str]:

@@ -52,7 +52,7 @@ def _plot_comparison(err: dict[str, Any], path: Path) -> None:
     """Bar charts of the centre, rotation and focal length errors per camera."""
     from freipose.io.figures import new_figure
 
-    fig = new_figure(figsize=(11, 3))
+    fig = new_figure(figsize=(11, 3.4), layout="constrained")
     axes = fig.subplots(1, 3)
     x = np.arange(len(err["cameras"]))
     for ax, vals, title in (

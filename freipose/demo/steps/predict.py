@@ -59,12 +59,10 @@ def _predict(ctx: DemoContext, trained: dict[str, Any]) -> dict[str, Any]:
 
 
 def _overlay(ctx: DemoContext) -> dict[str, Any]:
-    """The overlay clip of the held-out session (what ``freipose render`` writes), 3 frames."""
-    import cv2
-
+    """The overlay clip of the held-out session (what ``freipose render`` writes), 3 stills."""
     from freipose.io.poses import read_poses_h5
-    from freipose.io.video import FrameSource, find_camera_videos
-    from freipose.predict.render import render_overlay
+    from freipose.io.video import find_camera_videos
+    from freipose.predict.render import render_overlay, render_stills
 
     p = ctx.preset
     test = next(s.name for s in p.sessions if s.split == "test")
@@ -84,13 +82,11 @@ def _overlay(ctx: DemoContext) -> dict[str, Any]:
         tile_width=240,
         progress=False,
     )
-    src = FrameSource(clip)
-    pngs = []
-    for i in np.unique(np.linspace(0, src.num_frames - 1, 3).round().astype(int)):
-        png = overlay / f"{test}_frame{first + int(i):05d}.png"
-        cv2.imwrite(str(png), src.read(int(i)))
-        pngs.append(str(png))
-    src.close()
+    count = min(first + p.overlay_frames, p.session_frames) - first
+    stills = [first + int(i) for i in np.unique(np.linspace(0, count - 1, 3).round().astype(int))]
+    pngs = [str(f) for f in render_stills(
+        [videos[n] for n in names], rig.subset(names), data, stills,
+        [overlay / f"{test}_frame{f:05d}.png" for f in stills])]  # fmt: skip
     ctx.say(f"  overlay clip {clip.relative_to(ctx.out)} and {len(pngs)} PNG frames")
     return {"clip": str(clip), "frames": pngs}
 
