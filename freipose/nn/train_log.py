@@ -90,13 +90,14 @@ def plot_log(csv_path: str | Path, png_path: str | Path) -> None:
             a1.plot(steps, v, label=c)
     a1.set_yscale("log")
     a1.set_xlabel("step")
+    a1.set_ylabel("loss (log scale)")
     a1.set_title("training losses")
     a1.legend(fontsize=8)
-    for c in ("val_jpe_p0", "val_jpe_p1"):
+    for c, name in (("val_jpe_p0", "P0 (3D network)"), ("val_jpe_p1", "P1 (refined)")):
         v = _log_values(rows, c)
         ok = np.isfinite(v)
         if ok.any():
-            a2.plot(steps[ok], v[ok], "o-", label=c)
+            a2.plot(steps[ok], v[ok], "o-", label=name)
     a2.set_xlabel("step")
     a2.set_ylabel("median JPE (mm)")
     a2.set_title("validation")

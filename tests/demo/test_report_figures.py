@@ -71,3 +71,19 @@ def test_calibration_comparison_title_clear_of_panel_titles(monkeypatch, tmp_pat
     for ax in fig.axes:
         (title,) = _boxes(fig, [ax.title])
         assert not sup.overlaps(title), ax.get_title()
+
+
+def test_training_log_plot_names_its_curves_and_units(monkeypatch, tmp_path):
+    from freipose.nn import train_log
+
+    kept = _capture(monkeypatch, train_log, "save_figure")
+    rows = [{"step": s, "loss": 5.0 / s, "p0": 2.0 / s, "val_jpe_p0": 30.0 - s,
+             "val_jpe_p1": 28.0 - s} for s in (1, 2, 3)]  # fmt: skip
+    train_log.write_log(tmp_path / "log.csv", rows)
+    train_log.plot_log(tmp_path / "log.csv", tmp_path / "log.png")
+    (fig,) = kept
+    losses, val = fig.axes
+    assert losses.get_ylabel() == "loss (log scale)"
+    assert [t.get_text() for t in val.get_legend().get_texts()] == ["P0 (3D network)",
+                                                                    "P1 (refined)"]  # fmt: skip
+    assert val.get_ylabel() == "median JPE (mm)"
