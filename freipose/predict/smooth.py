@@ -7,8 +7,15 @@ frame's confidence, floored at :data:`MIN_CONFIDENCE`), so low-confidence frames
 little; frames without a prediction have no measurement and are filled by the smoother.
 A measurement whose innovation is improbable under the filter (Mahalanobis distance over
 the three axes above the 99.9 % point of chi-square with 3 degrees of freedom) is
-rejected as an outlier. A Rauch-Tung-Striebel pass gives the posterior mean and variance
-of every frame; being a forward-backward smoother it adds no lag.
+rejected as an outlier; after :data:`MAX_REJECT_RUN` rejections in a row the keypoint is
+taken as lost and the filter restarts from the next measurement. A Rauch-Tung-Striebel
+pass gives the posterior mean and variance of every frame; being a forward-backward
+smoother it adds no lag.
+
+One process noise per keypoint over a whole recording would damp a brief fast movement
+(a stimulated paw's 5 Hz oscillation) or reject it as outliers, so the process noise is
+raised per frame and axis where the measurements' second differences show a sustained
+movement faster than the fitted model allows (:func:`adaptive_q_scale`).
 
 The parameters ``(q, sigma0, beta)`` of each keypoint are fitted on the recording itself by
 maximising the innovation likelihood of the Kalman filter in a pattern search (on at most
@@ -45,6 +52,11 @@ FIT_FRAMES = 4000
 _P0 = 1e8  # prior variance of the first position (mm^2) and velocity ((mm/s)^2)
 
 _ROUNDS = 12
+CHI2_1_MEDIAN = 0.4549  # median of chi-square with 1 degree of freedom
+ADAPT_WINDOW = 9
+ADAPT_THRESHOLD = 4.0
+MAX_Q_SCALE = 1e5
+MAX_REJECT_RUN = 3
 
 
 class SmoothingError(FreiPoseError):
@@ -84,6 +96,8 @@ class SmoothResult:
         rejected: (T, K) predictions rejected as outliers.
         params: the fitted parameters.
         loglik: (K,) innovation log-likelihood of the fitted parameters on the fit frames.
+        q_scale: (T, K, 3) factor on the process noise per frame and axis
+            (:func:`adaptive_q_scale`; all 1 without adaptation).
     """
 
     mean: np.ndarray
@@ -92,6 +106,12 @@ class SmoothResult:
     rejected: np.ndarray
     params: SmootherParams
     loglik: np.ndarray
+    q_scale: np.ndarray
+
+    @property
+    def q_raised(self) -> int:
+        """The number of frames and keypoints whose process noise was raised on some axis."""
+        return int((self.q_scale > 1.0).any(axis=-1).sum())
 
 
 @dataclass(frozen=True)
@@ -118,6 +138,7 @@ def _forward(
     dt: np.ndarray,
     params: tuple[np.ndarray, np.ndarray, np.ndarray],
     keep: bool,
+    q_scale: np.ndarray | None = None,
 ) -> _Pass:
     """Kalman filter of every series and parameter candidate at once.
 
@@ -127,8 +148,10 @@ def _forward(
         dt: (T,) seconds from the previous frame (dt[0] unused).
         params: q, sigma0, beta, each (G, K, 1).
         keep: keep the filtered and predicted states for the smoother.
+        q_scale: (T, K, 3) factor on ``q`` in the step into each frame (None: 1).
     """
-    q, sigma0, beta = params
+    q_fit, sigma0, beta = params
+    q = q_fit
     t_n, k_n, _ = z.shape
     shape = np.broadcast_shapes(q.shape, (1, k_n, 3))
     valid = np.isfinite(z).all(axis=-1)
@@ -137,11 +160,14 @@ def _forward(
     v = np.zeros(shape)
     p00, p01, p11 = np.full(shape, _P0), np.zeros(shape), np.full(shape, _P0)
     loglik = np.zeros(shape[:2])
+    streak = np.zeros(shape[:2], np.int64)
     rejected = np.zeros((t_n, k_n), bool) if q.shape[0] == 1 else None
     out = [np.empty((t_n, *shape)) for _ in range(10)] if keep else None
     for t in range(t_n):
         if t > 0:
             h = dt[t]
+            if q_scale is not None:
+                q = q_fit * q_scale[t][None]
             x = x + h * v
             p00 = p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3
             p01 = p01 + h * p11 + q * h * h / 2
@@ -160,6 +186,20 @@ def _forward(
             # the first measurement of a series has the diffuse prior: it adds no evidence
             counts = ok[None] & (t > first)[None]
             loglik += np.where(counts, ll, 0.0)
+            # after MAX_REJECT_RUN rejections in a row the filter has lost the keypoint:
+            # it restarts from this measurement with the diffuse prior
+            restart = ok[None] & ~use & (streak >= MAX_REJECT_RUN)
+            streak = np.where(ok[None], np.where(use | restart, 0, streak + 1), streak)
+            if restart.any():
+                rs = restart[..., None]
+                v = np.where(rs, 0.0, v)
+                p00, p01, p11 = (
+                    np.where(rs, _P0, p00),
+                    np.where(rs, 0.0, p01),
+                    np.where(rs, _P0, p11),
+                )
+                s = np.where(rs, p00 + r, s)
+                use = use | restart
             if rejected is not None:
                 rejected[t] = ok & ~use[0]
             u = use[..., None]
@@ -249,8 +289,59 @@ def fit_params(
     return SmootherParams(np.exp(center[0]), sigma0, center[2]), ll_best
 
 
+def adaptive_q_scale(
+    z: np.ndarray, conf: np.ndarray, dt: np.ndarray, params: SmootherParams
+) -> np.ndarray:
+    """(T, K, 3) factor on the fitted process noise where the poses move faster than it allows.
+
+    Under the model, the second difference ``a = z[t+1] - 2 z[t] + z[t-1]`` of an axis has
+    variance ``E = r[t-1] + 4 r[t] + r[t+1] + 2/3 q h^3`` (``r`` the measurement variances).
+    The running median of ``a^2 / E`` over :data:`ADAPT_WINDOW` frames, over its median
+    under the model (:data:`CHI2_1_MEDIAN`), estimates by how much the local motion exceeds
+    the model. Where the window's lower quartile of that ratio reaches
+    :data:`ADAPT_THRESHOLD` (three quarters of the window move too fast: a sustained
+    movement, not a few outliers, which only touch the three second differences around
+    each), the process noise of that frame and axis is raised so that the model's ``E``
+    matches the median, and the smoother follows a brief fast movement (a stimulated
+    paw's oscillation) instead of damping it or rejecting it as outliers. The estimate
+    comes from the measurements alone (no filter feedback). Frames without enough second
+    differences keep factor 1.
+
+    Args:
+        z: (T, K, 3) measurements in mm, NaN where missing.
+        conf: (T, K) confidences, floored at :data:`MIN_CONFIDENCE`.
+        dt: (T,) seconds from the previous frame.
+        params: the fitted parameters.
+    """
+    r = _meas_var_frames(conf, params)  # (T, K)
+    h = np.concatenate([dt[1:], dt[-1:]])[:, None, None]
+    q = params.q[None, :, None]
+    a2 = np.full(z.shape, np.nan)
+    a2[1:-1] = (z[2:] - 2 * z[1:-1] + z[:-2]) ** 2
+    vr = np.full(r.shape, np.nan)
+    vr[1:-1] = r[:-2] + 4 * r[1:-1] + r[2:]
+    e = vr[..., None] + 2 / 3 * q * h**3
+    pad = ADAPT_WINDOW // 2
+    ratio = np.pad(a2 / e / CHI2_1_MEDIAN, ((pad, pad), (0, 0), (0, 0)), constant_values=np.nan)
+    win = np.lib.stride_tricks.sliding_window_view(ratio, ADAPT_WINDOW, axis=0)
+    enough = np.isfinite(win).sum(axis=-1) > pad
+    lo, m = np.nanquantile(np.where(enough[..., None], win, 0.0), [0.25, 0.5], axis=-1)
+    q_new = (np.where(enough, m, 1.0) * e - vr[..., None]) * 1.5 / h**3
+    scale = np.where(enough & (lo >= ADAPT_THRESHOLD), q_new / q, 1.0)
+    return np.clip(np.nan_to_num(scale, nan=1.0), 1.0, MAX_Q_SCALE)
+
+
+def _meas_var_frames(conf: np.ndarray, params: SmootherParams) -> np.ndarray:
+    """(T, K) measurement variances (mm^2) of the frames, from the floored confidences."""
+    return params.sigma0[None] ** 2 * conf ** (-params.beta[None])
+
+
 def smooth_arrays(
-    z: np.ndarray, conf: np.ndarray, dt: np.ndarray, params: SmootherParams | None = None
+    z: np.ndarray,
+    conf: np.ndarray,
+    dt: np.ndarray,
+    params: SmootherParams | None = None,
+    adaptive: bool = True,
 ) -> SmoothResult:
     """Smooth (T, K, 3) positions with their (T, K) confidences.
 
@@ -259,6 +350,9 @@ def smooth_arrays(
         conf: (T, K) confidences in [0, 1] (NaN counts as missing).
         dt: (T,) seconds from the previous frame (dt[0] unused), all positive.
         params: fixed parameters; fitted on the data when None.
+        adaptive: raise the process noise per frame and axis where the poses move faster
+            than the fitted one allows (:func:`adaptive_q_scale`), so that brief fast
+            movements are followed rather than damped or rejected as outliers.
 
     Returns:
         The posterior mean and standard deviation per frame, keypoint and axis.
@@ -280,7 +374,8 @@ def smooth_arrays(
     if params is None:
         params, loglik = fit_params(z, conf, dt)
     p = (params.q[None, :, None], params.sigma0[None, :, None], params.beta[None, :, None])
-    run = _forward(z, conf, dt, p, keep=True)
+    scale = adaptive_q_scale(z, conf, dt, params) if adaptive else np.ones(z.shape)
+    run = _forward(z, conf, dt, p, keep=True, q_scale=scale if adaptive else None)
     mean, var = _rts(run.states, dt)
     return SmoothResult(
         mean=mean[:, 0],
@@ -289,6 +384,7 @@ def smooth_arrays(
         rejected=run.rejected,
         params=params,
         loglik=loglik,
+        q_scale=scale,
     )
 
 
@@ -355,6 +451,11 @@ def smooth_poses(
         "method": "constant-velocity Kalman filter + RTS smoother (freipose.predict.smooth)",
         "measurement_variance": "sigma0^2 * max(confidence, 0.02)^-beta",
         "outlier_gate_chi2_3dof": GATE_CHI2_3,
+        "adaptive_process_noise": {
+            "window_frames": ADAPT_WINDOW,
+            "threshold": ADAPT_THRESHOLD,
+            "frames_raised": int(res.q_raised),
+        },
         "fitted_by": "maximum innovation likelihood on the recording",
         "params": res.params.as_dict(data.keypoints),
         "source": source,
