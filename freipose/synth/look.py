@@ -115,7 +115,7 @@ def bedding_texture(rng: np.random.Generator, extent: float, ppm: float) -> np.n
     lengths = rng.uniform(2.0, 8.0, n) * ppm
     widths = lengths * rng.uniform(0.3, 0.7, n)
     angles = rng.uniform(0, 180, n)
-    shades = rng.normal(0.0, 0.22, n)
+    shades = rng.normal(0.0, 0.35, n)
     chips = np.zeros((size, size), np.float32)
     for (cx, cy), a, b, ang, sh in zip(centres, lengths, widths, angles, shades):
         cv2.ellipse(chips, (int(cx), int(cy)), (max(1, int(a / 2)), max(1, int(b / 2))),
