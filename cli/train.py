@@ -21,6 +21,14 @@ from freipose.cli._threads import threads_option, use_threads
     "baseline: the per-view 2D + triangulation reference network.",
 )
 @click.option("--resume", is_flag=True, help="Continue the run in the output folder bit for bit.")
+@click.option(
+    "--init",
+    default=None,
+    metavar="base|scratch|PATH",
+    help="Starting weights, overriding the config's [model] init (or [detector] init): base "
+    "(the base model shipped for the architecture), scratch, or a checkpoint [default: the "
+    "config's, base when it names none].",
+)
 @device_option("cpu")
 @click.option(
     "--out",
@@ -35,6 +43,7 @@ def train(
     config: Path,
     stage: str,
     resume: bool,
+    init: str | None,
     device: str,
     out_dir: Path | None,
     threads: int | None,
@@ -45,7 +54,9 @@ def train(
     preset (tiny, small, paper) plus overrides, [schedule] and [augment] tune training;
     see docs/formats.md. The run folder gets config.toml (every default written out),
     checkpoint.pt (every schedule.checkpoint_every steps, atomic), model.pt (final),
-    log.csv and log.png. A killed run continues with --resume. Several GPUs or nodes:
+    log.csv and log.png. A killed run continues with --resume. A new run starts from the
+    base model shipped for its architecture ([model] init = "base", the default; see
+    docs/models.md), from scratch, or from a checkpoint (--init). Several GPUs or nodes:
     launch with torchrun.
 
     \b
@@ -70,6 +81,8 @@ def train(
             from freipose.nn.config import ConfigError
 
             data = read_toml(config, "training config", ConfigError)
+            if init is not None:
+                data["detector"] = {**data.get("detector", {}), "init": init}
             out = (
                 out_dir
                 if out_dir is not None
@@ -88,5 +101,6 @@ def train(
                 device=device,
                 kind="baseline" if stage == "baseline" else None,
                 progress=not quiet,
+                init=init,
             )
         click.echo(f"wrote {path}")

@@ -29,8 +29,9 @@ ALLOWED = {
     "calibration": {"geometry", "io", "workers", "skeleton"},
     "labels": {"geometry", "io", "skeleton", "workers"},
     "analysis": {"geometry", "io", "skeleton", "workers"},
-    "nn": {"geometry", "io", "skeleton", "workers"},
-    "detect": {"geometry", "io", "skeleton", "workers", "nn"},
+    # nn and detect start training from the base models shipped in freipose.models
+    "nn": {"geometry", "io", "skeleton", "workers", "models"},
+    "detect": {"geometry", "io", "skeleton", "workers", "nn", "models"},
     "predict": {"geometry", "io", "skeleton", "workers", "nn", "detect"},
     "synth": {"geometry", "io", "skeleton", "workers", "calibration"},
     "labelui": {"geometry", "io", "skeleton", "labels"},

@@ -30,8 +30,9 @@ and its ``[detector]`` table the training (every key optional; defaults below)::
     eval_fraction = 0.1     # held out when there is no eval_labels
     max_images = 4000       # most training views kept in memory (evenly subsampled)
     max_eval_instants = 200 # most time instants evaluated
-    backbone_weights = ""   # optional local file with backbone weights to start from
-                            # (a state dict or a detector checkpoint; relative to the TOML)
+    backbone_weights = ""   # optional backbone weights (state dict or detector checkpoint)
+    init = "base"           # starting weights: "base", "scratch" or a detector.pt (relative
+                            # to the TOML, as backbone_weights; see freipose.detect.init)
     checkpoint_every = 500
     log_every = 100
     seed = 0
@@ -71,6 +72,7 @@ from freipose.detect.detector import (
     save_checkpoint,
 )
 from freipose.detect.evaluate import DetectionMetrics, evaluate_source, gt_boxes, measure_fps
+from freipose.detect.init import initialize_detector
 from freipose.detect.loss import detection_loss
 from freipose.detect.model import DetectorConfig, DetectorNet, to_tensor
 from freipose.detect.multiview import ConsistencyConfig
@@ -116,6 +118,7 @@ class DetectorTrainConfig:
     max_images: int = 4000
     max_eval_instants: int = 200
     backbone_weights: str = ""
+    init: str = "base"
     checkpoint_every: int = 500
     log_every: int = 100
     seed: int = 0
@@ -126,10 +129,8 @@ class DetectorTrainConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "scale", tuple(float(v) for v in self.scale))
         for name in ("steps", "batch_size", "max_images", "checkpoint_every", "log_every"):
-            if int(getattr(self, name)) < 1:
-                raise DetectorTrainError(
-                    f"[detector] {name} must be >= 1, got {getattr(self, name)}"
-                )
+            if (v := getattr(self, name)) < 1:
+                raise DetectorTrainError(f"[detector] {name} must be >= 1, got {v}")
         if not 0 <= self.eval_fraction < 1:
             raise DetectorTrainError(
                 f"[detector] eval_fraction must be in [0, 1), got {self.eval_fraction}"
@@ -300,11 +301,13 @@ def _start_training(
     net = DetectorNet(cfg.model_config())
     if cfg.backbone_weights:
         load_backbone_weights(net, cfg.backbone_weights)
+    last = None if out_dir is None else Path(out_dir) / LAST
+    if not (resume and last is not None and last.is_file()):
+        initialize_detector(net, cfg.init, cfg.backbone_weights)
     net.to(dev)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg))
     start = 0
-    last = None if out_dir is None else Path(out_dir) / LAST
     if resume and last is not None and last.is_file():
         ckpt = load_checkpoint(last, DETECTOR_TRAINING_STATE, "--resume")
         if ckpt["config"] != cfg.model_config().to_dict():
@@ -327,6 +330,7 @@ def fit(
     out_dir: Path | None = None,
     resume: bool = False,
     progress: bool = True,
+    stop_after: int | None = None,
 ) -> tuple[DetectorNet, list[float]]:
     """Train a detector on cached views; returns the network and the per-step losses.
 
@@ -342,6 +346,7 @@ def fit(
         out_dir: the run folder (None: no checkpoints, no log).
         resume: continue from ``out_dir/detector_last.pt`` when it exists.
         progress: show a progress bar (on a terminal).
+        stop_after: stop (resumable, with ``detector_last.pt``) after this many steps.
 
     Returns:
         The trained network (in eval mode) and the losses of the steps run by this call.
@@ -360,7 +365,8 @@ def fit(
         rows = read_log(log_path, start)
         write_log(log_path, rows)
     data = AugmentedBatches(views, cfg, cfg.steps * cfg.batch_size)
-    sampler = range(start * cfg.batch_size, cfg.steps * cfg.batch_size)
+    end = cfg.steps if stop_after is None else max(start, min(cfg.steps, stop_after))
+    sampler = range(start * cfg.batch_size, end * cfg.batch_size)
     loader = torch.utils.data.DataLoader(
         data,
         batch_size=cfg.batch_size,
@@ -391,7 +397,7 @@ def fit(
         window.append(lv)
         window_parts.append(parts)
         bar.update(1)
-        if step % cfg.log_every == 0 or step == cfg.steps:
+        if step % cfg.log_every == 0 or step == end:
             log.info(
                 "step %d/%d loss %.4f (heat %.4f size %.4f offset %.4f) lr %.2e",
                 step, cfg.steps, np.mean(window), parts["heat"], parts["size"],
@@ -402,7 +408,7 @@ def fit(
                 rows.append(log_row(step, lr, window, window_parts, time.perf_counter() - t0))
                 write_log(log_path, rows)
             window, window_parts = [], []
-        if last is not None and (step % cfg.checkpoint_every == 0 or step == cfg.steps):
+        if last is not None and (step % cfg.checkpoint_every == 0 or step == end):
             save_checkpoint(
                 last,
                 net,
@@ -536,9 +542,10 @@ def train_detector(
     """
     cfg = DetectorTrainConfig.from_dict(config.get("detector"))
     train_paths, eval_paths, root = _data_paths(config, Path(config_path))
-    if cfg.backbone_weights and not Path(cfg.backbone_weights).is_absolute():
-        bw = Path(config_path).resolve().parent / cfg.backbone_weights
-        cfg = dataclasses.replace(cfg, backbone_weights=str(bw))
+    for key in ("backbone_weights", "init"):  # files relative to the TOML
+        v = getattr(cfg, key)
+        if v and v not in ("base", "scratch") and not Path(v).is_absolute():
+            cfg = dataclasses.replace(cfg, **{key: str(Path(config_path).resolve().parent / v)})
     out_dir = Path(out_dir)
     dev = resolve_device(device)
     with output_lock(out_dir / LAST, "detector run folder", option="--out"):
@@ -559,15 +566,12 @@ def _train_into(
     eval_sets = _datasets(eval_paths, root) if eval_paths else []
     split = _split_items(train_sets, eval_sets, cfg)
     if not split.train:
-        raise DetectorTrainError(
-            f"{train_paths}: no labeled time instants to train the detector on"
-        )
+        raise DetectorTrainError(f"{train_paths}: no labeled time instants to train on")
     views = _training_views(train_sets, split.train, cfg, len(split.eval))
     t0 = time.perf_counter()
     net, losses = fit(views, cfg, dev, out_dir, resume)
     train_s = time.perf_counter() - t0
     del views
-
     metrics = _evaluate(Detector(net, dev), eval_sets or train_sets, split.eval, cfg)
     cpu = Detector(net.to("cpu"), "cpu")
     size = _image_size(train_sets)

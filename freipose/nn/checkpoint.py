@@ -20,11 +20,13 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import io
+import random
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -133,6 +135,27 @@ def read_checkpoint(path: str | Path, option: str | None = None) -> dict[str, An
     return ckpt
 
 
+def rng_state() -> dict[str, Any]:
+    """The states of the torch, numpy, Python (and CUDA) random generators (for resuming)."""
+    st = {
+        "torch": torch.get_rng_state(),
+        "numpy": np.random.get_state(),
+        "python": random.getstate(),
+    }
+    if torch.cuda.is_available():
+        st["cuda"] = torch.cuda.get_rng_state_all()
+    return st
+
+
+def set_rng_state(st: dict[str, Any]) -> None:
+    """Restore the random generators from :func:`rng_state`."""
+    torch.set_rng_state(st["torch"])
+    np.random.set_state(st["numpy"])
+    random.setstate(st["python"])
+    if "cuda" in st and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(st["cuda"])
+
+
 def training_checkpoint(
     model: nn.Module,
     config: TrainConfig,
@@ -149,7 +172,7 @@ def training_checkpoint(
         config: the run's resolved config.
         skeleton: the keypoints the network predicts.
         optimizer: the run's optimizer (its state is stored for resuming).
-        rng: the random generators' states (``freipose.nn.train`` restores them on resume).
+        rng: the random generators' states (:func:`rng_state`; restored on resume).
         step: optimizer steps done.
         complete: the run has done all its steps.
 

@@ -67,6 +67,12 @@ class ModelConfig:
             cross-entropy loss (``schedule.weight_volume``).
         pretrained: optional local file with encoder weights (a state dict; loaded
             non-strictly, the missing and unexpected keys are logged).
+        init: the weights a new run starts from: ``"base"`` (the base model shipped for
+            this architecture in :mod:`freipose.models`; scratch, with a warning, when none
+            is shipped), ``"scratch"`` (random initialisation) or the path of a pose
+            checkpoint (``model.pt``) of the same architecture. A base or checkpoint of
+            another skeleton gives every weight but the keypoint-specific output layers
+            (see :mod:`freipose.nn.init`). Resumed runs keep their own weights.
     """
 
     kind: str = "voxel"
@@ -89,6 +95,7 @@ class ModelConfig:
     map_sigma: float = 1.0
     volume_sigma: float = 1.0
     pretrained: str = ""
+    init: str = "base"
 
     def __post_init__(self) -> None:
         if self.kind not in ("voxel", "baseline"):
@@ -137,6 +144,15 @@ class ModelConfig:
         if self.volume_sigma <= 0:
             raise ConfigError(
                 f"model.volume_sigma must be positive (voxels), got {self.volume_sigma}"
+            )
+        if not self.init:
+            raise ConfigError(
+                'model.init must be "base", "scratch" or the path of a pose checkpoint, got ""'
+            )
+        if self.pretrained and self.init not in ("base", "scratch"):
+            raise ConfigError(
+                f"model.init = {self.init!r} (a checkpoint) and model.pretrained (encoder "
+                "weights) both give starting weights; set only one of them"
             )
 
     @property

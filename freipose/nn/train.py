@@ -18,7 +18,6 @@ import contextlib
 import dataclasses
 import logging
 import os
-import random
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -33,11 +32,18 @@ from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path, atomic_write_text
 from freipose.io.labels import read_labels_h5
 from freipose.io.lock import output_lock
-from freipose.nn.checkpoint import read_checkpoint, serialize_checkpoint, training_checkpoint
+from freipose.nn.checkpoint import (
+    read_checkpoint,
+    rng_state,
+    serialize_checkpoint,
+    set_rng_state,
+    training_checkpoint,
+)
 from freipose.nn.config import TrainConfig, config_to_dict, load_config
 from freipose.nn.data import StepBatchSampler, TrainSamples, collate_prepared, to_device
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.evaluate import jpe, predict_dataset, usable_indices
+from freipose.nn.init import initialize
 from freipose.nn.losses import baseline_losses, voxel_losses
 from freipose.nn.model import build_model, optimizer_groups
 from freipose.nn.sizing import resolve_cube
@@ -105,27 +111,6 @@ def _distributed(device: str) -> Processes:
         torch.cuda.set_device(local)
         return Processes(rank, world, torch.device("cuda", local))
     return Processes(rank, world, torch.device(device))
-
-
-def _rng_state() -> dict[str, Any]:
-    """The states of the torch, numpy, Python (and CUDA) random generators."""
-    st = {
-        "torch": torch.get_rng_state(),
-        "numpy": np.random.get_state(),
-        "python": random.getstate(),
-    }
-    if torch.cuda.is_available():
-        st["cuda"] = torch.cuda.get_rng_state_all()
-    return st
-
-
-def _set_rng_state(st: dict[str, Any]) -> None:
-    """Restore the random generators from :func:`_rng_state`."""
-    torch.set_rng_state(st["torch"])
-    np.random.set_state(st["numpy"])
-    random.setstate(st["python"])
-    if "cuda" in st and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(st["cuda"])
 
 
 def validate(
@@ -246,12 +231,14 @@ def _resume(
     stored = ckpt["config"]
     mine = config_to_dict(config)
     sched = config.schedule
-    for table in ("model",):
-        if stored[table] != mine[table]:
-            raise TrainError(
-                f"{path}: the checkpoint was trained with another [{table}] config; "
-                f"stored {stored[table]}, now {mine[table]}"
-            )
+    # model.init only chose the starting weights (checkpoints before it have none)
+    theirs = {k: v for k, v in stored["model"].items() if k != "init"}
+    ours = {k: v for k, v in mine["model"].items() if k != "init"}
+    if theirs != ours:
+        raise TrainError(
+            f"{path}: the checkpoint was trained with another [model] config; "
+            f"stored {theirs}, now {ours}"
+        )
     if (
         stored["schedule"]["seed"] != sched.seed
         or stored["schedule"]["batch_size"] != sched.batch_size
@@ -268,7 +255,7 @@ def _resume(
         )
     opt.load_state_dict(ckpt["optimizer"])
     start = int(ckpt["step"])
-    _set_rng_state(ckpt["rng"])
+    set_rng_state(ckpt["rng"])
     log.info("resuming %s at step %d of %d", files.out, start, sched.steps)
     return start
 
@@ -364,7 +351,7 @@ def _optimizer_step(run: TrainRun, batch: Batch, step: int) -> dict[str, float]:
 def _save(run: TrainRun, step: int, final: bool) -> None:
     """Write ``checkpoint.pt`` (and ``model.pt`` when ``final``) and replot the log."""
     ckpt = training_checkpoint(
-        run.model, run.config, run.skeleton, run.opt, _rng_state(), step, final
+        run.model, run.config, run.skeleton, run.opt, rng_state(), step, final
     )
     data = serialize_checkpoint(ckpt)
     with atomic_path(run.files.checkpoint) as tmp:
@@ -499,7 +486,10 @@ def train_pose(
             train_source, eval_source, train_indices, eval_indices, sched.eval_samples
         )
         torch.manual_seed(sched.seed)
-        model = build_model(config.model, len(skeleton.keypoints)).to(procs.device)
+        model = build_model(config.model, len(skeleton.keypoints))
+        if not resume:
+            initialize(model, config.model, skeleton)
+        model.to(procs.device)
         opt = torch.optim.Adam(optimizer_groups(model), lr=sched.lr)
         start = _resume(files, config, model, opt) if resume else 0
         if procs.rank == 0:
@@ -525,17 +515,19 @@ def train_from_config(
     device: str = "cpu",
     kind: str | None = None,
     progress: bool = True,
+    init: str | None = None,
 ) -> Path:
     """``freipose train CONFIG``: resolve the data of a config file and train.
 
-    Relative paths in ``[data]`` are relative to the config file. ``kind`` overrides
-    ``model.kind`` (``voxel`` or ``baseline``). The default run folder is the config file's
-    name without suffix, next to it.
+    Relative paths in ``[data]`` and ``model.init`` are relative to the config file. ``kind``
+    overrides ``model.kind`` (``voxel`` or ``baseline``), ``init`` ``model.init``. The
+    default run folder is the config file's name without suffix, next to it.
     """
     config_path = Path(config_path)
     config = load_config(config_path)
-    if kind is not None:
-        config = dataclasses.replace(config, model=dataclasses.replace(config.model, kind=kind))
+    over = {k: v for k, v in (("kind", kind), ("init", init)) if v is not None}
+    if over:
+        config = dataclasses.replace(config, model=dataclasses.replace(config.model, **over))
     base = config_path.resolve().parent
 
     def rel(p: str) -> Path:
@@ -548,6 +540,10 @@ def train_from_config(
         config = dataclasses.replace(
             config,
             model=dataclasses.replace(config.model, pretrained=str(rel(config.model.pretrained))),
+        )
+    if config.model.init not in ("base", "scratch"):
+        config = dataclasses.replace(
+            config, model=dataclasses.replace(config.model, init=str(rel(config.model.init)))
         )
     # the checkpoint records its data's absolute paths (freipose eval finds the training labels)
     config = dataclasses.replace(
