@@ -336,16 +336,27 @@ class VideoWriter:
             self.abort()
 
 
+def _ffmpeg_exe(path: Path) -> str:
+    """The ffmpeg binary of ``imageio-ffmpeg`` (or ``IMAGEIO_FFMPEG_EXE``)."""
+    try:
+        import imageio_ffmpeg
+
+        return str(imageio_ffmpeg.get_ffmpeg_exe())
+    except (ImportError, RuntimeError) as e:
+        raise MediaError(
+            f"{path}: writing H.264 needs the ffmpeg binary of imageio-ffmpeg ({e}); install it "
+            "with `pip install imageio-ffmpeg`, or write a .mkv (lossless) or .avi video instead"
+        ) from None
+
+
 class _FFmpegH264:
     """An ffmpeg process encoding raw BGR frames from its standard input to H.264 MP4."""
 
     def __init__(self, path: Path, fps: float, size: tuple[int, int]):
-        import imageio_ffmpeg
-
         self.path = path
         self.frame_bytes = size[0] * size[1] * 3
         cmd = [
-            imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-nostdin", "-loglevel", "error",
+            _ffmpeg_exe(path), "-y", "-nostdin", "-loglevel", "error",
             "-f", "rawvideo", "-pix_fmt", "bgr24", "-s", f"{size[0]}x{size[1]}",
             "-r", f"{float(fps):g}", "-i", "pipe:0", "-an",
             "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", "-c:v", "libx264", "-preset", "fast",
@@ -353,7 +364,11 @@ class _FFmpegH264:
             "-f", "mp4", str(path),
         ]  # fmt: skip
         self._err = tempfile.TemporaryFile()  # noqa: SIM115 - lives as long as the encoder
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=self._err)
+        try:
+            self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=self._err)
+        except OSError as e:
+            self._err.close()
+            raise MediaError(f"{path}: cannot start the H.264 encoder {cmd[0]}: {e}") from None
 
     def _message(self) -> str:
         self._err.seek(0)

@@ -58,3 +58,28 @@ def test_h264_video_plays_in_chromium(tmp_path, chromium):
     state = video_state(chromium)
     assert state["error"] is None and state["readyState"] >= 2, state
     assert (state["videoWidth"], state["videoHeight"]) == (96, 64)
+
+
+def test_h264_without_an_encoder_says_what_to_do(tmp_path, monkeypatch):
+    import imageio_ffmpeg
+
+    monkeypatch.setattr(imageio_ffmpeg, "get_ffmpeg_exe", lambda: str(tmp_path / "no-ffmpeg"))
+    with pytest.raises(MediaError, match="cannot start the H.264 encoder"):
+        VideoWriter(tmp_path / "a.mp4", 10, (32, 24), codec="h264")
+
+    def missing() -> str:
+        raise RuntimeError("No ffmpeg exe could be found")
+
+    monkeypatch.setattr(imageio_ffmpeg, "get_ffmpeg_exe", missing)
+    with pytest.raises(MediaError, match="pip install imageio-ffmpeg"):
+        VideoWriter(tmp_path / "b.mp4", 10, (32, 24), codec="h264")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_h264_encoder_failure_leaves_no_file(tmp_path):
+    w = VideoWriter(tmp_path / "c.mp4", 0.0, (32, 24), codec="h264")  # ffmpeg refuses 0 fps
+    with pytest.raises(MediaError, match="H.264 encoder"):
+        for _ in range(50):
+            w.write(np.zeros((24, 32, 3), np.uint8))
+        w.close()
+    assert list(tmp_path.iterdir()) == []
