@@ -22,7 +22,7 @@ defaults out of ``scene.toml`` (see :data:`CONDITION_DEFAULTS`).
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
@@ -177,7 +177,10 @@ def _random_colour(rng: np.random.Generator, lo: float, hi: float) -> list[float
 def randomized(cfg: SceneConfig, seed_value: int) -> SceneConfig:
     """``cfg`` with the domain-randomised settings drawn from ``seed_value``.
 
-    Drawn (always in this order, so the same seed gives the same scene): coat, body size
+    Every drawn setting that ``cfg`` leaves at its default is replaced by the drawn value;
+    settings given otherwise are kept (``SceneConfig(seed=S, randomize=True, size=(320,
+    256))`` keeps the image size). Drawn (always all of them, in this order, so the same seed
+    gives the same values whatever is kept): coat, body size
     (mouse to rat; ``animal`` follows the size), arena size and wall height (fitted to the
     animal), camera count 3-8, image size, rig layout, lens, grayscale, floor texture and
     colours, wall colour, brightness, contrast, light gradient, blur, noise level,
@@ -223,9 +226,10 @@ def randomized(cfg: SceneConfig, seed_value: int) -> SceneConfig:
         "noise_level": round(float(math.exp(rng.uniform(math.log(0.3), math.log(3.0)))), 4),
         "reflections": round(float(rng.uniform(0.1, 0.4)) if rng.random() < 0.4 else 0.0, 4),
         "rest_fraction": round(float(rng.uniform(0.2, 0.7)) if rng.random() < 0.5 else 0.0, 4),
-        "randomize": False,
     }
-    return replace(cfg, **values)
+    defaults = {f.name: f.default for f in fields(cfg)}
+    kept = {k: v for k, v in values.items() if getattr(cfg, k) == defaults[k]}
+    return replace(cfg, **kept, randomize=False)
 
 
 __all__ = [

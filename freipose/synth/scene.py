@@ -126,7 +126,8 @@ class SceneConfig:
         label_noise_px: standard deviation of the label files' 2D noise, px.
         randomize: domain randomisation: draw the coat, size, arena, cameras, image size,
             layout, lens, grayscale, floor, colours, lighting, blur, noise, reflections and
-            resting from the seed (``freipose.synth.conditions.randomized``).
+            resting from the seed (``freipose.synth.conditions.randomized``); the settings
+            given other than at their defaults are kept.
 
     Call it as ``generate_session(OUT, SceneConfig(seed=S, randomize=True, frames=...))`` or
     ``freipose synth OUT --seed S --randomize``; ``SceneConfig(...).resolved()`` shows the
