@@ -53,11 +53,17 @@ def instant_geometry(points: np.ndarray, status: np.ndarray, rig: CameraRig) -> 
     Returns:
         The instant's :class:`InstantGeometry` (refined DLT triangulation).
     """
+    V, K = status.shape
     vis = (status == VISIBLE) & np.isfinite(points).all(-1)
-    obs = np.where(vis[..., None], points, np.nan).transpose(1, 0, 2)  # (K, V, 2)
-    X = triangulate_weighted(obs, vis.T.astype(np.float64), rig, refine=True)  # (K, 3)
-    projected = rig.project(X, distort=True)  # (V, K, 2)
-    residuals = reprojection_errors(X, obs, rig).T  # (V, K)
+    X = np.full((K, 3), np.nan)
+    projected = np.full((V, K, 2), np.nan)
+    residuals = np.full((V, K), np.nan)
+    seen = np.flatnonzero(vis.sum(0) >= 2)  # only these can be triangulated
+    if len(seen):
+        obs = np.where(vis[..., None], points, np.nan)[:, seen].transpose(1, 0, 2)  # (S, V, 2)
+        X[seen] = triangulate_weighted(obs, vis[:, seen].T.astype(np.float64), rig, refine=True)
+        projected[:, seen] = rig.project(X[seen], distort=True)
+        residuals[:, seen] = reprojection_errors(X[seen], obs, rig).T
     return InstantGeometry(X, projected, residuals)
 
 

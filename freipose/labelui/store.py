@@ -30,6 +30,7 @@ from freipose.io.poses import PoseData
 from freipose.io.session import Session
 from freipose.labelui.geometry import (
     STATE_NAMES,
+    InstantGeometry,
     UNLABELED,
     VISIBLE,
     bone_lengths,
@@ -136,6 +137,7 @@ class LabelStore:
         K, L = skeleton.num_keypoints, len(skeleton.limbs)
         self._p3d = np.full((len(self.instants), K, 3), np.nan)
         self._bones = np.full((len(self.instants), L), np.nan)
+        self._geometry: list[InstantGeometry | None] = [None] * len(self.instants)
         for i in range(len(self.instants)):
             self._update_3d(i)
 
@@ -184,6 +186,7 @@ class LabelStore:
 
     def _update_3d(self, i: int) -> None:
         geo = instant_geometry(self._points[i], self._status[i], self.session(i).rig)
+        self._geometry[i] = geo
         self._p3d[i] = geo.points3d
         self._bones[i] = bone_lengths(self.skeleton, geo.points3d)
 
@@ -235,7 +238,12 @@ class LabelStore:
     def _state(self, i: int) -> dict[str, object]:
         x = self.instants[i]
         sess = self.session(i)
-        geo = instant_geometry(self._points[i], self._status[i], sess.rig)
+        geo = self._geometry[i]
+        if geo is None:
+            self._update_3d(i)
+            geo = self._geometry[i]
+        if geo is None:
+            raise RuntimeError("the instant's geometry was not computed")
         pred = self._predicted(i)
         ref = median_lengths(np.delete(self._bones, i, axis=0))
         return {
@@ -307,13 +315,14 @@ class LabelStore:
             old = (self._points[i], self._status[i])
             self._points[i] = np.where((status == VISIBLE)[..., None], points, np.nan)
             self._status[i] = status.astype(np.int8)
+            self._update_3d(i)
             try:
                 self._write()
-            except BaseException:
+            except BaseException:  # nothing changed unless the file was written
                 self._points[i], self._status[i] = old
+                self._update_3d(i)
                 raise
             self._version[i] += 1
-            self._update_3d(i)
             return self._state(i)
 
     # -- output ---------------------------------------------------------------------------
@@ -354,7 +363,7 @@ class LabelStore:
             p2[r, cols] = self._points[i]
             vis[r, cols] = self._status[i] == VISIBLE
             status[r, cols] = self._status[i]
-            p3[r] = self._p3d_now(i)
+            p3[r] = self._p3d[i]
             sess.append(x.session)
             frames.append(x.frame)
         for name in {self.instants[i].session for i in rows}:
@@ -362,9 +371,6 @@ class LabelStore:
         ls = LabelSet(np.array(sess, dtype=object), np.array(frames, np.int64), p2, p3,
                       tuple(cams), self.skeleton.keypoints, infos, vis)  # fmt: skip
         return ls, status
-
-    def _p3d_now(self, i: int) -> np.ndarray:
-        return instant_geometry(self._points[i], self._status[i], self.session(i).rig).points3d
 
     def _session_info(self, s: Session) -> SessionInfo:
         base = self.output.resolve().parent
