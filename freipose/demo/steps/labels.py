@@ -85,6 +85,13 @@ def _labels_file(
     return out
 
 
+def _say_sources(ctx: DemoContext, names: list[str], use: str) -> None:
+    """Name the generator's label files that the next labels file is imported from."""
+    files = ", ".join(str((ctx.session_dir(n) / "labels.h5").relative_to(ctx.out)) for n in names)
+    ctx.say(f"  {files} (read: the synthetic generator's labels of every frame, standing in "
+            f"for a labelling tool's export) -> the {use} labels")  # fmt: skip
+
+
 def run(ctx: DemoContext) -> dict[str, Any]:
     """Write ``labels/train.h5`` (triangulated) and ``labels/eval.h5`` (held-out truth).
 
@@ -97,18 +104,23 @@ def run(ctx: DemoContext) -> dict[str, Any]:
     p = ctx.preset
     train = [s.name for s in p.sessions if s.split == "train"]
     test = [s.name for s in p.sessions if s.split == "test"]
+    _say_sources(ctx, train, "training")
     tr = _labels_file(
         ctx, train, p.label_instants // len(train), "triangulate", ctx.out / "labels" / "train.h5"
     )
     ctx.say(
-        f"  labels/train.h5: {tr['instants']} instants of {', '.join(train)}; 2D labels of "
-        f"the visible keypoints triangulated with the calibrated rig: median reprojection "
-        f"{tr['median_reprojection_px']:.2f} px, {tr['median_3d_vs_truth_mm']:.2f} mm from the "
-        f"truth, {100 * tr['labeled_fraction']:.0f} % of keypoints labeled in 3D"
+        f"  labels/train.h5 (written: the training labels): {tr['instants']} instants of "
+        f"{', '.join(train)}; 2D labels of the visible keypoints triangulated with the "
+        f"calibrated rig: median reprojection {tr['median_reprojection_px']:.2f} px, "
+        f"{tr['median_3d_vs_truth_mm']:.2f} mm from the truth, "
+        f"{100 * tr['labeled_fraction']:.0f} % of keypoints labeled in 3D"
     )
+    _say_sources(ctx, test, "evaluation")
     ev = _labels_file(
         ctx, test, p.eval_instants // len(test), "truth", ctx.out / "labels" / "eval.h5"
     )
-    ctx.say(f"  labels/eval.h5: {ev['instants']} held-out instants of {', '.join(test)} "
-            "with the true 3D keypoints (for evaluation only)")  # fmt: skip
+    ctx.say(
+        f"  labels/eval.h5 (written: the evaluation labels): {ev['instants']} held-out "
+        f"instants of {', '.join(test)} with the true 3D keypoints (for evaluation only)"
+    )
     return {"train": tr, "eval": ev}
