@@ -73,7 +73,7 @@ def test_tiny_demo_outputs(tiny_demo):
     # 6 evaluation: voxel and baseline JPE, finite
     metrics = json.loads((out / "evaluation" / "labels" / "metrics.json").read_text())
     assert set(metrics) == {"voxel_P0", "voxel_P1", "baseline", "references"}
-    assert all(np.isfinite(m["overall"]["median"]) for m in metrics.values())
+    assert all(np.isfinite(metrics[m]["overall"]["median"]) for m in ("voxel_P0", "baseline"))
     assert (out / "evaluation" / "pipeline" / "jpe_boxplot.png").is_file()
     # 7 analysis: a valid study and its tables and figures
     study = load_study(out / "analysis" / "study.toml")
