@@ -170,7 +170,7 @@ def top_variables(tc: pd.DataFrame, dyn: pd.DataFrame, path: str | Path, title: 
         path: output PNG.
         title: figure title.
     """
-    fig = new_figure((7.5, 3.8))
+    fig = new_figure((9.5, 4.2))
     ax = fig.subplots()
     if len(dyn):
         t = dyn["time_s"].to_numpy()
@@ -192,6 +192,6 @@ def top_variables(tc: pd.DataFrame, dyn: pd.DataFrame, path: str | Path, title: 
     ax.set_xlabel("time from stimulation onset (s)")
     ax.set_ylabel("z-score (train mean/std)")
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    ax.legend(fontsize=8.5, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     save_figure(fig, Path(path), dpi=110, bbox_inches="tight")

@@ -277,12 +277,15 @@ def _analysis_one(ctx: DemoContext, a: dict[str, Any] | None, sub: str) -> dict[
         out["n_top"] = int(round(a["top10_share_stimulated_part"] * 10))
         out["significant"] = a["significant"]
         out["n_variables"] = a["classification"][0].get("n_variables_used", "all")
-    heat = "F-score of each single variable by body part (rows) and variable (columns)."
+    heat = (
+        "F-score of each single variable by body part (rows) and variable (columns); white: "
+        "not tested (the variable is constant over the training frames or undefined)."
+    )
     top = "The best single variables around stimulation onset (z-scored; mean and SEM)."
     for f in sorted(res_dir.glob("attribution_*.png")):
         out["figures"].append(_figure(ctx, f, heat))
     for f in sorted(res_dir.glob("top_variables_*.png")):
-        out["figures"].append(_figure(ctx, f, top, "half"))
+        out["figures"].append(_figure(ctx, f, top))
     out["figures"].append(_figure(ctx, res_dir / "classifier_response.png", "The full "
                                   "classifier's mean prediction around stimulation onset.",
                                   "half"))  # fmt: skip
