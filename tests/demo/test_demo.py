@@ -70,6 +70,8 @@ def test_tiny_demo_outputs(tiny_demo):
         assert np.isfinite(data.poses).all(-1).any(-1).mean() > 0.5
         assert data.calibration is not None and data.calibration.allclose(rig)
     assert list((out / "overlay").glob("*.png"))
+    clip = next((out / "overlay").glob("*.mp4")).read_bytes()
+    assert b"avc1" in clip[:200_000]  # H.264 (plays in web browsers), index first
     # 6 evaluation: voxel and baseline JPE, finite
     metrics = json.loads((out / "evaluation" / "labels" / "metrics.json").read_text())
     assert set(metrics) == {"voxel_P0", "voxel_P1", "baseline", "references"}
