@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
@@ -68,7 +69,8 @@ def train(
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-        use_threads(threads)
+        # torchrun starts LOCAL_WORLD_SIZE processes on this machine, each with its threads
+        use_threads(threads, workers=int(os.environ.get("LOCAL_WORLD_SIZE", "1") or 1))
         if stage == "detector":
             try:
                 from freipose.detect.train import train_detector

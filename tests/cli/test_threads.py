@@ -32,7 +32,7 @@ def seen(monkeypatch):
     torch.set_num_threads(before)
 
 
-def test_threads_option_reaches_torch(seen, tmp_path):
+def test_threads_option_reaches_torch(seen, tmp_path, monkeypatch):
     cfg = tmp_path / "cfg.toml"
     cfg.write_text("[model]\npreset = 'tiny'\n")
     model = tmp_path / "model.pt"
@@ -49,5 +49,12 @@ def test_threads_option_reaches_torch(seen, tmp_path):
         r = CliRunner().invoke(cli, args)
         assert "stopped after the thread count was set" in r.output, r.output
     assert seen == [1, 2, 1, 2, 1]
+    # under torchrun, the free cores are shared by the processes on this machine
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr("freipose.workers.cpu_cores", lambda: 8)
+    monkeypatch.setattr("freipose.workers.other_load", lambda: 0.0)
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "4")
+    CliRunner().invoke(cli, ["train", str(cfg)])
+    assert seen[-1] == 2
     r = CliRunner().invoke(cli, ["train", str(cfg), "--threads", "0"])
     assert r.exit_code != 0 and "--threads must be at least 1" in r.output
