@@ -28,7 +28,7 @@ def test_h264_round_trip_and_odd_size(tmp_path):
     assert w.frames == 12 and p.is_file()
     assert p.read_bytes()[4:8] == b"ftyp"
     head = p.read_bytes()[:4096]
-    assert b"moov" in head  # +faststart: the index comes before the frames
+    assert b"moov" in head and b"avcC" in head  # +faststart: the H.264 index before the frames
     src = FrameSource(p)
     assert src.size == (82, 62) and src.num_frames == 12 and src.fps == pytest.approx(25.0)
     for i in (0, 7, 11):
