@@ -86,6 +86,8 @@ def test_demo_evaluate_step_returns_failure_modes_and_references(tiny_demo):
     refs = res["references"]
     assert set(refs) == {"median pose at held-out centre", "median pose at training centre"}
     assert all(r["median_mm"] > 0 for r in refs.values())
+    for session in res["pipeline"].values():  # every frame of each session, too
+        assert len(session["failure_modes"]["pairs"]) == 5
     assert "references that look at no image" in output
     assert "(read: the synthetic generator's labels of every frame" in output
     assert "labels/train.h5 (written: the training labels)" in output

@@ -57,23 +57,32 @@ def _pipeline(ctx: DemoContext, keypoints: tuple[str, ...]) -> dict[str, Any]:
     """The whole pipeline (detector + voxel network) on every frame of every session."""
     from freipose.io.poses import read_poses_h5
     from freipose.nn.evaluate import jpe, write_report
+    from freipose.nn.failure_modes import failure_modes
 
     align = step_results(ctx.out, "calibrate")["alignment"]
     pipe: dict[str, np.ndarray] = {}
+    modes: dict[str, Any] = {}
     for s in ctx.preset.sessions:
         data = read_poses_h5(ctx.poses_dir / f"{s.name}.poses.h5")
         truth = session_labels(ctx, s.name)
         gt = truth_to_calibrated(truth.points3d, align)
         rows = {int(f): i for i, f in enumerate(truth.frame_index)}
         idx = np.array([rows[int(f)] for f in data.frame_index])
-        pipe[f"{s.name} ({s.split})"] = jpe(data.poses, gt[idx])
+        name = f"{s.name} ({s.split})"
+        pipe[name] = jpe(data.poses, gt[idx])
+        if data.skeleton is not None:
+            modes[name] = failure_modes(data.poses, gt[idx], data.skeleton, name)
     summary = write_report(ctx.out / "evaluation" / "pipeline", pipe, keypoints)
     res: dict[str, Any] = {}
     ctx.say("  whole pipeline (detector + voxel network, every frame, vs. the truth):")
     for name, s in summary.items():
         o = s["overall"]
         res[name] = {"median": o["median"], "missing": o.get("missing", 0)}
+        if name in modes:
+            res[name]["failure_modes"] = modes[name]
         ctx.say(f"    {name:22s} median JPE {o['median']:7.2f} mm over {o['n']} keypoints")
+        for w in modes.get(name, {}).get("warnings", []):
+            ctx.say("    " + w)
     return res
 
 
@@ -88,7 +97,8 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         voxel network's P1: ``pairs``, ``bones``, ``warnings``, see
         :func:`freipose.nn.failure_modes.failure_modes`), ``references`` (per
         constant-pose reference: ``median_mm``, ``n``) and ``pipeline`` (per session:
-        median JPE and missing keypoints).
+        median JPE, missing keypoints and, where the poses name their skeleton, the
+        ``failure_modes`` of every frame).
     """
     scores = _on_labels(ctx, step_results(ctx.out, "train"))
     return {
