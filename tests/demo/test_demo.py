@@ -72,6 +72,9 @@ def test_tiny_demo_outputs(tiny_demo):
     assert list((out / "overlay").glob("*.png"))
     clip = next((out / "overlay").glob("*.mp4")).read_bytes()
     assert b"avcC" in clip and clip.find(b"moov") < clip.find(b"mdat")  # H.264, index first
+    from freipose.io.video import FrameSource
+
+    assert FrameSource(next((out / "overlay").glob("*.mp4"))).width == 3 * p.size[0]
     # 6 evaluation: voxel and baseline JPE, finite
     metrics = json.loads((out / "evaluation" / "labels" / "metrics.json").read_text())
     assert set(metrics) == {"voxel_P0", "voxel_P1", "baseline", "references"}
