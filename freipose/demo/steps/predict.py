@@ -79,7 +79,7 @@ def _overlay(ctx: DemoContext) -> dict[str, Any]:
         data,
         overlay / f"{test}.mp4",
         frames=(first, min(first + p.overlay_frames, p.session_frames)),
-        tile_width=240,
+        tile_width=p.size[0],  # the cameras' own width: no downscaling
         progress=False,
     )
     count = min(first + p.overlay_frames, p.session_frames) - first
