@@ -220,3 +220,30 @@ def test_conflict_from_another_tab_is_shown_and_reloaded(driver, store, synth_se
         labels = driver.execute_script("return FP.S.labels")
         assert labels["cam1"] == {"Tail": {"state": "occluded"}} and labels["cam0"] == {}
         _shot(driver, tmp_path, "label_conflict")
+
+
+def test_keys_mark_occluded_and_undo(driver, store, synth_session):
+    truth = synth_session.truth
+    frame = store.instants[0].frame
+    k = _visible_everywhere(synth_session, frame)[0]
+    kp = truth.keypoints[k]
+    with background_server(store) as running:
+        _open(driver, running)
+        body = driver.find_element(By.TAG_NAME, "body")
+        _select_keypoint(driver, k)
+        _click_image(driver, "cam1", truth.points2d[frame, 1, k])  # cam1 becomes the active view
+        _wait(lambda: _state(driver)["version"] == 1)
+        assert _state(driver)["labels"]["cam1"][kp]["state"] == "visible"
+        body.send_keys("o")
+        _wait(lambda: _state(driver)["version"] == 2)
+        assert _state(driver)["labels"]["cam1"][kp] == {"state": "occluded"}
+        body.send_keys("x")
+        _wait(lambda: _state(driver)["version"] == 3)
+        assert _state(driver)["labels"]["cam1"][kp] == {"state": "notinview"}
+        body.send_keys("z")
+        body.send_keys("z")
+        _wait(lambda: _state(driver)["version"] == 5)
+        assert _state(driver)["labels"]["cam1"][kp]["state"] == "visible"  # two undos back
+        body.send_keys(Keys.DELETE)
+        _wait(lambda: _state(driver)["version"] == 6)
+        assert kp not in _state(driver)["labels"]["cam1"]
