@@ -44,6 +44,15 @@ def confidence_color(conf: float) -> tuple[int, int, int]:
     return (0, g, r)
 
 
+def draw_label(img: np.ndarray, text: str, org: tuple[int, int], scale: float) -> None:
+    """White ``text`` on a dark box, baseline starting at ``org`` (pixels), onto ``img``."""
+    (w, h), base = cv2.getTextSize(text, FONT, scale, 1)
+    x, y = org
+    box = img[max(y - h - 4, 0) : y + base + 2, max(x - 4, 0) : x + w + 4]
+    box[:] = (0.35 * box).astype(np.uint8)
+    cv2.putText(img, text, org, FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+
+
 def _codec(output: str | Path) -> str | None:
     """H.264 for an .mp4 overlay (it plays in web browsers); the suffix's codec otherwise."""
     return "h264" if Path(output).suffix.lower() == ".mp4" else None
@@ -239,8 +248,7 @@ def render_overlay(
                     msg_at = (8, tiles_h[c] // 2)
                     cv2.putText(tile, "frame missing", msg_at, FONT, 0.6, (230, 230, 230), 1)
                 label = f"{cam.name}  frame {i}"
-                cv2.putText(tile, label, (8, 20), FONT, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-                cv2.putText(tile, label, (8, 20), FONT, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+                draw_label(tile, label, (8, 20), 0.5)
                 if not np.isfinite(pose).any():
                     cv2.putText(tile, "not found", (8, 44), FONT, 0.6, (0, 0, 255), 2, cv2.LINE_AA)
                 y, x = divmod(c, cols)
@@ -320,8 +328,7 @@ def still_tile(
     cv2.rectangle(inset, p0, p1, (255, 255, 255), 1)
     out[2 : 2 + ih, tile - iw - 2 : tile - 2] = inset
     cv2.rectangle(out, (tile - iw - 3, 1), (tile - 2, 2 + ih), (255, 255, 255), 1)
-    cv2.putText(out, label, (8, 22), FONT, 0.6, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(out, label, (8, 22), FONT, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    draw_label(out, label, (8, 22), 0.6)
     return out
 
 

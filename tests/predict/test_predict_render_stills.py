@@ -13,6 +13,7 @@ from freipose.predict.render import (
     RenderError,
     confidence_color,
     confidence_legend,
+    draw_label,
     render_stills,
     still_tile,
 )
@@ -58,3 +59,12 @@ def test_render_stills(tmp_path):
     with pytest.raises(RenderError, match="frame 9"):
         render_stills(videos, d.calibration, d, [9], [tmp_path / "c.png"])
     assert not (tmp_path / "c.png").exists()
+
+
+def test_labels_are_white_on_a_dark_box():
+    img = np.full((40, 200, 3), 200, np.uint8)
+    draw_label(img, "cam0  frame 13", (8, 22), 0.6)
+    box = img[8:26, 4:150]
+    assert (box == 70).mean() > 0.5  # the background dimmed to 35 %
+    assert (box == 255).all(-1).any()  # white text
+    assert (img[:, 190:] == 200).all()  # nothing drawn beyond the text
