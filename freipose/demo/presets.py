@@ -35,8 +35,12 @@ class DemoPreset:
         stimulation: ``freipose.synth`` stimulation protocol as a dict.
         label_instants: labeled time instants imported from the train sessions.
         eval_instants: held-out time instants with true 3D keypoints for ``freipose eval``.
-        pose: ``[model]`` preset and ``[schedule]`` overrides of the voxel network.
-        baseline_steps: training steps of the triangulation baseline.
+        pose: ``[model]`` preset and ``[schedule]`` overrides of the voxel network; the
+            triangulation baseline trains with the same schedule (equal budgets).
+        init: starting weights of the voxel network, the baseline and the detector
+            (``[model] init`` and ``[detector] init``): ``"base"`` fine-tunes the base
+            models shipped in :mod:`freipose.models`, ``"scratch"`` trains from random
+            weights.
         detector: the ``[detector]`` table.
         analysis: ``AttributionConfig`` fields; ``stft_window``: STFT window in frames.
         overlay_frames: frames of the overlay clip.
@@ -57,7 +61,7 @@ class DemoPreset:
     label_instants: int
     eval_instants: int
     pose: dict[str, Any]
-    baseline_steps: int
+    init: str
     detector: dict[str, Any]
     analysis: dict[str, Any]
     stft_window: int
@@ -94,7 +98,7 @@ _PRESETS = {
         label_instants=24,
         eval_instants=8,
         pose=dict(preset="tiny", steps=6, checkpoint_every=3, eval_every=3, eval_samples=4),
-        baseline_steps=4,
+        init="scratch",  # no base is shipped for the tiny network
         detector=dict(
             input_size=64,
             width=0.25,
@@ -143,7 +147,7 @@ _PRESETS = {
             eval_samples=16,
             log_every=10,
         ),  # fmt: skip
-        baseline_steps=200,
+        init="scratch",
         detector=dict(
             input_size=128,
             width=0.35,

@@ -19,6 +19,7 @@ from freipose.demo.context import DemoContext
 from freipose.demo.markers import STEPS, DemoError, check_outdir, read_marker, write_marker
 from freipose.demo.presets import PRESETS, DemoPreset
 from freipose.demo.steps import analyze, calibrate, evaluate, labels, predict, synth, train
+from freipose.demo.summary import write_summary
 
 StepFn = Callable[[DemoContext], dict[str, Any]]
 
@@ -71,7 +72,7 @@ def run_demo(
         progress: progress bars (None: only on a terminal).
 
     Returns:
-        The path of ``outdir/report.html``.
+        The path of ``outdir/report.html`` (``outdir/summary.json`` holds every figure).
 
     Raises:
         DemoError: unknown preset, ``outdir`` is not a folder or holds a demo run with
@@ -98,5 +99,7 @@ def run_demo(
         dt = time.perf_counter() - t0
         write_marker(out, preset, step, results, dt)
         say(f"      ({dt:.0f} s)")
-    say(f"demo finished in {time.perf_counter() - t_all:.0f} s; open {out / 'report.html'}")
+    summary = write_summary(out, preset)
+    say(f"demo finished in {time.perf_counter() - t_all:.0f} s; open {out / 'report.html'} "
+        f"(every figure in {summary})")  # fmt: skip
     return out / "report.html"

@@ -15,13 +15,7 @@ from freipose.demo.presets import PRESETS
 from freipose.demo.steps.analyze import study_toml
 from freipose.geometry.alignment import align_similarity
 
-
-@pytest.fixture(scope="module")
-def tiny_demo(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo") / "demo_out"
-    res = CliRunner().invoke(cli, ["demo", str(out), "--preset", "tiny"])
-    assert res.exit_code == 0, res.output + repr(res.exception)
-    return out, res.output
+# tiny_demo: the shared tiny demo run (tests/demo/conftest.py)
 
 
 @pytest.mark.slow

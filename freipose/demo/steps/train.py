@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +27,9 @@ def _train_config(ctx: DemoContext) -> Path:
             "eval_labels": "../labels/eval.h5",
             "skeleton": "rat",
         },
-        "model": {"preset": pose.pop("preset")},
+        "model": {"preset": pose.pop("preset"), "init": p.init},
         "schedule": pose,
-        "detector": dict(p.detector),
+        "detector": {**p.detector, "init": p.init},
     }
     path = ctx.train_dir / "config.toml"
     text = (
@@ -41,17 +40,6 @@ def _train_config(ctx: DemoContext) -> Path:
     ) + tomli_w.dumps(doc)
     path.parent.mkdir(parents=True, exist_ok=True)
     _write_if_changed(path, text)
-    return path
-
-
-def _baseline_config(ctx: DemoContext, data: dict[str, Any]) -> Path:
-    """Write ``train/config_baseline.toml``: the main config with the baseline's step count."""
-    import tomli_w
-
-    bdata = json.loads(json.dumps(data))
-    bdata["schedule"]["steps"] = ctx.preset.baseline_steps
-    path = ctx.train_dir / "config_baseline.toml"
-    _write_if_changed(path, tomli_w.dumps(bdata))
     return path
 
 
@@ -147,11 +135,22 @@ def run(ctx: DemoContext) -> dict[str, Any]:
 
     cfg_path = _train_config(ctx)
     data = read_toml(cfg_path, "training config")
-    out: dict[str, Any] = {"config": str(cfg_path)}
+    steps = int(data["schedule"]["steps"])
+    out: dict[str, Any] = {"config": str(cfg_path), "init": ctx.preset.init}
+    ctx.say(
+        "  fine-tuning the base models shipped with FreiPose (freipose/models)"
+        if ctx.preset.init == "base"
+        else '  from random weights (init = "scratch")'
+    )
     out["detector"] = _train_detector(ctx, data, cfg_path)
-    ctx.say("  voxel network (2D encoder, unprojection, 3D U-Net, refinement)")
+    ctx.say(f"  voxel network (2D encoder, unprojection, 3D U-Net, refinement), {steps} steps")
     out["pose"] = _train_network(ctx, None, "pose", cfg_path)
-    ctx.say("  triangulation baseline (per-view 2D + robust triangulation)")
-    # the baseline gets its own step count: a config next to the main one
-    out["baseline"] = _train_network(ctx, "baseline", "baseline", _baseline_config(ctx, data))
+    ctx.say(f"  triangulation baseline (per-view 2D + robust triangulation), {steps} steps")
+    # equal budgets: the baseline trains with the voxel network's schedule
+    out["baseline"] = _train_network(ctx, "baseline", "baseline", cfg_path)
+    out["budgets"] = {
+        "voxel_steps": steps,
+        "baseline_steps": steps,
+        "detector_steps": int(data["detector"]["steps"]),
+    }
     return out
