@@ -40,7 +40,8 @@ from freipose.demo.context import truth_to_calibrated
 from freipose.demo.markers import step_results
 from freipose.io.labels import read_labels_h5
 from freipose.io.poses import PoseData, read_poses_h5
-from freipose.predict.smooth import fit_error_floor, smooth_poses
+from freipose.predict.smooth import smooth_poses
+from freipose.predict.smooth_error import fit_error_floor
 
 CLASSES = {"head": ("Ear", "Eye", "Nose"), "front paws": ("Paw Front",), "back paws": (
     "Paw Back",), "tail": ("Tail",)}  # fmt: skip

@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from freipose.cli._common import (
     allow_incomplete_option,
     check_complete,
+    device_option,
     overwrite_option,
     user_errors,
 )
+
+if TYPE_CHECKING:
+    from freipose.predict.smooth_error import HeldOutError
 
 
 def smoothed_name(path: Path) -> str:
@@ -29,20 +34,46 @@ def smoothed_name(path: Path) -> str:
     type=click.Path(file_okay=False, path_type=Path),
     help="Folder for the smoothed <session>.poses.h5 files (not the inputs' folder).",
 )
+@click.option(
+    "--validation",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Held-out labels with 3D points (not trained on, e.g. the training config's "
+    "eval_labels): the network's error on them is added to the standard deviation. "
+    "Needs --model.",
+)
+@click.option(
+    "--model",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="The pose checkpoint that predicted the poses (with --validation).",
+)
+@device_option("cpu")
 @allow_incomplete_option()
 @overwrite_option("smoothed files that exist")
-def smooth(poses: tuple[Path, ...], outdir: Path, allow_incomplete: bool, overwrite: bool) -> None:
+def smooth(
+    poses: tuple[Path, ...],
+    outdir: Path,
+    validation: Path | None,
+    model: Path | None,
+    device: str,
+    allow_incomplete: bool,
+    overwrite: bool,
+) -> None:
     """Smooth predicted poses over time, with a standard deviation for every point.
 
     Each keypoint follows a constant-velocity Kalman smoother whose measurement noise
-    grows as the frame's confidence falls; its parameters are fitted on the recording.
-    Frames without a prediction are filled (extra/filled), outliers rejected
-    (extra/rejected), and extra/smooth_std holds the posterior standard deviation in mm
-    per axis. The output has the poses.h5 schema; analyze, export and render read it.
+    grows as the frame's confidence falls; its parameters are fitted on the recording,
+    and its process noise rises where the keypoint moves faster than that (brief fast
+    movements are kept). Frames without a prediction are filled (extra/filled), outliers
+    rejected (extra/rejected), and extra/smooth_std holds the posterior standard
+    deviation in mm per axis. Without --validation it covers only the frame-to-frame
+    noise; with --validation and --model it also covers the network's persistent error,
+    measured on held-out labels. The output has the poses.h5 schema; analyze, export and
+    render read it.
 
     \b
     Example:
-      freipose smooth poses/*.poses.h5 -o poses_smooth/
+      freipose smooth poses/*.poses.h5 -o poses_smooth/ \\
+          --validation labels/eval.h5 --model train/pose/model.pt
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.atomic import refuse_existing
@@ -54,5 +85,26 @@ def smooth(poses: tuple[Path, ...], outdir: Path, allow_incomplete: bool, overwr
         for p, out in jobs:
             refuse_same(p, out)
             refuse_existing(out, overwrite)
+        held_out = _held_out_error(validation, model, [p for p, _ in jobs], device)
         for p, out in jobs:
-            click.echo(f"wrote {smooth_file(p, out, overwrite=overwrite)}")
+            click.echo(f"wrote {smooth_file(p, out, overwrite=overwrite, error_floor=held_out)}")
+
+
+def _held_out_error(
+    validation: Path | None, model: Path | None, poses: list[Path], device: str
+) -> HeldOutError | None:
+    """The network's error on the held-out labels (None without ``--validation``)."""
+    from freipose.predict.smooth import SmoothingError, check_same_model
+    from freipose.predict.smooth_error import model_validation_error
+
+    if validation is None and model is None:
+        return None
+    if validation is None or model is None:
+        raise SmoothingError(
+            "--validation and --model go together: the held-out labels and the checkpoint "
+            "that predicted the poses (pass both, or neither)"
+        )
+    refine = check_same_model(poses, model)
+    err = model_validation_error(model, validation, refine=refine, device=device)
+    click.echo(f"held-out error of the network: {err.source}")
+    return err

@@ -45,6 +45,7 @@ from freipose.errors import FreiPoseError
 from freipose.io.atomic import refuse_existing
 from freipose.io.lock import output_lock
 from freipose.io.poses import PoseData, read_poses_h5, write_poses_h5
+from freipose.predict.smooth_error import HeldOutError
 
 MIN_CONFIDENCE = 0.02
 GATE_CHI2_3 = 16.27  # 99.9 % point of chi-square with 3 degrees of freedom
@@ -396,56 +397,43 @@ def frame_intervals(frame_index: np.ndarray, fps: float) -> np.ndarray:
     return steps / float(fps)
 
 
-def fit_error_floor(
-    mean: np.ndarray, std: np.ndarray, truth: np.ndarray, target: float = 0.954
-) -> np.ndarray:
-    """Per-keypoint error floor ``b`` (mm) so that ``sqrt(std^2 + b^2)`` covers ``target``.
-
-    The smoother's standard deviation describes the frame-to-frame noise of the
-    predictions; an error that persists over many frames (a network bias) is invisible in
-    one recording. Fitted on a recording with truth, the floor adds it back: the smallest
-    ``b`` with which a share ``target`` of the axes lie within 2 sigma.
-
-    Args:
-        mean: (T, K, 3) smoothed positions in mm.
-        std: (T, K, 3) their standard deviations in mm.
-        truth: (T, K, 3) true positions in mm (NaN where unknown).
-        target: the 2-sigma coverage to reach (0.954: a Gaussian's).
-
-    Returns:
-        (K,) floor in mm (0 where the smoother's own std already reaches ``target``).
-    """
-    err = np.abs(np.asarray(mean, np.float64) - truth)
-    var = np.asarray(std, np.float64) ** 2
-    floor = np.zeros(err.shape[1])
-    for k in range(err.shape[1]):
-        ok = np.isfinite(err[:, k])
-        e, v = err[:, k][ok], var[:, k][ok]
-        if not e.size:
-            continue
-        lo, hi = 0.0, float(e.max()) / 2 + 1e-9
-        for _ in range(50):
-            b = (lo + hi) / 2
-            lo, hi = (b, hi) if (e <= 2 * np.sqrt(v + b * b)).mean() < target else (lo, b)
-        floor[k] = hi if (e <= 2 * np.sqrt(v)).mean() < target else 0.0
-    return floor
-
-
 def smooth_poses(
-    data: PoseData, source: str = "", error_floor: np.ndarray | None = None
+    data: PoseData, source: str = "", error_floor: np.ndarray | HeldOutError | None = None
 ) -> PoseData:
     """The smoothed poses of one recording, same schema plus the posterior.
 
-    ``extra/smooth_std`` (T, K, 3) holds the posterior standard deviation in mm per axis
-    (with ``error_floor`` (K,) mm, from :func:`fit_error_floor`, added in quadrature),
+    ``extra/smooth_std`` (T, K, 3) holds the posterior standard deviation in mm per axis,
     ``extra/filled`` (T, K) the frames without a prediction, ``extra/rejected`` (T, K) the
     predictions rejected as outliers; the confidences stay the network's. The provenance
     gains ``smoother`` with the method and the fitted parameters per keypoint.
+
+    Args:
+        data: the predicted poses.
+        source: the poses file, for provenance.
+        error_floor: the persistent error added in quadrature to the standard deviation:
+            the network's error on held-out labels (:class:`HeldOutError`, from
+            :func:`freipose.predict.smooth_error.model_validation_error`), or a (K,) or
+            (K, 3) floor in mm (:func:`freipose.predict.smooth_error.fit_error_floor`).
     """
     res = smooth_arrays(data.poses, data.confidence, frame_intervals(data.frame_index, data.fps))
     std = res.std
-    if error_floor is not None:
-        std = np.sqrt(std**2 + np.asarray(error_floor, np.float64)[None, :, None] ** 2)
+    persistent: dict[str, Any] | None = None
+    if isinstance(error_floor, HeldOutError):
+        floor = error_floor.for_keypoints(data.keypoints)
+        persistent = {"kind": "error on held-out labels", **error_floor.as_dict()}
+    elif error_floor is not None:
+        floor = np.broadcast_to(
+            np.asarray(error_floor, np.float64).reshape(len(data.keypoints), -1),
+            (len(data.keypoints), 3),
+        )
+        persistent = {
+            "kind": "floor",
+            "floor_mm": {
+                k: [float(v) for v in f] for k, f in zip(data.keypoints, floor, strict=True)
+            },
+        }
+    if persistent is not None:
+        std = np.sqrt(std**2 + floor[None] ** 2)
     prov: dict[str, Any] = dict(data.provenance)
     prov["smoother"] = {
         "method": "constant-velocity Kalman filter + RTS smoother (freipose.predict.smooth)",
@@ -460,10 +448,8 @@ def smooth_poses(
         "params": res.params.as_dict(data.keypoints),
         "source": source,
     }
-    if error_floor is not None:
-        prov["smoother"]["error_floor_mm"] = dict(
-            zip(data.keypoints, map(float, error_floor), strict=True)
-        )
+    if persistent is not None:
+        prov["smoother"]["persistent_error"] = persistent
     extra: Mapping[str, np.ndarray] = {
         **dict(data.extra),
         "smooth_std": std.astype(np.float32),
@@ -496,8 +482,43 @@ def refuse_same(src: Path, dst: Path) -> None:
         )
 
 
-def smooth_file(src: str | Path, dst: str | Path, overwrite: bool = False) -> Path:
+def check_same_model(poses: list[Path], model: Path) -> bool:
+    """Check that the poses files were predicted by ``model``; return whether refined (P1).
+
+    Raises:
+        SmoothingError: a poses file names another model (by hash), or the files differ in
+            whether they report the refined pose.
+    """
+    from freipose.predict.network import file_sha256
+
+    digest = file_sha256(model)
+    refine = set()
+    for p in poses:
+        prov = read_poses_h5(p).provenance
+        theirs = prov.get("model_sha256")
+        if theirs is not None and theirs != digest:
+            raise SmoothingError(
+                f"{p} was predicted by {prov.get('model_file', 'another model')} "
+                f"(sha256 {str(theirs)[:12]}), not by --model {model} (sha256 {digest[:12]}); "
+                "pass the checkpoint that predicted the poses"
+            )
+        refine.add(bool(prov.get("refine", True)))
+    if len(refine) > 1:
+        raise SmoothingError(
+            "some poses files report the refined pose P1 and some P0; smooth them separately"
+        )
+    return refine.pop() if refine else True
+
+
+def smooth_file(
+    src: str | Path,
+    dst: str | Path,
+    overwrite: bool = False,
+    error_floor: HeldOutError | None = None,
+) -> Path:
     """Smooth the poses file ``src`` into ``dst`` (atomically, under the output lock).
+
+    ``error_floor``: the network's error on held-out labels, added to the standard deviation.
 
     Raises:
         SmoothingError: ``dst`` is ``src``, or the poses cannot be smoothed.
@@ -509,5 +530,6 @@ def smooth_file(src: str | Path, dst: str | Path, overwrite: bool = False) -> Pa
     refuse_existing(dst, overwrite)
     with output_lock(dst, "smoothed poses file"):
         refuse_existing(dst, overwrite)
-        write_poses_h5(smooth_poses(read_poses_h5(src), source=str(src)), dst)
+        data = read_poses_h5(src)
+        write_poses_h5(smooth_poses(data, source=str(src), error_floor=error_floor), dst)
     return dst

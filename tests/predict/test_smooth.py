@@ -171,7 +171,7 @@ def test_error_floor_restores_coverage_of_a_bias():
     res = smooth_arrays(z + bias, conf, np.full(T, 1 / FPS))
     err = np.abs(res.mean - truth)
     assert (err <= 2 * res.std).mean() < 0.8
-    from freipose.predict.smooth import fit_error_floor
+    from freipose.predict.smooth_error import fit_error_floor
 
     floor = fit_error_floor(res.mean, res.std, truth)
     std = np.sqrt(res.std**2 + floor[None, :, None] ** 2)

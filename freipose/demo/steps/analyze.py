@@ -14,6 +14,8 @@ from freipose.demo.markers import step_results
 from freipose.demo.presets import STIM_PART
 from freipose.io.atomic import atomic_write_text
 
+HELD_OUT_INSTANTS = 24  # held-out instants predicted to measure the network's error
+
 
 def study_toml(ctx: DemoContext, study_dir: Path, poses_dir: Path | None = None) -> str:
     """The study manifest of the demo sessions (paths relative to ``study_dir``).
@@ -81,8 +83,10 @@ def _analyze(ctx: DemoContext, study: Path, text: str, results: Path) -> dict[st
     """Run ``freipose analyze`` on the manifest ``text`` (written to ``study``) into ``results``.
 
     Returns:
-        The classification scores, the 10 best single variables, the share of them that
-        belong to the stimulated body part and the number of significant variables.
+        The balanced accuracy, the rank (1 = best) and name of the stimulated part's best
+        single variable, the classification scores, the 10 best single variables, the
+        share of them that belong to the stimulated body part and the number of
+        significant variables.
     """
     from freipose.analysis.config import AttributionConfig
     from freipose.analysis.report import analyze_study
@@ -95,11 +99,15 @@ def _analyze(ctx: DemoContext, study: Path, text: str, results: Path) -> dict[st
     result = analyze_study(
         study, results, None, "world", vcfg, acfg, say=lambda m: ctx.say("    " + m)
     )
-    att = result.attribution.sort_values("f1", ascending=False)
+    att = result.attribution.sort_values("f1", ascending=False).reset_index(drop=True)
     top = att.head(10)
     parts = top["part"].tolist()
     share = float(np.mean([pt == STIM_PART for pt in parts])) if parts else 0.0
+    stim = np.flatnonzero(att["part"].to_numpy() == STIM_PART)
     res = {
+        "balanced_accuracy": float(result.classification["balanced_accuracy"].iloc[0]),
+        "stimulated_best_rank": int(stim[0]) + 1 if stim.size else None,
+        "stimulated_best_variable": str(att["variable"].iloc[stim[0]]) if stim.size else None,
         "classification": json.loads(result.classification.to_json(orient="records")),
         "top_variables": json.loads(
             top[["variable", "part", "f1", "p_value", "p_adjusted", "significant"]].to_json(
@@ -119,14 +127,16 @@ def _analyze(ctx: DemoContext, study: Path, text: str, results: Path) -> dict[st
 
 
 def run(ctx: DemoContext) -> dict[str, Any]:
-    """Analyze the predicted poses and, for comparison, the true keypoints.
+    """Analyze the predicted poses, the smoothed predictions and the true keypoints.
 
     Args:
         ctx: the demo run.
 
     Returns:
-        ``stimulated_part`` and what :func:`_analyze` returned for ``predicted`` and
-        ``truth``.
+        ``stimulated_part``; what :func:`_analyze` returned for ``predicted``, ``truth``
+        and ``smoothed``; ``smooth``: the raw-vs-smoothed figure (``figure``), the
+        balanced accuracy and the stimulated part's best rank, raw and smoothed, and what
+        the held-out error of the network was measured on.
     """
     out = ctx.out / "analysis"
     out.mkdir(parents=True, exist_ok=True)
@@ -139,4 +149,103 @@ def run(ctx: DemoContext) -> dict[str, Any]:
     truth = _analyze(
         ctx, out / "study_truth.toml", study_toml(ctx, out, truth_dir), out / "results_truth"
     )
-    return {"stimulated_part": STIM_PART, "predicted": pred, "truth": truth}
+    res = {"stimulated_part": STIM_PART, "predicted": pred, "truth": truth}
+    smoothed_dir = out / "smoothed_poses"
+    smooth_info = _smooth_predictions(ctx, smoothed_dir)
+    ctx.say("  on the smoothed predicted poses (freipose smooth):")
+    res["smoothed"] = _analyze(
+        ctx,
+        out / "study_smoothed.toml",
+        study_toml(ctx, out, smoothed_dir),
+        out / "results_smoothed",
+    )
+    ctx.say(_side_by_side(pred, res["smoothed"]))
+    test = next(s.name for s in ctx.preset.sessions if s.split == "test")
+    res["smooth"] = {
+        **smooth_info,
+        "figure": str(_trajectory_figure(ctx, test, smoothed_dir, out / "smoothed_vs_raw.png")),
+        "balanced_accuracy": {"raw": pred["balanced_accuracy"],
+                              "smoothed": res["smoothed"]["balanced_accuracy"]},
+        "stimulated_best_rank": {"raw": pred["stimulated_best_rank"],
+                                 "smoothed": res["smoothed"]["stimulated_best_rank"]},
+    }  # fmt: skip
+    return res
+
+
+def _side_by_side(raw: dict[str, Any], smoothed: dict[str, Any]) -> str:
+    """Balanced accuracy and the stimulated part's best rank, raw next to smoothed."""
+    return (
+        f"    raw vs smoothed: balanced accuracy {raw['balanced_accuracy']:.2f} vs "
+        f"{smoothed['balanced_accuracy']:.2f}; best {STIM_PART} variable at rank "
+        f"{raw['stimulated_best_rank']} vs {smoothed['stimulated_best_rank']}"
+    )
+
+
+def _smooth_predictions(ctx: DemoContext, folder: Path) -> dict[str, Any]:
+    """Smooth every session's predictions into ``folder`` (kept if already there).
+
+    The standard deviation includes the pose network's error on the held-out labels
+    (``labels/eval.h5``) where they have enough instants per keypoint.
+
+    Returns:
+        ``held_out_error`` (what it was measured on, or why not) and ``files``.
+    """
+    from freipose.predict.smooth import smooth_file
+    from freipose.predict.smooth_error import ValidationLabelsError, model_validation_error
+
+    model = step_results(ctx.out, "train")["pose"]["checkpoint"]
+    todo = [s.name for s in ctx.preset.sessions if not (folder / f"{s.name}.poses.h5").is_file()]
+    held_out, note = None, "not needed: every session was smoothed before"
+    if todo:
+        try:
+            held_out = model_validation_error(
+                model, ctx.out / "labels" / "eval.h5", device=ctx.device
+            )
+            note = held_out.source
+        except ValidationLabelsError as exc:
+            note = f"left out: {exc}"
+        ctx.say(f"  smoothing the predictions; held-out error of the network: {note}")
+    folder.mkdir(parents=True, exist_ok=True)
+    files = []
+    for s in ctx.preset.sessions:
+        dst = folder / f"{s.name}.poses.h5"
+        if not dst.is_file():
+            smooth_file(ctx.poses_dir / f"{s.name}.poses.h5", dst, error_floor=held_out)
+        files.append(str(dst))
+    return {"held_out_error": note, "files": files}
+
+
+def _trajectory_figure(ctx: DemoContext, session: str, smoothed_dir: Path, path: Path) -> Path:
+    """Raw vs smoothed trajectories (with the 2-sigma band and the truth) of a few keypoints."""
+    from freipose.demo.context import save_png
+    from freipose.io.figures import new_figure
+    from freipose.io.poses import read_poses_h5
+
+    raw = read_poses_h5(ctx.poses_dir / f"{session}.poses.h5")
+    sm = read_poses_h5(smoothed_dir / f"{session}.poses.h5")
+    lab = session_labels(ctx, session)
+    gt = truth_to_calibrated(lab.points3d, step_results(ctx.out, "calibrate")["alignment"])
+    rows = {int(f): i for i, f in enumerate(lab.frame_index)}
+    gt = gt[[rows[int(f)] for f in raw.frame_index]]
+    names = [k for k in (STIM_PART, "Nose", "Tail") if k in raw.keypoints]
+    t = (raw.frame_index - raw.frame_index[0]) / raw.fps
+    n = min(len(t), int(round(6 * raw.fps)))
+    fig = new_figure(figsize=(9.0, 2.2 * len(names)))
+    axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
+    events = np.loadtxt(ctx.session_dir(session) / "events.csv", delimiter=",", skiprows=1, ndmin=2)
+    for ax, name in zip(axes, names, strict=True):
+        for a, b in events:
+            if a < t[n - 1]:
+                ax.axvspan(a, min(b, t[n - 1]), color="0.92", lw=0)
+        k = raw.keypoints.index(name)
+        mean, std = sm.poses[:n, k, 2], sm.extra["smooth_std"][:n, k, 2]
+        ax.fill_between(t[:n], mean - 2 * std, mean + 2 * std, color="C1", alpha=0.25,
+                        lw=0, label="smoothed ±2 sd")  # fmt: skip
+        ax.plot(t[:n], raw.poses[:n, k, 2], ".", color="0.5", ms=3, label="raw prediction")
+        ax.plot(t[:n], mean, color="C1", lw=1.2, label="smoothed")
+        ax.plot(t[:n], gt[:n, k, 2], color="k", lw=0.8, ls="--", label="truth")
+        ax.set_ylabel(f"{name}\nz (mm)")
+    axes[0].legend(loc="upper right", fontsize=7, ncol=4)
+    axes[-1].set_xlabel(f"time (s), session {session}; grey: stimulation")
+    save_png(fig, path)
+    return path
