@@ -20,6 +20,7 @@ import numpy as np
 from freipose.calibration.boards import Board
 from freipose.calibration.bundle import BundleResult, camera_covariance
 from freipose.calibration.bundle_problem import Observations
+from freipose.calibration.coverage import CameraCoverage, board_coverage, coverage_warnings
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.detect_videos import detect_cameras
 from freipose.calibration.diagnose import diagnose_board
@@ -89,6 +90,8 @@ class CalibrationResult:
         findings: why the calibration is not physically plausible (only with
             ``accept_implausible``; else such a calibration raises
             :class:`ImplausibleCalibrationError`).
+        coverage: per camera, the image regions, depths and floor the board covered
+            (empty for ``intrinsics_only``).
     """
 
     rig: CameraRig
@@ -104,6 +107,7 @@ class CalibrationResult:
     board_offsets: np.ndarray | None = None
     standard_errors: dict[str, dict[str, float]] = field(default_factory=dict)
     findings: tuple[Finding, ...] = ()
+    coverage: tuple[CameraCoverage, ...] = ()
 
     def camera_errors(self, camera: int) -> np.ndarray:
         """Final reprojection errors (px) of the inlier detections of camera index ``camera``."""
@@ -392,10 +396,12 @@ def _calibrate_detections(
     stats = bundle_stats(dets, adj.bundle, adj.obs, intr.results)
     warnings.extend(high_error_warnings(stats))
     rig = CameraRig(cams, _metadata(board, opt, world, adj, quality))
+    coverage = board_coverage(dets, rig, world.board_poses, obj, world.up)
+    warnings.extend(coverage_warnings(coverage))
     return CalibrationResult(
         rig, board, dets, stats, world.board_poses, world.description, rig0.graph, adj.bundle,
         warnings, intr.results, adj.offsets if opt.refine_board else None,
-        quality.standard_errors, quality.findings,
+        quality.standard_errors, quality.findings, coverage,
     )  # fmt: skip
 
 

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 import logging
+import textwrap
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from freipose.calibration.coverage import FLOOR_NEAR_MM, CameraCoverage
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.pipeline import CalibrationResult
 from freipose.io.figures import new_figure, save_figure
@@ -45,6 +47,9 @@ def summary_dict(result: CalibrationResult) -> dict[str, Any]:
         se = result.standard_errors.get(s.name)
         if se:
             d["intrinsics_standard_errors"] = {k: float(f"{v:.4g}") for k, v in se.items()}
+        cov = {c.name: c for c in result.coverage}.get(s.name)
+        if cov is not None:
+            d["coverage"] = cov.to_dict()
         cams[s.name] = d
     out: dict[str, Any] = {
         "board": result.board.to_dict(),
@@ -88,21 +93,58 @@ def _error_histogram(result: CalibrationResult, i: int, name: str) -> Figure:
     return fig
 
 
-def _coverage_map(det: CameraDetections) -> Figure:
-    """Where in the image a camera's corners were detected (2D histogram)."""
+def _coverage_text(cov: CameraCoverage | None) -> str:
+    """The second title line of a coverage map: depths and floor."""
+    if cov is None:
+        return ""
+    parts = []
+    if cov.depth_mm is not None:
+        parts.append(f"board {cov.depth_mm[0]:.0f}-{cov.depth_mm[2]:.0f} mm away (5-95 %)")
+    if cov.floor_views is not None:
+        parts.append(f"{cov.floor_views} views within {FLOOR_NEAR_MM:.0f} mm of the floor")
+    if cov.floor_region is not None:
+        parts.append(f"floor region {100 * cov.floor_region:.0f} % covered")
+    return "; ".join(parts)
+
+
+def _coverage_map(det: CameraDetections, cov: CameraCoverage | None = None) -> Figure:
+    """Where in the image a camera's corners were detected, per grid cell, and the floor.
+
+    The cells of the coverage grid show their corner counts (empty cells grey); the floor
+    that two cameras see is marked with red crosses when the floor is known.
+    """
     w, h = det.size
     pts = det.points[det.mask]
-    fig = new_figure(figsize=(5, 5 * h / max(w, 1) + 0.6))
+    fig = new_figure(figsize=(6, 6 * h / max(w, 1) + 1.0), layout="constrained")
     ax = fig.subplots()
+    grid = cov.grid if cov is not None else None
+    if grid is not None:
+        shown = np.ma.masked_equal(grid.astype(float), 0)
+        ax.set_facecolor("0.8")  # cells without corners
+        im = ax.imshow(shown, extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="viridis",
+                       interpolation="nearest", alpha=0.85)  # fmt: skip
+        fig.colorbar(im, ax=ax, shrink=0.8, label="detected corners per cell")
+        rows, cols = grid.shape
+        for r in range(rows):
+            for c in range(cols):
+                ax.text((c + 0.5) * w / cols, (r + 0.5) * h / rows, str(grid[r, c]),
+                        ha="center", va="center", fontsize=7, color="w")  # fmt: skip
     if len(pts):
-        H, _xe, _ye = np.histogram2d(
-            pts[:, 0], pts[:, 1], bins=(32, max(1, int(32 * h / w))), range=[[0, w], [0, h]]
-        )
-        ax.imshow(H.T, extent=(0, w, h, 0), cmap="viridis", interpolation="nearest")
-    ax.set_xlim(0, w)
-    ax.set_ylim(h, 0)
-    ax.set_title(f"{det.name}: detected corners ({len(pts)}) over the image")
-    fig.tight_layout()
+        ax.scatter(pts[:, 0], pts[:, 1], s=0.5, c="k", alpha=0.3, linewidths=0)
+    if cov is not None and cov.floor_pixels is not None and len(cov.floor_pixels):
+        f = cov.floor_pixels
+        ax.scatter(f[:, 0], f[:, 1], s=4, c="r", marker="+", linewidths=0.6,
+                   label="floor seen by 2+ cameras")  # fmt: skip
+        ax.legend(loc="lower right", fontsize=7)
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    sub = _coverage_text(cov)
+    ax.set_xlabel("x (px)" + ("\n" + textwrap.fill(sub, 80) if sub else ""), fontsize=8)
+    ax.set_ylabel("y (px)", fontsize=8)
+    head = f"{det.name}: {len(pts)} detected corners"
+    if cov is not None:
+        head += f" in {100 * cov.image_fraction:.0f} % of the image cells (grey: none)"
+    ax.set_title(head, fontsize=9)
     return fig
 
 
@@ -123,10 +165,17 @@ def _rig_figure(result: CalibrationResult) -> Figure:
         z = cam.R[2] * max(scale, 50.0)
         ax.plot([o[0], o[0] + z[0]], [o[1], o[1] + z[1]], [o[2], o[2] + z[2]], "r-")
         ax.scatter(*o, c="r", s=20)
-        ax.text(*o, cam.name, fontsize=8)
+        tip = o - 0.6 * z  # the name behind the camera, clear of its marker and axis
+        ax.text(*tip, cam.name, fontsize=8, ha="center", va="center")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
+    lims = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
+    mid, half = lims.mean(axis=1), max(float(np.ptp(lims, axis=1).max()) / 2, 1.0)
+    ax.set_xlim(mid[0] - half, mid[0] + half)  # one scale on every axis
+    ax.set_ylim(mid[1] - half, mid[1] + half)
+    ax.set_zlim(mid[2] - half, mid[2] + half)
+    ax.set_box_aspect((1, 1, 1))
     ax.set_title("cameras (red, optical axis) and board poses")
     if result.findings:
         cams = ", ".join(dict.fromkeys(f.camera for f in result.findings))
@@ -156,6 +205,8 @@ def write_report(result: CalibrationResult, outdir: str | Path) -> list[Path]:
         if result.bundle is not None:
             fig = _error_histogram(result, i, det.name)
             paths.append(save_figure(fig, out / f"errors_{det.name}.png", dpi=80))
-        paths.append(save_figure(_coverage_map(det), out / f"coverage_{det.name}.png", dpi=80))
+        cov = result.coverage[i] if i < len(result.coverage) else None
+        fig = _coverage_map(det, cov)
+        paths.append(save_figure(fig, out / f"coverage_{det.name}.png", dpi=80))
     paths.append(save_figure(_rig_figure(result), out / "rig_3d.png", dpi=80))
     return paths
