@@ -29,6 +29,13 @@ view's crop then has no other view to cover it.
 ``--set TABLE.KEY=VALUE`` overrides the preset (as above); ``--kinds voxel`` and ``--kinds
 baseline`` in two processes on the same ``--out`` use two cores, a third run with both
 compares (trained models are reused).
+
+``--init base,scratch`` trains every network twice at the same budget: fine-tuned from the
+base models shipped in ``freipose/models`` (trained on seeds 10000+, see docs/models.md;
+the sessions here use 101+ and 9001) and from random weights (``--init scratch``, the
+default), and prints both tables and their ratio; the runs of each go to ``--out/<init>``.
+``--eval-cameras N`` and ``--eval-appearance COAT`` render the held-out session with
+another rig or coat than the training sessions.
 """
 
 from __future__ import annotations
@@ -66,13 +73,15 @@ def make_sessions(
     eval_frames: int,
     size: tuple[int, int],
     fps: float = 5.0,
+    eval_scene: dict[str, Any] | None = None,
 ):
     """Synthetic training sessions (seeds 101, 102, ...) and the held-out one (seed 9001).
 
     Every session has its own jittered camera layout (``jitter_rig``). ``fps`` sets the
     spacing of the labeled instants: at the default 5 fps, 100 frames span 20 s of
     behaviour (like labels spread over a recording); at 50 fps they are 2 s of nearly one
-    pose, which makes a held-out median an estimate from a single pose.
+    pose, which makes a held-out median an estimate from a single pose. ``eval_scene``
+    holds ``SceneConfig`` settings of the held-out session only (e.g. another camera count).
     """
     from freipose.synth import SceneConfig, generate_session
 
@@ -80,8 +89,10 @@ def make_sessions(
     for i in range(n_train):
         cfg = SceneConfig(frames=frames, seed=101 + i, size=size, fps=fps)
         train.append(generate_session(root / f"train{i}", cfg, progress=False).labels)
-    cfg = SceneConfig(frames=eval_frames, seed=9001, size=size, fps=fps)
-    ev = generate_session(root / "eval", cfg, progress=False).labels
+    extra = dict(eval_scene or {})
+    cfg = SceneConfig(frames=eval_frames, seed=9001, size=size, fps=fps, **extra)
+    name = "eval" + "".join(f"_{k}{v}" for k, v in sorted(extra.items()))
+    ev = generate_session(root / name, cfg, progress=False).labels
     return train, ev
 
 
@@ -193,6 +204,16 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--cube-size", type=float, default=None, help="override model.cube_size (mm)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument(
+        "--init",
+        default="scratch",
+        help="starting weights, comma separated: scratch, base (the shipped base models) or "
+        "both (base,scratch: the same budget twice, compared); runs go to --out/<init>",
+    )
+    ap.add_argument("--eval-cameras", type=int, default=0, help="cameras of the held-out rig")
+    ap.add_argument(
+        "--eval-appearance", default="", help="coat of the held-out animal (hooded, albino, ...)"
+    )
+    ap.add_argument(
         "--kinds",
         default="voxel,baseline",
         help="networks to train (comma separated): run one process with voxel and one with "
@@ -255,7 +276,7 @@ def _main_experiment(
     main_res = {k: stats(v) for k, v in res.items()}
     v, b = main_res.get("voxel_P1", NAN3), main_res.get("baseline", NAN3)
     p0 = main_res.get("voxel_P0", NAN3)
-    log("\nMAIN (7 cameras, all instants): median JPE mm [30 %, 70 %]")
+    log("\nMAIN (all cameras, all instants): median JPE mm [30 %, 70 %]")
     log(f"  voxel P0   {p0[0]:7.2f}  [{p0[1]:.2f}, {p0[2]:.2f}]")
     log(f"  voxel P1   {v[0]:7.2f}  [{v[1]:.2f}, {v[2]:.2f}]")
     log(f"  baseline   {b[0]:7.2f}  [{b[1]:.2f}, {b[2]:.2f}]")
@@ -335,6 +356,9 @@ def main(argv: list[str] | None = None) -> int:
     kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
     if not kinds or not kinds <= {"voxel", "baseline"}:
         ap.error(f"--kinds takes voxel and/or baseline, got {args.kinds!r}")
+    inits = [i.strip() for i in args.init.split(",") if i.strip()]
+    if not inits or not set(inits) <= {"base", "scratch"}:
+        ap.error(f"--init takes base and/or scratch, got {args.init!r}")
     base_cfg = _base_config(ap, args)
     # the arguments are valid: only now the output folder
     out = args.out
@@ -346,8 +370,19 @@ def main(argv: list[str] | None = None) -> int:
         f"{torch.get_num_threads()} thread(s); model {base_cfg.model}"
     )
     t0 = time.perf_counter()
+    eval_scene: dict[str, Any] = {}
+    if args.eval_cameras:
+        eval_scene["n_cameras"] = args.eval_cameras
+    if args.eval_appearance:
+        eval_scene["appearance"] = args.eval_appearance
     train_paths, eval_path = make_sessions(
-        out / "data", args.train_sessions, args.frames, args.eval_frames, tuple(args.size), args.fps
+        out / "data",
+        args.train_sessions,
+        args.frames,
+        args.eval_frames,
+        tuple(args.size),
+        args.fps,
+        eval_scene,
     )
     train_lab = merged_labels(train_paths)
     eval_lab = merged_labels([eval_path])
@@ -355,28 +390,56 @@ def main(argv: list[str] | None = None) -> int:
         f"data: {len(train_lab)} training instants ({args.train_sessions} sessions), "
         f"{len(eval_lab)} held-out instants; generated in {time.perf_counter() - t0:.0f} s"
     )
-    results: dict = {"config": vars(args) | {"out": str(out)}, "experiments": {}}
+    results: dict = {"config": vars(args) | {"out": str(out)}, "init": {}}
     exps = [e.strip() for e in args.experiments.split(",") if e.strip()]
     all_idx = np.arange(len(train_lab))
+    keypoints = read_labels_h5(eval_path).keypoints
+    for init in inits:
+        log(f"\n== init = {init} ==")
+        cfg = dataclasses.replace(base_cfg, model=dataclasses.replace(base_cfg.model, init=init))
+        run_out = out if init == "scratch" else out / init
 
-    def pair(tag: str, cameras: list[str] | None, idx: np.ndarray | None) -> dict:
-        indices = all_idx if idx is None else idx
-        return run_pair(
-            tag, base_cfg, train_lab, eval_lab, cameras, indices, out, args.device, log, kinds
-        )
+        def pair(
+            tag: str, cameras: list[str] | None, idx: np.ndarray | None, cfg=cfg, run_out=run_out
+        ) -> dict:
+            indices = all_idx if idx is None else idx
+            return run_pair(
+                tag, cfg, train_lab, eval_lab, cameras, indices, run_out, args.device, log, kinds
+            )
 
-    if "main" in exps:
-        keypoints = read_labels_h5(eval_path).keypoints
-        results["experiments"]["main"] = _main_experiment(pair, out, keypoints, log)
-    if "cameras" in exps:
-        results["experiments"]["cameras"] = _cameras_experiment(pair, args.trials, log)
-    if "fraction" in exps:
-        table = _fraction_experiment(pair, len(train_lab), args.trials, log)
-        results["experiments"]["fraction"] = {str(k): v for k, v in table.items()}
-    _plots(out, results)
+        found: dict[str, Any] = {}
+        if "main" in exps:
+            found["main"] = _main_experiment(pair, run_out, keypoints, log)
+        if "cameras" in exps:
+            found["cameras"] = _cameras_experiment(pair, args.trials, log)
+        if "fraction" in exps:
+            table = _fraction_experiment(pair, len(train_lab), args.trials, log)
+            found["fraction"] = {str(k): v for k, v in table.items()}
+        _plots(run_out, {"experiments": found})
+        results["init"][init] = found
+    results["experiments"] = results["init"][inits[0]]
+    _compare_inits(results["init"], log)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
     log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / 'results.json'}")
     return 0
+
+
+def _compare_inits(by_init: dict[str, dict[str, Any]], log: Any) -> None:
+    """The main experiment's medians per starting weights, side by side."""
+    rows = {i: r["main"] for i, r in by_init.items() if "main" in r}
+    if len(rows) < 2:
+        return
+    keys = ("voxel_P0", "voxel_P1", "baseline")
+    log("\nINIT (main experiment, equal budget): median JPE mm")
+    log("  init      " + "".join(f"{k:>11s}" for k in keys))
+    for init, row in rows.items():
+        log(f"  {init:8s}  " + "".join(f"{row.get(k, NAN3)[0]:11.2f}" for k in keys))
+    if {"base", "scratch"} <= set(rows):
+        b, s = rows["base"], rows["scratch"]
+        log(
+            "  base / scratch: "
+            + ", ".join(f"{k} {b.get(k, NAN3)[0] / s.get(k, NAN3)[0]:.3f}" for k in keys)
+        )
 
 
 def _plots(out: Path, results: dict) -> None:
