@@ -429,9 +429,7 @@ def boxes(labels_file: Path, calibration: Path | None, margin: float, output: Pa
         rig = load_calibration(calibration) if calibration else None
         rig = rig or next((i.calibration for i in lab.sessions.values() if i.calibration), None)
         if rig is None:
-            raise LabelsOpError(
-                f"{labels_file} has no calibrated session; pass --calibration FILE"
-            )
+            raise LabelsOpError(f"{labels_file} has no calibrated session; pass --calibration FILE")
         res = label_boxes(lab, rig, margin)
         write_fixed_boxes(res, output, str(labels_file))
         for cam, b in res.boxes.items():
