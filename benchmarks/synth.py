@@ -8,6 +8,9 @@ Measures, in one run:
   every part, no culling; same images);
 * the one-off per-camera set-up (pixel rays with exact undistortion, static background);
 * the calibration-board renderer (3 x 3 anti-aliased, exact with distortion);
+* the renderer under the conditions of real rigs (``SceneConfig`` keys: a mouse, fisheye
+  lenses, grayscale, reflective walls, bedding) and of randomised scenes, against the classic
+  scene at the same image size;
 * optionally (``--session``) the wall time of a whole 7-camera, 200-frame session with
   ``generate_session`` and 2 worker processes (the demo scale).
 
@@ -60,8 +63,9 @@ def _brute_force_ids(r: CameraRenderer, geom: BodyGeometry, f: int) -> np.ndarra
 def bench_size(size: tuple[int, int], frames: int) -> None:
     from freipose.io.video import VideoWriter
     from freipose.synth import SceneConfig
+    from freipose.synth.camera_job import _blur_vectors
     from freipose.synth.render import CameraRenderer
-    from freipose.synth.scene import _blur_vectors, build_scene
+    from freipose.synth.scene import build_scene
 
     scene = build_scene(SceneConfig(frames=max(frames, 10), size=size, seed=0))
     geom, pal = scene.geometry, scene.body.palette
@@ -122,6 +126,42 @@ def bench_board(size: tuple[int, int], frames: int) -> None:
           f"({per * 1e3:.1f} ms); board texture {tex_s:.2f} s once")  # fmt: skip
 
 
+def bench_conditions(size: tuple[int, int], frames: int) -> None:
+    from freipose.synth import SceneConfig
+    from freipose.synth.camera_job import _blur_vectors
+    from freipose.synth.conditions import scene_style
+    from freipose.synth.render import CameraRenderer
+    from freipose.synth.scene import build_scene
+
+    n = max(frames, 10)
+    lab = dict(animal="mouse", arena_size=(250.0, 250.0), wall_height=120.0, lens="fisheye",
+               grayscale=True, reflections=0.3, floor="bedding")  # fmt: skip
+    configs = {
+        "classic scene": SceneConfig(frames=n, size=size, seed=0),
+        "lab rig: mouse, fisheye, grayscale, reflections, bedding": SceneConfig(
+            frames=n, size=size, seed=0, **lab
+        ),
+        **{
+            f"randomized, seed {s}": SceneConfig(frames=n, size=size, seed=s, randomize=True)
+            for s in (1, 2, 3)
+        },  # fmt: skip
+    }
+    print(f"{size[0]}x{size[1]}, camera 0, {frames} frames, by scene (CPU time, 1 core):")
+    for name, cfg in configs.items():
+        scene = build_scene(cfg)
+        cam = scene.rig[0]
+        t0 = time.process_time()
+        r = CameraRenderer(cam, scene.arena, seed=1, style=scene_style(scene.config, cam.name))
+        setup = time.process_time() - t0
+        vel = _blur_vectors(scene.geometry, cam, cfg.fps)
+        rng = np.random.default_rng(0)
+        t0 = time.process_time()
+        for f in range(frames):
+            r.render(scene.geometry, f, scene.body.palette, rng, vel[f])
+        per = (time.process_time() - t0) / frames
+        print(f"  {name:58s} {1 / per:7.1f} frames/s ({per * 1e3:.1f} ms), set-up {setup:.2f} s")
+
+
 def bench_session(size: tuple[int, int]) -> None:
     from freipose.synth import SceneConfig, generate_session
 
@@ -144,6 +184,7 @@ def main() -> None:
     for size in sizes:
         bench_size(size, args.frames)
     bench_board(sizes[0], 20)
+    bench_conditions(sizes[-1], args.frames)
     if args.session:
         for size in sizes:
             bench_session(size)

@@ -17,7 +17,7 @@ side faces -z. A pose is the 4 x 4 board->world transform.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +26,7 @@ import numpy as np
 
 from freipose.geometry import Camera, CameraRig, project
 from freipose.synth.errors import SynthError
+from freipose.synth.look import SceneStyle
 from freipose.synth.rig import ArenaConfig
 from freipose.workers import run_jobs
 
@@ -294,8 +295,13 @@ def _iter_board_camera(
     noise: bool,
     blur: bool,
     arena: ArenaConfig | None,
+    style: SceneStyle | None = None,
 ) -> Iterator[np.ndarray]:
-    """The board frames (H, W, 3) BGR uint8 of camera number ``ci`` at ``poses`` (F, 4, 4)."""
+    """The board frames (H, W, 3) BGR uint8 of camera number ``ci`` at ``poses`` (F, 4, 4).
+
+    ``style``: the scene's photometric settings (grayscale sensor, floor, lighting, blur,
+    noise level; None: the classic scene's).
+    """
     from freipose.synth.render import CameraLook, CameraRenderer
 
     arena = arena or ArenaConfig()
@@ -306,7 +312,7 @@ def _iter_board_camera(
     look = CameraLook.random(np.random.default_rng(cam_seed))
     if not noise:
         look = replace(look, noise_sigma=0.0)
-    r = CameraRenderer(cam, arena, cam_seed, look)
+    r = CameraRenderer(cam, arena, cam_seed, look, style)
     rng = np.random.default_rng(cam_seed + 1)
     for pose in poses:
         res = _render_board_on(r, tex, pose, blur_sigma=0.45 if blur else 0.0)
@@ -346,6 +352,7 @@ class _BoardJob:
     fps: float
     path: Path
     arena: ArenaConfig
+    style: SceneStyle | None = None
 
 
 def _board_camera_job(job: _BoardJob) -> str:
@@ -357,7 +364,7 @@ def _board_camera_job(job: _BoardJob) -> str:
     cv2.setNumThreads(1)
     cam = job.camera
     frames = _iter_board_camera(
-        cam, job.index, job.texture, job.poses, job.seed, True, True, job.arena
+        cam, job.index, job.texture, job.poses, job.seed, True, True, job.arena, job.style
     )
     with VideoWriter(job.path, job.fps, cam.size) as w:
         for img in frames:
@@ -377,6 +384,7 @@ def write_board_videos(
     workers: int = 1,
     progress: bool | None = None,
     transparent: bool = False,
+    styles: Mapping[str, SceneStyle] | None = None,
 ) -> tuple[dict[str, Path], np.ndarray]:
     """Write a calibration recording: one board video per camera plus the ground truth.
 
@@ -384,6 +392,9 @@ def write_board_videos(
     (the board) and ``board_poses.npy`` ((F, 4, 4) board->world transforms). Running it
     again with the same arguments keeps the videos already written (resume). ``transparent``:
     cameras behind the board see its pattern mirrored (see :func:`render_board_frames`).
+    ``styles``: per camera name, the scene's photometric settings (default: the classic
+    scene's). The board's heights scale with the arena (140-320 mm for a 600 mm arena) and
+    rise with walls taller than a sixth of the arena.
 
     Returns:
         ``(videos {camera: path}, poses (F, 4, 4))``.
@@ -400,11 +411,21 @@ def write_board_videos(
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     arena = arena or _arena_from(rig)
-    poses = board_poses(n_frames, arena.size, np.random.default_rng(seed), board.size_mm)
+    # heights scale with the arena (and the rig), and stay over walls taller than 1/6 of it
+    reach = float(max(arena.size)) / 600.0
+    lift = max(0.0, arena.wall_height - 100.0 * reach)
+    heights = (140.0, 320.0)
+    if reach != 1.0 or lift > 0:
+        heights = (140.0 * reach + lift, 320.0 * reach + lift)
+    poses = board_poses(
+        n_frames, arena.size, np.random.default_rng(seed), board.size_mm, height_range=heights
+    )
     # what the videos depend on; complete videos of the same recording are kept (resume)
     stamp = hashlib.sha256(json.dumps([
         rig_to_toml_text(rig), repr(board), n_frames, int(seed), float(fps), fmt,
         list(arena.size), arena.wall_height, *(["transparent"] if transparent else []),
+        *([repr(sorted(styles.items()))] if styles else []),
+        *([list(heights)] if heights != (140.0, 320.0) else []),
     ]).encode()).hexdigest()  # fmt: skip
     stamp_path = out / ".synth_board_stamp"
     same = stamp_path.is_file() and stamp_path.read_text(encoding="utf-8") == stamp
@@ -416,7 +437,9 @@ def write_board_videos(
     videos = {cam.name: out / f"{cam.name}{fmt}" for cam in rig}
     tex = _BoardTexture(board, _auto_ppm(rig), None, transparent)
     jobs = [
-        _BoardJob(cam, ci, tex, poses, seed, fps, videos[cam.name], arena)
+        _BoardJob(
+            cam, ci, tex, poses, seed, fps, videos[cam.name], arena, (styles or {}).get(cam.name)
+        )  # fmt: skip
         for ci, cam in enumerate(rig)
         if not (same and videos[cam.name].is_file())
     ]

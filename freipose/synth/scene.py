@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +52,7 @@ from freipose.synth.conditions import (
     scene_style,
 )
 from freipose.synth.errors import SynthError
+from freipose.synth.look import SceneStyle
 from freipose.synth.motion import simulate_motion
 from freipose.synth.rig import ArenaConfig, default_rig, load_rig_file
 from freipose.synth.stimulation import StimulationConfig
@@ -488,8 +489,18 @@ def _write_calibration_video(
         arena=scene.arena,
         workers=workers,
         progress=progress,
+        styles=_board_styles(config, scene.rig),
     )
     return cal_videos, out / "calibration" / "board.toml"
+
+
+def _board_styles(config: SceneConfig, rig: CameraRig) -> dict[str, SceneStyle] | None:
+    """The cameras' photometric settings for the board videos (None: all the classic ones).
+
+    The walls' reflections are left out (the board's mirror images are not rendered).
+    """
+    styles = {c.name: replace(scene_style(config, c.name), reflections=0.0) for c in rig}
+    return None if all(st == SceneStyle() for st in styles.values()) else styles
 
 
 def generate_session(

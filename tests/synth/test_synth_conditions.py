@@ -169,3 +169,19 @@ def test_lighting_blur_and_noise_settings():
                 dict(lens="tele"), dict(layout="circle"), dict(rest_fraction=1.0)):  # fmt: skip
         with pytest.raises(ValueError):
             SceneConfig(**bad)
+
+
+def test_calibration_video_of_a_mouse_box_keeps_the_board_over_its_walls(tmp_path):
+    cfg = SceneConfig(**{**TINY, "frames": 1}, animal="mouse", arena_size=(250.0, 250.0),
+                      wall_height=120.0, grayscale=True, calibration_video=True,
+                      calibration_frames=12)  # fmt: skip
+    paths = generate_session(tmp_path / "c", cfg, workers=1, progress=False)
+    from freipose.calibration.board_files import load_board
+
+    poses = np.load(paths.folder / "calibration" / "board_poses.npy")
+    bw, bh = load_board(paths.board).size_mm
+    centres = poses[:, :3, :3] @ np.array([bw / 2, bh / 2, 0.0]) + poses[:, :3, 3]
+    assert centres[0, 2] < 5 and np.all(centres[-4:, 2] > 130.0)  # on the floor, then high up
+    for video in paths.calibration_videos.values():  # the scene's grayscale cameras
+        img = FrameSource(video).read(8)
+        assert np.array_equal(img[..., 0], img[..., 1]) and np.array_equal(img[..., 1], img[..., 2])
