@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+from click.testing import CliRunner
 from nn_toydata import toy_samples, toy_skeleton
 
 import freipose.models as models
@@ -132,3 +133,27 @@ def test_training_starts_from_the_init_and_resume_ignores_it(trained, tmp_path):
     torch.save(ckpt, out)
     final = train_pose(cfg, tmp_path / "a", src, toy_skeleton(), progress=False, resume=True)
     assert read_checkpoint(final)["step"] == 2
+
+
+def test_train_command_init_option_and_relative_init_path(trained, tmp_path):
+    from nn_toydata import write_toy_labels
+
+    from freipose.cli.main import cli
+
+    write_toy_labels(tmp_path / "train", toy_samples(2))
+    (tmp_path / "start.pt").write_bytes(trained.read_bytes())
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(
+        '[data]\nlabels = "train/labels.h5"\n[model]\npreset = "tiny"\ncube_size = 300.0\n'
+        'init = "start.pt"\n[schedule]\nsteps = 1\nlr = 1e-9\n'
+    )
+    start = read_checkpoint(trained)["model"]
+    runs = {"config": [], "option": ["--init", str(trained)], "scratch": ["--init", "scratch"]}
+    for name, extra in runs.items():
+        r = CliRunner().invoke(
+            cli, ["-q", "train", str(cfg), "--out", str(tmp_path / name), *extra]
+        )
+        assert r.exit_code == 0, r.output
+        got = read_checkpoint(tmp_path / name / "model.pt")["model"]
+        close = all(torch.allclose(got[k].float(), start[k].float(), atol=1e-5) for k in start)
+        assert close == (name != "scratch"), name
