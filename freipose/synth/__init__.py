@@ -11,7 +11,10 @@ Public API:
   (:mod:`freipose.synth.stimulation`);
 * :mod:`freipose.synth.board`: :func:`board_poses`, :func:`render_board_frames`,
   :func:`write_board_videos` (calibration videos);
-* :class:`RatBody`, :func:`build_body`: the articulated ellipsoid animal.
+* :class:`RatBody`, :func:`build_body`: the articulated ellipsoid animal (rat or mouse);
+* :mod:`freipose.synth.conditions`: the conditions of real rigs (grayscale, fisheye lenses,
+  reflective walls, resting, bedding, a mouse, label files of other tools) and domain
+  randomisation (``SceneConfig(seed=S, randomize=True)``), all plain ``SceneConfig`` keys.
 """
 
 from freipose.synth.board import board_poses, default_board, render_board_frames, write_board_videos
