@@ -3,34 +3,33 @@
 Reads the predicted ``DIR/poses/<session>.poses.h5`` of a finished ``freipose demo DIR``
 and the session's true keypoints (``DIR/recordings/<session>/labels.h5``, mapped into the
 calibrated world frame as the demo's ``evaluate`` step does), smooths the predictions
-with :func:`freipose.predict.smooth.smooth_poses` and prints, raw against smoothed:
+with :func:`freipose.predict.smooth.smooth_poses` and prints, raw against smoothed (and
+against the smoother with one process noise per keypoint, ``fixed q``, for comparison):
 
 * the median joint position error (JPE, mm) and the median velocity error (mm/s against
-  the true velocity, from frame differences);
+  the true velocity, from frame differences), and their ratio;
 * the lag: the shift (frames) at which the cross-correlation of the smoothed and the true
-  velocity peaks, per keypoint and axis (0 = no lag);
+  velocity, summed over keypoints and axes, peaks (0 = no lag), and the per-axis peaks;
 * the coverage of the 1, 2 and 3 sigma bands (per axis; a Gaussian gives 68.3, 95.4 and
-  99.7 %) per keypoint class, and in the gap.
-
-The smoother's standard deviation is fitted on the recording alone, so it describes the
-frame-to-frame noise of the predictions; an error that persists over many frames (the
-network's bias) is invisible to it. ``--floor-from SESSION`` therefore also fits, on
-another session with truth, a per-keypoint error floor ``b`` (mm,
-:func:`freipose.predict.smooth.fit_error_floor`) added in quadrature
-(``sqrt(std^2 + b^2)``) so that 95.4 % of that session's axes lie within 2 sigma, and
-prints the coverage of this session with it (held out: the floor never sees it).
-
-``--gap N`` removes the predictions of N frames in the middle of the session (a camera
-dropout) before smoothing, and reports the error and the 2-sigma coverage in the gap.
+  99.7 %) per keypoint class: of the smoother's own std (the frame-to-frame noise), and
+  with the network's error on the held-out labels ``DIR/labels/eval.h5`` added
+  (:func:`freipose.predict.smooth_error.model_validation_error`, no truth of the session
+  used; the labeled instants themselves are left out of the coverage);
+* ``--gap N`` (default 10): the predictions of N frames in the middle are removed (a
+  camera dropout) before smoothing; the error and coverage in the gap;
+* the stimulated paw's 5 Hz amplitude during the stimulation (truth, raw, smoothed);
+* with ``--analysis``: the demo's analysis on raw and on smoothed poses of all sessions
+  side by side (balanced accuracy, rank of the stimulated part's best variable).
 
 Example::
 
-    python benchmarks/smooth.py --demo /work/demo_new --gap 10
+    python benchmarks/smooth.py --demo /work/demo_final --analysis
 """
 
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
 from pathlib import Path
 
@@ -40,11 +39,12 @@ from freipose.demo.context import truth_to_calibrated
 from freipose.demo.markers import step_results
 from freipose.io.labels import read_labels_h5
 from freipose.io.poses import PoseData, read_poses_h5
-from freipose.predict.smooth import smooth_poses
-from freipose.predict.smooth_error import fit_error_floor
+from freipose.predict.smooth import frame_intervals, smooth_arrays, smooth_poses
+from freipose.predict.smooth_error import model_validation_error
 
 CLASSES = {"head": ("Ear", "Eye", "Nose"), "front paws": ("Paw Front",), "back paws": (
     "Paw Back",), "tail": ("Tail",)}  # fmt: skip
+STIM_HZ = 5.0
 
 
 def _truth(demo: Path, session: str, data: PoseData) -> np.ndarray:
@@ -64,68 +64,108 @@ def _with_gap(data: PoseData, n: int) -> tuple[PoseData, slice]:
     poses, conf = data.poses.copy(), data.confidence.copy()
     poses[gap], conf[gap] = np.nan, 0.0
     kw = {f: getattr(data, f) for f in ("keypoints", "frame_index", "fps", "up", "skeleton")}
-    return PoseData(poses=poses, confidence=conf, **kw), gap
+    return PoseData(poses=poses, confidence=conf, provenance=data.provenance, **kw), gap
 
 
-def _lags(a: np.ndarray, b: np.ndarray, max_lag: int = 5) -> list[int]:
-    """Per keypoint and axis: the shift of b against a that maximises their correlation."""
-    va, vb = np.diff(a, axis=0), np.diff(b, axis=0)
+def _lag(truth: np.ndarray, est: np.ndarray, max_lag: int = 5) -> tuple[int, list[int]]:
+    """Shift of ``est`` against ``truth`` maximising the velocity correlation: pooled, per axis."""
+    va, vb = np.diff(truth, axis=0), np.diff(est, axis=0)
+    va, vb = va - va.mean(0), vb - vb.mean(0)
+    sl = slice(max_lag, len(va) - max_lag)
     lags = np.arange(-max_lag, max_lag + 1)
-    out = []
-    for k in range(a.shape[1]):
-        for ax in range(3):
-            x, y = va[:, k, ax], vb[:, k, ax]
-            ok = np.isfinite(x) & np.isfinite(y)
-            x, y = np.where(ok, x, 0.0), np.where(ok, y, 0.0)
-            sl = slice(max_lag, len(x) - max_lag)
-            cc = [float(np.dot(x[sl], np.roll(y, lag)[sl])) for lag in lags]
-            out.append(int(lags[int(np.argmax(cc))]))
-    return out
+    cc = np.array([(va[sl] * np.roll(vb, lag, axis=0)[sl]).sum(axis=0) for lag in lags])
+    pooled = int(lags[int(np.argmax(cc.sum(axis=(1, 2))))])
+    return pooled, [int(v) for v in lags[np.argmax(cc.reshape(len(lags), -1), axis=0)]]
 
 
-def _coverage(raw: PoseData, err: np.ndarray, std: np.ndarray, title: str) -> None:
-    """Print the 1/2/3-sigma coverage per keypoint class."""
-    print(title)
-    print(f"{'class':12s} {'n':>6s} {'1 sigma':>8s} {'2 sigma':>8s} {'3 sigma':>8s}  "
-          "median std (mm)")  # fmt: skip
-    rows = {c: [i for i, k in enumerate(raw.keypoints) if k.startswith(p)] for c, p in
+def _classes(keypoints: tuple[str, ...]) -> dict[str, list[int]]:
+    rows = {c: [i for i, k in enumerate(keypoints) if k.startswith(p)] for c, p in
             CLASSES.items()}  # fmt: skip
-    rows["all"] = list(range(len(raw.keypoints)))
-    for name, idx in rows.items():
-        if not idx:
-            continue
-        e, s = err[:, idx], std[:, idx]
+    rows["all"] = list(range(len(keypoints)))
+    return {c: i for c, i in rows.items() if i}
+
+
+def _coverage(keypoints, err, std, frames, title: str) -> None:
+    """Print the 1/2/3-sigma coverage per keypoint class over ``frames``."""
+    print(title)
+    print(f"  {'class':12s} {'n':>6s} {'1 sigma':>8s} {'2 sigma':>8s} {'3 sigma':>8s}  "
+          "median std (mm)")  # fmt: skip
+    for name, idx in _classes(keypoints).items():
+        e, s = err[frames][:, idx], std[frames][:, idx]
         cov = [100 * float((e <= m * s).mean()) for m in (1, 2, 3)]
-        print(f"{name:12s} {e.size:6d} {cov[0]:7.1f}% {cov[1]:7.1f}% {cov[2]:7.1f}%  "
+        print(f"  {name:12s} {e.size:6d} {cov[0]:7.1f}% {cov[1]:7.1f}% {cov[2]:7.1f}%  "
               f"{np.median(s):.2f}")  # fmt: skip
 
 
-def _report(raw: PoseData, sm: PoseData, truth: np.ndarray, gap: slice | None) -> None:
-    """Print the figures of the module docstring."""
+def _amplitude(x: np.ndarray, fps: float, windows: np.ndarray) -> float:
+    """Mean amplitude (mm) of the STIM_HZ component of (T, 3) ``x`` in 1 s stimulation windows."""
+    t = np.arange(len(x)) / fps
+    c = np.exp(-2j * np.pi * STIM_HZ * t)
+    n, amps = int(round(fps)), []
+    for a, b in windows:
+        for s in range(int(a * fps), int(b * fps) - n + 1, n):
+            seg = x[s : s + n] - x[s : s + n].mean(axis=0)
+            amps.append(np.linalg.norm(np.abs((seg * c[s : s + n, None]).sum(axis=0)) * 2 / n))
+    return float(np.mean(amps)) if amps else float("nan")
+
+
+def _errors(raw: PoseData, truth: np.ndarray, est: dict[str, np.ndarray]) -> None:
+    """Print JPE, velocity error and lag of the raw and each smoothed estimate."""
     fps = raw.fps
-    jpe_raw = np.linalg.norm(raw.poses - truth, axis=-1)
-    jpe_sm = np.linalg.norm(sm.poses - truth, axis=-1)
     vt = np.diff(truth, axis=0) * fps
-    ve_raw = np.linalg.norm(np.diff(raw.poses, axis=0) * fps - vt, axis=-1)
-    ve_sm = np.linalg.norm(np.diff(sm.poses, axis=0) * fps - vt, axis=-1)
-    print(f"frames {raw.num_frames}, keypoints {len(raw.keypoints)}, fps {fps:g}")
-    print(f"median JPE        raw {np.nanmedian(jpe_raw):7.2f} mm    smoothed "
-          f"{np.median(jpe_sm):7.2f} mm")  # fmt: skip
-    print(f"median vel. error raw {np.nanmedian(ve_raw):7.1f} mm/s  smoothed "
-          f"{np.median(ve_sm):7.1f} mm/s")  # fmt: skip
-    lags = _lags(truth, sm.poses)
-    vals, counts = np.unique(lags, return_counts=True)
-    print("lag of the smoothed velocity (frames: count of keypoint axes):",
-          ", ".join(f"{v}: {c}" for v, c in zip(vals, counts, strict=True)))  # fmt: skip
-    std = sm.extra["smooth_std"].astype(np.float64)
-    err = np.abs(sm.poses - truth)
-    _coverage(raw, err, std, "coverage of the smoother's own std (fitted on the recording):")
-    if gap is not None:
-        e, s = err[gap], std[gap]
-        print(f"gap of {gap.stop - gap.start} frames: median JPE {np.median(jpe_sm[gap]):.2f} "
-              f"mm, 2-sigma coverage {100 * float((e <= 2 * s).mean()):.1f}% "
-              f"(median std {np.median(s):.2f} mm)")  # fmt: skip
-    print(f"outliers rejected: {int(sm.extra['rejected'].sum())} of {sm.extra['rejected'].size}")
+    jr = float(np.nanmedian(np.linalg.norm(raw.poses - truth, axis=-1)))
+    vr = float(np.nanmedian(np.linalg.norm(np.diff(raw.poses, axis=0) * fps - vt, axis=-1)))
+    print(f"{'':22s} {'median JPE':>11s} {'vel. error':>11s} {'vel/raw':>8s} {'lag':>4s}")
+    print(f"{'raw':22s} {jr:8.2f} mm {vr:6.1f} mm/s {1:8.2f} {_lag(truth, raw.poses)[0]:4d}")
+    for name, m in est.items():
+        j = float(np.median(np.linalg.norm(m - truth, axis=-1)))
+        v = float(np.median(np.linalg.norm(np.diff(m, axis=0) * fps - vt, axis=-1)))
+        pooled, per = _lag(truth, m)
+        vals, counts = np.unique(per, return_counts=True)
+        spread = ", ".join(f"{a}: {b}" for a, b in zip(vals, counts, strict=True))
+        print(f"{name:22s} {j:8.2f} mm {v:6.1f} mm/s {v / vr:8.2f} {pooled:4d}   (per axis "
+              f"{spread})")  # fmt: skip
+
+
+def _analysis(demo: Path, held_out) -> None:
+    """The demo's analysis on raw and smoothed poses of every session, side by side."""
+    from freipose.demo.context import DemoContext
+    from freipose.demo.markers import read_marker
+    from freipose.demo.presets import PRESETS
+    from freipose.demo.steps.analyze import analyze_poses, study_toml
+    from freipose.io.poses import write_poses_h5
+
+    preset = PRESETS[(read_marker(demo, "synth") or {})["preset"]["name"]]
+    ctx = DemoContext(out=demo, preset=preset, say=lambda m: None)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp)
+        for label, adaptive in (("smoothed", True), ("smoothed, fixed q", False)):
+            sub = base / label.replace(", ", "_").replace(" ", "_")
+            (sub / "poses").mkdir(parents=True)
+            for s in preset.sessions:
+                d = read_poses_h5(demo / "poses" / f"{s.name}.poses.h5")
+                write_poses_h5(
+                    _smoothed(d, adaptive, held_out), sub / "poses" / f"{s.name}.poses.h5"
+                )
+            rows.append((label, analyze_poses(ctx, sub / "study.toml",
+                         study_toml(ctx, sub, sub / "poses"), sub / "results")))  # fmt: skip
+        raw = analyze_poses(ctx, base / "study.toml", study_toml(ctx, base), base / "results")
+    print("analysis (balanced accuracy; rank of the stimulated part's best single variable):")
+    for label, r in [("raw", raw), *rows]:
+        print(f"  {label:22s} {r['balanced_accuracy']:.3f}  rank {r['stimulated_best_rank']:4d}  "
+              f"({r['stimulated_best_variable']})")  # fmt: skip
+
+
+def _smoothed(data: PoseData, adaptive: bool, held_out) -> PoseData:
+    """``smooth_poses`` or, without adaptation, the same with one process noise per keypoint."""
+    if adaptive:
+        return smooth_poses(data, error_floor=held_out)
+    res = smooth_arrays(data.poses, data.confidence, frame_intervals(data.frame_index, data.fps),
+                        adaptive=False)  # fmt: skip
+    kw = {f: getattr(data, f) for f in ("keypoints", "frame_index", "fps", "up", "skeleton",
+                                        "calibration", "provenance")}  # fmt: skip
+    return PoseData(poses=res.mean.astype(np.float32), confidence=data.confidence, **kw)
 
 
 def main() -> None:
@@ -133,36 +173,55 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--demo", type=Path, required=True, help="a finished freipose demo folder")
     ap.add_argument("--session", default="rat1_day2", help="the held-out session")
-    ap.add_argument("--gap", type=int, default=0, help="frames without prediction to add")
-    ap.add_argument("--floor-from", default=None, help="session to fit the error floor on")
+    ap.add_argument("--gap", type=int, default=10, help="frames without prediction to add")
+    ap.add_argument("--analysis", action="store_true", help="also run the analysis side by side")
     args = ap.parse_args()
-    raw = read_poses_h5(args.demo / "poses" / f"{args.session}.poses.h5")
-    truth = _truth(args.demo, args.session, raw)
-    gap = None
-    if args.gap:
-        raw_in, gap = _with_gap(raw, args.gap)
-    else:
-        raw_in = raw
+    demo = args.demo
+    raw = read_poses_h5(demo / "poses" / f"{args.session}.poses.h5")
+    truth = _truth(demo, args.session, raw)
     t0 = time.perf_counter()
-    sm = smooth_poses(raw_in)
-    print(f"smoothed in {time.perf_counter() - t0:.2f} s")
-    _report(raw, sm, truth, gap)
-    if args.floor_from:
-        other = read_poses_h5(args.demo / "poses" / f"{args.floor_from}.poses.h5")
-        o_sm = smooth_poses(other)
-        floor = fit_error_floor(
-            o_sm.poses, o_sm.extra["smooth_std"], _truth(args.demo, args.floor_from, other)
-        )
-        std = smooth_poses(raw_in, error_floor=floor).extra["smooth_std"].astype(np.float64)
-        err = np.abs(sm.poses - truth)
-        _coverage(raw, err, std, f"with the error floor fitted on {args.floor_from} (median "
-                  f"{np.median(floor):.1f} mm):")  # fmt: skip
-        if gap is not None:
-            cov = 100 * float((err[gap] <= 2 * std[gap]).mean())
-            print(f"gap: 2-sigma coverage with the floor {cov:.1f}%")
-    for k, p in sm.provenance["smoother"]["params"].items():
-        print(f"  {k:20s} q {p['q_mm2_s3']:10.3g} mm^2/s^3  sigma0 {p['sigma0_mm']:6.2f} mm  "
-              f"beta {p['beta']:.2f}")  # fmt: skip
+    labels = demo / "labels" / "eval.h5"
+    held_out = model_validation_error(demo / "train" / "pose" / "model.pt", labels)
+    print(f"held-out error of the network ({time.perf_counter() - t0:.1f} s): {held_out.source}")
+    t0 = time.perf_counter()
+    sm = smooth_poses(raw, error_floor=held_out)
+    print(f"smoothed in {time.perf_counter() - t0:.2f} s; process noise raised on "
+          f"{sm.provenance['smoother']['adaptive_process_noise']['frames_raised']} of "
+          f"{raw.poses.shape[0] * raw.poses.shape[1]} frames x keypoints")  # fmt: skip
+    fixed = _smoothed(raw, False, None)
+    print(f"session {args.session}: {raw.num_frames} frames, {len(raw.keypoints)} keypoints, "
+          f"{raw.fps:g} fps")  # fmt: skip
+    _errors(raw, truth, {"smoothed": sm.poses, "smoothed, fixed q": fixed.poses})
+    own = smooth_poses(raw)
+    err = np.abs(sm.poses - truth)
+    lab_frames = set(int(f) for f in read_labels_h5(labels).frame_index)
+    frames = np.array([int(f) not in lab_frames for f in raw.frame_index])
+    _coverage(raw.keypoints, err, own.extra["smooth_std"].astype(np.float64), frames,
+              "coverage of the smoother's own std (frame-to-frame noise only):")  # fmt: skip
+    _coverage(raw.keypoints, err, sm.extra["smooth_std"].astype(np.float64), frames,
+              f"coverage with the held-out error ({frames.sum()} frames not among the labeled "
+              "instants):")  # fmt: skip
+    if args.gap:
+        gapped, gap = _with_gap(raw, args.gap)
+        g = smooth_poses(gapped, error_floor=held_out)
+        e, s = np.abs(g.poses[gap] - truth[gap]), g.extra["smooth_std"][gap]
+        nb = np.r_[gap.start - 20 : gap.start, gap.stop : gap.stop + 20]
+        en, sn = np.abs(g.poses[nb] - truth[nb]), g.extra["smooth_std"][nb]
+        print(f"gap of {args.gap} frames (no prediction): median JPE "
+              f"{np.median(np.linalg.norm(g.poses[gap] - truth[gap], axis=-1)):.2f} mm, "
+              f"2-sigma coverage {100 * float((e <= 2 * s).mean()):.1f}% (median std "
+              f"{np.median(s):.2f} mm); 20 frames either side: 2-sigma coverage "
+              f"{100 * float((en <= 2 * sn).mean()):.1f}% (median std "
+              f"{np.median(sn):.2f} mm)")  # fmt: skip
+    events = np.loadtxt(demo / "recordings" / args.session / "events.csv", delimiter=",",
+                        skiprows=1, ndmin=2)  # fmt: skip
+    k = raw.keypoints.index("Paw Front Right")
+    amps = [_amplitude(x[:, k], raw.fps, events) for x in (truth, raw.poses, sm.poses,
+                                                             fixed.poses)]  # fmt: skip
+    print(f"Paw Front Right {STIM_HZ:g} Hz amplitude in the stimulation: truth {amps[0]:.1f} mm, "
+          f"raw {amps[1]:.1f}, smoothed {amps[2]:.1f}, fixed q {amps[3]:.1f}")  # fmt: skip
+    if args.analysis:
+        _analysis(demo, held_out)
 
 
 if __name__ == "__main__":

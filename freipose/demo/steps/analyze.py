@@ -79,7 +79,7 @@ def _write_truth_poses(ctx: DemoContext, folder: Path) -> None:
         write_poses_h5(data, path)
 
 
-def _analyze(ctx: DemoContext, study: Path, text: str, results: Path) -> dict[str, Any]:
+def analyze_poses(ctx: DemoContext, study: Path, text: str, results: Path) -> dict[str, Any]:
     """Run ``freipose analyze`` on the manifest ``text`` (written to ``study``) into ``results``.
 
     Returns:
@@ -133,7 +133,7 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         ctx: the demo run.
 
     Returns:
-        ``stimulated_part``; what :func:`_analyze` returned for ``predicted``, ``truth``
+        ``stimulated_part``; what :func:`analyze_poses` returned for ``predicted``, ``truth``
         and ``smoothed``; ``smooth``: the raw-vs-smoothed figure (``figure``), the
         balanced accuracy and the stimulated part's best rank, raw and smoothed, and what
         the held-out error of the network was measured on.
@@ -141,19 +141,19 @@ def run(ctx: DemoContext) -> dict[str, Any]:
     out = ctx.out / "analysis"
     out.mkdir(parents=True, exist_ok=True)
     ctx.say("  on the predicted poses:")
-    pred = _analyze(ctx, out / "study.toml", study_toml(ctx, out), out / "results")
+    pred = analyze_poses(ctx, out / "study.toml", study_toml(ctx, out), out / "results")
     # The same analysis on the true keypoints: what perfect tracking would show.
     ctx.say("  on the true keypoints (for comparison: perfect tracking):")
     truth_dir = out / "truth_poses"
     _write_truth_poses(ctx, truth_dir)
-    truth = _analyze(
+    truth = analyze_poses(
         ctx, out / "study_truth.toml", study_toml(ctx, out, truth_dir), out / "results_truth"
     )
     res = {"stimulated_part": STIM_PART, "predicted": pred, "truth": truth}
     smoothed_dir = out / "smoothed_poses"
     smooth_info = _smooth_predictions(ctx, smoothed_dir)
     ctx.say("  on the smoothed predicted poses (freipose smooth):")
-    res["smoothed"] = _analyze(
+    res["smoothed"] = analyze_poses(
         ctx,
         out / "study_smoothed.toml",
         study_toml(ctx, out, smoothed_dir),
