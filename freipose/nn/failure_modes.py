@@ -132,10 +132,14 @@ def format_failure_modes(modes: dict[str, Any]) -> list[str]:
     if modes["pairs"]:
         lines.append("  left/right pair: distance predicted vs true (median), swap rate")
         for p in modes["pairs"]:
-            mark = "  COLLAPSED" if p["collapsed"] else ""
+            swap = (
+                "COLLAPSED (its swaps are chance)"
+                if p["collapsed"]
+                else f"swapped {100 * p['swap_rate']:.0f} %"
+            )
             lines.append(
                 f"    {p['left']} / {p['right']}: {p['predicted_mm']:.1f} vs "
-                f"{p['true_mm']:.1f} mm, swapped {100 * p['swap_rate']:.0f} %{mark}"
+                f"{p['true_mm']:.1f} mm, {swap}"
             )
     if modes["bones"]:
         lines.append("  bone length predicted vs true (median)")
