@@ -98,7 +98,7 @@ def evaluate(
 def _training_points(ev: Evaluation, given: Path | None) -> np.ndarray | None:
     """The training labels' 3D points for the references (None, said, where there are none)."""
     from freipose.io.labels import read_labels_h5
-    from freipose.nn.evaluate import trained_on
+    from freipose.nn.evaluate import EvaluationError, trained_on
 
     if given is not None:
         path, why = given, "given with --train-labels"
@@ -109,7 +109,14 @@ def _training_points(ev: Evaluation, given: Path | None) -> np.ndarray | None:
             return None
         path = found
     click.echo(f"training labels for the references: {path} ({why})")
-    return read_labels_h5(path).points3d
+    lab = read_labels_h5(path)
+    if tuple(lab.keypoints) != ev.keypoints:
+        raise EvaluationError(
+            f"{path}: the training labels have keypoints {list(lab.keypoints)}, the evaluated "
+            f"networks {list(ev.keypoints)}; pass --train-labels with the labels the network "
+            "was trained on"
+        )
+    return lab.points3d
 
 
 def _echo_results(summary: dict[str, Any], sanity: Sanity) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 from click.testing import CliRunner
 from nn_toydata import toy_samples, write_toy_labels
 
+from freipose.io.labels import read_labels_h5, write_labels_h5
 from freipose.nn.evaluate import jpe
 from freipose.nn.failure_modes import failure_modes, format_failure_modes
 from freipose.nn.references import (
@@ -142,6 +144,15 @@ def test_eval_command_prints_references_and_failure_modes(tmp_path):
     r = runner.invoke(cli, [*ev, "-o", str(tmp_path / "ev2"), "--train-labels",
                             str(tmp_path / "eval" / "labels.h5")])  # fmt: skip
     assert r.exit_code == 0 and "(given with --train-labels)" in r.output, r.output
+    other = read_labels_h5(tmp_path / "eval" / "labels.h5")
+    write_labels_h5(
+        dataclasses.replace(other, keypoints=("a", "b", "c", "d", "e")), tmp_path / "o.h5"
+    )
+    r = runner.invoke(
+        cli, [*ev, "-o", str(tmp_path / "ev4"), "--train-labels", str(tmp_path / "o.h5")]
+    )
+    assert r.exit_code != 0 and "the training labels have keypoints ['a'" in r.output, r.output
+    assert "Traceback" not in r.output
     (tmp_path / "train" / "labels.h5").rename(tmp_path / "moved.h5")
     r = runner.invoke(cli, [*ev, "-o", str(tmp_path / "ev3")])
     assert r.exit_code == 0 and "no sanity references" in r.output, r.output
