@@ -30,9 +30,9 @@ from freipose.io.poses import PoseData
 from freipose.io.session import Session
 from freipose.labelui.geometry import (
     STATE_NAMES,
-    InstantGeometry,
     UNLABELED,
     VISIBLE,
+    InstantGeometry,
     bone_lengths,
     bone_report,
     instant_geometry,

@@ -6,9 +6,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
+import numpy as np
 import pytest
 
 from freipose.io.labels import LabelSet, read_labels_h5
+from freipose.io.poses import PoseData, write_poses_h5
 from freipose.labelui.startup import open_store
 from freipose.labelui.store import LabelStore
 from freipose.synth import SceneConfig, generate_session
@@ -37,3 +40,18 @@ def store(synth_session: SynthSession, tmp_path: Path) -> Iterator[LabelStore]:
     """A store over four evenly spread instants, writing tmp_path/labels.h5."""
     yield open_store([synth_session.folder], synth_session.calibration, "rat",
                      tmp_path / "labels.h5", per_session=4)  # fmt: skip
+
+
+@pytest.fixture
+def poses_dir(synth_session: SynthSession, tmp_path: Path) -> Path:
+    """``rat1.poses.h5``: the truth + 2 mm, confidence 0.9 (frame 6: 0.1, frame 2: 0.4)."""
+    t = synth_session.truth
+    folder = tmp_path / "poses"
+    conf = np.full((12, 12), 0.9, np.float32)
+    conf[6], conf[2] = 0.1, 0.4
+    poses = t.points3d.astype(np.float32) + 2.0
+    path = folder / "rat1.poses.h5"
+    write_poses_h5(PoseData(poses, conf, t.keypoints, np.arange(12), 25.0), path)
+    with h5py.File(path, "a") as f:  # as `freipose predict` marks a finished file
+        f.attrs["complete"] = True
+    return folder

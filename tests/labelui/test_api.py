@@ -193,3 +193,27 @@ def test_second_server_on_the_same_labels_file_refused(store):
         assert running.port > 0 and len(running.token) >= 24
         with pytest.raises(OutputLockedError, match="another run"), serving(store):
             pass
+
+
+def test_residuals_and_bone_lengths_flagged(store, synth_session):
+    t = synth_session.truth
+    rig = store.session(0).rig
+    skel = store.skeleton
+    ear, nose = t.keypoints.index("Ear Left"), t.keypoints.index("Nose")
+    for i, x in enumerate(store.instants):
+        pts = t.points2d[x.frame].copy()
+        vis = t.visible2d[x.frame].copy()
+        if i == 3:  # the left ear 30 mm up in 3D, the nose 12 px off in one view
+            X = t.points3d[x.frame, ear] + [0.0, 0.0, 30.0]
+            pts[:, ear] = rig.project(X[None])[:, 0]
+            vis[:, [ear, nose]] = True
+            pts[0, nose] += [12.0, 0.0]
+        status = np.where(vis, 1, 0).astype(np.int8)
+        state = store.save(i, 0, np.where(vis[..., None], pts, np.nan), status)
+    assert state["residuals"]["cam0"]["Nose"] > store.settings.max_residual
+    assert state["residuals"]["cam1"]["Ear Left"] < 0.01
+    flagged = {b["limb"] for b in state["bones"] if b["flag"]}
+    ear_ear = skel.limbs.index(((skel.index("Ear Right"),), (ear,)))
+    moved = {n for n, (a, b) in enumerate(skel.limbs) if {ear, nose} & set(a + b)}
+    assert ear_ear in flagged and flagged <= moved  # only limbs at the moved keypoints
+    assert not any(b["flag"] for b in store.state(0)["bones"])  # the true poses are fine

@@ -21,6 +21,7 @@ from freipose.geometry.projection import pixel_to_ray, project
 from freipose.geometry.triangulation import triangulate_weighted
 from freipose.io.labels import read_labels_h5
 from freipose.labelui.server import Running, background_server
+from freipose.labelui.startup import open_store
 from freipose.labelui.store import LabelStore
 
 webdriver = pytest.importorskip("selenium.webdriver")
@@ -247,3 +248,26 @@ def test_keys_mark_occluded_and_undo(driver, store, synth_session):
         body.send_keys(Keys.DELETE)
         _wait(lambda: _state(driver)["version"] == 6)
         assert kp not in _state(driver)["labels"]["cam1"]
+
+
+def test_predicted_markers_accepted_and_least_confident_button(driver, synth_session, poses_dir,
+                                                                 tmp_path):  # fmt: skip
+    s = synth_session
+    store = open_store([s.folder], s.calibration, "rat", tmp_path / "l.h5", poses_dir=poses_dir,
+                       per_session=3)  # frames 0, 6 (confidence 0.1) and 11  # fmt: skip
+    with background_server(store) as running:
+        _open(driver, running)
+        assert driver.execute_script("return FP.S.idx") == 0
+        driver.find_element(By.ID, "least").click()
+        _wait(lambda: driver.execute_script("return document.body.dataset.instant === '1'"))
+        k = s.truth.keypoints.index("Nose")
+        _select_keypoint(driver, k)
+        assert driver.execute_script("return FP.shown('cam0', 'Nose').kind") == "predicted"
+        assert not any(_state(driver)["labels"].values())  # predictions are not labels
+        driver.find_element(By.ID, "accept").click()  # accept the predicted Nose
+        st = _wait(lambda: (x := _state(driver))["version"] == 1 and x)
+        want = store.session(1).rig.project(s.truth.points3d[6, k][None] + 2.0)[:, 0]  # (V, 2)
+        for v, cam in enumerate(st["cameras"]):
+            lab = st["labels"][cam]["Nose"]
+            np.testing.assert_allclose([lab["x"], lab["y"]], want[v], atol=2e-3)
+        assert len(read_labels_h5(tmp_path / "l.h5")) == 1

@@ -8,9 +8,7 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-import h5py
 import httpx
 import numpy as np
 import pytest
@@ -23,7 +21,6 @@ from freipose.cli.main import cli
 from freipose.io.calibration import load_calibration, save_calibration
 from freipose.io.labels import read_labels_h5
 from freipose.io.lock import lock_path
-from freipose.io.poses import PoseData, write_poses_h5
 from freipose.labelui.app import create_app
 from freipose.labelui.frames import FrameCache
 from freipose.labelui.geometry import OCCLUDED, VISIBLE
@@ -104,23 +101,9 @@ def test_resume_keeps_states_and_other_sessions(synth_session, tmp_path):
     np.testing.assert_array_equal(ls2.points2d[: len(ls)], ls.points2d)
 
 
-def _truth_poses(s, tmp_path: Path) -> Path:
-    """A poses file from the truth with made-up confidences (frame 6 the least confident)."""
-    t = s.truth
-    conf = np.full((12, 12), 0.9, np.float32)
-    conf[6], conf[2] = 0.1, 0.4
-    poses = t.points3d.astype(np.float32) + 2.0
-    folder = tmp_path / "poses"
-    path = folder / "rat1.poses.h5"
-    write_poses_h5(PoseData(poses, conf, t.keypoints, np.arange(12), 25.0), path)
-    with h5py.File(path, "a") as f:  # as `freipose predict` marks a finished file
-        f.attrs["complete"] = True
-    return folder
-
-
-def test_predictions_prefill_but_are_never_written(synth_session, tmp_path):
+def test_predictions_prefill_but_are_never_written(synth_session, tmp_path, poses_dir):
     s = synth_session
-    poses = _truth_poses(s, tmp_path)
+    poses = poses_dir
     store = open_store([s.folder], s.calibration, "rat", tmp_path / "l.h5", poses_dir=poses,
                        per_session=3)  # fmt: skip
     assert [round(x.confidence, 2) for x in store.instants] == [0.9, 0.1, 0.9]
@@ -132,10 +115,10 @@ def test_predictions_prefill_but_are_never_written(synth_session, tmp_path):
     assert len(read_labels_h5(tmp_path / "l.h5")) == 0  # unconfirmed predictions: no labels
 
 
-def test_select_label_train_round_trip(synth_session, tmp_path):
+def test_select_label_train_round_trip(synth_session, tmp_path, poses_dir):
     """labels select -> label (through the HTTP API) -> train with the tiny preset."""
     s = synth_session
-    poses = _truth_poses(s, tmp_path)
+    poses = poses_dir
     sel = tmp_path / "selection.csv"
     args = [s.folder, "--calibration", s.calibration, "--poses-dir", poses, "--n", "4",
             "--min-gap", "1", "-o", sel]  # fmt: skip

@@ -364,8 +364,8 @@ const FP = (() => {
     const names = all ? S.cfg.keypoints : [kpName(S.kp)];
     edit(() => {
       for (const kp of names) {
-        for (const cam of S.cur.cameras) {
-          const sh = shown(cam, kp);
+        const todo = S.cur.cameras.map((cam) => [cam, shown(cam, kp)]); // before any change
+        for (const [cam, sh] of todo) {
           if (sh && sh.kind !== "label" && !label(cam, kp) && inside(cam, sh.p)) {
             setLabel(cam, kp, { state: "visible", x: +sh.p[0].toFixed(3), y: +sh.p[1].toFixed(3) });
           }
