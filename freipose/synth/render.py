@@ -248,7 +248,9 @@ class CameraRenderer:
         col[:] = (0.22, 0.22, 0.22)  # the room beyond
         lam_floor = 0.45 + 0.55 * LIGHT[2]
         fl = kind == BG_FLOOR
-        floor_col = np.where(inside[..., None], base_floor, table) * floor_t[..., None] * lam_floor
+        table_t = floor_t if style.floor == "mat" else 1 + 0.25 * (floor_t - 1)  # no bedding
+        floor_col = np.where(inside[..., None], base_floor * floor_t[..., None],
+                             table * table_t[..., None]) * lam_floor  # fmt: skip
         col[fl] = floor_col[fl]
         wl = kind == BG_WALL
         wall_base = bgr(style.wall_color, (0.66, 0.68, 0.68))

@@ -19,7 +19,8 @@ Rig file (TOML), documented in ``docs/formats.md`` (see ``examples/rig.toml``)::
     position = [700.0, 0.0, 650.0]  # mm
     look_at = [0.0, 0.0, 30.0]      # mm
     # size, focal, distortion as in [defaults]; optional: fov_deg (horizontal field of view,
-    # instead of focal), principal_point = [cx, cy], up = [0, 0, 1]
+    # instead of focal), principal_point = [cx, cy], up = [0, 0, 1], grayscale = true (a
+    # monochrome camera, see grayscale_cameras)
 """
 
 from __future__ import annotations
@@ -263,7 +264,7 @@ def _metadata(arena: ArenaConfig) -> dict[str, Any]:
 
 
 _CAMERA_KEYS = frozenset({"name", "position", "look_at", "size", "focal", "fov_deg", "distortion",
-                          "principal_point", "up"})  # fmt: skip
+                          "principal_point", "up", "grayscale"})  # fmt: skip
 _DEFAULT_KEYS = _CAMERA_KEYS - {"name", "position", "look_at"}
 _TOP_KEYS = frozenset({"arena", "defaults", "camera"})
 
@@ -487,6 +488,25 @@ def rig_from_dict(
         where = f"camera #{i + 1} ({entry.get('name', 'unnamed')!r})"
         cams.append(_camera(entry, where, defaults, names, default_size, arena, src))
     return CameraRig(tuple(cams), _metadata(arena)), arena
+
+
+def grayscale_cameras(path: str | Path) -> tuple[str, ...]:
+    """The cameras of a rig file with ``grayscale = true`` (own or from ``[defaults]``).
+
+    Raises:
+        RigFileError: ``grayscale`` is not true or false.
+    """
+    data = read_toml(path, "rig file", RigFileError)
+    defaults = data.get("defaults", {})
+    default = defaults.get("grayscale", False) if isinstance(defaults, Mapping) else False
+    out = []
+    for e in data.get("camera", []) or []:
+        gray = e.get("grayscale", default) if isinstance(e, Mapping) else False
+        if not isinstance(gray, bool):
+            raise RigFileError(f"{path}: camera {e.get('name')!r}: grayscale must be true or false")
+        if gray:
+            out.append(str(e["name"]))
+    return tuple(out)
 
 
 @overload

@@ -54,7 +54,7 @@ from freipose.synth.conditions import (
 from freipose.synth.errors import SynthError
 from freipose.synth.look import SceneStyle
 from freipose.synth.motion import simulate_motion
-from freipose.synth.rig import ArenaConfig, default_rig, load_rig_file
+from freipose.synth.rig import ArenaConfig, default_rig, grayscale_cameras, load_rig_file
 from freipose.synth.stimulation import StimulationConfig
 from freipose.workers import run_jobs
 
@@ -316,6 +316,9 @@ def resolve_rig(config: SceneConfig) -> tuple[CameraRig, ArenaConfig]:
 def build_scene(config: SceneConfig) -> Scene:
     """Resolve the rig, draw the animal and simulate its motion (deterministic in the seed)."""
     config = config.resolved()
+    if config.rig_file is not None and config.grayscale is False:
+        gray = grayscale_cameras(config.rig_file)  # the rig file's monochrome cameras
+        config = replace(config, grayscale=gray) if gray else config
     rig, arena = resolve_rig(config)
     coats = MOUSE_COATS if config.animal == "mouse" else APPEARANCES
     body = RatBody.random(

@@ -53,6 +53,17 @@ def test_grayscale_cameras_all_or_by_name(tmp_path):
     assert SceneConfig.from_toml(paths.scene).grayscale == ("cam1",)
     with pytest.raises(ValueError, match="grayscale"):
         SceneConfig(grayscale="cam1")
+    rig = tmp_path / "rig.toml"  # or per camera in a rig file
+    rig.write_text(
+        "[defaults]\nsize = [96, 80]\n"
+        '[[camera]]\nname = "mono"\nposition = [700, 0, 650]\nlook_at = [0, 0, 30]\n'
+        "grayscale = true\n"
+        '[[camera]]\nname = "rgb"\nposition = [0, 700, 650]\nlook_at = [0, 0, 30]\n'
+    )
+    cfg = SceneConfig(frames=2, video_format=".mkv", rig_file=str(rig))
+    paths = generate_session(tmp_path / "r", cfg, workers=1, progress=False)
+    mono, rgb = (FrameSource(paths.videos[c]).read(1).astype(int) for c in ("mono", "rgb"))
+    assert np.all(mono[..., 0] == mono[..., 2]) and not np.all(rgb[..., 0] == rgb[..., 2])
 
 
 @pytest.mark.parametrize("layout", ["ring", "above", "side", "below"])
