@@ -123,6 +123,10 @@ def test_label_two_views_projected_third_drag_reload(driver, store: LabelStore, 
     t2d = truth.points2d[frame]  # (V, K, 2)
     with background_server(store) as running:
         _open(driver, running)
+        sizes = driver.execute_script(
+            "return Object.values(FP.S.views).map((v) => [v.img.naturalWidth, v.img.naturalHeight])"
+        )
+        assert sizes == [[320, 256]] * 3  # every view's frame arrived and decoded
         _select_keypoint(driver, k1)
         _click_image(driver, "cam0", t2d[0, k1])
         _click_image(driver, "cam1", t2d[1, k1])

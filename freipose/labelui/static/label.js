@@ -456,6 +456,13 @@ const FP = (() => {
   });
 
   // -- navigation ----------------------------------------------------------------------
+  // The query names the session and frame, so that a cached image never stands for
+  // another frame after a restart with other instants.
+  function frameUrl(i, cam) {
+    const x = S.cfg.instants[i];
+    return `api/frame/${i}/${encodeURIComponent(cam)}?at=${encodeURIComponent(x.session + ":" + x.frame)}`;
+  }
+
   async function load(i) {
     const t0 = performance.now();
     const n = S.cfg.instants.length;
@@ -471,7 +478,7 @@ const FP = (() => {
     await Promise.all(r.body.cameras.map((cam) => new Promise((resolve) => {
       const img = new Image();
       img.onload = img.onerror = resolve;
-      img.src = `api/frame/${i}/${encodeURIComponent(cam)}`;
+      img.src = frameUrl(i, cam);
       S.views[cam].img = img;
     })));
     if (i !== S.idx) return;
@@ -480,7 +487,7 @@ const FP = (() => {
     S.lastSwitchMs = performance.now() - t0;
     document.body.dataset.instant = String(i);
     for (const j of [i + 1, i + 2]) {
-      if (j < n) r.body.cameras.forEach((cam) => { new Image().src = `api/frame/${j}/${encodeURIComponent(cam)}`; });
+      if (j < n) r.body.cameras.forEach((cam) => { new Image().src = frameUrl(j, cam); });
     }
   }
 
