@@ -11,7 +11,6 @@ import time
 
 import httpx
 import numpy as np
-import pytest
 from click.testing import CliRunner
 from starlette.testclient import TestClient
 
@@ -150,9 +149,6 @@ def test_select_label_train_round_trip(synth_session, tmp_path, poses_dir):
     assert (tmp_path / "run" / "model.pt").is_file()
 
 
-@pytest.mark.skipif(
-    shutil.which("freipose") is None, reason="the freipose command is not installed"
-)
 def test_command_prints_url_serves_with_token_and_stops(synth_session, tmp_path):
     s = synth_session
     out = tmp_path / "labels.h5"
