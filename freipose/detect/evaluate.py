@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -162,3 +163,25 @@ def measure_fps(
         detector.propose(imgs, batch_size=batch_size)
         done += batch_size
     return done / (time.perf_counter() - t0)
+
+
+def measure_speed(detector, sets: Sequence[Any]) -> tuple[float, str]:
+    """Images per second of ``detector`` at the image size of the datasets' first camera.
+
+    Args:
+        detector: a :class:`~freipose.detect.detector.Detector` on the CPU.
+        sets: labeled datasets (``MultiViewDataset``); 640x480 where none is calibrated.
+
+    Returns:
+        ``(fps, how)``: the speed and what it was measured on (size, threads).
+    """
+    import torch
+
+    size = (640, 480)
+    rigs = [ds.labels.rig_for(n) for ds in sets for n in ds.labels.sessions]
+    rig = next((r for r in rigs if r is not None and len(r)), None)
+    if rig is not None:
+        size = tuple(rig[0].size)
+    how = "as the training videos" if rig is not None else "the labels have no calibrated camera"
+    fps = measure_fps(detector, size)
+    return fps, f"{size[0]}x{size[1]} images, {how}; {torch.get_num_threads()} threads"

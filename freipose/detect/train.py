@@ -71,7 +71,7 @@ from freipose.detect.detector import (
     resolve_device,
     save_checkpoint,
 )
-from freipose.detect.evaluate import DetectionMetrics, evaluate_source, gt_boxes, measure_fps
+from freipose.detect.evaluate import DetectionMetrics, evaluate_source, gt_boxes, measure_speed
 from freipose.detect.init import initialize_detector
 from freipose.detect.loss import detection_loss
 from freipose.detect.model import DetectorConfig, DetectorNet, to_tensor
@@ -464,11 +464,10 @@ def _training_views(
     sel = np.unique(np.linspace(0, len(items) - 1, keep).round().astype(int))
     views = _collect_items(train_sets, [items[i] for i in sel], cfg)
     n_neg = int((~np.isfinite(views.boxes).all(-1)).sum())
+    used = min(n_eval, cfg.max_eval_instants)  # [detector] max_eval_instants
     log.info(
-        "detector: %d training views from %d time instants (%d without the animal); "
-        "evaluated on %d time instants (of %d held out; at most [detector] "
-        "max_eval_instants)", len(views.images), len(sel), n_neg,
-        min(n_eval, cfg.max_eval_instants), n_eval,
+        "detector: %d training views from %d time instants (%d without the animal); %d of "
+        "%d held-out time instants evaluated", len(views.images), len(sel), n_neg, used, n_eval,
     )  # fmt: skip
     return views
 
@@ -522,8 +521,7 @@ def train_detector(
     """Train the detector as the training TOML says; returns the checkpoint path.
 
     Writes ``detector_last.pt``, ``log.csv`` (see :func:`fit`) and ``detector.pt`` into
-    ``out_dir``. Prints recall at IoU 0.5, the median 3D centre error (mm) on the
-    evaluation set and the CPU frames per second at the end.
+    ``out_dir``. Prints the evaluation metrics and the CPU speed at the end.
 
     Args:
         config: the parsed training TOML (``[data]`` and ``[detector]`` tables are used).
@@ -574,8 +572,7 @@ def _train_into(
     del views
     metrics = _evaluate(Detector(net, dev), eval_sets or train_sets, split.eval, cfg)
     cpu = Detector(net.to("cpu"), "cpu")
-    size = _image_size(train_sets)
-    fps = measure_fps(cpu, size)
+    fps, speed_at = measure_speed(cpu, train_sets)
     net.to(dev)
     final = out_dir / FINAL
     save_checkpoint(final, net, extra=_final_extra(cfg, metrics, fps, train_s, losses))
@@ -584,21 +581,8 @@ def _train_into(
         print(f"detector eval: {metrics.summary()}")
     else:
         print("detector eval: no evaluation data (set [data] eval_labels or eval_fraction > 0)")
-    print(
-        f"detector speed: {fps:.1f} frames/s on CPU ({size[0]}x{size[1]} images, as the "
-        f"training videos; {torch.get_num_threads()} threads)"
-    )
+    print(f"detector speed: {fps:.1f} frames/s on CPU ({speed_at})")
     return final
-
-
-def _image_size(sets: list) -> tuple[int, int]:
-    """(width, height) of the first calibrated camera of the datasets (640x480 if none)."""
-    for ds in sets:
-        for name in ds.labels.sessions:
-            rig = ds.labels.rig_for(name)
-            if rig is not None and len(rig):
-                return tuple(rig[0].size)  # type: ignore[return-value]
-    return (640, 480)
 
 
 def _collect_items(
