@@ -46,6 +46,12 @@ def smoothed_name(path: Path) -> str:
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     help="The pose checkpoint that predicted the poses (with --validation).",
 )
+@click.option(
+    "--bones",
+    is_flag=True,
+    help="Pull the skeleton's bone lengths towards their median over the recording (a soft "
+    "penalty, stronger for bones the recording shows to be rigid).",
+)
 @device_option("cpu")
 @allow_incomplete_option()
 @overwrite_option("smoothed files that exist")
@@ -54,6 +60,7 @@ def smooth(
     outdir: Path,
     validation: Path | None,
     model: Path | None,
+    bones: bool,
     device: str,
     allow_incomplete: bool,
     overwrite: bool,
@@ -87,7 +94,8 @@ def smooth(
             refuse_existing(out, overwrite)
         held_out = _held_out_error(validation, model, [p for p, _ in jobs], device)
         for p, out in jobs:
-            click.echo(f"wrote {smooth_file(p, out, overwrite=overwrite, error_floor=held_out)}")
+            path = smooth_file(p, out, overwrite=overwrite, error_floor=held_out, bones=bones)
+            click.echo(f"wrote {path}")
 
 
 def _held_out_error(

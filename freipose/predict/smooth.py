@@ -397,8 +397,49 @@ def frame_intervals(frame_index: np.ndarray, fps: float) -> np.ndarray:
     return steps / float(fps)
 
 
+def _persistent(
+    error_floor: np.ndarray | HeldOutError | None, keypoints: tuple[str, ...]
+) -> tuple[np.ndarray, dict[str, Any] | None]:
+    """(K, 3) persistent error in mm (0 without one) and its provenance entry."""
+    if isinstance(error_floor, HeldOutError):
+        floor = error_floor.for_keypoints(keypoints)
+        return floor, {"kind": "error on held-out labels", **error_floor.as_dict()}
+    if error_floor is None:
+        return np.zeros((len(keypoints), 3)), None
+    floor = np.asarray(error_floor, np.float64).reshape(len(keypoints), -1)
+    floor = np.broadcast_to(floor, (len(keypoints), 3))
+    entry = {k: [float(v) for v in f] for k, f in zip(keypoints, floor, strict=True)}
+    return floor, {"kind": "floor", "floor_mm": entry}
+
+
+def _bones(data: PoseData, mean: np.ndarray, var: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Bone-constrained positions and the provenance entry (lengths and spreads).
+
+    Raises:
+        SmoothingError: the poses' skeleton has no limb between two single keypoints.
+    """
+    from freipose.predict.smooth_bones import bone_pairs, constrain_bones
+
+    pairs = bone_pairs(data.skeleton, data.keypoints)
+    if not len(pairs):
+        raise SmoothingError(
+            "--bones needs a skeleton with limbs between single keypoints; the poses file "
+            f"has {'no skeleton' if data.skeleton is None else 'none'} (leave out --bones)"
+        )
+    fit = constrain_bones(mean, var, pairs)
+    names = [f"{data.keypoints[i]} - {data.keypoints[j]}" for i, j in pairs]
+    entry = {
+        n: {"length_mm": float(ln), "spread_mm": float(sp)}
+        for n, ln, sp in zip(names, fit.length, fit.spread, strict=True)
+    }
+    return fit.mean, entry
+
+
 def smooth_poses(
-    data: PoseData, source: str = "", error_floor: np.ndarray | HeldOutError | None = None
+    data: PoseData,
+    source: str = "",
+    error_floor: np.ndarray | HeldOutError | None = None,
+    bones: bool = False,
 ) -> PoseData:
     """The smoothed poses of one recording, same schema plus the posterior.
 
@@ -414,26 +455,19 @@ def smooth_poses(
             the network's error on held-out labels (:class:`HeldOutError`, from
             :func:`freipose.predict.smooth_error.model_validation_error`), or a (K,) or
             (K, 3) floor in mm (:func:`freipose.predict.smooth_error.fit_error_floor`).
+        bones: pull the skeleton's bone lengths towards their median over the recording
+            (:mod:`freipose.predict.smooth_bones`); the standard deviation stays the
+            smoother's.
+
+    Raises:
+        SmoothingError: too few predicted frames, or ``bones`` without usable limbs.
     """
     res = smooth_arrays(data.poses, data.confidence, frame_intervals(data.frame_index, data.fps))
-    std = res.std
-    persistent: dict[str, Any] | None = None
-    if isinstance(error_floor, HeldOutError):
-        floor = error_floor.for_keypoints(data.keypoints)
-        persistent = {"kind": "error on held-out labels", **error_floor.as_dict()}
-    elif error_floor is not None:
-        floor = np.broadcast_to(
-            np.asarray(error_floor, np.float64).reshape(len(data.keypoints), -1),
-            (len(data.keypoints), 3),
-        )
-        persistent = {
-            "kind": "floor",
-            "floor_mm": {
-                k: [float(v) for v in f] for k, f in zip(data.keypoints, floor, strict=True)
-            },
-        }
-    if persistent is not None:
-        std = np.sqrt(std**2 + floor[None] ** 2)
+    floor, persistent = _persistent(error_floor, data.keypoints)
+    std = np.sqrt(res.std**2 + floor[None] ** 2)
+    mean, bone_entry = res.mean, None
+    if bones:
+        mean, bone_entry = _bones(data, res.mean, res.std**2)
     prov: dict[str, Any] = dict(data.provenance)
     prov["smoother"] = {
         "method": "constant-velocity Kalman filter + RTS smoother (freipose.predict.smooth)",
@@ -450,6 +484,8 @@ def smooth_poses(
     }
     if persistent is not None:
         prov["smoother"]["persistent_error"] = persistent
+    if bone_entry is not None:
+        prov["smoother"]["bones"] = bone_entry
     extra: Mapping[str, np.ndarray] = {
         **dict(data.extra),
         "smooth_std": std.astype(np.float32),
@@ -457,7 +493,7 @@ def smooth_poses(
         "rejected": res.rejected,
     }
     return PoseData(
-        poses=res.mean.astype(np.float32),
+        poses=mean.astype(np.float32),
         confidence=data.confidence,
         keypoints=data.keypoints,
         frame_index=data.frame_index,
@@ -515,10 +551,11 @@ def smooth_file(
     dst: str | Path,
     overwrite: bool = False,
     error_floor: HeldOutError | None = None,
+    bones: bool = False,
 ) -> Path:
     """Smooth the poses file ``src`` into ``dst`` (atomically, under the output lock).
 
-    ``error_floor``: the network's error on held-out labels, added to the standard deviation.
+    ``error_floor`` and ``bones`` are those of :func:`smooth_poses`.
 
     Raises:
         SmoothingError: ``dst`` is ``src``, or the poses cannot be smoothed.
@@ -531,5 +568,6 @@ def smooth_file(
     with output_lock(dst, "smoothed poses file"):
         refuse_existing(dst, overwrite)
         data = read_poses_h5(src)
-        write_poses_h5(smooth_poses(data, source=str(src), error_floor=error_floor), dst)
+        out = smooth_poses(data, source=str(src), error_floor=error_floor, bones=bones)
+        write_poses_h5(out, dst)
     return dst
