@@ -25,6 +25,7 @@ from freipose.labelui.startup import open_store
 from freipose.labelui.store import LabelStore
 
 webdriver = pytest.importorskip("selenium.webdriver")
+from selenium.webdriver.common.action_chains import ActionChains, ScrollOrigin  # noqa: E402
 from selenium.webdriver.common.actions.action_builder import ActionBuilder  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.common.keys import Keys  # noqa: E402
@@ -252,6 +253,21 @@ def test_keys_mark_occluded_and_undo(driver, store, synth_session):
         body.send_keys(Keys.DELETE)
         _wait(lambda: _state(driver)["version"] == 6)
         assert kp not in _state(driver)["labels"]["cam1"]
+        # the wheel zooms, Shift+drag pans (and neither labels anything)
+        view = "return [FP.S.views.cam2.s, FP.S.views.cam2.tx, FP.S.views.cam2.ty]"
+        s0, tx0, _ = driver.execute_script(view)
+        canvas = driver.find_element(By.CSS_SELECTOR, '.view[data-camera="cam2"] canvas')
+        ActionChains(driver).scroll_from_origin(
+            ScrollOrigin.from_element(canvas), 0, -300
+        ).perform()
+        s1, tx1, ty1 = _wait(lambda: (v := driver.execute_script(view))[0] != s0 and v)
+        assert s1 > 1.3 * s0
+        ActionChains(driver).move_to_element(canvas).key_down(
+            Keys.SHIFT
+        ).click_and_hold().move_by_offset(40, 25).release().key_up(Keys.SHIFT).perform()
+        _, tx2, ty2 = driver.execute_script(view)
+        assert (tx2 - tx1, ty2 - ty1) == pytest.approx((40, 25), abs=1)
+        assert _state(driver)["version"] == 6 and _state(driver)["labels"]["cam2"] == {}
 
 
 def test_predicted_markers_accepted_and_least_confident_button(driver, synth_session, poses_dir,
