@@ -18,6 +18,8 @@ against the smoother with one process noise per keypoint, ``fixed q``, for compa
 * ``--gap N`` (default 10): the predictions of N frames in the middle are removed (a
   camera dropout) before smoothing; the error and coverage in the gap;
 * the stimulated paw's 5 Hz amplitude during the stimulation (truth, raw, smoothed);
+* ``--bones``: the median over bones of the bone-length standard deviation (truth, raw,
+  smoothed, smoothed with ``--bones``) and the JPE with ``--bones``;
 * with ``--analysis``: the demo's analysis on raw and on smoothed poses of all sessions
   side by side (balanced accuracy, rank of the stimulated part's best variable).
 
@@ -154,7 +156,7 @@ def _analysis(demo: Path, held_out) -> None:
     print("analysis (balanced accuracy; rank of the stimulated part's best single variable):")
     for label, r in [("raw", raw), *rows]:
         print(f"  {label:22s} {r['balanced_accuracy']:.3f}  rank {r['stimulated_best_rank']:4d}  "
-              f"({r['stimulated_best_variable']})")  # fmt: skip
+              f"F1 {r['stimulated_best_f1']:.3f} ({r['stimulated_best_variable']})")  # fmt: skip
 
 
 def _smoothed(data: PoseData, adaptive: bool, held_out) -> PoseData:
@@ -220,8 +222,31 @@ def main() -> None:
                                                              fixed.poses)]  # fmt: skip
     print(f"Paw Front Right {STIM_HZ:g} Hz amplitude in the stimulation: truth {amps[0]:.1f} mm, "
           f"raw {amps[1]:.1f}, smoothed {amps[2]:.1f}, fixed q {amps[3]:.1f}")  # fmt: skip
+    _bones_figures(raw, truth, sm)
     if args.analysis:
         _analysis(demo, held_out)
+
+
+def _bones_figures(raw: PoseData, truth: np.ndarray, sm: PoseData) -> None:
+    """Bone-length spread and JPE without and with ``--bones``."""
+    from freipose.predict.smooth_bones import bone_pairs
+    from freipose.skeleton import load_skeleton
+
+    pairs = bone_pairs(raw.skeleton or load_skeleton("rat"), raw.keypoints)
+    if raw.skeleton is None or not len(pairs):
+        print("--bones: the poses have no skeleton with single-keypoint limbs")
+        return
+    bones = smooth_poses(raw, bones=True)
+
+    def spread(x: np.ndarray) -> float:
+        d = np.linalg.norm(x[:, pairs[:, 0]] - x[:, pairs[:, 1]], axis=-1)
+        return float(np.median(d.std(axis=0)))
+
+    jpe = [float(np.median(np.linalg.norm(x - truth, axis=-1))) for x in (sm.poses, bones.poses)]
+    print(f"--bones ({len(pairs)} bones): median bone-length std truth {spread(truth):.2f} mm, "
+          f"raw {spread(raw.poses):.2f}, smoothed {spread(sm.poses):.2f}, with --bones "
+          f"{spread(bones.poses):.2f}; median JPE smoothed {jpe[0]:.2f} mm, with --bones "
+          f"{jpe[1]:.2f} mm")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -83,8 +83,8 @@ def analyze_poses(ctx: DemoContext, study: Path, text: str, results: Path) -> di
     """Run ``freipose analyze`` on the manifest ``text`` (written to ``study``) into ``results``.
 
     Returns:
-        The balanced accuracy, the rank (1 = best) and name of the stimulated part's best
-        single variable, the classification scores, the 10 best single variables, the
+        The balanced accuracy, the rank (1 = best), name and F1 of the stimulated part's
+        best single variable, the classification scores, the 10 best single variables, the
         share of them that belong to the stimulated body part and the number of
         significant variables.
     """
@@ -108,6 +108,7 @@ def analyze_poses(ctx: DemoContext, study: Path, text: str, results: Path) -> di
         "balanced_accuracy": float(result.classification["balanced_accuracy"].iloc[0]),
         "stimulated_best_rank": int(stim[0]) + 1 if stim.size else None,
         "stimulated_best_variable": str(att["variable"].iloc[stim[0]]) if stim.size else None,
+        "stimulated_best_f1": float(att["f1"].iloc[stim[0]]) if stim.size else None,
         "classification": json.loads(result.classification.to_json(orient="records")),
         "top_variables": json.loads(
             top[["variable", "part", "f1", "p_value", "p_adjusted", "significant"]].to_json(
