@@ -268,6 +268,12 @@ def test_keys_mark_occluded_and_undo(driver, store, synth_session):
         _, tx2, ty2 = driver.execute_script(view)
         assert (tx2 - tx1, ty2 - ty1) == pytest.approx((40, 25), abs=1)
         assert _state(driver)["version"] == 6 and _state(driver)["labels"]["cam2"] == {}
+        # an edit and at once the next instant: the edit is saved to its own instant
+        _click_image(driver, "cam2", truth.points2d[frame, 2, k])
+        body.send_keys(Keys.ARROW_RIGHT)
+        _wait(lambda: driver.execute_script("return document.body.dataset.instant === '1'"))
+        assert store.state(0)["labels"]["cam2"][kp]["state"] == "visible"
+        assert store.state(1)["version"] == 0
 
 
 def test_predicted_markers_accepted_and_least_confident_button(driver, synth_session, poses_dir,

@@ -7,7 +7,7 @@
 const FP = (() => {
   const S = {
     cfg: null, idx: 0, cur: null, labels: {}, kp: 0, active: null, views: {},
-    undo: [], saving: false, pending: false, drag: null, pan: null,
+    undo: [], saving: false, pending: false, flushing: null, drag: null, pan: null,
     yaw: 0.6, pitch: 0.5, lastSwitchMs: null, depths: null, conflicts: 0,
   };
   const HIT = 9; // CSS px: grab radius of a marker
@@ -313,7 +313,7 @@ const FP = (() => {
 
   function save() {
     S.pending = true;
-    if (!S.saving) flush();
+    if (!S.saving) S.flushing = flush();
   }
 
   async function flush() {
@@ -327,7 +327,6 @@ const FP = (() => {
         headers: { "Content-Type": "application/json" },
         body: JSON.stringify({ version: S.cur.version, labels: S.labels }),
       });
-      if (idx !== S.idx) continue;
       if (r.status === 200) {
         applyState(r.body, false);
         marker.textContent = "saved";
@@ -464,6 +463,7 @@ const FP = (() => {
   }
 
   async function load(i) {
+    if (S.saving) await S.flushing; // the edits of this instant are saved before leaving it
     const t0 = performance.now();
     const n = S.cfg.instants.length;
     i = Math.max(0, Math.min(n - 1, i));
