@@ -130,7 +130,24 @@ def test_label_two_views_projected_third_drag_reload(driver, store: LabelStore, 
         assert sizes == [[320, 256]] * 3  # every view's frame arrived and decoded
         _select_keypoint(driver, k1)
         _click_image(driver, "cam0", t2d[0, k1])
-        _click_image(driver, "cam1", t2d[1, k1])
+        _wait(lambda: _state(driver)["version"] == 1)
+        # press in cam1 and drag: cam2 shows the projection live, before any save
+        u, v = (float(c) for c in t2d[1, k1])
+        driver.execute_script("FP.setView('cam1', 4, arguments[0], arguments[1])", u, v)
+        x, y = (round(c) for c in driver.execute_script(
+            "return FP.imageToClient('cam1', arguments[0], arguments[1])", u, v))  # fmt: skip
+        ab = ActionBuilder(driver)
+        ab.pointer_action.move_to_location(x, y).pointer_down().move_to_location(x + 8, y)
+        ab.perform()
+        live = driver.execute_script("return FP.shown('cam2', arguments[0])", kp1)
+        assert live["kind"] == "projected" and _state(driver)["version"] == 1
+        rig = store.session(0).rig
+        obs = np.stack([t2d[0, k1], t2d[1, k1] + [2.0, 0.0], [np.nan, np.nan]])
+        X = triangulate_weighted(obs, np.array([1.0, 1.0, 0.0]), rig)
+        assert np.linalg.norm(np.array(live["p"]) - project(X, rig["cam2"])) < 0.3  # px
+        ab = ActionBuilder(driver)
+        ab.pointer_action.move_to_location(x, y).pointer_up()
+        ab.perform()
         st = _wait(lambda: (s := _state(driver))["points3d"].get(kp1) and s)
         proj = np.array(st["projected"]["cam2"][kp1])
         assert np.linalg.norm(proj - t2d[2, k1]) < 1.0  # px, against the true projection
@@ -202,6 +219,13 @@ def test_epipolar_curve_and_projection_in_js_match_python(driver, store, synth_s
                                     rig["cam1"].dist.tolist())  # fmt: skip
         from freipose.geometry.distortion import undistort_normalized
 
+        t = synth_session.truth
+        js3d = driver.execute_script(
+            "const c = FP.S.cfg.cameras;"
+            "return FPGeom.triangulate([c['rat1/cam0'], c['rat1/cam2']], arguments[0])",
+            t.points2d[5, [0, 2], 10].tolist(),
+        )
+        np.testing.assert_allclose(js3d, t.points3d[5, 10], atol=1e-6)  # exact projections
         want_und = undistort_normalized(np.array([0.31, -0.22]), rig["cam1"].dist)
         np.testing.assert_allclose(und, want_und, atol=1e-12)
         assert rig["cam1"].has_distortion

@@ -93,5 +93,31 @@ const FPGeom = (() => {
     );
   }
 
-  return { distort, undistort, project, center, pixelToRay, depths, epipolar };
+  // Linear least-squares triangulation of pixels uvs[n] seen by cams[n] (n >= 2), with the
+  // lens distortion removed first; null when the views do not fix a point.
+  function triangulate(cams, uvs) {
+    const A = [[0, 0, 0], [0, 0, 0], [0, 0, 0]], b = [0, 0, 0];
+    cams.forEach((cam, n) => {
+      const K = cam.K, R = cam.R, t = cam.t;
+      const yn = (uvs[n][1] - K[1][2]) / K[1][1];
+      const xn = (uvs[n][0] - K[0][2] - K[0][1] * yn) / K[0][0];
+      const xy = undistort(xn, yn, cam.dist);
+      for (let r = 0; r < 2; r++) { // xy[r] (R[2] X + t[2]) = R[r] X + t[r]
+        const row = [0, 1, 2].map((j) => xy[r] * R[2][j] - R[r][j]);
+        const rhs = t[r] - xy[r] * t[2];
+        for (let i = 0; i < 3; i++) {
+          b[i] += row[i] * rhs;
+          for (let j = 0; j < 3; j++) A[i][j] += row[i] * row[j];
+        }
+      }
+    });
+    const det = (m) => m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) -
+      m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+      m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    const d = det(A);
+    if (!(Math.abs(d) > 1e-12)) return null;
+    return [0, 1, 2].map((c) => det(A.map((row, i) => row.map((v, j) => (j === c ? b[i] : v)))) / d);
+  }
+
+  return { distort, undistort, project, center, pixelToRay, depths, epipolar, triangulate };
 })();

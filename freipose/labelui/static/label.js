@@ -88,11 +88,29 @@ const FP = (() => {
     const l = label(cam, kp);
     if (l && l.state === "visible") return { p: [l.x, l.y], kind: "label" };
     if (l) return null;
+    const live = liveProjection(cam, kp);
+    if (live) return { p: live, kind: "projected" };
     const pr = (S.cur.projected[cam] || {})[kp];
     if (pr && S.cur.points3d[kp]) return { p: pr, kind: "projected" };
     const pd = (S.cur.predicted[cam] || {})[kp];
     if (pd && !anyLabel(kp)) return { p: pd, kind: "predicted" };
     return null;
+  }
+
+  // While a label is dragged: its keypoint triangulated in the page from the labels as
+  // they are now, projected into `cam` (the server's triangulation follows on release).
+  function liveProjection(cam, kp) {
+    if (!S.drag || S.drag.kp !== kp) return null;
+    if (!S.drag.live) {
+      const cams = [], uvs = [];
+      for (const c of S.cur.cameras) {
+        const l = label(c, kp);
+        if (l && l.state === "visible") { cams.push(camOf(c)); uvs.push([l.x, l.y]); }
+      }
+      const X = cams.length >= 2 ? FPGeom.triangulate(cams, uvs) : null;
+      S.drag.live = { X };
+    }
+    return S.drag.live.X ? FPGeom.project(camOf(cam), S.drag.live.X) : null;
   }
 
   function anyLabel(kp) {
@@ -438,7 +456,8 @@ const FP = (() => {
     const x = Math.min(Math.max(p[0] + S.drag.off[0], -0.5), c.size[0] - 0.5);
     const y = Math.min(Math.max(p[1] + S.drag.off[1], -0.5), c.size[1] - 0.5);
     setLabel(v.cam, S.drag.kp, { state: "visible", x, y });
-    drawAll(); // the epipolar curves in the other views follow the drag
+    S.drag.live = null;
+    drawAll(); // the epipolar curves and projections in the other views follow the drag
   });
 
   window.addEventListener("mouseup", () => {
