@@ -27,9 +27,12 @@ The filter is written here in NumPy rather than taken from a library: ``filterpy
 time with per-step matrix calls in Python, which is too slow for a grid fit over
 ``K * 3`` series and dozens of parameter candidates, and neither fits the scale of a
 per-frame measurement variance (pykalman's EM estimates one constant observation
-covariance; filterpy fits nothing); ``ensemble-kalman-smoother`` needs an ensemble of
-networks and JAX. The scalar two-state filter below runs all series and all candidates at
-once as arrays.
+covariance; filterpy fits nothing); ``simdkalman`` vectorises over series but its
+``KalmanFilter`` takes one observation and one process noise per series (a per-frame
+variance, process noise or outlier gate needs its ``primitives`` in a Python loop over
+frames, which is what this module does); ``ensemble-kalman-smoother`` needs an ensemble
+of networks and JAX. The scalar two-state filter below runs all series and all parameter
+candidates at once as arrays.
 """
 
 from __future__ import annotations
