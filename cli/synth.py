@@ -82,6 +82,12 @@ def _formats(text: str) -> tuple[str, ...]:
     help="Wall reflectivity 0..0.9: mirror images of the animal in the walls [0].",
 )
 @click.option(
+    "--walls",
+    type=click.Choice(["opaque", "acrylic"]),
+    default=None,
+    help="Arena walls [opaque]; acrylic: transparent, the animal is seen through them.",
+)
+@click.option(
     "--rest-fraction",
     type=float,
     default=None,
@@ -161,6 +167,7 @@ def synth(
     lens: str | None,
     layout: str | None,
     reflections: float | None,
+    walls: str | None,
     rest_fraction: float | None,
     floor: str | None,
     label_files: str | None,
@@ -187,7 +194,7 @@ def synth(
       freipose synth demo/stim --stimulation 'body_part=Paw Front Right,duration_s=2'
       freipose synth demo/rig_test --rig examples/rig.toml --calibration-video
       freipose synth lab/mouse --animal mouse --arena-size 250x250 --grayscale
-          --lens fisheye --reflections 0.3 --rest-fraction 0.6 --floor bedding
+          --lens fisheye --walls acrylic --reflections 0.3 --rest-fraction 0.6 --floor bedding
           --label-files sleap
       freipose synth base/s1000 --seed 1000 --randomize
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
@@ -215,6 +222,7 @@ def synth(
             "lens": lens,
             "layout": layout,
             "reflections": reflections,
+            "walls": walls,
             "rest_fraction": rest_fraction,
             "floor": floor,
             "label_files": _formats(label_files) if label_files is not None else None,
@@ -231,6 +239,7 @@ def synth(
         click.echo(
             f"wrote {len(paths.videos)} videos, {paths.calibration.name}, {paths.labels.name}"
             + (f", {paths.events.name}" if paths.events else "")
+            + (f", {len(paths.label_files)} label files" if paths.label_files else "")
             + (f", calibration/ ({len(paths.calibration_videos)} board videos)"
                if paths.calibration_videos else "")
             + f" to {paths.folder}"

@@ -9,6 +9,8 @@ seed (:func:`randomized`, what ``randomize = true`` does):
 * ``grayscale`` (every camera, or a list of camera names), ``lens`` (``standard``,
   ``fisheye``, ``pinhole``), ``layout`` of the default rig (``ring``, ``above``, ``side``,
   ``below``: one camera under a transparent floor);
+* ``walls`` ``"opaque"`` / ``"acrylic"`` (transparent: the animal is seen, and labeled,
+  through them);
 * ``reflections`` (mirror images of the animal in the walls), ``rest_fraction`` (resting
   phases), ``floor`` (``mat``, ``bedding``), ``floor_color`` / ``wall_color`` (RGB 0..1),
   ``brightness``, ``contrast``, ``light_gradient``, ``blur`` (px), ``noise_level``;
@@ -38,6 +40,7 @@ ANIMAL_SCALE = {"rat": 1.0, "mouse": 0.42}  # body size factor (rat: ~23 cm nose
 LENSES = ("standard", "fisheye", "pinhole")
 LAYOUTS = ("ring", "above", "side", "below")
 FLOORS = ("mat", "bedding")
+WALLS = ("opaque", "acrylic")
 LABEL_FORMATS = ("sleap", "dlc")
 
 # The extra settings and their defaults (the classic scene); left out of scene.toml there.
@@ -48,6 +51,7 @@ CONDITION_DEFAULTS: dict[str, Any] = {
     "lens": "standard",
     "layout": "ring",
     "reflections": 0.0,
+    "walls": "opaque",
     "rest_fraction": 0.0,
     "floor": "mat",
     "floor_color": None,
@@ -104,6 +108,7 @@ def check_conditions(cfg: SceneConfig) -> dict[str, Any]:
     _choice(cfg, "lens", LENSES)
     _choice(cfg, "layout", LAYOUTS)
     _choice(cfg, "floor", FLOORS)
+    _choice(cfg, "walls", WALLS)
     out: dict[str, Any] = {}
     for key, (lo, hi) in _RANGES.items():
         value = getattr(cfg, key)
@@ -161,6 +166,7 @@ def scene_style(cfg: SceneConfig, camera: str) -> SceneStyle:
         blur=cfg.blur,
         noise_level=cfg.noise_level,
         reflections=cfg.reflections,
+        walls=cfg.walls,
     )
 
 
@@ -184,8 +190,9 @@ def randomized(cfg: SceneConfig, seed_value: int) -> SceneConfig:
     (mouse to rat; ``animal`` follows the size), arena size and wall height (fitted to the
     animal), camera count 3-8, image size, rig layout, lens, grayscale, floor texture and
     colours, wall colour, brightness, contrast, light gradient, blur, noise level,
-    reflections and resting. The frames, fps, stimulation, calibration video, label files and
-    video format stay as given; with a ``rig_file`` the rig-related values are ignored.
+    reflections, resting and transparent walls. The frames, fps, stimulation, calibration
+    video, label files and video format stay as given; with a ``rig_file`` the rig-related
+    values are ignored.
 
     Returns:
         a config with ``randomize = False`` whose settings are all explicit (it renders the
@@ -227,6 +234,7 @@ def randomized(cfg: SceneConfig, seed_value: int) -> SceneConfig:
         "reflections": round(float(rng.uniform(0.1, 0.4)) if rng.random() < 0.4 else 0.0, 4),
         "rest_fraction": round(float(rng.uniform(0.2, 0.7)) if rng.random() < 0.5 else 0.0, 4),
     }
+    values["walls"] = WALLS[int(rng.random() < 0.3)]  # drawn last: earlier draws stay as they were
     defaults = {f.name: f.default for f in fields(cfg)}
     kept = {k: v for k, v in values.items() if getattr(cfg, k) == defaults[k]}
     return replace(cfg, **kept, randomize=False)
@@ -240,6 +248,7 @@ __all__ = [
     "LABEL_FORMATS",
     "LAYOUTS",
     "LENSES",
+    "WALLS",
     "body_scale",
     "check_conditions",
     "is_grayscale",

@@ -55,6 +55,7 @@ class SceneStyle:
         blur: Gaussian defocus blur of the whole image (sigma, px; 0: none).
         noise_level: factor on the sensor noise.
         reflections: reflectivity of the walls (0: no mirror images of the animal).
+        walls: ``"opaque"`` or ``"acrylic"`` (transparent: the animal is seen through them).
     """
 
     grayscale: bool = False
@@ -67,6 +68,7 @@ class SceneStyle:
     blur: float = 0.0
     noise_level: float = 1.0
     reflections: float = 0.0
+    walls: str = "opaque"
 
     def to_u8(self, lin: np.ndarray) -> np.ndarray:
         """uint8 image of linear intensities ``lin`` (..., 3) after the contrast."""

@@ -40,6 +40,7 @@ from freipose.synth.look import (
     value_noise3,
     value_noise_table,
 )
+from freipose.synth.mirror import acrylic_walls
 from freipose.synth.rig import ArenaConfig
 
 LIGHT = np.array([0.35, -0.25, 1.0]) / np.linalg.norm([0.35, -0.25, 1.0])
@@ -189,7 +190,12 @@ class CameraRenderer:
         kind[ok] = BG_FLOOR
         normal[ok] = (0, 0, 1)
         self.wall_id = np.full((h, w), -1, np.int8)  # which wall (0..3) a wall pixel shows
-        for wall, (axis, val) in enumerate(((0, hx), (0, -hx), (1, hy), (1, -hy))):
+        self.acrylic = None
+        if self.style.walls == "acrylic":  # transparent panes: not in the depth buffer
+            self.acrylic = acrylic_walls(o, dirs, self.arena, t_best)
+            self.wall_id = self.acrylic.inner_id
+        opaque = ((0, hx), (0, -hx), (1, hy), (1, -hy)) if self.acrylic is None else ()
+        for wall, (axis, val) in enumerate(opaque):
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = (val - o[axis]) / dirs[..., axis]
             p = o + t[..., None] * dirs
@@ -210,6 +216,8 @@ class CameraRenderer:
             side = np.where((dirs[..., axis] > 0)[..., None], -n, n)  # normal facing the camera
             normal[ok] = side[ok]
         self.bg_depth = np.where(kind != BG_NONE, t_best, np.inf).astype(np.float32)
+        # where a mirror image behind a wall starts (the walls' reflections)
+        self.mirror_depth = self.bg_depth if self.acrylic is None else self.acrylic.inner_depth
         hit = o + np.where(np.isfinite(t_best), t_best, 0)[..., None] * dirs
         self.floor_xy = np.where((kind == BG_FLOOR)[..., None], hit[..., :2], np.nan).astype(
             np.float32
@@ -219,7 +227,16 @@ class CameraRenderer:
         col[through] *= 0.85  # the acrylic floor dims what is seen through it
         lin = (col * self.shade).astype(np.float32)
         self.bg_lin = cv2.GaussianBlur(lin, (0, 0), 0.6)
-        self.bg_u8 = self.style.to_u8(self.bg_lin)
+        self.bg_u8 = self.style.to_u8(self.through_walls(self.bg_lin))
+
+    def through_walls(
+        self, lin: np.ndarray, box: tuple[int, int, int, int] | None = None
+    ) -> np.ndarray:
+        """Linear ``lin`` (h, w, 3) of ``box`` (None: all) seen through acrylic walls (if any)."""
+        if self.acrylic is None:
+            return lin
+        wall = bgr(self.style.wall_color, (0.66, 0.68, 0.68))
+        return self.acrylic.apply(lin, box or (0, 0, lin.shape[1], lin.shape[0]), wall, self.shade)
 
     def _background_colours(
         self, rng: np.random.Generator, hit: np.ndarray, kind: np.ndarray, normal: np.ndarray
@@ -322,7 +339,7 @@ class CameraRenderer:
         All (pixel, part) candidate pairs (the pixels inside each part's box) are
         intersected at once with the parts' ellipsoids (centres ``C`` (N, 3), axes
         ``A`` (N, 3, 3), radii ``Rr`` (N, 3)). ``beyond_background``: only hits behind the
-        background count instead (a mirror image seen through a wall).
+        wall a pixel shows count instead (a mirror image seen in the wall).
         """
         x0, y0, x1, y1 = ab.box
         bh, bw = y1 - y0, x1 - x0
@@ -350,7 +367,8 @@ class CameraRenderer:
         sdist = np.where(hit & (sdist > 0), sdist, np.float32(np.inf))
         zflat = self.bg_depth[y0:y1, x0:x1].ravel().copy()
         if beyond_background:
-            sdist = np.where(sdist > zflat[pix], sdist, np.float32(np.inf))
+            near = self.mirror_depth[y0:y1, x0:x1].ravel()
+            sdist = np.where(sdist > near[pix], sdist, np.float32(np.inf))
             zflat[:] = np.inf
         np.minimum.at(zflat, pix, sdist)
         win = np.flatnonzero(np.isfinite(sdist) & (sdist <= zflat[pix]))
@@ -542,7 +560,7 @@ class CameraRenderer:
         img = (self.bg_u8 if background is None else background).copy()
         if box is not None and frame_lin is not None:
             x0, y0, x1, y1 = box
-            img[y0:y1, x0:x1] = self.style.to_u8(frame_lin)
+            img[y0:y1, x0:x1] = self.style.to_u8(self.through_walls(frame_lin, box))
         if self.style.blur > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.style.blur)
         h, w = img.shape[:2]

@@ -112,6 +112,8 @@ class SceneConfig:
             transparent floor, seeing the animal from below).
         reflections: reflectivity (0..0.9) of the walls: mirror images of the animal in
             them (the labels are of the real animal only).
+        walls: ``"opaque"`` or ``"acrylic"``: transparent walls (an acrylic box) through
+            which the cameras see the animal (keypoints behind them count as visible).
         rest_fraction: share of the time the animal rests (almost still for seconds).
         floor: ``"mat"`` or ``"bedding"`` (coarse grain texture).
         floor_color: floor colour, RGB 0..1 (None: the mat's grey, the bedding's beige).
@@ -158,6 +160,7 @@ class SceneConfig:
     lens: str = "standard"
     layout: str = "ring"
     reflections: float = 0.0
+    walls: str = "opaque"
     rest_fraction: float = 0.0
     floor: str = "mat"
     floor_color: tuple[float, float, float] | None = None
@@ -357,13 +360,20 @@ def _scene_toml(config: SceneConfig, scene: Scene) -> str:
     return tomli_w.dumps(doc)
 
 
+def _occluding_walls(scene: Scene) -> ArenaConfig:
+    """The arena as the visibility test sees it: transparent walls hide nothing."""
+    if scene.config.walls == "acrylic":
+        return ArenaConfig(scene.arena.size, 0.0)
+    return scene.arena
+
+
 def write_labels(scene: Scene, folder: Path, session: str) -> Path:
     """Compute projections and visibility and write ``labels.h5`` for every frame."""
     from freipose.io.labels import LabelSet, SessionInfo, write_labels_h5
     from freipose.synth.visibility import keypoint_visibility
 
     cfg = scene.config
-    pts2d, vis = keypoint_visibility(scene.geometry, scene.rig, scene.arena)
+    pts2d, vis = keypoint_visibility(scene.geometry, scene.rig, _occluding_walls(scene))
     T = len(scene.geometry)
     videos = {c: f"{c}{cfg.video_format}" for c in scene.rig.names}
     labels = LabelSet(
@@ -419,7 +429,7 @@ def _write_label_files(scene: Scene, out: Path, videos: Mapping[str, Path]) -> t
     cfg = scene.config
     if not cfg.label_files:
         return ()
-    pts2d, vis = keypoint_visibility(scene.geometry, scene.rig, scene.arena)
+    pts2d, vis = keypoint_visibility(scene.geometry, scene.rig, _occluding_walls(scene))
     rng = np.random.default_rng(_seed(cfg.seed, 6))
     noisy = noisy_labels(pts2d, vis, cfg.label_noise_px, rng)
     return tuple(write_label_files(out, cfg.label_files, dict(videos), RAT_KEYPOINTS, noisy))

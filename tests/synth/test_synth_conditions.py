@@ -21,6 +21,7 @@ from freipose.synth import (
 from freipose.synth.conditions import CONDITION_DEFAULTS
 from freipose.synth.look import SceneStyle
 from freipose.synth.render import BG_FLOOR, BG_WALL, CameraRenderer
+from freipose.synth.scene import build_scene
 
 TINY = dict(n_cameras=3, frames=2, size=(128, 96), video_format=".mkv", seed=4)
 
@@ -196,3 +197,23 @@ def test_calibration_video_of_a_mouse_box_keeps_the_board_over_its_walls(tmp_pat
     for video in paths.calibration_videos.values():  # the scene's grayscale cameras
         img = FrameSource(video).read(8)
         assert np.array_equal(img[..., 0], img[..., 1]) and np.array_equal(img[..., 1], img[..., 2])
+
+
+def test_acrylic_walls_let_the_cameras_see_and_label_the_animal_through_them(tmp_path):
+    base = dict(**{**TINY, "frames": 2}, animal="mouse", arena_size=(250.0, 250.0),
+                wall_height=150.0)  # fmt: skip
+    opaque = generate_session(tmp_path / "o", SceneConfig(**base), workers=1, progress=False)
+    cfg = SceneConfig(**base, walls="acrylic", reflections=0.3)
+    acrylic = generate_session(tmp_path / "a", cfg, workers=1, progress=False)
+    vo, va = (read_labels_h5(p.labels).visible2d for p in (opaque, acrylic))
+    assert np.all(va >= vo) and va.sum() > vo.sum()  # the walls hide nothing any more
+    scene = build_scene(cfg)
+    cam = scene.rig[0]
+    r = CameraRenderer(cam, scene.arena, seed=1, style=SceneStyle(walls="acrylic"))
+    (x0, y0, _, _), _, pid = r.render_animal(scene.geometry, 1, scene.body.palette)
+    labels = read_labels_h5(acrylic.labels)
+    behind = va[1, 0] & ~vo[1, 0]  # seen through a wall in camera 0
+    assert behind.any()
+    for u, v in np.round(labels.points2d[1, 0][behind]).astype(int):  # the animal is there
+        assert (pid[v - y0 - 1 : v - y0 + 2, u - x0 - 1 : u - x0 + 2] >= 0).any()
+    assert np.all(r.bg_kind != BG_WALL) and (r.wall_id >= 0).any()  # panes, and mirrors
