@@ -65,6 +65,10 @@ def test_randomize_draws_varied_reproducible_scenes(tmp_path):
     assert {d.appearance for d in drawn} == {"hooded", "albino", "dark"}
     assert {d.layout for d in drawn} == {"ring", "above", "side", "below"}
     assert {d.lens for d in drawn} == {"standard", "fisheye", "pinhole"}
+    assert {d.walls for d in drawn} == {"opaque", "acrylic"} and {d.floor for d in drawn} == {
+        "mat",
+        "bedding",
+    }
     assert {d.animal for d in drawn} == {"rat", "mouse"} and {d.grayscale for d in drawn} == {
         True,
         False,
