@@ -101,7 +101,8 @@ def _formats(text: str) -> tuple[str, ...]:
     type=str,
     default=None,
     help="Also write per-camera label files of predicted instances, comma-separated formats: "
-    "sleap (<camera>/<camera>.slp), dlc (<camera>/CollectedData.csv); visible points only.",
+    "sleap (<camera>/<camera>.slp), dlc (labeled-data/<session>_<camera>/CollectedData_synthetic"
+    ".csv); visible points only.",
 )
 @click.option(
     "--label-noise", type=float, default=None, help="Noise of the label files' points, px [1]."

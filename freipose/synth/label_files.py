@@ -2,8 +2,10 @@
 
 ``label_files = ["sleap"]`` writes ``OUTDIR/<camera>/<camera>.slp`` (sleap-anipose's layout:
 one folder per camera), each holding one SLEAP *predicted* instance per frame with a score
-per point; ``"dlc"`` writes ``OUTDIR/<camera>/CollectedData.csv`` (DeepLabCut's labeled-data
-table: scorer / bodyparts / coords header rows, one row per frame, x and y per keypoint).
+per point; ``"dlc"`` writes ``OUTDIR/labeled-data/<session>_<camera>/CollectedData_synthetic.csv``
+(a DeepLabCut project's labeled-data table, the folder named after the session and camera:
+scorer / bodyparts / coords header rows, one row per frame ``img<frame>.png``, x and y per
+keypoint).
 Only the points visible in that camera are given (the others are missing: NaN, or empty
 cells); each is the exact projection plus Gaussian noise of ``label_noise_px``. The point
 score falls with the point's noise: ``exp(-e² / (2 (2 s)²))`` times a factor in 0.85..1
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,7 +69,7 @@ def write_sleap(
 
     Args:
         path: the ``.slp`` file.
-        video: the camera's video (stored as the labels' video).
+        video: the camera's video (stored as the labels' video, relative to the file).
         keypoints: (K,) node names.
         points: (T, K, 2) points, NaN where missing.
         scores: (T, K) point scores, NaN where missing.
@@ -85,7 +88,8 @@ def write_sleap(
             "(or leave sleap out of --label-files)"
         ) from None
     skeleton = sio.Skeleton([sio.Node(k) for k in keypoints], name="rat")
-    vid = sio.Video(filename=str(video.resolve()), open_backend=False)
+    rel = os.path.relpath(video.resolve(), path.parent.resolve())  # portable with the folder
+    vid = sio.Video(filename=Path(rel).as_posix(), open_backend=False)
     frames = []
     for t in range(len(points)):
         seen = np.isfinite(points[t, :, 0])
@@ -104,12 +108,11 @@ def write_sleap(
     return path
 
 
-def write_dlc(path: Path, video: Path, keypoints: Sequence[str], points: np.ndarray) -> Path:
-    """Write one camera's points as a DeepLabCut ``CollectedData.csv`` table.
+def write_dlc(path: Path, keypoints: Sequence[str], points: np.ndarray) -> Path:
+    """Write one camera's points as a DeepLabCut ``CollectedData_<scorer>.csv`` table.
 
     Args:
-        path: the ``.csv`` file.
-        video: the camera's video (its stem names the labeled-data folder in the row index).
+        path: the ``.csv`` file in its labeled-data folder (which names the row index).
         keypoints: (K,) body part names.
         points: (T, K, 2) points, NaN where missing (empty cells).
 
@@ -125,7 +128,7 @@ def write_dlc(path: Path, video: Path, keypoints: Sequence[str], points: np.ndar
         if not np.isfinite(points[t, :, 0]).any():
             continue
         cells = ["" if not np.isfinite(v) else f"{v:.3f}" for v in points[t].ravel()]
-        w.writerow([f"labeled-data/{video.stem}/img{t:05d}.png"] + cells)
+        w.writerow([f"labeled-data/{path.parent.name}/img{t:05d}.png"] + cells)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, buf.getvalue())
     return path
@@ -133,6 +136,7 @@ def write_dlc(path: Path, video: Path, keypoints: Sequence[str], points: np.ndar
 
 def write_label_files(
     folder: Path,
+    session: str,
     formats: Sequence[str],
     videos: dict[str, Path],
     keypoints: Sequence[str],
@@ -142,6 +146,7 @@ def write_label_files(
 
     Args:
         folder: the session folder.
+        session: the session's name (names the DeepLabCut folders).
         formats: ``"sleap"`` and/or ``"dlc"``.
         videos: camera name -> its video, in the labels' camera order.
         keypoints: (K,) keypoint names.
@@ -156,7 +161,8 @@ def write_label_files(
         if "sleap" in formats:
             out.append(write_sleap(folder / cam / f"{cam}.slp", video, keypoints, pts, sc))
         if "dlc" in formats:
-            out.append(write_dlc(folder / cam / "CollectedData.csv", video, keypoints, pts))
+            csv_path = folder / "labeled-data" / f"{session}_{cam}" / "CollectedData_synthetic.csv"
+            out.append(write_dlc(csv_path, keypoints, pts))
     return out
 
 

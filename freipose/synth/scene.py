@@ -7,7 +7,8 @@ Session folder written by :func:`generate_session` (formats in ``docs/formats.md
     OUTDIR/labels.h5           exact 3D keypoints, projections and visibility, every frame
     OUTDIR/events.csv          stimulation windows ``start_s,end_s`` (only when stimulated)
     OUTDIR/scene.toml          every parameter and the seed (reproduces the scene bit for bit)
-    OUTDIR/<camera>/           with ``label_files``: <camera>.slp, CollectedData.csv
+    OUTDIR/<camera>/           with ``label_files`` sleap: <camera>.slp
+    OUTDIR/labeled-data/       with ``label_files`` dlc: <session>_<camera>/CollectedData_*.csv
     OUTDIR/calibration/        with ``calibration_video``: board videos, board.toml,
                                true_calibration.toml (true rig), board_poses.npy
 
@@ -125,7 +126,8 @@ class SceneConfig:
         noise_level: factor on the sensor noise.
         label_files: also write per-camera label files of predicted instances as other
             tools do: ``"sleap"`` (``<camera>/<camera>.slp``), ``"dlc"``
-            (``<camera>/CollectedData.csv``); visible points only, with noise and a score.
+            (``labeled-data/<session>_<camera>/CollectedData_synthetic.csv``); visible points
+            only, with noise and a score.
         label_noise_px: standard deviation of the label files' 2D noise, px.
         randomize: domain randomisation: draw the coat, size, arena, cameras, image size,
             layout, lens, grayscale, floor, colours, lighting, blur, noise, reflections and
@@ -413,7 +415,7 @@ def _prepare_folder(out: Path, scene_text: str, overwrite: bool) -> None:
                 "or choose an empty folder"
             )
         if not same:
-            for p in [*out.glob("*/*.slp"), *out.glob("*/CollectedData.csv")]:
+            for p in [*out.glob("*/*.slp"), *out.glob("labeled-data/*/CollectedData_*.csv")]:
                 p.unlink()
             for p in out.glob("*"):
                 if p.is_file() and (p.suffix in VIDEO_FORMATS or p.name in _SESSION_FILES):
@@ -432,7 +434,9 @@ def _write_label_files(scene: Scene, out: Path, videos: Mapping[str, Path]) -> t
     pts2d, vis = keypoint_visibility(scene.geometry, scene.rig, _occluding_walls(scene))
     rng = np.random.default_rng(_seed(cfg.seed, 6))
     noisy = noisy_labels(pts2d, vis, cfg.label_noise_px, rng)
-    return tuple(write_label_files(out, cfg.label_files, dict(videos), RAT_KEYPOINTS, noisy))
+    session = out.resolve().name
+    files = write_label_files(out, session, cfg.label_files, dict(videos), RAT_KEYPOINTS, noisy)
+    return tuple(files)
 
 
 def _write_events(scene: Scene, out: Path) -> Path | None:

@@ -32,14 +32,16 @@ def test_sleap_and_dlc_label_files_hold_noisy_visible_points(tmp_path):
     cfg = SceneConfig(**TINY, label_files=("sleap", "dlc"), label_noise_px=1.5)
     paths = generate_session(tmp_path / "s", cfg, workers=1, progress=False)
     truth = read_labels_h5(paths.labels)
+    cams = ("cam0", "cam1", "cam2")
     assert {p.relative_to(paths.folder).as_posix() for p in paths.label_files} == {
-        f"{c}/{f}" for c in ("cam0", "cam1", "cam2") for f in (f"{c}.slp", "CollectedData.csv")
+        *(f"{c}/{c}.slp" for c in cams),
+        *(f"labeled-data/s_{c}/CollectedData_synthetic.csv" for c in cams),
     }
     errors = []
     for ci, cam in enumerate(truth.cameras):
         labels = sio.load_slp(str(paths.folder / cam / f"{cam}.slp"))
         assert [n.name for n in labels.skeletons[0].nodes] == list(RAT_KEYPOINTS)
-        assert labels.videos[0].filename.endswith(f"{cam}.mkv")
+        assert labels.videos[0].filename == f"../{cam}.mkv"  # next to the session's videos
         for lf in labels.labeled_frames:
             (inst,) = lf.instances
             assert type(inst).__name__ == "PredictedInstance" and 0 < inst.score <= 1
@@ -49,7 +51,8 @@ def test_sleap_and_dlc_label_files_hold_noisy_visible_points(tmp_path):
             errors.append(pts[vis] - truth.points2d[lf.frame_idx, ci, vis])
             sc = inst.points["score"][vis]
             assert np.all((sc > 0) & (sc <= 1))
-        rows = list(csv.reader((paths.folder / cam / "CollectedData.csv").open()))
+        table = paths.folder / "labeled-data" / f"s_{cam}" / "CollectedData_synthetic.csv"
+        rows = list(csv.reader(table.open()))
         assert rows[0][0] == "scorer" and rows[1][1:3] == ["Ear Right", "Ear Right"]
         assert rows[2][1:3] == ["x", "y"] and len(rows) == 3 + len(labels.labeled_frames)
     e = np.concatenate(errors)
@@ -125,3 +128,23 @@ def test_synth_command_with_the_conditions_of_a_lab_rig(tmp_path):
     assert cfg.grayscale is True and cfg.label_files == ("sleap",) and cfg.rest_fraction == 0.5
     res = CliRunner().invoke(cli, ["synth", str(tmp_path / "x"), "--label-files", "nwb"])
     assert res.exit_code == 1 and "label_files" in res.output
+
+
+@pytest.mark.parametrize("fmt", ["sleap", "dlc"])
+def test_label_files_import_into_freipose_and_triangulate_near_the_truth(tmp_path, fmt):
+    if fmt == "sleap":
+        pytest.importorskip("sleap_io")
+    cfg = SceneConfig(**{**TINY, "frames": 8, "size": (160, 128)}, label_files=(fmt,))
+    paths = generate_session(tmp_path / "s1", cfg, workers=1, progress=False)
+    source = paths.folder if fmt == "sleap" else paths.folder / "labeled-data"
+    out = tmp_path / "labels.h5"
+    args = ["labels", "import", "--format", fmt, str(source), "--skeleton", "rat",
+            "--calibration", str(paths.calibration), "-o", str(out)]  # fmt: skip
+    if fmt == "sleap":
+        args += ["--instances", "predicted"]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 0, res.output
+    got, truth = read_labels_h5(out), read_labels_h5(paths.labels)
+    assert got.cameras == truth.cameras and len(got) == cfg.frames
+    err = np.linalg.norm(got.points3d - truth.points3d[got.frame_index], axis=-1)
+    assert np.isfinite(err).sum() >= 3 * cfg.frames and np.nanmedian(err) < 8.0
