@@ -45,6 +45,7 @@ from freipose.calibration.stages import (
     refine_board,
     run_bundle,
 )
+from freipose.calibration.static_frames import merge_static_runs
 from freipose.calibration.stats import (
     CameraStats,
     bundle_stats,
@@ -229,6 +230,21 @@ def calibrate_detections(
         return _calibrate_detections(detections, board, options or CalibrationOptions())
 
 
+def _merged_static_runs(
+    dets: list[CameraDetections], opt: CalibrationOptions
+) -> list[CameraDetections]:
+    """The detections with each run of frames of a board at rest merged into one view."""
+    static = merge_static_runs(dets, opt.origin_frame)
+    if static.runs:
+        logger.info(
+            "the board was at rest in frames %s: each run counts as one view (its mean "
+            "corners; %d frames merged)",
+            ", ".join(f"{a}-{b}" for a, b, _ in static.runs),
+            static.frames_merged,
+        )
+    return static.detections
+
+
 def _intrinsics_only(
     dets: list[CameraDetections],
     board: Board,
@@ -373,7 +389,7 @@ def _calibrate_detections(
     detections: Sequence[CameraDetections], board: Board, opt: CalibrationOptions
 ) -> CalibrationResult:
     warnings: list[str] = []
-    dets = _checked_inputs(detections, board, opt, warnings)
+    dets = _merged_static_runs(_checked_inputs(detections, board, opt, warnings), opt)
     obj = board.object_points
     intr = initial_intrinsics(dets, obj, opt)
     warnings.extend(intr.warnings)
