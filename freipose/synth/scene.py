@@ -104,8 +104,9 @@ class SceneConfig:
         animal: ``"rat"`` or ``"mouse"`` (a mouse is 0.42 times a rat's size; give it a
             smaller ``arena_size``, e.g. 250 x 250 mm).
         animal_scale: body size factor (rat = 1), None: the animal's.
-        grayscale: every camera records grayscale (R = G = B), or a tuple of the camera
-            names that do.
+        grayscale: every camera records grayscale (R = G = B; exact in lossless ``.mkv``,
+            within a few grey levels after ``.mp4`` compression), or a tuple of the camera
+            names that do (or ``grayscale = true`` per camera in a rig file).
         lens: ``"standard"`` (mild barrel distortion), ``"fisheye"`` (strong radial
             distortion, still monotonic in the image) or ``"pinhole"`` (none); default rig.
         layout: default rig layout: ``"ring"`` (around and above), ``"above"`` (all high
