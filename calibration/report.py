@@ -18,7 +18,7 @@ from freipose.io.figures import new_figure, save_figure
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["summary_dict", "write_report"]
+__all__ = ["report_text", "summary_dict", "write_report"]
 
 
 def summary_dict(result: CalibrationResult) -> dict[str, Any]:
@@ -74,6 +74,78 @@ def summary_dict(result: CalibrationResult) -> dict[str, Any]:
             "seconds": round(b.seconds, 3),
         }
     return out
+
+
+def _board_words(board: Any) -> str:
+    """The board in words, saying whether it is printed inverted."""
+    d = dict(board.to_dict())
+    kind = d.pop("type", "board")
+    inverted = bool(d.pop("inverted", False))
+    fields = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in d.items())
+    ink = "printed inverted (white pattern on black)" if inverted else "printed normally"
+    return f"{kind} ({fields}), {ink}"
+
+
+def _camera_words(result: CalibrationResult, i: int) -> list[str]:
+    """The lines of report.txt for camera ``i``."""
+    s, det, cam = result.stats[i], result.detections[i], result.rig[i]
+    back = det.back_views
+    lines = [
+        f"{s.name}: {s.frames_detected} frames with the board, {back} of them seen from behind "
+        f"(found in the mirror image); {s.points_used} of {s.points_detected} corners used; "
+        f"reprojection RMS {s.rms:.3f} px, median {s.median:.3f} px",
+        f"  focal length {cam.K[0, 0]:.1f} px, principal point ({cam.K[0, 2]:.1f}, "
+        f"{cam.K[1, 2]:.1f}) px, distortion {', '.join(f'{x:.4g}' for x in cam.dist)}",
+    ]
+    se = result.standard_errors.get(s.name)
+    if se:
+        lines.append("  standard errors: " + ", ".join(f"{k} {v:.3g}" for k, v in se.items()))
+    cov = result.coverage[i] if i < len(result.coverage) else None
+    if cov is not None:
+        words = _coverage_text(cov)
+        lines.append(
+            f"  coverage: corners in {100 * cov.image_fraction:.0f} % of the image cells"
+            + (f"; {words}" if words else "")
+        )
+    return lines
+
+
+def report_text(result: CalibrationResult) -> str:
+    """``report.txt``: the calibration in words (board, cameras, warnings, refusal findings).
+
+    Args:
+        result: the calibration.
+
+    Returns:
+        the text, one fact per line.
+    """
+    lines = [
+        "FreiPose calibration report",
+        f"board: {_board_words(result.board)}",
+        f"world frame: {result.world}",
+    ]
+    up = result.rig.metadata.get("up")
+    if up is not None:
+        lines.append(f"up direction: {up} ({result.rig.metadata.get('up_source', '')})")
+    lines.append("")
+    for i in range(len(result.stats)):
+        lines += _camera_words(result, i)
+    if result.warnings:
+        lines += ["", "Warnings:", *(f"- {w}" for w in result.warnings)]
+    lines.append("")
+    if result.findings:
+        lines += [
+            "SUSPECT: this calibration failed the plausibility checks and was written only "
+            "because --force was given:",
+            *(f"- {f.message}" for f in result.findings),
+        ]
+    else:
+        lines.append(
+            "Plausibility checks passed (field of view, principal point, distortion, board "
+            "poses, rejected detections, focal-length standard error); a calibration that "
+            "fails them is refused unless --force is given."
+        )
+    return "\n".join(lines) + "\n"
 
 
 def _error_histogram(result: CalibrationResult, i: int, name: str) -> Figure:
@@ -184,7 +256,9 @@ def _rig_figure(result: CalibrationResult) -> Figure:
 
 
 def write_report(result: CalibrationResult, outdir: str | Path) -> list[Path]:
-    """Write ``summary.json``, ``errors_<cam>.png``, ``coverage_<cam>.png`` and ``rig_3d.png``.
+    """Write the report: summary.json, report.txt and the figures.
+
+    The figures: ``errors_<cam>.png``, ``coverage_<cam>.png`` per camera and ``rig_3d.png``.
 
     Args:
         result: the calibration.
@@ -200,6 +274,9 @@ def write_report(result: CalibrationResult, outdir: str | Path) -> list[Path]:
     paths = []
     p = out / "summary.json"
     atomic_write_text(p, json.dumps(summary_dict(result), indent=2) + "\n")
+    paths.append(p)
+    p = out / "report.txt"
+    atomic_write_text(p, report_text(result))
     paths.append(p)
     for i, det in enumerate(result.detections):
         if result.bundle is not None:

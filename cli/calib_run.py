@@ -462,6 +462,15 @@ def run(
     camera, the numbers and the fix (--fix-intrinsics or --intrinsics-from, leaving the camera
     out, more frames). --force writes it anyway, marked as suspect.
 
+    A board printed inverted (white on black) needs `inverted = true` in the board file; a
+    board seen from behind (a camera under a transparent floor) is found in the mirror image
+    without being told, and each camera's line says how many frames it saw from behind. A
+    board at rest over several frames counts as one view. The report (--report) holds
+    summary.json, report.txt (the same facts in words: board, back views, coverage, warnings,
+    refusal findings of a --force calibration) and per camera the error histogram and the
+    coverage map (image cells with corners, the board's distances, the floor); a warning
+    names each camera whose board views never came near the floor.
+
     \b
     Example:
       freipose calib cams/cam0.mp4 cams/cam1.mp4 cams/cam2.mp4 --board board.toml \\

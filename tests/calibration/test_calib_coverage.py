@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import sys
@@ -13,7 +14,7 @@ import pytest
 from freipose.calibration.coverage import board_coverage, coverage_warnings
 from freipose.calibration.options import CalibrationOptions
 from freipose.calibration.pipeline import calibrate_detections
-from freipose.calibration.report import write_report
+from freipose.calibration.report import report_text, write_report
 from freipose.io.calibration_world import world_up
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -57,6 +58,12 @@ def test_a_board_held_above_the_arena_warns_for_the_floor(scenario, tmp_path):
     assert cov["floor_views"] == 1 and 0 < cov["floor_region_covered"] <= 1
     assert len(cov["depth_mm_p5_median_p95"]) == 3
     assert tmp_path / "coverage_cam0.png" in paths
+    text = (tmp_path / "report.txt").read_text()
+    assert "printed normally" in text and "0 of them seen from behind" in text
+    assert "views within 50 mm of the floor" in text and "Warnings:" in text
+    assert "Plausibility checks passed" in text and "refused unless --force" in text
+    inverted = dataclasses.replace(res, board=dataclasses.replace(res.board, inverted=True))
+    assert "printed inverted (white pattern on black)" in report_text(inverted)
 
 
 def test_a_board_all_over_the_arena_covers_the_floor(scenario):
