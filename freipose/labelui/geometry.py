@@ -42,26 +42,43 @@ class InstantGeometry:
     residuals: np.ndarray
 
 
-def instant_geometry(points: np.ndarray, status: np.ndarray, rig: CameraRig) -> InstantGeometry:
+def instant_geometry(
+    points: np.ndarray,
+    status: np.ndarray,
+    rig: CameraRig,
+    previous: InstantGeometry | None = None,
+    changed: np.ndarray | None = None,
+) -> InstantGeometry:
     """Triangulate the visible labels of one instant and project them into every view.
 
     Args:
         points: (V, K, 2) label pixels (NaN where unlabeled), V = ``len(rig)``.
         status: (V, K) label states.
         rig: the session's cameras, in the order of the V axis.
+        previous: the geometry before an edit; its keypoints outside ``changed`` are kept.
+        changed: (K,) bool, the keypoints whose labels the edit changed (with ``previous``).
 
     Returns:
-        The instant's :class:`InstantGeometry` (refined DLT triangulation).
+        The instant's :class:`InstantGeometry` (linear DLT triangulation on undistorted
+        coordinates, fast enough for every edit).
     """
     V, K = status.shape
     vis = (status == VISIBLE) & np.isfinite(points).all(-1)
-    X = np.full((K, 3), np.nan)
-    projected = np.full((V, K, 2), np.nan)
-    residuals = np.full((V, K), np.nan)
-    seen = np.flatnonzero(vis.sum(0) >= 2)  # only these can be triangulated
+    redo = np.ones(K, bool)
+    if previous is not None and changed is not None:
+        X = previous.points3d.copy()
+        projected = previous.projected.copy()
+        residuals = previous.residuals.copy()
+        redo = np.asarray(changed, bool)
+        X[redo], projected[:, redo], residuals[:, redo] = np.nan, np.nan, np.nan
+    else:
+        X = np.full((K, 3), np.nan)
+        projected = np.full((V, K, 2), np.nan)
+        residuals = np.full((V, K), np.nan)
+    seen = np.flatnonzero(redo & (vis.sum(0) >= 2))  # only these can be triangulated
     if len(seen):
         obs = np.where(vis[..., None], points, np.nan)[:, seen].transpose(1, 0, 2)  # (S, V, 2)
-        X[seen] = triangulate_weighted(obs, vis[:, seen].T.astype(np.float64), rig, refine=True)
+        X[seen] = triangulate_weighted(obs, vis[:, seen].T.astype(np.float64), rig)
         projected[:, seen] = rig.project(X[seen], distort=True)
         residuals[:, seen] = reprojection_errors(X[seen], obs, rig).T
     return InstantGeometry(X, projected, residuals)

@@ -184,8 +184,10 @@ class LabelStore:
         """The session of instant ``i``."""
         return self.sessions[self.instants[i].session]
 
-    def _update_3d(self, i: int) -> None:
-        geo = instant_geometry(self._points[i], self._status[i], self.session(i).rig)
+    def _update_3d(self, i: int, changed: np.ndarray | None = None) -> None:
+        """Recompute the geometry of instant ``i`` (only the ``changed`` (K,) keypoints)."""
+        prev = self._geometry[i] if changed is not None else None
+        geo = instant_geometry(self._points[i], self._status[i], self.session(i).rig, prev, changed)
         self._geometry[i] = geo
         self._p3d[i] = geo.points3d
         self._bones[i] = bone_lengths(self.skeleton, geo.points3d)
@@ -312,15 +314,17 @@ class LabelStore:
         with self._lock:
             if version != self._version[i]:
                 raise StaleVersionError(self._state(i))
-            old = (self._points[i], self._status[i])
-            self._points[i] = np.where((status == VISIBLE)[..., None], points, np.nan)
-            self._status[i] = status.astype(np.int8)
-            self._update_3d(i)
+            old = (self._points[i], self._status[i], self._geometry[i])
+            new_points = np.where((status == VISIBLE)[..., None], points, np.nan)
+            same = np.all((new_points == old[0]) | (np.isnan(new_points) & np.isnan(old[0])), -1)
+            changed = ~(same & (status == old[1])).all(0)  # (K,)
+            self._points[i], self._status[i] = new_points, status.astype(np.int8)
+            self._update_3d(i, changed)
             try:
                 self._write()
             except BaseException:  # nothing changed unless the file was written
-                self._points[i], self._status[i] = old
-                self._update_3d(i)
+                self._points[i], self._status[i], self._geometry[i] = old
+                self._update_3d(i, changed)
                 raise
             self._version[i] += 1
             return self._state(i)

@@ -16,6 +16,7 @@ from freipose.io.lock import OutputLockedError
 from freipose.io.video import FrameSource
 from freipose.labelui.app import COOKIE, create_app
 from freipose.labelui.frames import FrameCache
+from freipose.labelui.geometry import instant_geometry
 from freipose.labelui.schema import MAX_BODY_BYTES
 from freipose.labelui.server import serving
 from freipose.labelui.store import LabelStore
@@ -87,7 +88,7 @@ def test_save_triangulates_projects_and_writes_labels_h5(client, store, synth_se
     rig = store.session(2).rig
     obs = np.full((3, 2), np.nan)
     obs[0], obs[1] = a, b
-    X = triangulate_weighted(obs, np.array([1.0, 1.0, 0.0]), rig, refine=True)
+    X = triangulate_weighted(obs, np.array([1.0, 1.0, 0.0]), rig)
     np.testing.assert_allclose(st["points3d"][kp], X, atol=2e-3)
     true3d = synth_session.truth.points3d[7, synth_session.truth.keypoints.index(kp)]
     assert np.linalg.norm(np.array(st["points3d"][kp]) - true3d) < 0.5  # mm
@@ -217,3 +218,26 @@ def test_residuals_and_bone_lengths_flagged(store, synth_session):
     moved = {n for n, (a, b) in enumerate(skel.limbs) if {ear, nose} & set(a + b)}
     assert ear_ear in flagged and flagged <= moved  # only limbs at the moved keypoints
     assert not any(b["flag"] for b in store.state(0)["bones"])  # the true poses are fine
+
+
+def test_edits_recompute_only_changed_keypoints_same_result(store, synth_session):
+    t = synth_session.truth
+    x = store.instants[2]
+    rig = store.session(2).rig
+    vis = t.visible2d[x.frame]
+    pts = np.where(vis[..., None], t.points2d[x.frame], np.nan)
+    status = vis.astype(np.int8)
+    store.save(2, 0, pts, status)
+    pts2 = pts.copy()
+    pts2[0, :4] += 1.5  # four keypoints move in cam0 ...
+    status2 = status.copy()
+    status2[1, 0] = 2  # ... and one becomes occluded in cam1
+    st = store.save(2, 1, pts2, status2)
+    full = instant_geometry(np.where((status2 == 1)[..., None], pts2, np.nan), status2, rig)
+    for k, kp in enumerate(t.keypoints):
+        if np.isfinite(full.points3d[k]).all():
+            np.testing.assert_allclose(st["points3d"][kp], full.points3d[k], atol=2e-3)
+        else:
+            assert kp not in st["points3d"]
+    st3 = store.save(2, 2, pts2, status2)  # no change: the same geometry
+    assert st3["points3d"] == st["points3d"] and st3["version"] == 3

@@ -187,7 +187,7 @@ def test_label_two_views_projected_third_drag_reload(driver, store: LabelStore, 
         np.testing.assert_allclose(ls.points2d[0, 1, k1], t2d[1, k1], atol=0.3)
         np.testing.assert_allclose(ls.points2d[0, 2, k1], proj + [2.0, 1.0], atol=0.3)
         assert ls.visible2d[0, :, k1].all() and ls.visible2d[0, :, k2].all()
-        X = triangulate_weighted(ls.points2d[0, :, k1], np.ones(3), store.session(0).rig, True)
+        X = triangulate_weighted(ls.points2d[0, :, k1], np.ones(3), store.session(0).rig)
         np.testing.assert_allclose(ls.points3d[0, k1], X, atol=1e-6)  # from the saved labels
         assert np.linalg.norm(X - truth.points3d[frame, k1]) < 10.0  # mm (cam2 moved 2 px)
         # reload: the page opens the first unlabeled instant; Left goes back to ours
