@@ -1,9 +1,10 @@
 """Choosing how to find the animal when the user did not say (``--method auto``).
 
 In order, the first box source that finds the animal (a 3D centre agreed by
-``min_views`` views) in at least ``min_share`` of ``probe`` frames spread over the run is
-used: the trained detector (when one is given), background subtraction, and fixed boxes
-derived from the training labels (:mod:`freipose.detect.label_boxes`), which need no
+``min_views`` views) in at least ``min_share`` (80 %) of ``probe`` frames spread over the
+run is used (one that misses it more often loses it for long stretches): the trained
+detector (when one is given), background subtraction, and fixed boxes derived from the
+training labels (:mod:`freipose.detect.label_boxes`), which need no
 motion and no training. The choice and the reason are logged, e.g. ``using fixed boxes
 from the labels: no detector given (--detector); background subtraction found the
 animal in 7 of 40 sampled frames``. When none works and there are no labels, the best
@@ -27,7 +28,7 @@ from freipose.io.video import MediaError
 log = logging.getLogger(__name__)
 
 PROBE = 40
-MIN_SHARE = 0.5
+MIN_SHARE = 0.8
 
 
 @dataclass(frozen=True)

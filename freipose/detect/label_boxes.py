@@ -49,10 +49,22 @@ class LabelBoxes:
 
 
 def _points(labels: LabelSet, rig: CameraRig, cam: str) -> np.ndarray:
-    """(P, 2) every labeled point of ``cam``: its 2D labels and the projected 3D labels."""
+    """(P, 2) every labeled point of ``cam``: the projected 3D labels, and its 2D labels.
+
+    2D labels count only from sessions filmed by this very camera (their calibration of
+    ``cam`` equals the rig's): another rig's camera of the same name sees other pixels.
+    """
     parts = []
     if cam in labels.cameras:
-        p2 = labels.points2d[:, labels.cameras.index(cam)].reshape(-1, 2)
+        same = [
+            s
+            for s, info in labels.sessions.items()
+            if info.calibration is not None
+            and cam in info.calibration.names
+            and info.calibration[cam].allclose(rig[cam], rtol=1e-6, atol=1e-6)
+        ]
+        rows = np.isin(labels.session, same)
+        p2 = labels.points2d[rows, labels.cameras.index(cam)].reshape(-1, 2)
         parts.append(p2[np.isfinite(p2).all(-1)])
     p3 = labels.points3d.reshape(-1, 3)
     p3 = p3[np.isfinite(p3).all(-1)]

@@ -114,3 +114,23 @@ def test_auto_for_a_session_and_the_labels_boxes_command(tmp_path):
     assert set(fb.boxes) == set(rig.names)
     for cam in rig.names:
         np.testing.assert_allclose(fb.boxes[cam], got.source.boxes[cam], atol=0.06)
+
+
+def test_2d_labels_of_another_rig_do_not_count(tmp_path):
+    rig, sess, labels, X = _scene(tmp_path, moving=True)
+    far = labels.points2d.copy()
+    far[0, :, 0] = [1.0, 1.0]  # a 2D label at the image corner, in every camera
+    other = make_circle_rig(3, radius=650, height=420, size=(120, 90), focal=110)
+    mk = lambda r: LabelSet(  # noqa: E731
+        labels.session, labels.frame_index, far, labels.points3d, labels.cameras,
+        labels.keypoints, {sess.name: SessionInfo(r, {}, 25.0)},
+    )  # fmt: skip
+    same = label_boxes(mk(rig), rig).boxes
+    assert all(same[c][0] <= 1.0 for c in rig.names)  # this rig's own 2D labels count
+    foreign = label_boxes(mk(other), rig).boxes  # another rig's: only projected 3D labels
+    assert foreign == label_boxes(
+        LabelSet(labels.session, labels.frame_index, np.full_like(far, np.nan),
+                 labels.points3d, labels.cameras, labels.keypoints,
+                 {sess.name: SessionInfo(other, {}, 25.0)}),
+        rig,
+    ).boxes  # fmt: skip
