@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -77,13 +78,15 @@ def test_tiny_demo_outputs(tiny_demo):
     # 7 analysis: a valid study and its tables and figures
     study = load_study(out / "analysis" / "study.toml")
     assert {r.split for r in study.recordings} == {"train", "test"}
-    for sub in ("results", "results_truth"):  # predicted poses and, for comparison, the truth
+    for sub in ("results", "results_truth", "results_smoothed"):  # + truth, smoothed poses
         res = out / "analysis" / sub
         for f in ("classification.csv", "attribution.csv", "classifier_response.png"):
             assert (res / f).is_file(), f
         assert list(res.glob("attribution_*.png"))
     marker = json.loads((out / ".demo" / "analyze.done").read_text())["results"]
     assert 0 <= marker["truth"]["top10_share_stimulated_part"] <= 1
+    assert Path(marker["smooth"]["figure"]).is_file()  # raw vs smoothed trajectories
+    assert set(marker["smooth"]["balanced_accuracy"]) == {"raw", "smoothed"}
     # 8 report: every referenced figure and link exists
     html = (out / "report.html").read_text()
     refs = re.findall(r'(?:src|href)="([^"#][^"]*)"', html)
