@@ -200,7 +200,10 @@ def _smooth_predictions(ctx: DemoContext, folder: Path) -> dict[str, Any]:
     if todo:
         try:
             held_out = model_validation_error(
-                model, ctx.out / "labels" / "eval.h5", device=ctx.device
+                model,
+                ctx.out / "labels" / "eval.h5",
+                device=ctx.device,
+                max_instants=HELD_OUT_INSTANTS,
             )
             note = held_out.source
         except ValidationLabelsError as exc:
