@@ -1,4 +1,4 @@
-"""Calibration report: ``summary.json`` and figures (error histograms, coverage maps, 3D rig)."""
+"""Calibration report: ``summary.json``, ``report.txt`` and figures (errors, coverage, 3D rig)."""
 
 from __future__ import annotations
 

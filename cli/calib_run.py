@@ -319,6 +319,24 @@ def _echo_result(result: Any, output: Path) -> None:
     click.echo(f"wrote {output}" + (" (marked as suspect)" if result.findings else ""))
 
 
+def _check_exclusive(
+    origin_frame: int | None,
+    up: tuple[float, float, float] | None,
+    fix_intrinsics: Path | None,
+    intrinsics_from: Path | None,
+) -> None:
+    """Refuse options that give the same thing twice (the up; the intrinsics)."""
+    if origin_frame is not None and up is not None:
+        raise FreiPoseError(
+            "--origin-frame and --up both set the up direction (the board on the floor has "
+            "z up): pass one"
+        )
+    if fix_intrinsics is not None and intrinsics_from is not None:
+        raise FreiPoseError(
+            "--fix-intrinsics and --intrinsics-from both give the intrinsics: pass one"
+        )
+
+
 @click.command("run")
 @click.argument("inputs", nargs=-1, type=click.Path(path_type=Path))
 @_board_options
@@ -462,14 +480,10 @@ def run(
     camera, the numbers and the fix (--fix-intrinsics or --intrinsics-from, leaving the camera
     out, more frames). --force writes it anyway, marked as suspect.
 
-    A board printed inverted (white on black) needs `inverted = true` in the board file; a
-    board seen from behind (a camera under a transparent floor) is found in the mirror image
-    without being told, and each camera's line says how many frames it saw from behind. A
-    board at rest over several frames counts as one view. The report (--report) holds
-    summary.json, report.txt (the same facts in words: board, back views, coverage, warnings,
-    refusal findings of a --force calibration) and per camera the error histogram and the
-    coverage map (image cells with corners, the board's distances, the floor); a warning
-    names each camera whose board views never came near the floor.
+    Inverted boards need `inverted = true` in the board file; boards seen from behind are found
+    in the mirror image (each camera's line counts them); a board at rest counts as one view.
+    --report writes summary.json, report.txt and per camera the errors and the coverage (image
+    cells, distances, floor: a camera whose board never came near the floor is warned about).
 
     \b
     Example:
@@ -500,15 +514,7 @@ def run(
         cameras = [p.stem if p.is_file() else p.name for p in inputs]
         out_format = check_outputs(output, fmt, report_dir, cameras)
         board = _resolve_board(board_file, board_type, board_fields)
-        if origin_frame is not None and up is not None:
-            raise FreiPoseError(
-                "--origin-frame and --up both set the up direction (the board on the floor has "
-                "z up): pass one"
-            )
-        if fix_intrinsics is not None and intrinsics_from is not None:
-            raise FreiPoseError(
-                "--fix-intrinsics and --intrinsics-from both give the intrinsics: pass one"
-            )
+        _check_exclusive(origin_frame, up, fix_intrinsics, intrinsics_from)
         fixed = load_calibration(fix_intrinsics) if fix_intrinsics is not None else None
         if no_cache:
             shutil.rmtree(detection_cache_dir(output), ignore_errors=True)
