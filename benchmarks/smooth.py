@@ -31,6 +31,7 @@ Example::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import tempfile
 import time
 from pathlib import Path
@@ -165,9 +166,7 @@ def _smoothed(data: PoseData, adaptive: bool, held_out) -> PoseData:
         return smooth_poses(data, error_floor=held_out)
     res = smooth_arrays(data.poses, data.confidence, frame_intervals(data.frame_index, data.fps),
                         adaptive=False)  # fmt: skip
-    kw = {f: getattr(data, f) for f in ("keypoints", "frame_index", "fps", "up", "skeleton",
-                                        "calibration", "provenance")}  # fmt: skip
-    return PoseData(poses=res.mean.astype(np.float32), confidence=data.confidence, **kw)
+    return dataclasses.replace(data, poses=res.mean.astype(np.float32))
 
 
 def main() -> None:

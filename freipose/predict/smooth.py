@@ -37,6 +37,7 @@ candidates at once as arrays.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -495,18 +496,7 @@ def smooth_poses(
         "filled": res.filled,
         "rejected": res.rejected,
     }
-    return PoseData(
-        poses=mean.astype(np.float32),
-        confidence=data.confidence,
-        keypoints=data.keypoints,
-        frame_index=data.frame_index,
-        fps=data.fps,
-        up=data.up,
-        calibration=data.calibration,
-        skeleton=data.skeleton,
-        provenance=prov,
-        extra=extra,
-    )
+    return dataclasses.replace(data, poses=mean.astype(np.float32), provenance=prov, extra=extra)
 
 
 def refuse_same(src: Path, dst: Path) -> None:
