@@ -13,8 +13,20 @@ reprojection RMS, the coverage figures and the warnings the calibration gives.
 
     python benchmarks/calibration_coverage.py --seed 0 1 2
 
-Measured 2026-12-01 on the 2-core machine (4 cameras, 120 frames; scale errors in %):
-see the lead's report (the figures are printed by the script; they are not kept here).
+Measured 2026-12-01 (4 cameras, 120 frames; length errors of the 81 mice on the floor,
+median / worst, %; every "upper" run warns for all 4 cameras, no "covered" run warns):
+
+    seed 0: upper -0.05 / 1.9    covered -0.01 / 1.8
+    seed 1: upper -0.09 / 5.4    covered -0.00 / 1.3
+    seed 2: upper +0.12 / 89     covered -0.02 / 1.4   (upper: refused, folding distortion)
+    seed 3: upper +0.18 / 29     covered -0.01 / 1.1
+
+The board itself reprojects equally well in both (0.27 px) and mice at the board's height
+are within 0.02 % (median) in both: a board that measures right says nothing about the
+floor. Where the board never was in the image, the fitted k1 k2 model extrapolates the
+true lens (with k3) wrongly and lengths there are off by percent (the worst mice stand at
+the arena's edge, low in the images; the "covered" recording's worst are at the image
+corners that no board view reached).
 """
 
 from __future__ import annotations
@@ -132,8 +144,10 @@ def run(covered: bool, seed: int, frames: int = 120) -> Outcome:
     truth = fisheye_rig()
     dets = detections(truth, board_poses(frames, covered, rng), rng)
     res = calibrate_detections(
-        dets, BOARD, CalibrationOptions(origin_frame=0, jobs=1, progress=False)
-    )
+        dets,
+        BOARD,
+        CalibrationOptions(origin_frame=0, jobs=1, progress=False, accept_implausible=True),
+    )  # an implausible calibration is measured too (its findings are printed)
     return Outcome(res, mouse_errors(res.rig, truth, 20.0), mouse_errors(res.rig, truth, 200.0))
 
 
@@ -160,7 +174,9 @@ def main() -> None:
                 f"RMS {rms:.3f} px, floor views {floor}, floor region covered {region}, "
                 f"distortion {sorted(set(models.values()))}, "
                 f"{sum('floor' in w for w in res.warnings)} floor warnings"
-            )
+                + (f"; REFUSED without --force: {[f.check for f in res.findings]}"
+                   if res.findings else "")
+            )  # fmt: skip
 
 
 if __name__ == "__main__":
