@@ -20,8 +20,14 @@ if TYPE_CHECKING:
 
 
 def smoothed_name(path: Path) -> str:
-    """The output file name of a poses file (``x.poses.h5.partial`` -> ``x.poses.h5``)."""
+    """The output file name of a poses file.
+
+    ``x.poses.h5.partial`` -> ``x.poses.h5``; a movement dataset ``x.nc`` -> ``x.poses.h5``
+    (the smoothed file is a poses.h5, with the posterior the netCDF format has no place for).
+    """
     name = path.name
+    if name.endswith(".nc"):
+        return name[: -len(".nc")] + ".poses.h5"
     return name[: -len(".partial")] if name.endswith(".partial") else name
 
 

@@ -177,3 +177,13 @@ def test_error_floor_restores_coverage_of_a_bias():
     std = np.sqrt(res.std**2 + floor[None, :, None] ** 2)
     assert abs((err <= 2 * std).mean() - 0.954) < 0.02
     assert np.all(fit_error_floor(truth, np.full_like(truth, 1.0), truth) == 0)
+
+
+def test_smoothed_names():
+    from pathlib import Path
+
+    from freipose.cli.smooth import smoothed_name
+
+    assert smoothed_name(Path("a/rec1.poses.h5.partial")) == "rec1.poses.h5"
+    assert smoothed_name(Path("rec1.poses.h5")) == "rec1.poses.h5"
+    assert smoothed_name(Path("rec1.nc")) == "rec1.poses.h5"  # a movement dataset in
