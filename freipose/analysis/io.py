@@ -27,6 +27,7 @@ from freipose.analysis.variables import (
 )
 from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path
+from freipose.io.calibration_world import world_up
 from freipose.io.poses import PoseData, read_poses_h5
 from freipose.skeleton import Skeleton, load_skeleton
 
@@ -184,7 +185,9 @@ def variables_from_poses(
     Args:
         data: the poses (their ``up`` vector defines the default floor).
         skeleton: name, TOML path or Skeleton; default: the poses' own skeleton, else ``rat``.
-        floor: ``"world"``, ``"auto"``, a floor TOML path, or a plane.
+        floor: ``"world"`` (the floor the poses' calibration stores, else the plane through
+            the world origin perpendicular to ``up``), ``"auto"``, a floor TOML path, or a
+            plane.
         config: gap filling and STFT settings.
         source: the poses' origin, for messages.
 
@@ -194,6 +197,10 @@ def variables_from_poses(
     skel = resolve_skeleton(data, skeleton)
     check_keypoints(data.keypoints, skel, source)
     feet = data.poses[:, list(skel.feet), :] if skel.feet else None
+    known = world_up(data.calibration) if data.calibration is not None else None
+    same_up = known is not None and float(known.up @ np.asarray(data.up, np.float64)) > 0.999
+    if str(floor) == "world" and known is not None and known.floor is not None and same_up:
+        floor = FloorPlane(known.up, known.floor, "calibration")  # the stored floor height
     plane = resolve_floor(floor, data.up, feet)
     return compute_variables(data.poses, data.frame_index, data.fps, skel, plane, config)
 

@@ -171,3 +171,17 @@ def test_grid_rotation_turns_about_the_stored_up():
     rz = prepare_sample(labeled_sample(plain, [], sample["points2d"], pts), cfg, aug,
                         np.random.default_rng(0))["grid_rotation"]  # fmt: skip
     np.testing.assert_allclose(rz[2], [0, 0, 1])
+
+
+def test_analysis_world_floor_is_the_calibrations_floor():
+    import dataclasses
+
+    from freipose.analysis.io import variables_from_poses
+    from freipose.analysis.simulate import simulate_rat
+
+    data = simulate_rat(2.0, fps=50, seed=1)
+    assert variables_from_poses(data).floor.offset == 0.0  # no calibration: world origin
+    rig = make_circle_rig(n=3, radius=700.0, height=500.0)
+    stored = with_world_up(rig, WorldUp(np.array([0.0, 0.0, 1.0]), "the board", 12.0))
+    var = variables_from_poses(dataclasses.replace(data, calibration=stored))
+    assert var.floor.offset == 12.0 and var.floor.source == "calibration"
