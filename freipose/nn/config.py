@@ -242,8 +242,9 @@ class AugmentConfig:
     """Training augmentation. Geometric changes are compensated in the crop cameras.
 
     ``grid_rotation`` (degrees): the voxel grid of each training sample is turned by a
-    random angle in ``[-grid_rotation, grid_rotation]`` about the world z axis, so the 3D
-    network cannot tie keypoints to absolute directions (evaluation uses the unrotated grid).
+    random angle in ``[-grid_rotation, grid_rotation]`` about the world's up (the calibration's
+    ``up``, else estimated from the labels, else world z), so the 3D network cannot tie
+    keypoints to absolute directions (evaluation uses the unrotated grid).
     ``refine_jitter`` (mm): std of Gaussian noise added per keypoint and axis to P0 before it
     is given to the refinement head during training, so the head learns to correct P0.
     """
