@@ -33,6 +33,7 @@ from freipose.calibration.plausibility import (
     ImplausibleCalibrationError,
     check_plausibility,
     findings_metadata,
+    folding_warnings,
 )
 from freipose.calibration.stages import (
     BoardObservations,
@@ -401,6 +402,7 @@ def _calibrate_detections(
     adj = _adjust(start, seen, rig0.frames, dets, intr, obj, opt)
     quality = _quality(dets, board, adj, intr.fixed, opt)
     names = [d.name for d in dets]
+    warnings.extend(folding_warnings(names, [tuple(d.size) for d in dets], adj.bundle))
     world = world_frame(adj.bundle, dets[0].num_frames, names, opt.origin_frame, opt.up)
     if world.up is None:
         warnings.append(

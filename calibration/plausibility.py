@@ -3,9 +3,11 @@
 A calibration is refused (:class:`ImplausibleCalibrationError`) when a camera's field of
 view lies outside :data:`FOV_RANGE_DEG`, its principal point lies more than
 :data:`PRINCIPAL_MARGIN` of the image size outside the image, its radial distortion folds
-the image, the board poses its own detections imply disagree with the rig's, the bundle
-adjustment rejected more than :data:`MAX_OUTLIER_SHARE` of its detections, or its focal
-length's standard error exceeds :data:`MAX_FOCAL_SE` of the focal length.
+where the board was (or anywhere in the image when the board reached its corners; a fold
+only beyond the board's reach is a warning, :func:`folding_warnings`), the board poses
+its own detections imply disagree with the rig's, the bundle adjustment rejected more
+than :data:`MAX_OUTLIER_SHARE` of its detections, or its focal length's standard error
+exceeds :data:`MAX_FOCAL_SE` of the focal length.
 """
 
 from __future__ import annotations
@@ -23,7 +25,9 @@ from freipose.calibration.params import DIST, FRAME_RVEC, FRAME_TVEC, RVEC, TVEC
 from freipose.geometry.transforms import invert_transform, rodrigues, transform
 
 __all__ = [
+    "FOLD_MARGIN",
     "FOV_RANGE_DEG",
+    "GOOD_COVERAGE",
     "MAX_FOCAL_SE",
     "MAX_OUTLIER_SHARE",
     "MAX_POSE_ANGLE_DEG",
@@ -32,6 +36,7 @@ __all__ = [
     "Finding",
     "ImplausibleCalibrationError",
     "check_plausibility",
+    "folding_warnings",
 ]
 
 FOV_RANGE_DEG = (5.0, 170.0)  # plausible horizontal field of view
@@ -40,6 +45,11 @@ MAX_OUTLIER_SHARE = 0.30  # share of a camera's detections the bundle adjustment
 MAX_POSE_ANGLE_DEG = 5.0  # median board-pose rotation disagreement of a camera
 MAX_POSE_SHIFT = 0.10  # median board-centre disagreement, as a share of the board diagonal
 MAX_FOCAL_SE = 0.05  # standard error of fx as a share of fx
+# a fold of the radial distortion is refused within this factor of the board's farthest
+# corner (normalized radius), and anywhere in the image when the board reached this share
+# of the image corner's radius; elsewhere it is a warning
+FOLD_MARGIN = 1.1
+GOOD_COVERAGE = 0.8
 _POSE_FRAMES = 30  # frames per camera used for the board-pose comparison (evenly spaced)
 _MIN_PNP_POINTS = 6
 
@@ -147,29 +157,116 @@ def folding_radius(dist: np.ndarray, corner_radius: float) -> float | None:
     return None
 
 
-def _folding_findings(name: str, size: tuple[int, int], p: np.ndarray, fix: str) -> list[Finding]:
-    """A finding when camera row ``p``'s radial distortion folds inside the image."""
+def _covered_radius(ba: BundleResult, camera: int) -> float:
+    """The largest normalized distorted radius of a camera's inlier detections (0: none)."""
+    p = ba.cam_params[camera]
+    mine = ba.inliers & (ba.obs.cam == camera)
+    if not mine.any() or not (p[0] > 0 and p[1] > 0):
+        return 0.0
+    uv = ba.obs.uv[mine]
+    return float(np.hypot((uv[:, 0] - p[2]) / p[0], (uv[:, 1] - p[3]) / p[1]).max())
+
+
+@dataclass(frozen=True)
+class _Fold:
+    """Where a camera's radial distortion folds, and what the board covered.
+
+    Attributes:
+        reach: the largest distorted radius the model reaches (normalized).
+        at: the undistorted radius where it stops rising (normalized).
+        covered: the largest distorted radius of the camera's detections (normalized).
+        corner: the image corner's distorted radius (normalized).
+        px: pixels per normalized unit (the mean focal length).
+        coefficients: ``k1 = ..., k2 = ..., k3 = ...`` for the messages.
+    """
+
+    reach: float
+    at: float
+    covered: float
+    corner: float
+    px: float
+    coefficients: str
+
+    @property
+    def refused(self) -> bool:
+        """The fold lies where the board was, or inside an image the board covered well."""
+        if self.reach < FOLD_MARGIN * self.covered:
+            return True
+        return self.covered >= GOOD_COVERAGE * self.corner
+
+
+def _fold(size: tuple[int, int], p: np.ndarray, covered: float) -> _Fold | None:
+    """Where camera row ``p``'s radial distortion folds inside a ``size`` image, else None."""
     w, h = size
     if not (p[0] > 0 and p[1] > 0):
-        return []
+        return None
     corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
     rc = float(np.hypot((corners[:, 0] - p[2]) / p[0], (corners[:, 1] - p[3]) / p[1]).max())
     r = folding_radius(p[DIST], rc)
     if r is None:
-        return []
+        return None
     k1, k2, k3 = (float(x) for x in p[DIST][[0, 1, 4]])
-    reach = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)  # the largest distorted radius
+    reach = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
     k = f"k1 = {k1:.4g}, k2 = {k2:.4g}, k3 = {k3:.4g}"
+    return _Fold(reach, r, covered, rc, 0.5 * float(p[0] + p[1]), k)
+
+
+def _folding_findings(name: str, fold: _Fold | None, fix: str) -> list[Finding]:
+    """A finding when a camera's radial distortion folds where it must not (see _Fold)."""
+    if fold is None or not fold.refused:
+        return []
+    f = fold
     return [
         Finding(
             name,
             "folding_distortion",
-            f"camera {name}: the radial distortion ({k}) folds the image: the distorted radius "
-            f"rises only to {reach:.3f} (normalized; at undistorted radius {r:.3f}) and falls "
-            f"after that, short of the image corner at {rc:.3f}; {fix}, or choose a simpler "
+            f"camera {name}: the radial distortion ({f.coefficients}) folds the image: the "
+            f"distorted radius rises only to {f.reach:.3f} (normalized, {f.reach * f.px:.0f} px "
+            f"from the principal point; at undistorted radius {f.at:.3f}) and falls after "
+            f"that, short of the image corner at {f.corner:.3f}, while the board's corners "
+            f"reached {f.covered:.3f} ({f.covered * f.px:.0f} px); {fix}, or choose a simpler "
             f"--dist-model",
         )
     ]
+
+
+def _folding_warning(name: str, fold: _Fold | None) -> list[str]:
+    """A warning when a camera's distortion folds outside the board's reach only."""
+    if fold is None or fold.refused:
+        return []
+    f = fold
+    return [
+        f"camera {name}: the lens model ({f.coefficients}) fits the board's views, which "
+        f"reached {f.covered * f.px:.0f} px from the principal point (normalized radius "
+        f"{f.covered:.3f}), but folds {f.reach * f.px:.0f} px out ({f.reach:.3f}), short of the "
+        f"image corner ({f.corner * f.px:.0f} px, {f.corner:.3f}): image points farther out "
+        f"cannot be undistorted and 3D points seen there are projected wrongly; record board "
+        f"views nearer the image corners (the report's coverage_{name}.png shows where the "
+        f"board was)"
+    ]
+
+
+def folding_warnings(
+    names: Sequence[str], sizes: Sequence[tuple[int, int]], ba: BundleResult
+) -> list[str]:
+    """Warnings for cameras whose distortion folds beyond the board's reach, inside the image.
+
+    Such a model fits the detections and is kept (:func:`check_plausibility` refuses only a
+    fold inside the board's reach, or inside an image the board covered out to
+    :data:`GOOD_COVERAGE` of the corner radius); the warning names the region it fails in.
+
+    Args:
+        names: the camera names, in rig order.
+        sizes: their image sizes (width, height).
+        ba: the final bundle adjustment.
+
+    Returns:
+        one message per such camera.
+    """
+    out: list[str] = []
+    for i, (name, size) in enumerate(zip(names, sizes)):
+        out += _folding_warning(name, _fold(size, ba.cam_params[i], _covered_radius(ba, i)))
+    return out
 
 
 def _pose_disagreement(ba: BundleResult, camera: int, diag: float) -> tuple[float, float, int]:
@@ -312,7 +409,7 @@ def check_plausibility(
         p = ba.cam_params[i]
         fix = _FIX_GIVEN if name in fixed else _FIX
         out += _fov_findings(name, size, p, fix)
-        out += _folding_findings(name, size, p, fix)
+        out += _folding_findings(name, _fold(size, p, _covered_radius(ba, i)), fix)
         out += _outlier_findings(ba, i, name, fix)
         out += _weak_findings(name, p, standard_errors.get(name, {}), fix)
         if len(names) > 1:

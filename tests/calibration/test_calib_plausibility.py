@@ -21,6 +21,7 @@ from freipose.calibration.plausibility import (
     ImplausibleCalibrationError,
     check_plausibility,
     folding_radius,
+    folding_warnings,
 )
 from freipose.testing import make_circle_rig
 
@@ -121,6 +122,28 @@ def test_outlier_share(result):
     keep[mine[: int(0.4 * mine.size)]] = False
     found = _check(result, inliers=keep)
     assert [(f.camera, f.check) for f in found] == [("cam3", "outliers")]
+
+
+def test_fold_beyond_the_board_is_a_warning(result):
+    """A fold only beyond the board's reach warns; the same fold inside it is refused."""
+    ba = result.bundle
+    cam = ba.cam_params.copy()
+    cam[3, 4:9] = [-1.5, 0.0, 0.0, 0.0, 0.0]  # folds at distorted radius 0.314
+    p = cam[3]
+    rad = np.hypot((ba.obs.uv[:, 0] - p[2]) / p[0], (ba.obs.uv[:, 1] - p[3]) / p[1])
+    mine = ba.obs.cam == 3
+    assert rad[mine & ba.inliers].max() > 0.35  # the board reached beyond the fold
+    near = ba.inliers & ~(mine & (rad > 0.2))  # camera 3's board only within radius 0.2
+    names = [d.name for d in result.detections]
+    sizes = [d.size for d in result.detections]
+    found = _check(result, cam_params=cam, inliers=near)
+    assert ("cam3", "folding_distortion") not in {(f.camera, f.check) for f in found}
+    warned = folding_warnings(names, sizes, dataclasses.replace(ba, cam_params=cam, inliers=near))
+    assert len(warned) == 1 and warned[0].startswith("camera cam3: ")
+    assert "coverage_cam3.png" in warned[0] and "folds " in warned[0] and "(0.314)" in warned[0]
+    found = _check(result, cam_params=cam)
+    assert ("cam3", "folding_distortion") in {(f.camera, f.check) for f in found}
+    assert folding_warnings(names, sizes, dataclasses.replace(ba, cam_params=cam)) == []
 
 
 def test_folding_radius():
