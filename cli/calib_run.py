@@ -474,11 +474,13 @@ def run(
 
     After the bundle adjustment the calibration is checked for physical plausibility: each
     camera's field of view (5-170 degrees), principal point (at most 25 % of the image size
-    outside it), distortion (must not fold the image), board poses (must agree with the other
-    cameras'), rejected detections (at most 30 %) and focal-length standard error (at most
-    5 %). A calibration that fails is not written (nor its report): the message names the
-    camera, the numbers and the fix (--fix-intrinsics or --intrinsics-from, leaving the camera
-    out, more frames). --force writes it anyway, marked as suspect.
+    outside it), distortion (must not fold the image where the board was, nor anywhere when
+    the board reached the image corners; a fold only beyond the board's farthest corner is a
+    warning naming that radius), board poses (must agree with the other cameras'), rejected
+    detections (at most 30 %) and focal-length standard error (at most 5 %). A calibration
+    that fails is not written (nor its report): the message names the camera, the numbers and
+    the fix (--fix-intrinsics or --intrinsics-from, leaving the camera out, more frames).
+    --force writes it anyway, marked as suspect.
 
     Inverted boards need `inverted = true` in the board file; boards seen from behind are found
     in the mirror image (each camera's line counts them); a board at rest counts as one view.
