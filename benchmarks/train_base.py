@@ -293,6 +293,17 @@ def _export_one(trainer: Trainer, job: Job, dest: Path) -> int:
     return int(ckpt["step"])
 
 
+def _validation_rows(path: Path) -> list[list[float]]:
+    """``[step, val_jpe_p0, val_jpe_p1]`` of the rows of a pose ``log.csv`` that have them."""
+    import csv
+
+    if not path.is_file():
+        return []
+    with path.open() as f:
+        rows = [r for r in csv.DictReader(f) if r.get("val_jpe_p1")]
+    return [[int(r["step"]), float(r["val_jpe_p0"]), float(r["val_jpe_p1"])] for r in rows]
+
+
 def export_all(trainer: Trainer, jobs: list[Job], command: str, evaluate: bool) -> None:
     """Export every trained network to ``--export`` and rewrite its ``bases.json``."""
     from freipose.models import MANIFEST, read_manifest
@@ -314,9 +325,11 @@ def export_all(trainer: Trainer, jobs: list[Job], command: str, evaluate: bool) 
             ev = (_held_out_detector(trainer, dest) if job.name == "detector"
                   else _held_out_pose(trainer, job.name, dest))  # fmt: skip
             figures = {**ev, "evaluated": True, "samples": int(len(trainer.ev_idx))}
-        entry.update(_provenance(trainer, job, dest, step, command))
+        # an --export-only run keeps the command that trained the weights
+        made_by = entry.get("command") if trainer.args.export_only else None
+        entry.update(_provenance(trainer, job, dest, step, made_by or command))
         entry["held_out"] = figures
-        entry["train_log"] = str(run / "log.csv")
+        entry["validation"] = _validation_rows(run / "log.csv")
         entries.append(entry)
     (export / MANIFEST).write_text(json.dumps({"bases": entries}, indent=2) + "\n")
 

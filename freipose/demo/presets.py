@@ -147,7 +147,7 @@ _PRESETS = {
             eval_samples=16,
             log_every=10,
         ),  # fmt: skip
-        init="scratch",
+        init="base",  # fine-tune the shipped bases (docs/models.md)
         detector=dict(
             input_size=128,
             width=0.35,

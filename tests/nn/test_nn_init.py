@@ -157,3 +157,20 @@ def test_train_command_init_option_and_relative_init_path(trained, tmp_path):
         got = read_checkpoint(tmp_path / name / "model.pt")["model"]
         close = all(torch.allclose(got[k].float(), start[k].float(), atol=1e-5) for k in start)
         assert close == (name != "scratch"), name
+
+
+def test_the_shipped_bases_fit_the_small_preset_and_the_demo_detector():
+    from freipose.detect.init import initialize_detector
+    from freipose.detect.model import DetectorConfig, DetectorNet
+    from freipose.skeleton import load_skeleton
+
+    bases = {b.name: b for b in models.shipped_bases()}  # the installed package data
+    assert set(bases) == {"voxel", "baseline", "detector"}
+    for kind in ("voxel", "baseline"):
+        cfg = config_from_dict({"model": {"preset": "small", "kind": kind}})
+        res = initialize(build_model(cfg.model, 12), cfg.model, load_skeleton("rat"))
+        assert res.source == f"base:{kind}" and res.fresh == () and res.loaded > 0
+        assert bases[kind].entry["data"]["train_seeds"][0] >= 10_000  # disjoint seeds
+    det = DetectorNet(DetectorConfig(input_size=128, width=0.35, neck_channels=24))
+    assert initialize_detector(det, "base") == "base:detector"
+    assert sum(b.entry["size_bytes"] for b in bases.values()) < 5_000_000
