@@ -81,7 +81,7 @@ def test_allow_incomplete_exports_and_counts_the_missing_frames(partial, tmp_pat
     assert res.exit_code == 0, res.output
     assert "24 frames have no prediction" in res.output
     df = pd.read_csv(out)
-    assert len(df) == N and df["red_x"][:16].notna().all() and df["red_x"][16:].isna().all()
+    assert len(df) == N and df["red_x_mm"][:16].notna().all() and df["red_x_mm"][16:].isna().all()
 
 
 def test_render_refuses_a_partial_file(partial, tmp_path):
