@@ -21,7 +21,7 @@ import numpy as np
 
 from freipose.calibration.bundle import BundleResult
 from freipose.calibration.intrinsics import CalibrationError
-from freipose.calibration.params import DIST, FRAME_RVEC, FRAME_TVEC, RVEC, TVEC
+from freipose.calibration.params import CAM_PARAMS, DIST, FRAME_RVEC, FRAME_TVEC, RVEC, TVEC
 from freipose.geometry.transforms import invert_transform, rodrigues, transform
 
 __all__ = [
@@ -36,6 +36,7 @@ __all__ = [
     "Finding",
     "ImplausibleCalibrationError",
     "check_plausibility",
+    "fold_pixel_radius",
     "folding_warnings",
 ]
 
@@ -209,6 +210,25 @@ def _fold(size: tuple[int, int], p: np.ndarray, covered: float) -> _Fold | None:
     reach = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
     k = f"k1 = {k1:.4g}, k2 = {k2:.4g}, k3 = {k3:.4g}"
     return _Fold(reach, r, covered, rc, 0.5 * float(p[0] + p[1]), k)
+
+
+def fold_pixel_radius(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> float | None:
+    """How far (px) from the principal point the radial distortion folds inside the image.
+
+    Args:
+        K: (3, 3) intrinsic matrix.
+        dist: (5,) k1 k2 p1 p2 k3.
+        size: the image size (width, height).
+
+    Returns:
+        the largest distorted radius (px, at the mean focal length) the model reaches, or
+        ``None`` when it reaches the image corners.
+    """
+    p = np.zeros(CAM_PARAMS)
+    p[:4] = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    p[DIST] = dist
+    fold = _fold(size, p, 0.0)
+    return None if fold is None else fold.reach * fold.px
 
 
 def _folding_findings(name: str, fold: _Fold | None, fix: str) -> list[Finding]:

@@ -14,6 +14,7 @@ from matplotlib.figure import Figure
 from freipose.calibration.coverage import FLOOR_NEAR_MM, CameraCoverage
 from freipose.calibration.detect import CameraDetections
 from freipose.calibration.pipeline import CalibrationResult
+from freipose.calibration.plausibility import fold_pixel_radius
 from freipose.io.figures import new_figure, save_figure
 
 logger = logging.getLogger(__name__)
@@ -179,11 +180,16 @@ def _coverage_text(cov: CameraCoverage | None) -> str:
     return "; ".join(parts)
 
 
-def _coverage_map(det: CameraDetections, cov: CameraCoverage | None = None) -> Figure:
+def _coverage_map(
+    det: CameraDetections,
+    cov: CameraCoverage | None = None,
+    fold: tuple[float, float, float] | None = None,
+) -> Figure:
     """Where in the image a camera's corners were detected, per grid cell, and the floor.
 
     The cells of the coverage grid show their corner counts (empty cells grey); the floor
-    that two cameras see is marked with red crosses when the floor is known.
+    that two cameras see is marked with red crosses when the floor is known; ``fold``
+    ``(cx, cy, radius)`` (px) draws the circle beyond which the lens model folds.
     """
     w, h = det.size
     pts = det.points[det.mask]
@@ -207,6 +213,11 @@ def _coverage_map(det: CameraDetections, cov: CameraCoverage | None = None) -> F
         f = cov.floor_pixels
         ax.scatter(f[:, 0], f[:, 1], s=4, c="r", marker="+", linewidths=0.6,
                    label="floor seen by 2+ cameras")  # fmt: skip
+    if fold is not None:
+        t = np.linspace(0.0, 2 * np.pi, 181)
+        ax.plot(fold[0] + fold[2] * np.cos(t), fold[1] + fold[2] * np.sin(t), "--", c="m",
+                lw=1.2, label="the lens model folds beyond")  # fmt: skip
+    if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="lower right", fontsize=7)
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
@@ -255,6 +266,15 @@ def _rig_figure(result: CalibrationResult) -> Figure:
     return fig
 
 
+def _fold_circle(result: CalibrationResult, i: int) -> tuple[float, float, float] | None:
+    """(cx, cy, radius) px of camera ``i``'s lens-model fold inside its image, else None."""
+    if i >= len(result.rig):
+        return None
+    cam = result.rig[i]
+    r = fold_pixel_radius(cam.K, cam.dist, tuple(cam.size))
+    return None if r is None else (float(cam.K[0, 2]), float(cam.K[1, 2]), r)
+
+
 def write_report(result: CalibrationResult, outdir: str | Path) -> list[Path]:
     """Write the report: summary.json, report.txt and the figures.
 
@@ -283,7 +303,7 @@ def write_report(result: CalibrationResult, outdir: str | Path) -> list[Path]:
             fig = _error_histogram(result, i, det.name)
             paths.append(save_figure(fig, out / f"errors_{det.name}.png", dpi=80))
         cov = result.coverage[i] if i < len(result.coverage) else None
-        fig = _coverage_map(det, cov)
+        fig = _coverage_map(det, cov, _fold_circle(result, i))
         paths.append(save_figure(fig, out / f"coverage_{det.name}.png", dpi=80))
     paths.append(save_figure(_rig_figure(result), out / "rig_3d.png", dpi=80))
     return paths

@@ -27,9 +27,11 @@ def test_fisheye_mouse_rig_calibrates(tmp_path):
     out = tmp_path / "calibration.toml"
     args = ["calib", *sorted(str(p) for p in cal.glob("cam*.mp4")), "--board"]
     args += [str(cal / "board.toml"), "--origin-frame", "0", "-o", str(out)]
+    args += ["--report", str(tmp_path / "report")]
     res = runner.invoke(cli, args)
     assert res.exit_code == 0, res.output
     assert "folds" in res.output and "image points farther out" in res.output  # warned
+    assert (tmp_path / "report" / "coverage_cam2.png").is_file()
     est = load_calibration(out)
     assert "suspect" not in est.metadata
     truth = load_calibration(rec / "true_calibration.toml")

@@ -20,6 +20,7 @@ from freipose.calibration.pipeline import calibrate_detections
 from freipose.calibration.plausibility import (
     ImplausibleCalibrationError,
     check_plausibility,
+    fold_pixel_radius,
     folding_radius,
     folding_warnings,
 )
@@ -144,6 +145,22 @@ def test_fold_beyond_the_board_is_a_warning(result):
     found = _check(result, cam_params=cam)
     assert ("cam3", "folding_distortion") in {(f.camera, f.check) for f in found}
     assert folding_warnings(names, sizes, dataclasses.replace(ba, cam_params=cam)) == []
+
+
+def test_fold_pixel_radius_and_its_circle_in_the_coverage_map():
+    from freipose.calibration.report import _coverage_map
+
+    K = np.array([[200.0, 0, 159.5], [0, 200.0, 127.5], [0, 0, 1]])
+    assert fold_pixel_radius(K, np.array([-0.2, 0.04, 0, 0, 0]), (320, 256)) is None
+    r = fold_pixel_radius(K, np.array([-1.5, 0, 0, 0, 0]), (320, 256))
+    assert r == pytest.approx(200 * np.sqrt(1 / 4.5) * 2 / 3, rel=2e-3)
+    det = CameraDetections("cam0", (320, 256), np.full((1, 4, 2), np.nan))
+    fig = _coverage_map(det, None, (159.5, 127.5, r))
+    lines = fig.axes[0].get_lines()
+    assert [ln.get_label() for ln in lines] == ["the lens model folds beyond"]
+    assert np.hypot(lines[0].get_xdata() - 159.5, lines[0].get_ydata() - 127.5) == (
+        pytest.approx(r)
+    )
 
 
 def test_folding_radius():
