@@ -58,7 +58,7 @@ def test_export_keeps_an_existing_export(run, tmp_path):
     assert res.exit_code != 0 and f"{out} exists; pass --overwrite to replace it" in res.output
     assert out.read_text() == "mine"
     assert _cli("export", poses, "-o", out, "--overwrite").exit_code == 0
-    assert out.read_text().startswith("frame,time,")
+    assert out.read_text().startswith("frame,time_s,")
 
 
 def test_render_keeps_an_existing_video_and_removes_leftovers(run, tmp_path):
