@@ -282,11 +282,13 @@ def evaluate_on_targets(
     cls_rows: list[dict] = []
     dyn_rows: list[dict] = []
     for target in evaluation_targets(study, animal, condition):
-        tests = [recs[r.name] for r in study.select(target, condition, "test")]
+        names = [r.name for r in study.select(target, condition, "test")]
+        tests = [recs[n] for n in names]
         ev = evaluate_classifier(clf, tests, animal, condition, target, config, fps, span_s)
         cls_rows.append(ev.row)
         say(
-            f"    evaluated on {target}: balanced accuracy {ev.row['balanced_accuracy']:.3f}, "
+            f"    evaluated on {target}'s test recordings ({', '.join(names)}): "
+            f"balanced accuracy {ev.row['balanced_accuracy']:.3f}, "
             f"F1 {ev.row['f1']:.3f}, {ev.row['n_frames']} frames"
         )
         if ev.trials is not None:
