@@ -17,9 +17,9 @@ from freipose.cli._threads import threads_option, use_threads
     type=click.Choice(["small", "tiny"]),
     default="small",
     show_default=True,
-    help="small: the real workflow, about 13 min on an otherwise idle 2-core CPU (measured: "
-    "12 min 47 s); other processes on the same cores slow it down (55 min beside four "
-    "heavy jobs); tiny: 1-2 minutes, meaningless numbers (a smoke test).",
+    help="small: the real workflow, about 12 min on an otherwise idle 2-core CPU (measured: "
+    "11 min 37 s); other processes on the same cores slow it down (the thread count follows "
+    "the free cores, see --threads); tiny: a few minutes, meaningless numbers (a smoke test).",
 )
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
 @threads_option()

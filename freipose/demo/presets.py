@@ -118,7 +118,7 @@ _PRESETS = {
         batch=8,
         detection="bgsub",
     ),
-    # The default: under 15 minutes on a 2-core CPU.
+    # The default: the real workflow, about 12 minutes on an idle 2-core CPU.
     "small": DemoPreset(
         name="small",
         size=(320, 256),
