@@ -21,6 +21,7 @@ import numpy as np
 
 from freipose.detect.fallback import FallbackBoxesError, FixedBoxes
 from freipose.geometry import CameraRig, project_rig
+from freipose.geometry.crops import label_centers
 from freipose.io.atomic import atomic_write_text
 from freipose.io.labels import LabelSet
 
@@ -97,7 +98,7 @@ def label_boxes(labels: LabelSet, rig: CameraRig, margin: float = MARGIN) -> Lab
             "the labels have no 3D point to derive fixed boxes from; import them with a "
             "--calibration so that labels seen in two views are triangulated"
         )
-    centres = np.nanmean(np.where(ok[..., None], p3, np.nan)[has], axis=1)  # (n, 3)
+    centres = label_centers(p3[has])  # (n, 3)
     center = np.median(centres, axis=0)
     boxes: dict[str, tuple[float, float, float, float]] = {}
     for cam in rig:

@@ -51,6 +51,26 @@ def crop_image(image: np.ndarray, box: np.ndarray, out_size: int, border: int = 
     )
 
 
+def label_centers(points3d: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Mean of each instant's labeled 3D points: the centre a voxel cube is placed on.
+
+    Args:
+        points3d: (..., K, 3) 3D points (mm), NaN where unlabeled.
+        mask: (..., K) points to use (also finite ones only) [default: every finite point].
+
+    Returns:
+        (..., 3) the mean of the used points; NaN where an instant has none.
+    """
+    p = np.asarray(points3d, dtype=np.float64)
+    ok = np.asarray(np.isfinite(p).all(-1))
+    if mask is not None:
+        ok = ok & np.asarray(mask, dtype=bool)
+    total = np.where(ok[..., None], p, 0.0).sum(-2)
+    count = ok.sum(-1)[..., None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / count, np.nan)
+
+
 def cube_corners(center: np.ndarray, size: float) -> np.ndarray:
     """Corners (..., 8, 3) of axis-aligned cubes of edge ``size`` mm around centres (..., 3)."""
     c = np.asarray(center, dtype=np.float64)

@@ -22,7 +22,7 @@ import torch
 
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
-from freipose.geometry.crops import crop_affine, crop_camera, cube_crop_boxes
+from freipose.geometry.crops import crop_affine, crop_camera, cube_crop_boxes, label_centers
 from freipose.geometry.transforms import rodrigues
 from freipose.io.calibration_world import world_up
 from freipose.nn.config import AugmentConfig, ModelConfig
@@ -36,16 +36,8 @@ class SampleError(FreiPoseError):
 
 
 def label_center(points3d: np.ndarray, mask3d: np.ndarray | None = None) -> np.ndarray:
-    """Mean (3,) of the labeled 3D points (NaN when there is none)."""
-    p = np.asarray(points3d, dtype=np.float64)
-    m = (
-        np.isfinite(p).all(-1)
-        if mask3d is None
-        else np.asarray(mask3d, bool) & np.isfinite(p).all(-1)
-    )
-    if not m.any():
-        return np.full(3, np.nan)
-    return p[m].mean(0)
+    """Mean (3,) of the labeled (K, 3) 3D points (NaN when there is none)."""
+    return label_centers(points3d, mask3d)
 
 
 def _aug_affine(rng: np.random.Generator, aug: AugmentConfig, size: int) -> np.ndarray:

@@ -21,15 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from freipose.nn.data import label_center
+from freipose.geometry.crops import label_centers
 
 AT_HELD_OUT = "median pose at held-out centre"
 AT_TRAINING = "median pose at training centre"
-
-
-def _centres(points3d: np.ndarray) -> np.ndarray:
-    """(N, 3) centre of each instant: the mean of its labeled 3D points (NaN if none)."""
-    return np.stack([label_center(p) for p in points3d]) if len(points3d) else np.zeros((0, 3))
 
 
 def median_pose(train3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -46,7 +41,7 @@ def median_pose(train3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ValueError: no training instant has a labeled 3D point.
     """
     p = np.asarray(train3d, np.float64)
-    c = _centres(p)
+    c = label_centers(p)
     ok = np.isfinite(c).all(-1)
     if not ok.any():
         raise ValueError("the training labels have no instant with a labeled 3D point")
@@ -77,7 +72,7 @@ def reference_predictions(train3d: np.ndarray, gt: np.ndarray) -> dict[str, np.n
             "same keypoints"
         )
     pose, centre = median_pose(train3d)
-    held = _centres(gt)
+    held = label_centers(gt)
     return {
         AT_HELD_OUT: pose[None] + held[:, None, :],
         AT_TRAINING: np.broadcast_to(pose + centre, gt.shape).copy(),

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from freipose.errors import FreiPoseError
-from freipose.geometry.crops import cube_crop_boxes
+from freipose.geometry.crops import cube_crop_boxes, label_centers
 from freipose.io.labels import LabelSet
 from freipose.nn.config import ModelConfig, TrainConfig
 
@@ -93,7 +93,7 @@ def animal_radius(points3d: np.ndarray, percentile: float = PERCENTILE) -> tuple
     if not use.any():
         return float("nan"), 0
     p, ok = p[use], ok[use]
-    centre = np.nansum(np.where(ok[..., None], p, 0.0), 1) / ok.sum(1)[:, None]
+    centre = label_centers(p)
     dist = np.where(ok, np.linalg.norm(np.nan_to_num(p) - centre[:, None], axis=-1), 0.0)
     return float(np.percentile(dist.max(1), percentile)), int(use.sum())
 
