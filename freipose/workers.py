@@ -189,6 +189,11 @@ def safe_preload(preload: Sequence[str]) -> list[str]:
 
 def _exit_cause(pool: ProcessPoolExecutor | None) -> str | None:
     """How the first dead worker of ``pool`` ended (its exit status or signal), if known."""
+    # The pool fails its futures before it terminates and joins its workers: wait for its
+    # manager thread to finish that, so that no two threads read a worker's status at once.
+    manager = getattr(pool, "_executor_manager_thread", None)
+    if manager is not None:
+        manager.join(5.0)
     procs = getattr(pool, "_processes", None) or {}
     codes = []
     for p in list(procs.values()):
