@@ -168,11 +168,14 @@ def consistent_detection(
             h = int(np.lexsort((quality, count))[-1])
             if count[h] >= cfg.min_views:
                 agree, chosen = ag[h], best[h]
-                # 4. Refit from the chosen boxes, then verify and refit once more.
+                # 4. Refit from the chosen boxes, then verify and refit once more. The
+                # weighted DLT suffices: box centres are not projections of one 3D point
+                # (a pixel-optimal refinement moved the centre by far less than that
+                # mismatch and took most of the detection time).
                 for _ in range(2):
                     pts = np.where(agree[:, None], centres[np.arange(c), chosen], np.nan)
                     w = np.where(agree, scores[np.arange(c), chosen], 0.0)
-                    Xr = triangulate_weighted(pts, np.maximum(w, 1e-3) * agree, rig, refine=True)
+                    Xr = triangulate_weighted(pts, np.maximum(w, 1e-3) * agree, rig)
                     if not np.isfinite(Xr).all():
                         break
                     ag2, best2, _, _ = _verify(Xr[None], rig, centres, scores, tol)

@@ -150,14 +150,15 @@ def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray, iterations: int = 2
 
     Args:
         xy_d: (..., 2) distorted normalized coordinates.
-        dist: (5,) coefficients.
+        dist: (5,) coefficients, or (..., 5) broadcastable to ``xy_d[..., 0]`` (e.g. (C, 5)
+            for points (..., C, 2) of C cameras).
         iterations: fixed-point iterations before the Newton polish.
 
     Returns:
         (..., 2) undistorted normalized coordinates.
     """
     xy_d = check_last(xy_d, 2, "xy_d")
-    d = np.asarray(dist, dtype=np.float64).reshape(5)
+    d = check_last(dist, 5, "dist")
     if not np.any(d):
         return xy_d.copy()
     xy = xy_d.copy()

@@ -15,7 +15,7 @@ from freipose.geometry.distortion import distort_normalized
 __all__ = ["apply_intrinsics", "project_points", "remove_intrinsics"]
 
 # Points at or below this depth (mm) in front of the camera project to NaN.
-_EPS_DEPTH = 1e-9
+EPS_DEPTH = 1e-9
 
 
 def apply_intrinsics(xy: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -40,15 +40,15 @@ def remove_intrinsics(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
 
     Args:
         uv: (..., 2) pixels.
-        K: (3, 3) intrinsic matrix.
+        K: (3, 3) intrinsic matrix, or (..., 3, 3) broadcastable to ``uv[..., 0]``.
 
     Returns:
         (..., 2) normalized coordinates.
     """
     uv = check_last(uv, 2, "uv")
     K = np.asarray(K, dtype=np.float64)
-    y = (uv[..., 1] - K[1, 2]) / K[1, 1]
-    x = (uv[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    y = (uv[..., 1] - K[..., 1, 2]) / K[..., 1, 1]
+    x = (uv[..., 0] - K[..., 0, 2] - K[..., 0, 1] * y) / K[..., 0, 0]
     return np.stack([x, y], axis=-1)
 
 
@@ -75,7 +75,7 @@ def project_points(
     Xc = X @ R.T + t
     z = Xc[..., 2:3]
     with np.errstate(divide="ignore", invalid="ignore"):
-        xy = np.where(z > _EPS_DEPTH, Xc[..., :2] / z, np.nan)
+        xy = np.where(z > EPS_DEPTH, Xc[..., :2] / z, np.nan)
     if dist is not None:
         xy = distort_normalized(xy, dist)
     return apply_intrinsics(xy, K)

@@ -12,7 +12,9 @@ import itertools
 import numpy as np
 
 from freipose.geometry.camera import CameraRig
-from freipose.geometry.projection import project_rig, undistort_pixels
+from freipose.geometry.distortion import undistort_normalized
+from freipose.geometry.pinhole import remove_intrinsics
+from freipose.geometry.projection import project_rig
 
 
 def _check_obs(points2d: np.ndarray, rig: CameraRig) -> np.ndarray:
@@ -26,8 +28,8 @@ def _check_obs(points2d: np.ndarray, rig: CameraRig) -> np.ndarray:
 
 
 def _normalized_obs(uv: np.ndarray, rig: CameraRig) -> np.ndarray:
-    """Undistorted normalized coordinates (..., C, 2)."""
-    return np.stack([undistort_pixels(uv[..., i, :], c) for i, c in enumerate(rig)], axis=-2)
+    """Undistorted normalized coordinates (..., C, 2), all cameras at once."""
+    return undistort_normalized(remove_intrinsics(uv, rig.K), rig.dist)
 
 
 def _dlt(xy: np.ndarray, Rt: np.ndarray, w: np.ndarray) -> np.ndarray:
