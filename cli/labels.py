@@ -326,8 +326,9 @@ def split(
     network evaluated on frames drawn at random between its training frames is tested on
     what it has almost seen, and the error it shows is lower than on a new recording.
     Split by session (or group of sessions), or, with one recording, by time: --by time
-    holds out contiguous blocks (--eval of each session's instants in --blocks blocks)
-    and drops the training instants within --gap frames of them.
+    holds out contiguous blocks (--eval of each session's labeled frames, with all
+    animals of a frame, in --blocks blocks) and drops the training instants within --gap
+    frames of them.
 
     \b
     Examples:

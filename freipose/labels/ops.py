@@ -219,15 +219,16 @@ def split_by_time(
 ) -> tuple[LabelSet, LabelSet, list[str]]:
     """Split every recording into contiguous time blocks, held out with a gap around them.
 
-    Each session's labeled instants, in frame order, fall into ``blocks`` equal segments;
-    in each, a contiguous run of ``eval_fraction`` of the segment's instants (at a seeded
-    random place) is held out. Training instants less than ``gap`` frames from a held-out
-    instant of the same session are dropped, so no training frame is a near-copy of a
-    held-out one (neighbouring video frames look almost the same).
+    Each session's labeled frames, in order, fall into ``blocks`` equal segments; in each,
+    a contiguous run of ``eval_fraction`` of the segment's frames (at a seeded random
+    place) is held out, with every instant of those frames (all animals of a frame).
+    Training instants less than ``gap`` frames from a held-out instant of the same session
+    are dropped, so no training frame is a near-copy of a held-out one (neighbouring video
+    frames look almost the same).
 
     Args:
         labels: the labels set (one or more sessions).
-        eval_fraction: share of each session's instants held out, in (0, 1).
+        eval_fraction: share of each session's labeled frames held out, in (0, 1).
         gap: frames between a held-out instant and the nearest training instant.
         blocks: held-out blocks per session.
         seed: the blocks' places.
@@ -248,17 +249,16 @@ def split_by_time(
     described = []
     for sess in sorted(set(labels.session)):
         rows = np.flatnonzero(labels.session == sess)
-        rows = rows[np.argsort(labels.frame_index[rows], kind="stable")]
-        for seg in np.array_split(rows, min(blocks, len(rows))):
+        fi = labels.frame_index[rows]
+        frames = np.unique(fi)  # the instants of one frame (several animals) stay together
+        for seg in np.array_split(frames, min(blocks, len(frames))):
             size = int(round(eval_fraction * len(seg)))
             if size < 1:
                 continue
             start = int(rng.integers(0, len(seg) - size + 1))
-            block = seg[start : start + size]
-            is_eval[block] = True
-            f = labels.frame_index[block]
+            f = seg[start : start + size]
+            is_eval[rows[np.isin(fi, f)]] = True
             described.append(f"{sess} frames {int(f.min())}-{int(f.max())}")
-        fi = labels.frame_index[rows]
         ev_f = fi[is_eval[rows]]
         if len(ev_f):
             near = np.abs(fi[:, None] - ev_f[None, :]).min(1) < gap

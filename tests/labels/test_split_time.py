@@ -76,3 +76,14 @@ def test_cli_split_by_time(tmp_path):
     assert tr.sessions["rec"].fps == 50.0
     help_text = CliRunner().invoke(cli, ["labels", "split", "--help"]).output
     assert "near-copies" in help_text and "--by time" in help_text
+
+
+def test_several_animals_per_frame_stay_together():
+    # two animals per labeled frame: a held-out block takes whole frames, never one animal
+    lab = _labels({"rec": np.repeat(np.arange(3), 2)})
+    for frac in (0.34, 0.5, 0.67):
+        for seed in range(4):
+            tr, ev, _ = split_by_time(lab, frac, gap=1, blocks=1, seed=seed)
+            assert not set(tr.frame_index) & set(ev.frame_index)
+            assert len(ev) == 2 * len(set(ev.frame_index))
+            assert len(ev) == 2 * int(round(frac * 3))
