@@ -43,9 +43,10 @@ def _formats(text: str) -> tuple[str, ...]:
 @click.option("--seed", type=int, default=None, help="Random seed [0]; same seed, same scene.")
 @click.option(
     "--appearance",
-    type=click.Choice(["hooded", "albino", "dark", "random"]),
+    type=click.Choice(["hooded", "albino", "dark", "piebald", "random"]),
     default=None,
-    help="Coat of the animal [random: hooded or albino for a rat, dark or albino for a mouse].",
+    help="Coat of the animal [random: hooded or albino for a rat, dark or albino for a mouse; "
+    "piebald (dark patches on white) is never drawn at random].",
 )
 @click.option(
     "--animal",
@@ -71,9 +72,10 @@ def _formats(text: str) -> tuple[str, ...]:
 )
 @click.option(
     "--layout",
-    type=click.Choice(["ring", "above", "side", "below"]),
+    type=click.Choice(["ring", "above", "side", "below", "arc"]),
     default=None,
-    help="Default rig layout [ring]; below: the last camera films through a transparent floor.",
+    help="Default rig layout [ring]; below: the last camera films through a transparent floor; "
+    "arc: all cameras on one side (never drawn by --randomize).",
 )
 @click.option(
     "--reflections",

@@ -20,6 +20,7 @@ from typing import cast
 import numpy as np
 from numpy.typing import ArrayLike
 
+from freipose.synth.coats import FURRY, MAT, coat_palette
 from freipose.synth.errors import SynthError
 from freipose.synth.state import MotionState
 
@@ -39,9 +40,7 @@ PART_NAMES: tuple[str, ...] = (
 ) + tuple(f"tail_{i}" for i in range(N_TAIL))  # fmt: skip
 PART: Mapping[str, int] = MappingProxyType({n: i for i, n in enumerate(PART_NAMES)})
 
-# Materials (index into the appearance palette).
-MATERIALS = ("haunch", "chest", "head", "snout", "nose", "eye", "ear", "limb", "paw", "tail")
-MAT: Mapping[str, int] = MappingProxyType({n: i for i, n in enumerate(MATERIALS)})
+# Material of each part (index into the coat's palette, freipose.synth.coats.MATERIALS).
 PART_MATERIAL = np.array(
     [MAT[m] for m in (
         "haunch", "chest", "head", "head", "snout", "nose", "eye", "eye", "ear", "ear",
@@ -51,6 +50,9 @@ PART_MATERIAL = np.array(
     dtype=np.int64,
 )  # fmt: skip
 PART_MATERIAL.setflags(write=False)
+#: the piebald coat's materials: every furry part white with dark patches (``"patched"``)
+PIEBALD_MATERIAL = np.where(np.isin(PART_MATERIAL, FURRY), MAT["patched"], PART_MATERIAL)
+PIEBALD_MATERIAL.setflags(write=False)
 
 # Parts a keypoint belongs to (ignored when testing whether the keypoint is occluded).
 KEYPOINT_OWNERS: tuple[tuple[int, ...], ...] = (
@@ -69,7 +71,10 @@ KEYPOINT_OWNERS: tuple[tuple[int, ...], ...] = (
 )
 
 APPEARANCES = ("hooded", "albino")  # the coats ``appearance = "random"`` draws for a rat
-COATS = (*APPEARANCES, "dark")  # every coat ("dark": a black mouse or rat)
+#: every coat ("dark": a black mouse or rat; "piebald": white with irregular dark patches,
+#: drawn neither by ``appearance = "random"`` nor by ``randomize``, so the shipped base
+#: models never saw it: a coat outside their training data)
+COATS = (*APPEARANCES, "dark", "piebald")
 MOUSE_COATS = ("dark", "albino")  # the coats ``appearance = "random"`` draws for a mouse
 
 
@@ -83,8 +88,10 @@ class RatBody:
         girth: extra factor on the torso width and height.
         tail_length: extra factor on the tail length.
         appearance: ``"hooded"`` (black head and back stripe, white belly and flanks),
-            ``"albino"`` (white with pink ears, eyes, paws and tail) or ``"dark"`` (black
-            fur, grey-pink ears, paws and tail).
+            ``"albino"`` (white with pink ears, eyes, paws and tail), ``"dark"`` (black
+            fur, grey-pink ears, paws and tail) or ``"piebald"`` (white fur with irregular
+            black patches on the torso, head and legs; pink paws, grey ears and tail;
+            never drawn at random, see :data:`COATS`).
         tint: (3,) BGR multiplier on the fur colour (small individual differences).
     """
 
@@ -135,39 +142,8 @@ class RatBody:
 
     @property
     def palette(self) -> np.ndarray:
-        """(n_materials, 2, 3) BGR albedo in [0, 1]: [primary, secondary] per material.
-
-        The secondary colour is used by the fur patterns (the hooded rat's dark parts).
-        """
-        white = np.array([0.86, 0.9, 0.93]) * np.array(self.tint)
-        pink = np.array([0.62, 0.64, 0.9])
-        if self.appearance == "hooded":
-            dark = np.array([0.08, 0.085, 0.1])
-            cols = {
-                "haunch": (white, dark), "chest": (white, dark), "head": (dark, dark),
-                "snout": (dark, dark), "nose": (np.array([0.3, 0.3, 0.42]),) * 2,
-                "eye": (np.array([0.02, 0.02, 0.02]),) * 2,
-                "ear": (np.array([0.36, 0.37, 0.5]),) * 2, "limb": (white, white),
-                "paw": (pink, pink), "tail": (np.array([0.45, 0.48, 0.58]),) * 2,
-            }  # fmt: skip
-        elif self.appearance == "dark":
-            black = np.array([0.07, 0.075, 0.085]) * np.array(self.tint)
-            skin = np.array([0.33, 0.34, 0.42])
-            cols = {
-                "haunch": (black, black), "chest": (black, black), "head": (black, black),
-                "snout": (black, black), "nose": (skin,) * 2,
-                "eye": (np.array([0.02, 0.02, 0.02]),) * 2, "ear": (skin * 0.8,) * 2,
-                "limb": (black, black), "paw": (skin,) * 2, "tail": (skin * 0.75,) * 2,
-            }  # fmt: skip
-        else:
-            white = white * np.array([0.93, 1.0, 1.02])  # slightly creamy
-            cols = {
-                "haunch": (white, white), "chest": (white, white), "head": (white, white),
-                "snout": (white, white), "nose": (pink * 0.95,) * 2,
-                "eye": (np.array([0.12, 0.1, 0.75]),) * 2, "ear": (pink,) * 2,
-                "limb": (white, white), "paw": (pink,) * 2, "tail": (pink * 0.97,) * 2,
-            }  # fmt: skip
-        return np.array([np.stack(cols[m]) for m in MATERIALS])
+        """(n_materials, 2, 3) BGR albedo in [0, 1] of this coat (:func:`coat_palette`)."""
+        return coat_palette(self.appearance, self.tint)
 
 
 @dataclass(frozen=True, eq=False)
@@ -587,4 +563,5 @@ def build_body(body: RatBody, state: MotionState, floor_clearance: float = 1.5) 
          head.nose_tip, tail.root],
         axis=1,
     )  # fmt: skip
-    return BodyGeometry(C, A, Rd, kp)
+    materials = PIEBALD_MATERIAL if body.appearance == "piebald" else PART_MATERIAL
+    return BodyGeometry(C, A, Rd, kp, materials.copy())

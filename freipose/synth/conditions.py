@@ -8,7 +8,8 @@ seed (:func:`randomized`, what ``randomize = true`` does):
 * ``animal`` ``"rat"`` / ``"mouse"`` and ``animal_scale`` (body size, rat = 1);
 * ``grayscale`` (every camera, or a list of camera names), ``lens`` (``standard``,
   ``fisheye``, ``pinhole``), ``layout`` of the default rig (``ring``, ``above``, ``side``,
-  ``below``: one camera under a transparent floor);
+  ``below``: one camera under a transparent floor; ``arc``: all on one side, never drawn by
+  :func:`randomized`);
 * ``walls`` ``"opaque"`` / ``"acrylic"`` (transparent: the animal is seen, and labeled,
   through them);
 * ``reflections`` (mirror images of the animal in the walls), ``rest_fraction`` (resting
@@ -38,7 +39,7 @@ SceneConfig = Any
 ANIMALS = ("rat", "mouse")
 ANIMAL_SCALE = {"rat": 1.0, "mouse": 0.42}  # body size factor (rat: ~23 cm nose to tail root)
 LENSES = ("standard", "fisheye", "pinhole")
-LAYOUTS = ("ring", "above", "side", "below")
+LAYOUTS = ("ring", "above", "side", "below", "arc")  # randomized draws the first four
 FLOORS = ("mat", "bedding")
 WALLS = ("opaque", "acrylic")
 LABEL_FORMATS = ("sleap", "dlc")

@@ -28,7 +28,8 @@ from freipose.geometry import (
     remove_intrinsics,
     undistort_normalized,
 )
-from freipose.synth.body import MAT, PART, BodyGeometry
+from freipose.synth.body import PART, BodyGeometry
+from freipose.synth.coats import FURRY, MAT, fur_pattern
 from freipose.synth.look import (
     CameraLook,
     SceneStyle,
@@ -411,17 +412,9 @@ class CameraRenderer:
         d = self.rays_soa[:, y0:y1, x0:x1][:, m].T.astype(np.float64)
         q = (p * Rr[ids]).astype(np.float32)  # local mm: texture moves with the part
         fur = value_noise3(self.fur_noise, q / 1.7)
-        # fur pattern: secondary colour where the pattern says so (hooded rat)
-        second = np.zeros(len(ids), bool)
-        wob = 0.12 * value_noise3(self.fur_noise, q / 12.0 + 7.1)
-        hm = mats == MAT["haunch"]
-        second[hm] = (p[hm, 2] + wob[hm] > 0.8) & (np.abs(p[hm, 1]) < 0.45)
-        cm = mats == MAT["chest"]
-        second[cm] = ((p[cm, 2] + wob[cm] > 0.78) & (np.abs(p[cm, 1]) < 0.5)) | (
-            (p[cm, 0] + wob[cm] > 0.4) & (p[cm, 2] > -0.4)
-        )
+        second = fur_pattern(mats, ids, p, q, self.fur_noise)
         alb = palette[mats, second.astype(np.int64)]
-        furry = np.isin(mats, (MAT["haunch"], MAT["chest"], MAT["head"], MAT["snout"], MAT["limb"]))
+        furry = np.isin(mats, FURRY)
         alb = alb * (1.0 + np.where(furry, 0.13, 0.05) * fur)[:, None]
         ndl = np.clip(n @ LIGHT, 0, 1)
         ndv = np.clip(-(n * d).sum(1), 0, 1)

@@ -134,10 +134,13 @@ def _placement_of(
         pos = np.array([0.0, -180.0 * reach, 1250.0 * reach]) + jitter
         return pos, np.array([0.0, 0.0, 0.0]) + aim, (0.0, 1.0, 0.0)
     az = 2 * math.pi * i / n_ring + math.radians(20)
+    if layout == "arc":  # one side of the arena only: a 150 degree arc
+        az = math.radians(150.0 * (i / max(n - 1, 1) - 0.5))
     radius, height = {
         "ring": (720.0, 620.0) if i % 2 == 0 else (640.0, 820.0),
         "above": (380.0, 1050.0) if i % 2 == 0 else (320.0, 1150.0),
         "side": (780.0, 380.0) if i % 2 == 0 else (720.0, 460.0),
+        "arc": (720.0, 480.0) if i % 2 == 0 else (640.0, 700.0),
     }[layout]
     radius, height = radius * reach, height * reach
     pos = np.array([radius * math.cos(az), radius * math.sin(az), height]) + jitter
@@ -159,7 +162,9 @@ def default_rig(
     others stand on a ring (alternately higher and lower); fewer cameras all stand on the
     ring. ``"above"``: the ring high above the arena, looking down steeply. ``"side"``: low
     cameras looking over the walls. ``"below"``: the ``"ring"`` of N - 1 cameras and a last
-    one under a transparent floor (:func:`camera_below_floor`). Focal lengths are chosen so
+    one under a transparent floor (:func:`camera_below_floor`). ``"arc"``: all cameras on
+    one side of the arena, spread over 150 degrees, alternately low and high (a rig against
+    a wall; domain randomisation never draws it). Focal lengths are chosen so
     that the arena fills the image. ``seed`` jitters positions, aim points, focal lengths,
     principal points and distortion (None: the nominal rig).
 
@@ -172,15 +177,15 @@ def default_rig(
         lens: ``"standard"`` (mild barrel distortion), ``"fisheye"`` (strong radial
             distortion scaled to the field of view, :data:`FISHEYE_SHAPE`, rising to the
             image corners and beyond) or ``"pinhole"``.
-        layout: ``"ring"``, ``"above"``, ``"side"`` or ``"below"``.
+        layout: ``"ring"``, ``"above"``, ``"side"``, ``"below"`` or ``"arc"``.
 
     Returns:
         :class:`CameraRig` with metadata describing the world frame.
     """
     if not 1 <= int(n_cameras) <= 32:
         raise SynthError(f"n_cameras must be in 1..32, got {n_cameras}")
-    if layout not in ("ring", "above", "side", "below"):
-        raise SynthError(f"layout must be ring, above, side or below, got {layout!r}")
+    if layout not in ("ring", "above", "side", "below", "arc"):
+        raise SynthError(f"layout must be ring, above, side, below or arc, got {layout!r}")
     arena = arena or ArenaConfig()
     w, h = (int(v) for v in size)
     if w < 16 or h < 16:

@@ -89,7 +89,9 @@ class SceneConfig:
         size: image size (width, height) of the default rig (and of rig-file cameras that
             give none).
         seed: the one seed everything random derives from.
-        appearance: ``"hooded"``, ``"albino"`` or ``"random"`` (drawn from the seed).
+        appearance: ``"hooded"``, ``"albino"``, ``"dark"``, ``"piebald"`` (never drawn at
+            random: a coat outside the shipped base models' training data) or ``"random"``
+            (drawn from the seed).
         stimulation: stimulation protocol or None.
         calibration_video: also render the rig filming a calibration board.
         calibration_frames: frames of the calibration video.
@@ -111,7 +113,8 @@ class SceneConfig:
             distortion, still monotonic in the image) or ``"pinhole"`` (none); default rig.
         layout: default rig layout: ``"ring"`` (around and above), ``"above"`` (all high
             up), ``"side"`` (low, over the walls), ``"below"`` (the last camera under a
-            transparent floor, seeing the animal from below).
+            transparent floor, seeing the animal from below), ``"arc"`` (all on one side;
+            never drawn by ``randomize``).
         reflections: reflectivity (0..0.9) of the walls: mirror images of the animal in
             them (the labels are of the real animal only).
         walls: ``"opaque"`` or ``"acrylic"``: transparent walls (an acrylic box) through
@@ -189,7 +192,8 @@ class SceneConfig:
             raise SynthError(f"size must be between 16x16 and 8192x8192 px, got {w}x{h}")
         if self.appearance not in (*COATS, "random"):
             raise SynthError(
-                f"appearance must be hooded, albino, dark or random, got {self.appearance!r}"
+                f"appearance must be hooded, albino, dark, piebald or random, "
+                f"got {self.appearance!r}"
             )
         if self.video_format not in VIDEO_FORMATS:
             raise SynthError(
