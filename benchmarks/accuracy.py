@@ -34,8 +34,15 @@ compares (trained models are reused).
 base models shipped in ``freipose/models`` (trained on seeds 10000+, see docs/models.md;
 the sessions here use 101+ and 9001) and from random weights (``--init scratch``, the
 default), and prints both tables and their ratio; the runs of each go to ``--out/<init>``.
-``--eval-cameras N`` and ``--eval-appearance COAT`` render the held-out session with
-another rig or coat than the training sessions.
+``--base-dir DIR`` starts them from a copy of ``freipose/models`` instead (a fixed snapshot
+while ``benchmarks/train_base.py`` keeps exporting). ``--rig-cameras N``, ``--rig-layout
+NAME`` and ``--appearance COAT`` render every session (training and held-out: a lab's own
+rig and animals) with that rig and coat, e.g. the ``arc`` layout and the ``piebald`` coat,
+which the bases never saw; ``--eval-cameras N`` and ``--eval-appearance COAT`` render the
+held-out session only with another rig or coat than the training sessions::
+
+    python benchmarks/accuracy.py --out bench/outside --steps 300 --init base,scratch \
+        --rig-layout arc --rig-cameras 5 --appearance piebald
 """
 
 from __future__ import annotations
@@ -74,24 +81,32 @@ def make_sessions(
     size: tuple[int, int],
     fps: float = 5.0,
     eval_scene: dict[str, Any] | None = None,
+    scene: dict[str, Any] | None = None,
 ):
     """Synthetic training sessions (seeds 101, 102, ...) and the held-out one (seed 9001).
 
     Every session has its own jittered camera layout (``jitter_rig``). ``fps`` sets the
     spacing of the labeled instants: at the default 5 fps, 100 frames span 20 s of
     behaviour (like labels spread over a recording); at 50 fps they are 2 s of nearly one
-    pose, which makes a held-out median an estimate from a single pose. ``eval_scene``
-    holds ``SceneConfig`` settings of the held-out session only (e.g. another camera count).
+    pose, which makes a held-out median an estimate from a single pose. ``scene`` holds
+    ``SceneConfig`` settings of every session (a lab's own rig and animals: e.g. ``layout``,
+    ``n_cameras``, ``appearance``), ``eval_scene`` those of the held-out session only (on
+    top of ``scene``). Session folders are named after the settings.
     """
     from freipose.synth import SceneConfig, generate_session
 
+    def suffix(settings: dict[str, Any]) -> str:
+        return "".join(f"_{k}{v}" for k, v in sorted(settings.items()))
+
+    common = dict(scene or {})
     train = []
     for i in range(n_train):
-        cfg = SceneConfig(frames=frames, seed=101 + i, size=size, fps=fps)
-        train.append(generate_session(root / f"train{i}", cfg, progress=False).labels)
-    extra = dict(eval_scene or {})
+        cfg = SceneConfig(frames=frames, seed=101 + i, size=size, fps=fps, **common)
+        out = root / f"train{i}{suffix(common)}"
+        train.append(generate_session(out, cfg, progress=False).labels)
+    extra = common | dict(eval_scene or {})
     cfg = SceneConfig(frames=eval_frames, seed=9001, size=size, fps=fps, **extra)
-    name = "eval" + "".join(f"_{k}{v}" for k, v in sorted(extra.items()))
+    name = "eval" + suffix(extra)
     ev = generate_session(root / name, cfg, progress=False).labels
     return train, ev
 
@@ -118,11 +133,31 @@ def merged_labels(paths: list[Path]):
     )
 
 
-def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, log, kinds):
+def base_weights(base_dir: Path, kind: str) -> str:
+    """The weights file of the ``kind`` base in a copy of ``freipose/models`` (``--base-dir``).
+
+    Raises:
+        SystemExit: the folder's ``bases.json`` lists no base of that kind.
+    """
+    from freipose.models import read_manifest
+
+    for entry in read_manifest(base_dir / "bases.json"):
+        if entry.get("kind") == kind and (base_dir / entry["file"]).is_file():
+            return str(base_dir / entry["file"])
+    raise SystemExit(
+        f"--base-dir {base_dir}: expected a bases.json listing a {kind} base next to its "
+        "weights file (a copy of freipose/models), found none"
+    )
+
+
+def run_pair(
+    tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, log, kinds, base_dir=None
+):
     """Train voxel + baseline on the same data/steps; evaluate both. Returns JPE arrays.
 
     Only the networks in ``kinds`` are trained; a network left out is still evaluated when
-    its model already exists (another process trained it: ``--kinds``).
+    its model already exists (another process trained it: ``--kinds``). With ``base_dir``
+    a run of ``init = "base"`` starts from that folder's weights instead of the shipped ones.
     """
     from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.dataset import MultiViewDataset
@@ -137,13 +172,18 @@ def run_pair(tag, base_cfg, train_lab, eval_lab, cameras, indices, out, device, 
     for kind in ("voxel", "baseline"):
         if kind == "baseline" and cameras is not None and len(cameras) < 2:
             continue
-        cfg = dataclasses.replace(base_cfg, model=dataclasses.replace(base_cfg.model, kind=kind))
         run_dir = out / tag / kind
         t0 = time.perf_counter()
         resume = (run_dir / "checkpoint.pt").exists()
         path = run_dir / "model.pt"
         if kind not in kinds and not path.exists():
             continue
+        init = base_cfg.model.init
+        if init == "base" and base_dir is not None:
+            init = base_weights(base_dir, kind)
+        cfg = dataclasses.replace(
+            base_cfg, model=dataclasses.replace(base_cfg.model, kind=kind, init=init)
+        )
         if not path.exists():
             path = train_pose(
                 cfg,
@@ -209,6 +249,26 @@ def _parser() -> argparse.ArgumentParser:
         help="starting weights, comma separated: scratch, base (the shipped base models) or "
         "both (base,scratch: the same budget twice, compared); runs go to --out/<init>",
     )
+    ap.add_argument(
+        "--base-dir",
+        type=Path,
+        default=None,
+        help="with --init base: start from the bases in this copy of freipose/models (its "
+        "bases.json and weights) instead of the installed ones, e.g. a snapshot taken while "
+        "benchmarks/train_base.py keeps exporting",
+    )
+    ap.add_argument("--rig-cameras", type=int, default=0, help="cameras of every session's rig [7]")
+    ap.add_argument(
+        "--rig-layout",
+        default="",
+        help="layout of every session's rig (freipose synth --layout: ring, above, side, "
+        "below, arc) [ring]",
+    )
+    ap.add_argument(
+        "--appearance",
+        default="",
+        help="coat of every session's animal (freipose synth --appearance) [random]",
+    )
     ap.add_argument("--eval-cameras", type=int, default=0, help="cameras of the held-out rig")
     ap.add_argument(
         "--eval-appearance", default="", help="coat of the held-out animal (hooded, albino, ...)"
@@ -263,6 +323,32 @@ def _base_config(ap: argparse.ArgumentParser, args: argparse.Namespace) -> Any:
         return config_from_dict({"model": model_over, "schedule": sched})
     except ConfigError as exc:
         ap.error(f"--set: {exc}")
+
+
+def _scenes(ap: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[dict, dict]:
+    """The ``SceneConfig`` settings of every session and of the held-out one only."""
+    from freipose.synth import SceneConfig
+
+    scene: dict[str, Any] = {}
+    if args.rig_cameras:
+        scene["n_cameras"] = args.rig_cameras
+    if args.rig_layout:
+        scene["layout"] = args.rig_layout
+    if args.appearance:
+        scene["appearance"] = args.appearance
+    eval_scene: dict[str, Any] = {}
+    if args.eval_cameras:
+        eval_scene["n_cameras"] = args.eval_cameras
+    if args.eval_appearance:
+        eval_scene["appearance"] = args.eval_appearance
+    try:
+        SceneConfig(**scene)
+        SceneConfig(**(scene | eval_scene))
+    except ValueError as exc:
+        ap.error(
+            f"--rig-cameras, --rig-layout, --appearance, --eval-cameras or --eval-appearance: {exc}"
+        )
+    return scene, eval_scene
 
 
 def _main_experiment(
@@ -359,7 +445,11 @@ def main(argv: list[str] | None = None) -> int:
     inits = [i.strip() for i in args.init.split(",") if i.strip()]
     if not inits or not set(inits) <= {"base", "scratch"}:
         ap.error(f"--init takes base and/or scratch, got {args.init!r}")
+    if args.base_dir is not None and "base" in inits:
+        for kind in kinds:
+            base_weights(args.base_dir, kind)  # a wrong folder fails before any rendering
     base_cfg = _base_config(ap, args)
+    scene, eval_scene = _scenes(ap, args)
     # the arguments are valid: only now the output folder
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -370,11 +460,6 @@ def main(argv: list[str] | None = None) -> int:
         f"{torch.get_num_threads()} thread(s); model {base_cfg.model}"
     )
     t0 = time.perf_counter()
-    eval_scene: dict[str, Any] = {}
-    if args.eval_cameras:
-        eval_scene["n_cameras"] = args.eval_cameras
-    if args.eval_appearance:
-        eval_scene["appearance"] = args.eval_appearance
     train_paths, eval_path = make_sessions(
         out / "data",
         args.train_sessions,
@@ -383,6 +468,7 @@ def main(argv: list[str] | None = None) -> int:
         tuple(args.size),
         args.fps,
         eval_scene,
+        scene,
     )
     train_lab = merged_labels(train_paths)
     eval_lab = merged_labels([eval_path])
@@ -404,7 +490,17 @@ def main(argv: list[str] | None = None) -> int:
         ) -> dict:
             indices = all_idx if idx is None else idx
             return run_pair(
-                tag, cfg, train_lab, eval_lab, cameras, indices, run_out, args.device, log, kinds
+                tag,
+                cfg,
+                train_lab,
+                eval_lab,
+                cameras,
+                indices,
+                run_out,
+                args.device,
+                log,
+                kinds,
+                args.base_dir,
             )
 
         found: dict[str, Any] = {}
