@@ -1,0 +1,64 @@
+"""``benchmarks/real_finetune.py`` on the real 8-camera SLEAP session, at a minimal budget."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "sleap-8cam-2mice"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    """The benchmark script as a module."""
+    spec = importlib.util.spec_from_file_location(
+        "real_finetune", ROOT / "benchmarks" / "real_finetune.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    yield mod
+    del sys.modules[spec.name]
+
+
+@pytest.mark.skipif(
+    not (DATA / "min_session_frame_groups.slp").is_file(),
+    reason=f"the real SLEAP session {DATA} is absent (shared data not mounted)",
+)
+def test_real_finetune_minimal_budget(bench, tmp_path, capsys):
+    pytest.importorskip("sleap_io")
+    out = tmp_path / "real"
+    args = ["--out", str(out), "--steps", "2", "--preset", "tiny", "--init", "scratch"]
+    assert bench.main(args) == 0
+    printed = capsys.readouterr().out
+    assert "training frames [0, 1] (4 instants), held-out frames [2] (2 instants)" in printed
+    res = json.loads((out / "results.json").read_text())
+    rows = res["init"]["scratch"]["rows"]
+    labels = [label for label, _ in bench.METHODS]
+    assert list(rows) == [*labels, "held-out 3D labels themselves"]
+    for label in labels:
+        assert f"scratch  {label}" in printed
+        row = rows[label]
+        # 15 + 12 triangulated keypoints of the two mice of the held-out frame
+        assert row["n"] == 27 and row["n_2d"] > 2 * row["n"]
+        assert math.isfinite(row["jpe_mm"]) and row["jpe_mm"] > 0
+        assert math.isfinite(row["reproj_px"]) and row["reproj_px"] > 0
+    # the triangulated labels reproject near their 2D labels (PROVENANCE: median ~3 px)
+    assert rows["held-out 3D labels themselves"]["reproj_px"] < 6
+    train = res["init"]["scratch"]["train"]
+    seed0 = train["seeds"]["seed0"]
+    assert seed0["pose"]["cube_mm"] == seed0["baseline"]["cube_mm"] < 320  # sized for mice
+    assert not train["fresh_keypoint_layers"]  # scratch: nothing taken from a base
+    assert train["pose_seconds"] > 0 and train["baseline_seconds"] > 0
+    # run again: the trained models and the evaluation are reused
+    seconds = json.loads((out / "timings.json").read_text())
+    assert bench.main(args) == 0
+    assert json.loads((out / "timings.json").read_text()) == seconds
+    again = json.loads((out / "results.json").read_text())["init"]["scratch"]["rows"]
+    assert again == rows
