@@ -247,6 +247,9 @@ class AugmentConfig:
     keypoints to absolute directions (evaluation uses the unrotated grid).
     ``refine_jitter`` (mm): std of Gaussian noise added per keypoint and axis to P0 before it
     is given to the refinement head during training, so the head learns to correct P0.
+    ``max_views``: each training sample keeps a random subset of at most this many of its
+    views (0: all). A step then costs about as many views' encoder and unprojection work,
+    and the networks learn to work with the views a frame actually has.
     """
 
     enabled: bool = True
@@ -262,6 +265,13 @@ class AugmentConfig:
     blur_sigma: float = 0.7
     noise: float = 0.02
     salt_pepper: float = 0.001
+    max_views: int = 0
+
+    def __post_init__(self) -> None:
+        if self.max_views < 0 or self.max_views == 1:
+            raise ConfigError(
+                f"augment.max_views must be 0 (every view) or at least 2, got {self.max_views}"
+            )
 
 
 @dataclass(frozen=True)

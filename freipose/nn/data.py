@@ -93,6 +93,21 @@ def _sample_rig(sample: Sample) -> CameraRig:
     return rig
 
 
+def _view_subset(sample: Sample, rng: np.random.Generator, n: int) -> Sample:
+    """The sample with ``n`` of its V views, drawn at random (kept in view order)."""
+    rig = _sample_rig(sample)
+    keep = np.sort(rng.choice(len(rig), size=n, replace=False))
+    out: Sample = {**sample, "rig": rig.subset([int(v) for v in keep])}
+    if sample.get("images"):
+        out["images"] = [sample["images"][int(v)] for v in keep]
+    if sample.get("camera_names"):
+        out["camera_names"] = tuple(sample["camera_names"][int(v)] for v in keep)
+    for key in ("points2d", "visible2d"):
+        if sample.get(key) is not None:
+            out[key] = np.asarray(sample[key])[keep]  # type: ignore[literal-required]
+    return out
+
+
 @dataclass(frozen=True)
 class Augmentation:
     """The training augmentation of one sample.
@@ -293,6 +308,9 @@ def prepare_sample(
         if rng is None:
             raise ValueError("prepare_sample: augmentation needs an rng")
         aug = Augmentation(augment, rng)
+        if 0 < augment.max_views < len(rig):
+            sample = _view_subset(sample, rng, augment.max_views)
+            rig = _sample_rig(sample)
     center = _cube_center(sample, aug, center)
     grid_rot = _grid_rotation(aug, rig)
     images = sample.get("images") or []

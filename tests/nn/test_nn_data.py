@@ -7,7 +7,7 @@ import pytest
 import torch
 from nn_toydata import COLORS, toy_samples
 
-from freipose.nn.config import AugmentConfig, config_from_dict
+from freipose.nn.config import AugmentConfig, ConfigError, config_from_dict
 from freipose.nn.data import SampleError, StepBatchSampler, collate_prepared, prepare_sample
 from freipose.nn.geometry import project_affine
 
@@ -120,3 +120,29 @@ def test_step_sampler_is_deterministic_and_splits_batches():
     assert sorted(idx[:7]) == list(range(7))
     with pytest.raises(ValueError, match="divisible"):
         StepBatchSampler(range(7), 3, 6, seed=1, world=2)
+
+
+def test_max_views_keeps_a_random_subset_of_views_with_their_labels():
+    cfg = config_from_dict({"model": {"preset": "small", "crop_size": 64}}).model
+    s = toy_samples(1, cams=5)[0]
+    aug = AugmentConfig(**{**GEOMETRIC_ONLY.__dict__, "max_views": 3, "rotation": 0.0})
+    seen = set()
+    for seed in range(6):
+        p = prepare_sample(s, cfg, aug, np.random.default_rng(seed))
+        names = tuple(p["rig"].names)
+        assert len(names) == 3 and list(names) == sorted(names, key=s["rig"].names.index)
+        seen.add(names)
+        # every kept view's crop camera still maps the 3D labels onto its 2D labels
+        b = collate_prepared([p])
+        uv, _ = project_affine(
+            torch.tensor(s["points3d"][None], dtype=torch.float32),
+            b["K"], b["R"], b["t"], b["dist"],
+        )  # fmt: skip
+        np.testing.assert_allclose(uv[0].numpy(), p["points2d"], atol=1e-2)
+        assert p["images"].shape[0] == 3 and p["visible2d"].shape[0] == 3
+    assert len(seen) > 1  # the subset is drawn anew per sample
+    # 0 (the default) keeps every view and draws nothing
+    full = prepare_sample(s, cfg, GEOMETRIC_ONLY, np.random.default_rng(0))
+    assert len(full["rig"]) == 5
+    with pytest.raises(ConfigError, match="max_views"):
+        AugmentConfig(max_views=1)
