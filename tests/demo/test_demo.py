@@ -140,3 +140,16 @@ def test_unknown_preset_is_a_clear_error(tmp_path):
 
     with pytest.raises(ValueError, match="unknown demo preset"):
         run_demo(tmp_path / "x", "huge")
+
+
+def test_small_preset_training_config_is_valid_and_trains_on_view_subsets(tmp_path):
+    from freipose.demo.context import DemoContext
+    from freipose.demo.steps.train import _train_config
+    from freipose.io.toml import read_toml
+    from freipose.nn.config import config_from_dict
+
+    path = _train_config(DemoContext(tmp_path, PRESETS["small"]))
+    cfg = config_from_dict(read_toml(path, "training config"))
+    assert cfg.augment.max_views == 4 < PRESETS["small"].n_cameras
+    assert cfg.schedule.steps == PRESETS["small"].pose["steps"]
+    assert cfg.schedule.refine_start == 0.0 and cfg.model.init == "base"

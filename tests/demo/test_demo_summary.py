@@ -25,6 +25,7 @@ def test_summary_holds_the_printed_figures(tiny_demo):
         "voxel_steps": steps,
         "baseline_steps": steps,
         "detector_steps": PRESETS["tiny"].detector["steps"],
+        "views_per_sample": PRESETS["tiny"].n_cameras,
     }
     assert f"triangulation baseline (per-view 2D + robust triangulation), {steps} steps" in output
     printed = dict(re.findall(r"^\s+(\S+)\s+median JPE\s+([\d.]+) mm \(30-70", output, re.M))

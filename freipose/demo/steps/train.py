@@ -21,6 +21,7 @@ def _train_config(ctx: DemoContext) -> Path:
 
     p = ctx.preset
     pose = dict(p.pose)
+    augment = dict(pose.pop("augment", {}))
     doc = {
         "data": {
             "labels": "../labels/train.h5",
@@ -29,6 +30,7 @@ def _train_config(ctx: DemoContext) -> Path:
         },
         "model": {"preset": pose.pop("preset"), "init": p.init},
         "schedule": pose,
+        **({"augment": augment} if augment else {}),
         "detector": {**p.detector, "init": p.init},
     }
     path = ctx.train_dir / "config.toml"
@@ -136,6 +138,11 @@ def run(ctx: DemoContext) -> dict[str, Any]:
     cfg_path = _train_config(ctx)
     data = read_toml(cfg_path, "training config")
     steps = int(data["schedule"]["steps"])
+    views = int(data.get("augment", {}).get("max_views", 0))
+    if 0 < views < ctx.preset.n_cameras:
+        steps_text = f"{steps} steps of {views} random views of {ctx.preset.n_cameras} per sample"
+    else:
+        steps_text = f"{steps} steps"
     out: dict[str, Any] = {"config": str(cfg_path), "init": ctx.preset.init}
     ctx.say(
         "  fine-tuning the base models shipped with FreiPose (freipose/models)"
@@ -143,14 +150,15 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         else '  from random weights (init = "scratch")'
     )
     out["detector"] = _train_detector(ctx, data, cfg_path)
-    ctx.say(f"  voxel network (2D encoder, unprojection, 3D U-Net, refinement), {steps} steps")
+    ctx.say(f"  voxel network (2D encoder, unprojection, 3D U-Net, refinement), {steps_text}")
     out["pose"] = _train_network(ctx, None, "pose", cfg_path)
-    ctx.say(f"  triangulation baseline (per-view 2D + robust triangulation), {steps} steps")
+    ctx.say(f"  triangulation baseline (per-view 2D + robust triangulation), {steps_text}")
     # equal budgets: the baseline trains with the voxel network's schedule
     out["baseline"] = _train_network(ctx, "baseline", "baseline", cfg_path)
     out["budgets"] = {
         "voxel_steps": steps,
         "baseline_steps": steps,
         "detector_steps": int(data["detector"]["steps"]),
+        "views_per_sample": views or ctx.preset.n_cameras,
     }
     return out
