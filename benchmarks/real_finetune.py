@@ -19,14 +19,18 @@ frames 0-2 labeled, a 15-node mouse skeleton, aniposelib calibration):
    labels, and the constant-pose references (the training labels' median pose at the
    held-out centre and at the training centre).
 
-It also measures each answer's 2D reprojection error against the held-out 2D labels
-(the 3D labels are themselves triangulated from these), prints one table and writes
+It adds a reference of its own, the pose of the training instant with the nearest centre
+(a near-copy when the held-out frame follows a training frame), the networks' error on
+their training frames (``freipose eval`` on the training labels: how well the budget fits
+them), and measures each answer's 2D reprojection error against the held-out 2D labels
+of the keypoints with a 3D label (the 3D labels are triangulated from these). ``--seeds
+N`` repeats every training with N seeds. It prints one table and writes
 ``results.json`` into ``--out``. A finished step is skipped when run again on the same
 ``--out`` (trained models are reused; their wall time is kept in ``timings.json``).
 
 Example (CPU, one thread)::
 
-    OMP_NUM_THREADS=1 python benchmarks/real_finetune.py --out bench/real --steps 150
+    OMP_NUM_THREADS=1 python benchmarks/real_finetune.py --out bench/real --steps 150 --seeds 3
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ METHODS = (
     ("baseline", "baseline"),
     ("reference at held-out centre", "median pose at held-out centre"),
     ("reference at training centre", "median pose at training centre"),
+    ("nearest training instant", "nearest training instant"),
 )
 FRESH = "keypoint-specific output layers, which start fresh"
 NETWORKS = ("voxel P1", "voxel P0", "baseline")
@@ -165,10 +170,12 @@ def train_runs(
             timings_path.write_text(json.dumps(timings, indent=2))
         text = (run / f"{kind}.log").read_text(encoding="utf-8")
         cube = re.search(r"cube (\d+) mm from the training labels", text)
+        base = re.search(r"starting from the base model '\w+' \(([\w.]+), (\d+) steps", text)
         info[kind] = {
             "seconds": timings.get(key, float("nan")),
             "fresh_keypoint_layers": FRESH in text,
             "cube_mm": float(cube.group(1)) if cube else None,
+            "base": f"{base.group(1)} after {base.group(2)} steps" if base else None,
         }
         log(
             f"  [{tag}] {kind}: {timings.get(key, float('nan')):.0f} s"
@@ -178,10 +185,13 @@ def train_runs(
     return info
 
 
-def run_eval(out: Path, eval_h5: Path, tag: str, train_h5: Path) -> dict[str, Any]:
-    """``freipose eval`` of both networks of run ``tag``: the metrics.json it writes."""
+def run_eval(out: Path, eval_h5: Path, tag: str, train_h5: Path, sub: str = "") -> dict[str, Any]:
+    """``freipose eval`` of both networks of run ``tag``: the metrics.json it writes.
+
+    ``sub``: a subfolder of the run's evaluation folder (another labels file).
+    """
     run = out / "runs" / tag
-    dest = out / "eval" / tag
+    dest = out / "eval" / tag / sub if sub else out / "eval" / tag
     if not (dest / "metrics.json").exists():
         cmd = ["eval", str(run / "pose" / "model.pt"), str(eval_h5), "-o", str(dest)]
         cmd += ["--baseline", str(run / "baseline" / "model.pt"), "--train-labels", str(train_h5)]
@@ -189,20 +199,39 @@ def run_eval(out: Path, eval_h5: Path, tag: str, train_h5: Path) -> dict[str, An
     return json.loads((dest / "metrics.json").read_text())
 
 
+def nearest_instant(train3d: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """The pose of the training instant with the nearest centre, at each held-out centre.
+
+    Args:
+        train3d: (M, K, 3) training 3D labels (mm), NaN where unlabeled.
+        gt: (N, K, 3) held-out 3D labels (mm), NaN where unknown.
+
+    Returns:
+        (N, K, 3) the answers (mm), NaN where that training instant lacks the keypoint.
+    """
+    from freipose.geometry.crops import label_centers
+
+    ct, ce = label_centers(train3d), label_centers(gt)
+    near = np.argmin(np.linalg.norm(ce[:, None] - ct[None], axis=-1), axis=1)
+    return train3d[near] - ct[near, None, :] + ce[:, None, :]
+
+
 def reprojection_errors(
     out: Path, eval_h5: Path, train_h5: Path, tag: str
-) -> dict[str, np.ndarray]:
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Pixel distance of every answer's reprojection to the held-out 2D labels.
 
     The networks predict as in ``freipose eval`` (the cube on the label centre); the
-    references are those of ``freipose eval``. ``labels`` is the held-out 3D labels' own
+    constant-pose references are those of ``freipose eval``; ``nearest training
+    instant`` is :func:`nearest_instant`. ``labels`` is the held-out 3D labels' own
     reprojection error (their triangulation residual).
 
     Returns:
-        name -> (N, C, K) errors in px, NaN where a view has no 2D label.
+        name -> (N, C, K) errors in px, NaN where a view has no 2D label; and the (N, K)
+        JPE (mm) of the nearest training instant.
     """
     from freipose.io.labels import read_labels_h5
-    from freipose.nn.evaluate import evaluate_checkpoints
+    from freipose.nn.evaluate import evaluate_checkpoints, jpe
     from freipose.nn.references import reference_predictions
 
     run = out / "runs" / tag
@@ -210,7 +239,9 @@ def reprojection_errors(
     ev = evaluate_checkpoints(ckpts, eval_h5)
     lab = read_labels_h5(eval_h5)
     answers = dict(ev.predictions)
-    answers.update(reference_predictions(read_labels_h5(train_h5).points3d, ev.gt))
+    train3d = read_labels_h5(train_h5).points3d
+    answers.update(reference_predictions(train3d, ev.gt))
+    answers["nearest training instant"] = nearest_instant(train3d, ev.gt)
     answers["labels"] = ev.gt
     has3d = np.isfinite(ev.gt).all(-1)  # (N, K): the keypoints the JPE counts
     errs = {}
@@ -221,7 +252,7 @@ def reprojection_errors(
             e[i] = np.linalg.norm(rig.project(pts[i]) - lab.points2d[i], axis=-1)
         e[~np.broadcast_to(has3d[:, None, :], e.shape)] = np.nan
         errs[name] = e
-    return errs
+    return errs, jpe(answers["nearest training instant"], ev.gt)
 
 
 def _median(e: np.ndarray) -> tuple[float, int]:
@@ -229,15 +260,28 @@ def _median(e: np.ndarray) -> tuple[float, int]:
     return (float(np.median(v)) if v.size else float("nan")), int(v.size)
 
 
-def summarize(metrics: dict[str, Any], reproj: dict[str, np.ndarray]) -> dict[str, Any]:
-    """The rows of one run: median JPE (mm), n, median reprojection error (px), n."""
+def summarize(
+    metrics: dict[str, Any],
+    reproj: dict[str, np.ndarray],
+    nearest_jpe: np.ndarray,
+    fit: dict[str, Any],
+) -> dict[str, Any]:
+    """The rows of one run: median JPE (mm), n, median reprojection error (px), n.
+
+    A network's row also has ``train_jpe_mm``, its median JPE on the training frames
+    (``fit``: the metrics.json of ``freipose eval`` on the training labels).
+    """
     rows = {}
-    refs = metrics.get("references", {})
+    refs = dict(metrics.get("references", {}))
+    jn, n = _median(nearest_jpe)
+    refs["nearest training instant"] = {"median_mm": jn, "n": n}
     for label, key in METHODS:
         m = refs[key] if key in refs else metrics[key]["overall"]
         jpe, n = (m["median_mm"], m["n"]) if key in refs else (m["median"], m["n"])
         px, n2d = _median(reproj[key])
         rows[label] = {"jpe_mm": float(jpe), "n": int(n), "reproj_px": px, "n_2d": n2d}
+        if key in fit:
+            rows[label]["train_jpe_mm"] = float(fit[key]["overall"]["median"])
     px, n2d = _median(reproj["labels"])
     rows[LABELS_ROW] = {"jpe_mm": 0.0, "n": rows["voxel P1"]["n"], "reproj_px": px, "n_2d": n2d}
     return rows
@@ -256,28 +300,9 @@ def over_seeds(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "reproj_px_seeds": [r["reproj_px"] for r in per],
             "n_2d": per[0]["n_2d"],
         }
+        if "train_jpe_mm" in per[0]:
+            rows[label]["train_jpe_mm"] = float(np.mean([r["train_jpe_mm"] for r in per]))
     return rows
-
-
-def base_files() -> dict[str, str]:
-    """The shipped base weights now: file -> the first 12 hex digits of its SHA-256, and steps.
-
-    The steps are those ``bases.json`` records for the file.
-    """
-    import hashlib
-    from importlib import resources
-
-    models = resources.files("freipose.models")
-    meta = json.loads(models.joinpath("bases.json").read_text())
-    steps = {b["file"]: b.get("steps") for b in meta.get("bases", [])}
-    out = {}
-    for name in ("voxel_small.pt", "baseline_small.pt"):
-        f = models.joinpath(name)
-        if f.is_file():
-            out[name] = (
-                f"{hashlib.sha256(f.read_bytes()).hexdigest()[:12]}, {steps.get(name)} steps"
-            )
-    return out
 
 
 def print_table(results: dict[str, Any], log: _Log) -> None:
@@ -286,15 +311,18 @@ def print_table(results: dict[str, Any], log: _Log) -> None:
     log(
         f"\nREAL DATA ({results['data']}): {results['steps']} steps x batch 2 per network, "
         f"preset {results['preset']}, {results['instances']} instances, training seeds "
-        f"{seeds} (JPE and 2D: the mean over the seeds, then each seed's)"
+        f"{seeds}; median JPE and 2D error on the held-out frame (the mean over the seeds, "
+        "then each seed's JPE), fit: median JPE on the training frames"
     )
-    log(f"  {'init':8s} {'method':30s} {'JPE mm':>7s} {'n':>3s} {'2D px':>6s} {'n 2D':>4s}  seeds")
+    head = f"{'JPE mm':>7s} {'n':>3s} {'2D px':>6s} {'n 2D':>4s} {'fit mm':>6s}"
+    log(f"  {'init':8s} {'method':28s} {head}  seeds")
     for init, r in results["init"].items():
         for label, row in r["rows"].items():
             each = " / ".join(f"{v:.2f}" for v in row["jpe_mm_seeds"])
+            fit = f"{row['train_jpe_mm']:6.2f}" if "train_jpe_mm" in row else " " * 6
             log(
-                f"  {init:8s} {label:30s} {row['jpe_mm']:7.2f} {row['n']:3d} "
-                f"{row['reproj_px']:6.2f} {row['n_2d']:4d}  "
+                f"  {init:8s} {label:28s} {row['jpe_mm']:7.2f} {row['n']:3d} "
+                f"{row['reproj_px']:6.2f} {row['n_2d']:4d} {fit}  "
                 + (each if label in NETWORKS and len(seeds) > 1 else "")
             )
         t = r["train"]
@@ -302,6 +330,7 @@ def print_table(results: dict[str, Any], log: _Log) -> None:
             f"  {init:8s} wall time per run (mean): voxel {t['pose_seconds']:.0f} s, baseline "
             f"{t['baseline_seconds']:.0f} s; train log says the keypoint layers start fresh: "
             f"{t['fresh_keypoint_layers']}"
+            + (f"; started from {', '.join(t['bases'])} (train logs)" if t["bases"] else "")
         )
     by = results["init"]
     if {"base", "scratch"} <= set(by):
@@ -319,7 +348,9 @@ def print_table(results: dict[str, Any], log: _Log) -> None:
         "distance of each answer's reprojection to the held-out 2D SLEAP points of the "
         "keypoints with a 3D label. The skeleton (15 mouse nodes) is not the bases' "
         "12-keypoint rat: with init base every weight but the keypoint-specific layers comes "
-        "from the base."
+        "from the base. The references look at no image: the training labels' median pose "
+        "(freipose eval) and the pose of the training instant with the nearest centre (this "
+        "script; here the same mouse one video frame earlier), placed at the held-out centre."
     )
 
 
@@ -330,6 +361,7 @@ def _train_summary(trains: dict[str, dict[str, Any]]) -> dict[str, Any]:
         "pose_seconds": float(np.mean([t["pose"]["seconds"] for t in runs])),
         "baseline_seconds": float(np.mean([t["baseline"]["seconds"] for t in runs])),
         "fresh_keypoint_layers": all(t[k]["fresh_keypoint_layers"] for t in runs for k in KINDS),
+        "bases": sorted({t[k]["base"] for t in runs for k in KINDS if t[k]["base"]}),
         "seeds": trains,
     }
 
@@ -380,15 +412,13 @@ def main(argv: list[str] | None = None) -> int:
     for init in inits:
         runs, trains = [], {}
         for seed in seeds:
-            bases = base_files() if init == "base" else {}
             train = train_runs(out, train_h5, args, init, seed, log)
             tag = f"{init}/seed{seed}"
             metrics = run_eval(out, eval_h5, tag, train_h5)
-            runs.append(summarize(metrics, reprojection_errors(out, eval_h5, train_h5, tag)))
-            if bases and base_files() != bases:
-                log(f"  [{tag}] WARNING: the shipped base weights changed during this run")
-                bases["changed during the run"] = "yes"
-            trains[f"seed{seed}"] = train | ({"bases": bases} if bases else {})
+            fit = run_eval(out, train_h5, tag, train_h5, "training_frames")
+            reproj, nearest = reprojection_errors(out, eval_h5, train_h5, tag)
+            runs.append(summarize(metrics, reproj, nearest, fit))
+            trains[f"seed{seed}"] = train
         results["init"][init] = {"rows": over_seeds(runs), "train": _train_summary(trains)}
     print_table(results, log)
     (out / "results.json").write_text(json.dumps(results, indent=2))
