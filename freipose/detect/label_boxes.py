@@ -88,7 +88,8 @@ def label_boxes(labels: LabelSet, rig: CameraRig, margin: float = MARGIN) -> Lab
         none.
 
     Raises:
-        FallbackBoxesError: no labeled instant has a 3D point, or no camera gets a box.
+        FallbackBoxesError: no labeled instant has a 3D point, several instants (animals)
+            share a frame, or no camera gets a box.
     """
     p3 = labels.points3d
     ok = np.isfinite(p3).all(-1)
@@ -97,6 +98,14 @@ def label_boxes(labels: LabelSet, rig: CameraRig, margin: float = MARGIN) -> Lab
         raise FallbackBoxesError(
             "the labels have no 3D point to derive fixed boxes from; import them with a "
             "--calibration so that labels seen in two views are triangulated"
+        )
+    keys = [(str(s), int(f)) for s, f in zip(labels.session[has], labels.frame_index[has])]
+    if len(set(keys)) < len(keys):
+        s, f = next(k for k in keys if keys.count(k) > 1)
+        raise FallbackBoxesError(
+            f"the labels hold {keys.count((s, f))} animals in one frame ({s} frame {f}): "
+            "boxes from them would place one cube between the animals, and prediction "
+            "follows one animal; pass --fixed-boxes FILE with boxes around one animal"
         )
     centres = label_centers(p3[has])  # (n, 3)
     center = np.median(centres, axis=0)

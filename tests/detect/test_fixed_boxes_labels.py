@@ -134,3 +134,17 @@ def test_2d_labels_of_another_rig_do_not_count(tmp_path):
                  {sess.name: SessionInfo(other, {}, 25.0)}),
         rig,
     ).boxes  # fmt: skip
+
+
+def test_labels_of_two_animals_per_frame_give_no_fixed_boxes():
+    # two animals in every labeled frame: one cube between them would fit neither
+    rig = make_circle_rig(3, radius=600, height=400, size=(120, 90), focal=110)
+    X = np.concatenate([BODY[None], BODY[None] + np.array([150.0, 0, 0])])
+    labels = LabelSet(
+        np.array(["s", "s"], dtype=object), np.array([0, 0]), rig.project(X), X,
+        tuple(rig.names), tuple(f"k{i}" for i in range(len(BODY))),
+        {"s": SessionInfo(rig, {}, 25.0)},
+    )  # fmt: skip
+    with pytest.raises(FallbackBoxesError, match="2 animals in one frame"):
+        label_boxes(labels, rig)
+    assert label_boxes(labels.select([0]), rig).instants == 1
