@@ -59,6 +59,25 @@ def calibration_option(help: str = SESSION_CALIBRATION_HELP) -> Decorator:
     )
 
 
+def camera_map_option() -> Decorator:
+    """``--camera-map VIDEO_STEM=CAMERA`` (repeatable): videos not named after their cameras."""
+    return click.option(
+        "--camera-map",
+        "camera_map",
+        multiple=True,
+        metavar="VIDEO_STEM=CAMERA",
+        help="Camera of a video whose file stem is not the calibration's camera name "
+        "(e.g. --camera-map min_session_back=back); repeat per video.",
+    )
+
+
+def camera_map_from(items: tuple[str, ...]) -> dict[str, str]:
+    """The parsed ``--camera-map`` values: video stem -> camera name."""
+    from freipose.labels.mapping import parse_map_options
+
+    return parse_map_options(items, "--camera-map")
+
+
 def detection_options(f: Any) -> Any:
     """The options that say how to find the animal (``predict``, ``labels select``)."""
     opts = [

@@ -8,6 +8,8 @@ import click
 
 from freipose.cli._common import (
     calibration_option,
+    camera_map_from,
+    camera_map_option,
     device_option,
     frames_option,
     overwrite_option,
@@ -23,6 +25,7 @@ from freipose.errors import FreiPoseError
     help="Output boxes.h5 (format in docs/formats.md).",
 )  # fmt: skip
 @calibration_option("Calibration file [default: SESSION/calibration.toml].")
+@camera_map_option()
 @click.option(
     "--model",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
@@ -69,6 +72,7 @@ def detect(
     session: Path,
     output: Path,
     calibration: Path | None,
+    camera_map: tuple[str, ...],
     model: Path | None,
     method: str | None,
     fixed_boxes: Path | None,
@@ -108,7 +112,13 @@ def detect(
         if batch_size < 1:
             raise FreiPoseError(f"--batch-size must be >= 1, got {batch_size}")
         cfg = ConsistencyConfig(cube_size=cube_size, min_views=min_views)
-        opened = discover_sessions([session], calibration, cameras="calibration", need_fps=False)
+        opened = discover_sessions(
+            [session],
+            calibration,
+            cameras="calibration",
+            need_fps=False,
+            camera_map=camera_map_from(camera_map),
+        )
         rig, sources = opened[0].rig, open_sources(opened[0])
         rng = frame_range(frames, opened[0].num_frames)
         source, method_name, desc = make_source(

@@ -8,6 +8,8 @@ import click
 
 from freipose.cli._common import (
     calibration_option,
+    camera_map_from,
+    camera_map_option,
     detection_options,
     detector_spec,
     device_option,
@@ -57,6 +59,7 @@ from freipose.cli._common import (
     help="Also write the frames as DIR/<session>/<camera>/<frame:08d>.png for labeling.",
 )
 @calibration_option()
+@camera_map_option()
 @detection_options
 @frames_option("Frame range START:STOP to predict [default: all].")
 @click.option("--batch", type=int, default=8, show_default=True, help="Time steps per batch.")
@@ -73,6 +76,7 @@ def select(
     output: Path,
     extract: Path | None,
     calibration: Path | None,
+    camera_map: tuple[str, ...],
     detector: Path | None,
     method: str | None,
     fixed_boxes: Path | None,
@@ -103,7 +107,7 @@ def select(
         from freipose.predict.writer import is_complete
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-        found = discover_sessions(sessions, calibration)
+        found = discover_sessions(sessions, calibration, camera_map=camera_map_from(camera_map))
         pdir = poses_dir if poses_dir is not None else output.parent / "poses"
         todo = [s for s in found if not is_complete(output_path(pdir, s.name))]
         if todo:

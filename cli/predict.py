@@ -8,6 +8,8 @@ import click
 
 from freipose.cli._common import (
     calibration_option,
+    camera_map_from,
+    camera_map_option,
     detection_options,
     detector_spec,
     device_option,
@@ -35,6 +37,7 @@ from freipose.errors import FreiPoseError
     help="Output folder; each session gives OUTDIR/<session>.poses.h5.",
 )
 @calibration_option()
+@camera_map_option()
 @detection_options
 @frames_option()
 @click.option("--batch", type=int, default=8, show_default=True, help="Time steps per batch.")
@@ -69,6 +72,7 @@ def predict(
     model: Path,
     outdir: Path,
     calibration: Path | None,
+    camera_map: tuple[str, ...],
     detector: Path | None,
     method: str | None,
     fixed_boxes: Path | None,
@@ -122,7 +126,7 @@ def predict(
         spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
         use_threads(threads)
         check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
-        found = discover_sessions(sessions, calibration)
+        found = discover_sessions(sessions, calibration, camera_map=camera_map_from(camera_map))
         _say_calibrations(found, calibration is not None, quiet)
         if smooth:
             _refuse_stale_smoothed(outdir, [s.name for s in found], overwrite)

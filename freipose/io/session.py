@@ -104,8 +104,8 @@ def _session_cameras(
             raise SessionError(
                 f"session {name!r}: cameras {unknown} have videos but are not in the "
                 f"calibration{where}, which has cameras {rig.names}. Rename the videos to the "
-                f"calibration's camera names (camera name = video file stem) or pass the "
-                f"matching --calibration."
+                f"calibration's camera names (camera name = video file stem), map them "
+                f"with --camera-map VIDEO_STEM=CAMERA, or pass the matching --calibration."
             )
         order = list(vids)
     else:
@@ -119,7 +119,8 @@ def _session_cameras(
         raise SessionError(
             f"session {name!r}: found videos for {list(vids)}, which match {order} of the "
             f"calibrated cameras {rig.names}{where}; 3D needs at least two cameras of the "
-            f"calibration (camera name = video file stem)"
+            f"calibration (camera name = video file stem, or map them with --camera-map "
+            f"VIDEO_STEM=CAMERA)"
         )
     return order
 
@@ -279,12 +280,40 @@ def _input_groups(paths: Sequence[Path]) -> list[tuple[str, dict[str, Path] | No
     return [(folder.name, found, folder)]
 
 
+def _renamed_videos(
+    vids: Mapping[str, Path], camera_map: Mapping[str, str], name: str
+) -> dict[str, Path]:
+    """``vids`` (stem -> video) with the stems ``camera_map`` names renamed to cameras.
+
+    Raises:
+        SessionError: a mapped stem is not a video of the session, or two videos get
+            one camera name.
+    """
+    unknown = [old for old in camera_map if old not in vids]
+    if unknown:
+        raise SessionError(
+            f"session {name!r}: --camera-map names {unknown}, which are not video file stems "
+            f"of the session (its videos: {list(vids)}); write --camera-map VIDEO_STEM=CAMERA"
+        )
+    out: dict[str, Path] = {}
+    for stem, path in vids.items():
+        cam = camera_map.get(stem, stem)
+        if cam in out:
+            raise SessionError(
+                f"session {name!r}: two videos for camera {cam!r} after --camera-map: "
+                f"{out[cam]} and {path}"
+            )
+        out[cam] = path
+    return out
+
+
 def discover_sessions(
     inputs: Sequence[str | Path],
     calibration: str | Path | None = None,
     *,
     cameras: Cameras = "videos",
     need_fps: bool = True,
+    camera_map: Mapping[str, str] | None = None,
 ) -> list[Session]:
     """Sessions from command-line inputs: folders (one session each) or video files (one session).
 
@@ -295,13 +324,16 @@ def discover_sessions(
             session folder (in the videos' folder for a list of videos).
         cameras: which cameras a session has; see :func:`open_session`.
         need_fps: the videos must state their frame rate; see :func:`open_session`.
+        camera_map: video file stem -> camera name, for videos not named after their
+            cameras (e.g. ``min_session_back`` -> ``back``); other stems stay as they are.
 
     Returns:
         One validated session per folder (or one for the video files).
 
     Raises:
         SessionError, MediaError: see :func:`open_session`; also mixed folders and files,
-            duplicate session names.
+            duplicate session names, a ``camera_map`` entry that names no video of a
+            session or maps two videos to one camera.
         InputFileError: an input does not exist, or no calibration is found.
     """
     groups = _input_groups([Path(p) for p in inputs])
@@ -328,5 +360,7 @@ def discover_sessions(
             rig, cpath = load_calibration(found), found
         if vids is None:
             vids = find_camera_videos(folder)
+        if camera_map:
+            vids = _renamed_videos(vids, camera_map, name)
         sessions.append(open_session(vids, rig, name, cpath, cameras=cameras, need_fps=need_fps))
     return sessions

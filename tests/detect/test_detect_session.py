@@ -176,3 +176,31 @@ def test_detect_session_resumes_after_interruption(session_dir, tmp_path):
     other = detect_session(rig, sources, range(n), FixedBoxes(boxes), batch_size=2,
                            method="other", progress_file=progress)  # fmt: skip
     np.testing.assert_allclose(other.center, full.center)
+
+
+def test_camera_map_names_videos_that_are_not_named_after_their_cameras(session_dir, tmp_path):
+    from freipose.io.session import SessionError, discover_sessions
+
+    # a SLEAP-style folder: min_session_<camera>.mp4 next to the calibration
+    folder = tmp_path / "renamed"
+    folder.mkdir()
+    for f in session_dir.iterdir():
+        name = f"min_session_{f.name}" if f.suffix == ".mkv" else f.name
+        (folder / name).symlink_to(f.resolve())
+    cams = ("cam0", "cam1", "cam2", "cam3")
+    runner = CliRunner()
+    out = tmp_path / "boxes.h5"
+    res = runner.invoke(cli, ["detect", str(folder), "--method", "bgsub", "-o", str(out)])
+    assert res.exit_code != 0 and "--camera-map VIDEO_STEM=CAMERA" in res.output
+    maps = [a for c in cams for a in ("--camera-map", f"min_session_{c}={c}")]
+    res = runner.invoke(cli, ["detect", str(folder), "--method", "bgsub", "-o", str(out), *maps])
+    assert res.exit_code == 0, res.output
+    assert read_boxes_h5(out).cameras == cams
+    s = discover_sessions([folder], camera_map={f"min_session_{c}": c for c in cams})[0]
+    assert tuple(s.cameras) == cams and s.videos["cam2"].name == "min_session_cam2.mkv"
+    with pytest.raises(SessionError, match="not video file stems"):
+        discover_sessions([folder], camera_map={"nope": "cam0"})
+    with pytest.raises(SessionError, match="two videos for camera 'cam0'"):
+        discover_sessions(
+            [folder], camera_map={"min_session_cam1": "cam0", "min_session_cam0": "cam0"}
+        )
