@@ -55,9 +55,7 @@ def _still(dets: Sequence[CameraDetections], f: int) -> bool:
     return seen
 
 
-def merge_static_runs(
-    dets: Sequence[CameraDetections], keep: int | None = None
-) -> StaticRuns:
+def merge_static_runs(dets: Sequence[CameraDetections], keep: int | None = None) -> StaticRuns:
     """Merge every run of consecutive still frames into one frame (the run's mean corners).
 
     Args:

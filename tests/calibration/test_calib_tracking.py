@@ -18,9 +18,7 @@ def test_tracked_detection_matches_whole_image_detection(tmp_path):
     full = default_rig(4, size=(640, 480))
     rig = CameraRig((full[1],), full.metadata)
     board = default_board()
-    videos, poses = write_board_videos(
-        tmp_path, rig, board, 40, seed=4, fmt=".mp4", progress=False
-    )
+    videos, poses = write_board_videos(tmp_path, rig, board, 40, seed=4, fmt=".mp4", progress=False)
     video = videos[rig[0].name]
     whole, tracker = _Detector(board), _Detector(board)
     ref, tracked = [], []
