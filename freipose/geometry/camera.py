@@ -12,8 +12,7 @@ import numpy as np
 from freipose._frozen import PicklableFrozen
 from freipose.errors import FreiPoseError
 from freipose.geometry._checks import check_last
-from freipose.geometry.distortion import distortion_terms
-from freipose.geometry.pinhole import EPS_DEPTH, apply_intrinsics
+from freipose.geometry.pinhole import project_points
 from freipose.geometry.transforms import matrix_to_rodrigues, rodrigues_to_matrix, transform
 
 
@@ -321,17 +320,15 @@ class CameraRig(PicklableFrozen):
         X = check_last(points, 3, "points")
         if X.ndim < 2:
             raise ValueError(f"points must have shape (..., P, 3), got shape {X.shape}")
-        # all cameras at once: (..., 1, P, 3) against stacked (C, 3, 3) rotations
-        Xc = X[..., None, :, :] @ np.swapaxes(self.R, -1, -2) + self.t[:, None, :]
-        z = Xc[..., 2:3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = np.where(z > EPS_DEPTH, Xc[..., :2] / z, np.nan)  # (..., C, P, 2)
-        bent = np.array([distort and c.has_distortion for c in self.cameras])
-        if bent.any():
-            dist = self.dist[:, None, :]  # (C, 1, 5)
-            d = distortion_terms(xy[..., 0], xy[..., 1], dist)
-            xy = np.where(bent[:, None, None], np.stack([d.xd, d.yd], axis=-1), xy)
-        return apply_intrinsics(xy, self.K[:, None])
+        bent = distort and any(c.has_distortion for c in self.cameras)
+        # all cameras at once: points (..., 1, P, 3) against the stacked parameters
+        return project_points(
+            X[..., None, :, :],
+            self.K[:, None],
+            self.R,
+            self.t[:, None, :],
+            self.dist[:, None, :] if bent else None,
+        )
 
     def __repr__(self) -> str:
         return f"CameraRig({len(self)} cameras: {', '.join(self.names)})"

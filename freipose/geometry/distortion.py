@@ -135,13 +135,14 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
     Args:
         xy: (..., 2) normalized image coordinates (x/z, y/z).
-        dist: (5,) coefficients ``(k1, k2, p1, p2, k3)``.
+        dist: (5,) coefficients ``(k1, k2, p1, p2, k3)``, or (..., 5) broadcastable to
+            ``xy[..., 0]``.
 
     Returns:
         (..., 2) distorted normalized coordinates.
     """
     xy = check_last(xy, 2, "xy")
-    t = distortion_terms(xy[..., 0], xy[..., 1], np.asarray(dist, dtype=np.float64).reshape(5))
+    t = distortion_terms(xy[..., 0], xy[..., 1], check_last(dist, 5, "dist"))
     return np.stack([t.xd, t.yd], axis=-1)
 
 

@@ -15,7 +15,7 @@ from freipose.geometry.distortion import distort_normalized
 __all__ = ["apply_intrinsics", "project_points", "remove_intrinsics"]
 
 # Points at or below this depth (mm) in front of the camera project to NaN.
-EPS_DEPTH = 1e-9
+_EPS_DEPTH = 1e-9
 
 
 def apply_intrinsics(xy: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -59,23 +59,25 @@ def project_points(
     t: np.ndarray,
     dist: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Project world points into one camera given as arrays.
+    """Project world points into one camera, or into a stack of C cameras at once.
 
     Args:
-        points: (..., 3) world points in mm (NaN allowed).
-        K: (3, 3) intrinsic matrix.
-        R: (3, 3) world→camera rotation.
-        t: (3,) world→camera translation in mm.
-        dist: (5,) distortion coefficients, or None for the pure pinhole model.
+        points: (..., 3) world points in mm (NaN allowed); for C cameras (..., 1, P, 3).
+        K: (3, 3) intrinsic matrix; for C cameras (C, 1, 3, 3).
+        R: (3, 3) world→camera rotation; for C cameras (C, 3, 3).
+        t: (3,) world→camera translation in mm; for C cameras (C, 1, 3).
+        dist: (5,) distortion coefficients (for C cameras (C, 1, 5)), or None for the pure
+            pinhole model.
 
     Returns:
-        (..., 2) pixel coordinates; NaN for NaN input or points with depth <= 0.
+        (..., 2) pixel coordinates (for C cameras (..., C, P, 2)); NaN for NaN input or
+        points with depth <= 0.
     """
     X = check_last(points, 3, "points")
-    Xc = X @ R.T + t
+    Xc = X @ np.swapaxes(R, -1, -2) + t
     z = Xc[..., 2:3]
     with np.errstate(divide="ignore", invalid="ignore"):
-        xy = np.where(z > EPS_DEPTH, Xc[..., :2] / z, np.nan)
+        xy = np.where(z > _EPS_DEPTH, Xc[..., :2] / z, np.nan)
     if dist is not None:
         xy = distort_normalized(xy, dist)
     return apply_intrinsics(xy, K)
