@@ -230,6 +230,7 @@ def reprojection_errors(
         name -> (N, C, K) errors in px, NaN where a view has no 2D label; and the (N, K)
         JPE (mm) of the nearest training instant.
     """
+    from freipose.geometry.triangulation import reprojection_errors as pixel_errors
     from freipose.io.labels import read_labels_h5
     from freipose.nn.evaluate import evaluate_checkpoints, jpe
     from freipose.nn.references import reference_predictions
@@ -249,7 +250,7 @@ def reprojection_errors(
         e = np.full(lab.points2d.shape[:3], np.nan)
         for i, sess in enumerate(lab.session):
             rig = lab.sessions[sess].calibration.subset(lab.cameras)
-            e[i] = np.linalg.norm(rig.project(pts[i]) - lab.points2d[i], axis=-1)
+            e[i] = pixel_errors(pts[i], np.swapaxes(lab.points2d[i], 0, 1), rig).T  # (C, K)
         e[~np.broadcast_to(has3d[:, None, :], e.shape)] = np.nan
         errs[name] = e
     return errs, jpe(answers["nearest training instant"], ev.gt)
