@@ -35,11 +35,6 @@ class SampleError(FreiPoseError):
     """A sample cannot be turned into network input (the message says why)."""
 
 
-def label_center(points3d: np.ndarray, mask3d: np.ndarray | None = None) -> np.ndarray:
-    """Mean (3,) of the labeled (K, 3) 3D points (NaN when there is none)."""
-    return label_centers(points3d, mask3d)
-
-
 def _aug_affine(rng: np.random.Generator, aug: AugmentConfig, size: int) -> np.ndarray:
     """Random rotation/zoom about the crop centre plus a shift (3x3, crop px -> crop px)."""
     c = (size - 1) / 2.0
@@ -131,7 +126,7 @@ def _cube_center(sample: Sample, aug: Augmentation | None, center: np.ndarray | 
         p3 = sample.get("points3d")
         if p3 is None:
             raise SampleError("prepare_sample needs a centre or 3D labels")
-        center = label_center(p3, sample.get("mask3d"))
+        center = label_centers(p3, sample.get("mask3d"))
         if not np.all(np.isfinite(center)):
             raise SampleError(
                 f"sample {sample.get('index')} (session {sample.get('session')!r}, frame "

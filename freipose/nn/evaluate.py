@@ -18,12 +18,13 @@ from typing import Any
 import numpy as np
 
 from freipose.errors import FreiPoseError
+from freipose.geometry.crops import label_centers
 from freipose.io.atomic import atomic_write_text
 from freipose.io.figures import new_figure, save_figure
 from freipose.io.labels import read_labels_h5
 from freipose.nn.checkpoint import load_checkpoint
 from freipose.nn.config import TrainConfig
-from freipose.nn.data import collate_prepared, label_center, prepare_sample
+from freipose.nn.data import collate_prepared, prepare_sample
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.inference import predict_prepared
 from freipose.nn.types import SampleSource
@@ -102,7 +103,7 @@ def predict_dataset(
         items = []
         for i in idx[start : start + batch_size]:
             s = source[int(i)]
-            c = label_center(s["points3d"], s.get("mask3d"))
+            c = label_centers(s["points3d"], s.get("mask3d"))
             if center_noise > 0:
                 c = c + rng.normal(0, center_noise, size=3)
             items.append(prepare_sample(s, cfg, center=c))
