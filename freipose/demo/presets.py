@@ -138,9 +138,9 @@ _PRESETS = {
         ),  # fmt: skip
         label_instants=300,
         eval_instants=60,
-        # 4 of the 7 views per training sample: a step costs 0.6 of a 7-view one, so 500
-        # steps take about the time of 300 and fine-tune further; the refinement head
-        # trains from the first step (the base's is trained already)
+        # 4 of the 7 views per training sample: cheaper steps, so more of them in the
+        # demo's time; the refinement head trains from the first step (the base's is
+        # trained already)
         pose=dict(
             preset="small",
             steps=500,
