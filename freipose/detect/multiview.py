@@ -169,9 +169,8 @@ def consistent_detection(
             if count[h] >= cfg.min_views:
                 agree, chosen = ag[h], best[h]
                 # 4. Refit from the chosen boxes, then verify and refit once more. The
-                # weighted DLT suffices: box centres are not projections of one 3D point
-                # (a pixel-optimal refinement moved the centre by far less than that
-                # mismatch and took most of the detection time).
+                # weighted DLT suffices: box centres are not projections of one 3D point,
+                # so a pixel-optimal polish of their triangulation gains nothing.
                 for _ in range(2):
                     pts = np.where(agree[:, None], centres[np.arange(c), chosen], np.nan)
                     w = np.where(agree, scores[np.arange(c), chosen], 0.0)
