@@ -100,12 +100,13 @@ def with_world_up(rig: CameraRig, up: WorldUp | None) -> CameraRig:
     return CameraRig(rig.cameras, md)
 
 
-def up_from_labels(rig: CameraRig, points: np.ndarray) -> WorldUp:
-    """Estimate the up direction from the labeled animal's 3D points.
+def up_from_labels(rig: CameraRig, points: np.ndarray, what: str = "labeled") -> WorldUp:
+    """Estimate the up direction from the labeled (or predicted) animal's 3D points.
 
     Args:
         rig: the cameras (their centres decide which side of the floor is up).
         points: (..., 3) labeled 3D points over time (world mm).
+        what: what the points are (``"labeled"``, ``"predicted"``; for the messages).
 
     Returns:
         The estimate, its floor height and a source naming the evidence.
@@ -117,26 +118,29 @@ def up_from_labels(rig: CameraRig, points: np.ndarray) -> WorldUp:
     est = estimate_up(points, rig.centers)
     if est is None:
         raise WorldUpError(
-            "cannot estimate the up direction: fewer than 10 labeled 3D points; give it with "
+            f"cannot estimate the up direction: fewer than 10 {what} 3D points; give it with "
             "freipose calib up CALIBRATION --up X,Y,Z"
         )
     if est.flatness > MAX_FLATNESS:
         raise WorldUpError(
-            f"cannot estimate the up direction from the labels: their points do not spread "
+            f"cannot estimate the up direction from the {what} points: they do not spread "
             f"over a plane (scatter ratio {est.flatness:.2f}, need at most {MAX_FLATNESS}; the "
             f"animal hardly moved); give it with freipose calib up CALIBRATION --up X,Y,Z, or "
             f"calibrate with --origin-frame N (a frame with the board on the floor)"
         )
     return WorldUp(
         est.up,
-        f"estimated from {est.points} labeled 3D points (the plane the animal moves on; "
+        f"estimated from {est.points} {what} 3D points (the plane the animal moves on; "
         f"{est.cameras_above} of {len(rig)} cameras above it)",
         est.floor,
     )
 
 
 def resolve_up(
-    rig: CameraRig | None, points: np.ndarray | None = None, purpose: str = "the up direction"
+    rig: CameraRig | None,
+    points: np.ndarray | None = None,
+    purpose: str = "the up direction",
+    what: str = "labeled",
 ) -> WorldUp:
     """The rig's stored up, else one estimated from ``points``, else world z (warned).
 
@@ -144,6 +148,7 @@ def resolve_up(
         rig: the calibration (None: no calibration).
         points: (..., 3) 3D points of the animal over time (world mm), or None.
         purpose: what the up is used for (for the warning).
+        what: what the points are (``"labeled"``, ``"predicted"``; for the messages).
 
     Returns:
         The up direction; its ``source`` says which of the three it is.
@@ -154,9 +159,9 @@ def resolve_up(
     reason = "the calibration stores no up direction"
     if rig is not None and points is not None:
         try:
-            est = up_from_labels(rig, points)
+            est = up_from_labels(rig, points, what)
         except WorldUpError as exc:
-            reason = f"{reason}, and the labels give none ({exc})"
+            reason = f"{reason}, and the {what} points give none ({exc})"
         else:
             log.warning(
                 "%s; for %s it is %s: up = %s (set it with freipose calib up)",

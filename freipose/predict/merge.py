@@ -18,6 +18,8 @@ import numpy as np
 
 from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.atomic import atomic_path, refuse_existing, remove_leftover_partials
+from freipose.io.calibration_toml import rig_from_toml_text
+from freipose.io.calibration_world import resolve_up
 from freipose.io.lock import output_lock
 from freipose.io.poses import PosesFormatError
 
@@ -170,8 +172,21 @@ def _write_merged(files: list[h5py.File], out: h5py.File) -> None:
             out.create_dataset(name, data=obj[()], dtype=obj.dtype)
         else:
             copy(name)
+    if "up_source" in first.attrs:
+        _estimate_up_again(out)
     out.attrs["completed_frames"] = T
     out.attrs["complete"] = True
+
+
+def _estimate_up_again(out: h5py.File) -> None:
+    """The up of the joined poses, as an unsharded run estimates it from all its frames.
+
+    Shards of a calibration without an up estimate one each from their own frames.
+    """
+    rig = rig_from_toml_text(str(out.attrs["calibration"]))
+    found = resolve_up(rig, out["poses"][()], "the poses' up attribute", what="predicted")
+    out.attrs["up"] = found.up
+    out.attrs["up_source"] = found.source
 
 
 def merge_outputs(

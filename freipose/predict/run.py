@@ -22,7 +22,8 @@ import numpy as np
 
 from freipose import __version__
 from freipose.errors import FreiPoseError
-from freipose.io.calibration_world import resolve_up
+from freipose.geometry.camera import CameraRig
+from freipose.io.calibration_world import WorldUp, resolve_up, world_up
 from freipose.io.lock import output_lock
 from freipose.io.session import Session
 from freipose.io.video import frame_range
@@ -335,7 +336,7 @@ def _predict_locked(
         fps=session.fps,
         skeleton=skeleton,
         provenance=session_provenance(session, estimator, provenance),
-        up=tuple(resolve_up(session.rig, purpose="the poses' up attribute").up.tolist()),
+        up=tuple(_stored_up(session.rig).tolist()),
         run_start=plan.start,
         run_stop=plan.stop,
         shard=shard,
@@ -346,7 +347,7 @@ def _predict_locked(
         loop = _predict_frames(
             session, estimator, writer, plan, done, batch_size, progress, prefetch, on_batch
         )
-        out = writer.finish()
+        out = writer.finish(up=_predicted_up(session.rig, writer))
     finally:
         writer.close()
     _warn_missing(session, loop.missing, plan.b)
@@ -357,6 +358,23 @@ def _predict_locked(
         missing=loop.missing,
         status_counts=_status_counts(out),
     )
+
+
+def _stored_up(rig: CameraRig) -> np.ndarray:
+    """(3,) the calibration's up, or world z as a placeholder until the poses give one."""
+    known = world_up(rig)
+    return np.array([0.0, 0.0, 1.0]) if known is None else known.up
+
+
+def _predicted_up(rig: CameraRig, writer: IncrementalPosesWriter) -> WorldUp | None:
+    """Without a stored up: the one the predicted poses give, as training's from the labels.
+
+    The warning of :func:`resolve_up` says which it is (estimated, or world z assumed).
+    None when the calibration stores an up (the header's is final).
+    """
+    if world_up(rig) is not None:
+        return None
+    return resolve_up(rig, writer.poses(), "the poses' up attribute", what="predicted")
 
 
 STATUS_NAMES = {

@@ -30,6 +30,7 @@ import tomli_w
 from freipose import __version__
 from freipose.geometry.camera import CameraRig
 from freipose.io.calibration_toml import rig_to_toml_text
+from freipose.io.calibration_world import WorldUp
 from freipose.io.hdf5 import str_array
 from freipose.io.poses import SCHEMA, SCHEMA_VERSION
 from freipose.predict.estimator import Estimate
@@ -322,8 +323,20 @@ class IncrementalPosesWriter:
         self._f.attrs["completed_frames"] = self.completed
         self._f.flush()
 
-    def finish(self) -> Path:
-        """Write what is buffered, mark the file complete and move it to its final name."""
+    def poses(self) -> np.ndarray:
+        """(T, K, 3) the poses committed so far (NaN in rows not yet written)."""
+        if self._f is None:
+            raise RuntimeError("IncrementalPosesWriter.poses before open()")
+        return self._f["poses"][()]
+
+    def finish(self, up: WorldUp | None = None) -> Path:
+        """Write what is buffered, mark the file complete and move it to its final name.
+
+        Args:
+            up: the world up found once all rows are in (the ``up`` and ``up_source``
+                attributes; the header's up, and the run key, stay as they were), or None
+                to keep the header's.
+        """
         if self._f is None:
             raise RuntimeError("IncrementalPosesWriter.finish before open()")
         if self._buffered:
@@ -332,6 +345,9 @@ class IncrementalPosesWriter:
             raise RuntimeError(
                 f"{self.partial}: only {self.completed} of {self.header.num_frames} rows written"
             )
+        if up is not None:
+            self._f.attrs["up"] = up.up
+            self._f.attrs["up_source"] = up.source
         self._f.attrs["complete"] = True
         self._f.close()
         self._f = None
