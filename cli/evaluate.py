@@ -72,6 +72,12 @@ def evaluate(
     held-out instant's centre, and at the training labels' mean centre; a network whose
     median JPE is not below the first has learned nothing beyond that pose (warned).
 
+    Paired comparisons: for the two networks, and each against that reference, the
+    difference of their median JPE on the same instants with a 95 % interval from a
+    block bootstrap over the instants in time order (consecutive frames are near-copies),
+    and the share of instants where the first is better; an interval that contains 0
+    says the held-out data cannot tell the two apart.
+
     \b
     Example:
       freipose eval runs/small/model.pt eval/labels.h5 -o runs/small/eval
@@ -131,6 +137,15 @@ def _echo_results(summary: dict[str, Any], sanity: Sanity) -> None:
         )
     for name, r in sanity.references.items():
         click.echo(f"reference, {name} (no network): median JPE {r['median_mm']:.2f} mm")
+    if sanity.comparisons:
+        c0 = sanity.comparisons[0]
+        click.echo(
+            f"paired comparisons on the same {c0.instants} held-out instants (median JPE, "
+            f"difference, its interval from a block bootstrap in blocks of {c0.block} "
+            "consecutive instants):"
+        )
+        for c in sanity.comparisons:
+            click.echo(f"  {c.sentence()}")
     for name, modes in sanity.failure_modes.items():
         lines = format_failure_modes({**modes, "warnings": []})
         if lines:

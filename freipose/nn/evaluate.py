@@ -23,6 +23,7 @@ from freipose.io.atomic import atomic_write_text
 from freipose.io.figures import new_figure, save_figure
 from freipose.io.labels import read_labels_h5
 from freipose.nn.checkpoint import load_checkpoint
+from freipose.nn.compare import PairedDifference, paired_difference
 from freipose.nn.config import TrainConfig
 from freipose.nn.data import collate_prepared, prepare_sample
 from freipose.nn.dataset import MultiViewDataset
@@ -247,12 +248,16 @@ class Sanity:
         reference_errors: reference name -> (N, K) JPE in mm.
         warnings: the failure modes' warnings and one per network not beating the
             held-out-centre reference.
+        comparisons: every two results of different checkpoints, and every result
+            against the held-out-centre reference, on the same instants
+            (:func:`freipose.nn.compare.paired_difference`).
     """
 
     failure_modes: dict[str, dict[str, Any]]
     references: dict[str, dict[str, Any]]
     reference_errors: dict[str, np.ndarray]
     warnings: list[str]
+    comparisons: tuple[PairedDifference, ...] = ()
 
 
 def sanity_checks(evaluation: Evaluation, train3d: np.ndarray | None) -> Sanity:
@@ -286,7 +291,24 @@ def sanity_checks(evaluation: Evaluation, train3d: np.ndarray | None) -> Sanity:
         medians = {n: jpe_summary(e, evaluation.keypoints)["overall"]["median"]
                    for n, e in evaluation.errors.items()}  # fmt: skip
         warnings += beats_reference_warnings(medians, refs)
-    return Sanity(modes, refs, ref_err, warnings)
+    return Sanity(modes, refs, ref_err, warnings, _comparisons(evaluation, ref_err))
+
+
+def _comparisons(
+    evaluation: Evaluation, reference_errors: Mapping[str, np.ndarray]
+) -> tuple[PairedDifference, ...]:
+    """Paired differences of the results of different networks, and against the reference."""
+    from freipose.nn.references import AT_HELD_OUT
+
+    names = list(evaluation.errors)
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]
+             if evaluation.checkpoints[a] != evaluation.checkpoints[b]]  # fmt: skip
+    errs = dict(evaluation.errors)
+    if AT_HELD_OUT in reference_errors:
+        errs[AT_HELD_OUT] = reference_errors[AT_HELD_OUT]
+        pairs += [(a, AT_HELD_OUT) for a in names]
+    found = (paired_difference(errs[a], errs[b], a, b) for a, b in pairs)
+    return tuple(c for c in found if c is not None)
 
 
 def jpe(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -422,6 +444,8 @@ def write_report(
                 summary[name]["failure_modes"] = modes
         if sanity.references:
             doc["references"] = sanity.references
+        if sanity.comparisons:
+            doc["comparisons"] = [c.to_dict() for c in sanity.comparisons]
     atomic_write_text(out / "metrics.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
     rows = ["method,keypoint,median_mm,p30_mm,p70_mm,n"]
     for name, s in summary.items():

@@ -72,7 +72,9 @@ def test_tiny_demo_outputs(tiny_demo):
     assert FrameSource(next((out / "overlay").glob("*.mp4"))).width == 3 * p.size[0]
     # 6 evaluation: voxel and baseline JPE, finite
     metrics = json.loads((out / "evaluation" / "labels" / "metrics.json").read_text())
-    assert set(metrics) == {"voxel_P0", "voxel_P1", "baseline", "references"}
+    assert set(metrics) == {"voxel_P0", "voxel_P1", "baseline", "references", "comparisons"}
+    ends = {(c["a"], c["b"]) for c in metrics["comparisons"]}
+    assert {("voxel_P1", "baseline"), ("voxel_P0", "baseline")} <= ends
     assert all(np.isfinite(metrics[m]["overall"]["median"]) for m in ("voxel_P0", "baseline"))
     assert (out / "evaluation" / "pipeline" / "jpe_boxplot.png").is_file()
     # 7 analysis: a valid study and its tables and figures

@@ -137,6 +137,12 @@ def test_eval_command_prints_references_and_failure_modes(tmp_path):
     m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert set(m["references"]) == {AT_HELD_OUT, AT_TRAINING}
     assert m["voxel_P1"]["failure_modes"] == {"pairs": [], "bones": [], "warnings": []}
+    # one network: P0 and P1 are not compared with each other, each with the reference
+    assert [(c["a"], c["b"]) for c in m["comparisons"]] == [
+        ("voxel_P0", AT_HELD_OUT),
+        ("voxel_P1", AT_HELD_OUT),
+    ]
+    assert "paired comparisons on the same 3 held-out instants" in r.output
     ref = m["references"][AT_HELD_OUT]["median_mm"]
     beaten = m["voxel_P1"]["overall"]["median"] < ref
     assert ("WARNING: voxel_P1" in r.output) != beaten

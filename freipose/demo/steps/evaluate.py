@@ -19,6 +19,7 @@ class _LabelScores:
     failure_modes: dict[str, Any]  # the voxel network's (P1), see freipose.nn.failure_modes
     references: dict[str, Any]  # per reference: median_mm, n
     keypoints: tuple[str, ...]
+    comparisons: list[dict[str, Any]]  # paired differences, see freipose.nn.compare
 
 
 def _on_labels(ctx: DemoContext, trained: dict[str, Any]) -> _LabelScores:
@@ -44,13 +45,19 @@ def _on_labels(ctx: DemoContext, trained: dict[str, Any]) -> _LabelScores:
     ctx.say("  references that look at no image (the training labels' median pose):")
     for name, r in sanity.references.items():
         ctx.say(f"    {name}: median JPE {r['median_mm']:.2f} mm")
+    nets = [c for c in sanity.comparisons if c.b == "baseline"]
+    if nets:
+        ctx.say("  paired on the same instants (95 % interval from a block bootstrap):")
+    for c in nets:
+        ctx.say(f"    {c.sentence()}")
     modes = sanity.failure_modes["voxel_P1"]
     ctx.say("  failure modes of the voxel network (P1):")
     for line in format_failure_modes({**modes, "warnings": []}):
         ctx.say("  " + line)
     for w in sanity.warnings:
         ctx.say("  " + w)
-    return _LabelScores(res, modes, sanity.references, ev.keypoints)
+    comparisons = [c.to_dict() for c in sanity.comparisons]
+    return _LabelScores(res, modes, sanity.references, ev.keypoints, comparisons)
 
 
 def _pipeline(ctx: DemoContext, keypoints: tuple[str, ...]) -> dict[str, Any]:
@@ -96,7 +103,9 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         ``labels`` (per method: median, p30, p70 JPE in mm), ``failure_modes`` (of the
         voxel network's P1: ``pairs``, ``bones``, ``warnings``, see
         :func:`freipose.nn.failure_modes.failure_modes`), ``references`` (per
-        constant-pose reference: ``median_mm``, ``n``) and ``pipeline`` (per session:
+        constant-pose reference: ``median_mm``, ``n``), ``comparisons`` (paired
+        differences of the networks and against the reference, see
+        :mod:`freipose.nn.compare`) and ``pipeline`` (per session:
         median JPE, missing keypoints and, where the poses name their skeleton, the
         ``failure_modes`` of every frame).
     """
@@ -105,5 +114,6 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         "labels": scores.methods,
         "failure_modes": scores.failure_modes,
         "references": scores.references,
+        "comparisons": scores.comparisons,
         "pipeline": _pipeline(ctx, scores.keypoints),
     }
