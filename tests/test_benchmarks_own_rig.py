@@ -1,0 +1,50 @@
+"""``benchmarks/own_rig.py``: the own-rig path at a minimal budget, scored against labels
+and the exact truth."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bench():
+    """The benchmark script as a module."""
+    spec = importlib.util.spec_from_file_location("own_rig", ROOT / "benchmarks" / "own_rig.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    yield mod
+    del sys.modules[spec.name]
+
+
+def test_own_rig_minimal_budget(bench, tmp_path, capsys):
+    pytest.importorskip("sleap_io")
+    out = tmp_path / "own"
+    args = ["--out", str(out), "--frames", "40", "--steps", "2", "--preset", "tiny"]
+    assert bench.main([*args, "--init", "scratch", "--gap", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "vs held-out labels" in printed and "vs exact truth" in printed
+    assert "voxel_P1 - baseline: vs labels" in printed
+    res = json.loads((out / "results.json").read_text())
+    seed = res["seeds"]["0"]
+    # the truth mapped into the calibration's world lies within the label tool's error
+    assert 0 < seed["truth"]["labels_vs_truth"] < 5.0
+    for side in ("labels", "truth"):
+        med = seed[side]["median"]
+        assert {"voxel_P1", "baseline", bench.AT_HELD_OUT} <= set(med)
+        assert [(c["a"], c["b"]) for c in seed[side]["comparisons"]] == [
+            ("voxel_P1", "baseline"),
+            ("voxel_P1", bench.AT_HELD_OUT),
+        ]
+    assert set(res["timings"]["seed0"]) == {"train voxel", "train baseline", "eval"}
+    # run again: every step is found done, nothing is retrained
+    before = (out / "seed0" / "pose" / "model.pt").stat().st_mtime_ns
+    assert bench.main([*args, "--init", "scratch", "--gap", "3"]) == 0
+    assert (out / "seed0" / "pose" / "model.pt").stat().st_mtime_ns == before
