@@ -410,6 +410,21 @@ def _coerce(cls: type, values: Mapping[str, Any], table: str) -> dict[str, Any]:
     return out
 
 
+def _stretched_decay(preset: Mapping[str, Any], table: dict[str, Any]) -> dict[str, Any]:
+    """``[schedule]`` with ``lr_decay_steps`` scaled to its ``steps`` when only those are set.
+
+    The presets drop the learning rate at a fixed share of their steps (``small``: 2000 of
+    3000, ``paper``: 30000 of 60000); a run of other length keeps that share instead of
+    never reaching the drop (or reaching it at once).
+    """
+    if "steps" not in table or "lr_decay_steps" in table:
+        return table
+    defaults = ScheduleConfig()
+    steps = int(preset.get("steps", defaults.steps))
+    decay = int(preset.get("lr_decay_steps", defaults.lr_decay_steps))
+    return {**table, "lr_decay_steps": max(1, round(table["steps"] * decay / steps))}
+
+
 def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
     """Build a :class:`TrainConfig` from the TOML structure (presets applied, validated).
 
@@ -440,9 +455,8 @@ def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
     if cube_auto:
         model_tbl.pop("cube_size", None)
     model = ModelConfig(**{**p_model, **_coerce(ModelConfig, model_tbl, "model")})
-    sched = ScheduleConfig(
-        **{**p_sched, **_coerce(ScheduleConfig, dict(data.get("schedule", {})), "schedule")}
-    )
+    sched_tbl = _coerce(ScheduleConfig, dict(data.get("schedule", {})), "schedule")
+    sched = ScheduleConfig(**{**p_sched, **_stretched_decay(p_sched, sched_tbl)})
     aug = AugmentConfig(**_coerce(AugmentConfig, dict(data.get("augment", {})), "augment"))
     dat = DataConfig(**_coerce(DataConfig, dict(data.get("data", {})), "data"))
     extra = {k: v for k, v in data.items() if k not in ("data", "model", "schedule", "augment")}

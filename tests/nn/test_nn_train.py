@@ -259,3 +259,15 @@ def test_tiny_training_on_gpu_with_autocast(tmp_path):
     model, _, _ = load_checkpoint(path, "cuda")
     pred = predict_dataset(model, src)
     assert np.isfinite(pred["P1"]).all()
+
+
+def test_a_shorter_run_drops_the_learning_rate_at_the_presets_share_of_its_steps():
+    def sched(preset: str, **table):
+        return config_from_dict({"model": {"preset": preset}, "schedule": table}).schedule
+
+    assert sched("small").lr_decay_steps == 2000  # the preset's own: 2000 of 3000
+    short = sched("small", steps=600)
+    assert short.lr_decay_steps == 400 and short.lr_at(399) == 1e-3
+    assert short.lr_at(400) == pytest.approx(1e-4)
+    assert sched("paper", steps=1000).lr_decay_steps == 500  # 30000 of 60000
+    assert sched("small", steps=600, lr_decay_steps=100).lr_decay_steps == 100  # given: kept
