@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,15 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "freipose" / "models"
 
 
-@pytest.fixture(scope="module")
-def bench():
-    """The benchmark script as a module."""
-    spec = importlib.util.spec_from_file_location("accuracy", ROOT / "benchmarks" / "accuracy.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    yield mod
-    del sys.modules[spec.name]
+BENCHMARK = "accuracy"  # the script the conftest fixture ``bench`` loads
 
 
 def test_rig_and_coat_of_every_session_and_a_base_snapshot(bench, tmp_path, capsys):

@@ -3,25 +3,11 @@ and the exact truth."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def bench():
-    """The benchmark script as a module."""
-    spec = importlib.util.spec_from_file_location("own_rig", ROOT / "benchmarks" / "own_rig.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    yield mod
-    del sys.modules[spec.name]
+BENCHMARK = "own_rig"  # the script the conftest fixture ``bench`` loads
 
 
 def test_own_rig_minimal_budget(bench, tmp_path, capsys):

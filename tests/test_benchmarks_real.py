@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,17 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "sleap-8cam-2mice"
 
 
-@pytest.fixture(scope="module")
-def bench():
-    """The benchmark script as a module."""
-    spec = importlib.util.spec_from_file_location(
-        "real_finetune", ROOT / "benchmarks" / "real_finetune.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    yield mod
-    del sys.modules[spec.name]
+BENCHMARK = "real_finetune"  # the script the conftest fixture ``bench`` loads
 
 
 @pytest.mark.skipif(
