@@ -128,14 +128,19 @@ def pose_sources(paths: list[Path]) -> tuple[Concat, np.ndarray]:
     return src, idx
 
 
-def pose_config(kind: str, steps: int) -> Any:
-    """The ``small`` preset with a long, slowly decaying schedule for the base."""
+def pose_config(kind: str, steps: int, decay_steps: int = 0) -> Any:
+    """The ``small`` preset with a long, slowly decaying schedule for the base.
+
+    The learning rate (1e-3) drops tenfold every ``decay_steps`` steps (0: at 2/3 of
+    ``steps``).
+    """
     from freipose.nn.config import config_from_dict
 
+    decay = decay_steps if decay_steps > 0 else max(1, steps * 2 // 3)
     return config_from_dict({
         "model": {"preset": "small", "kind": kind, "init": "scratch"},
         "schedule": {
-            "steps": steps, "lr": 1e-3, "lr_decay_steps": max(1, steps * 2 // 3),
+            "steps": steps, "lr": 1e-3, "lr_decay_steps": decay,
             "refine_start": 0.01, "checkpoint_every": 250, "eval_every": 1000,
             "eval_samples": 24, "seed": 10_000,
         },
@@ -151,6 +156,7 @@ class Job:
     share: float
     seconds: float = 0.0
     done: int = 0
+    decay_steps: int = 0
 
 
 class Trainer:
@@ -177,7 +183,7 @@ class Trainer:
         from freipose.nn.checkpoint import read_checkpoint
         from freipose.nn.train import train_pose
 
-        cfg = pose_config(job.name, job.steps)
+        cfg = pose_config(job.name, job.steps, job.decay_steps)
         run = self.run_dir(job.name)
         resume = (run / "checkpoint.pt").is_file()
         if not resume and self.args.warm_start:
@@ -343,7 +349,7 @@ def _provenance(trainer: Trainer, job: Job, dest: Path, step: int, command: str)
     else:
         from freipose.nn.config import config_to_dict
 
-        tables = config_to_dict(pose_config(job.name, job.steps))
+        tables = config_to_dict(pose_config(job.name, job.steps, job.decay_steps))
         arch = {k: v for k, v in tables["model"].items() if k not in ("init", "pretrained")}
         schedule = tables["schedule"]
     return {
@@ -397,6 +403,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--voxel-steps", type=int, default=30_000)
     ap.add_argument("--baseline-steps", type=int, default=30_000)
     ap.add_argument("--detector-steps", type=int, default=8_000)
+    ap.add_argument("--voxel-decay-steps", type=int, default=0,
+                    help="the learning rate drops tenfold every N steps (0: at 2/3 of the "
+                    "steps); a resumed run follows the new schedule from its step on")  # fmt: skip
+    ap.add_argument("--baseline-decay-steps", type=int, default=0,
+                    help="the same for the baseline")  # fmt: skip
     ap.add_argument("--chunk", type=int, default=200, help="steps per turn (pose networks)")
     ap.add_argument("--until", default="", help="UTC HH:MM after which no chunk starts")
     ap.add_argument("--minutes", type=float, default=0.0, help="stop after this many minutes")
@@ -419,8 +430,8 @@ def main(argv: list[str] | None = None) -> int:
              time.perf_counter() - t0)  # fmt: skip
     trainer = Trainer(args, train, held)
     jobs = [
-        Job("voxel", args.voxel_steps, 0.5),
-        Job("baseline", args.baseline_steps, 0.25),
+        Job("voxel", args.voxel_steps, 0.5, decay_steps=args.voxel_decay_steps),
+        Job("baseline", args.baseline_steps, 0.25, decay_steps=args.baseline_decay_steps),
         Job("detector", args.detector_steps, 0.25),
     ]
     for job in jobs:
