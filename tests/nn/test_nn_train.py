@@ -226,8 +226,11 @@ def test_train_and_eval_commands(tmp_path):
     assert r.exit_code == 0, r.output
     assert "voxel_P1: median JPE" in r.output and "baseline: median JPE" in r.output
     m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
-    assert set(m) == {"voxel_P0", "voxel_P1", "baseline", "references"}
+    assert set(m) == {"voxel_P0", "voxel_P1", "baseline", "references", "comparisons"}
     assert m["voxel_P0"]["overall"]["n"] == 15
+    pairs = [(c["a"], c["b"]) for c in m["comparisons"]]
+    assert ("voxel_P1", "baseline") in pairs and ("voxel_P0", "voxel_P1") not in pairs
+    assert "voxel_P1 vs baseline: " in r.output
     for f in ("pck.csv", "pck.png", "jpe_boxplot.png", "jpe_per_keypoint.csv"):
         assert (tmp_path / "ev" / f).stat().st_size > 0
     # errors are user errors, not tracebacks
