@@ -100,7 +100,7 @@ def write_config(path: Path, labels: Path, a: argparse.Namespace, seed: int) -> 
         f'[data]\nlabels = "{labels / "train.h5"}"\neval_labels = "{labels / "eval.h5"}"\n'
         f'skeleton = "rat"\n\n[model]\npreset = "{a.preset}"\n\n[schedule]\n'
         f"steps = {a.steps}\ncheckpoint_every = {a.steps}\neval_every = {a.steps}\n"
-        f"seed = {seed}\n",
+        f"seed = {seed}\n" + "".join(f"{kv}\n" for kv in a.schedule),
         encoding="utf-8",
     )
 
@@ -212,6 +212,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--blocks", type=int, default=3, help="held-out time blocks")
     ap.add_argument("--gap", type=int, default=30, help="frames between held-out and training")
     ap.add_argument("--seeds", type=int, default=1, help="training seeds (0, 1, ...)")
+    ap.add_argument("--first-seed", type=int, default=0, help="the first training seed")
+    ap.add_argument("--schedule", action="append", default=[], metavar="KEY=VALUE",
+                    help="a [schedule] setting of both trainings (TOML), repeatable")  # fmt: skip
     return ap
 
 
@@ -231,7 +234,8 @@ def main(argv: list[str] | None = None) -> int:
     say(f"imported labels vs the truth: median {align[3]:.2f} mm (the label tool's error); "
         f"calibration scale vs truth {align[0]:.5f}")  # fmt: skip
     results: dict[str, Any] = {"config": {k: str(v) for k, v in vars(a).items()}, "seeds": {}}
-    for seed in range(a.seeds):
+    seeds = range(a.first_seed, a.first_seed + a.seeds)
+    for seed in seeds:
         run = a.out / f"seed{seed}"
         times.setdefault(f"seed{seed}", {}).update(train_and_eval(a.out, run, a, seed))
         timings_path.write_text(json.dumps(times, indent=2))
@@ -239,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         print_table(say, seed, lab, tru)
         results["seeds"][str(seed)] = {"labels": lab, "truth": tru, "seconds": times[f"seed{seed}"]}
     data_s = sum(v for k, v in times["data"].items() if k != "synth" and k != "calib")
-    for seed in range(a.seeds):
+    for seed in seeds:
         t = times[f"seed{seed}"]
         total = data_s + sum(t.values())
         parts = ", ".join(f"{k} {v:.0f} s" for k, v in {**times["data"], **t}.items())
