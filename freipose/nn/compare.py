@@ -112,26 +112,26 @@ def paired_difference(
     ea, eb, both = ea[rows], eb[rows], both[rows]
     n = len(rows)
     block = max(1, round(math.sqrt(n)))
-    diff = _median(ea, both) - _median(eb, both)
+    med_a, med_b = _median(ea, both), _median(eb, both)
     rng = np.random.default_rng(seed)
     starts = rng.integers(0, n - block + 1, size=(resamples, math.ceil(n / block)))
     idx = (starts[..., None] + np.arange(block)).reshape(resamples, -1)[:, :n]
     boot = np.array([_median(ea[i], both[i]) - _median(eb[i], both[i]) for i in idx])
     tail = (1 - LEVEL) / 2
     low, high = np.quantile(boot, [tail, 1 - tail])
-    with np.errstate(invalid="ignore"):
-        ma = np.where(both, ea, 0).sum(1) / both.sum(1)
-        mb = np.where(both, eb, 0).sum(1) / both.sum(1)
+    # per instant, the mean error over the keypoints both have (every kept row has one)
+    mean_a = np.where(both, ea, 0).sum(1) / both.sum(1)
+    mean_b = np.where(both, eb, 0).sum(1) / both.sum(1)
     return PairedDifference(
         a=a,
         b=b,
-        median_a=_median(ea, both),
-        median_b=_median(eb, both),
-        difference=float(diff),
+        median_a=med_a,
+        median_b=med_b,
+        difference=med_a - med_b,
         low=float(low),
         high=float(high),
         level=LEVEL,
-        win_rate=float(np.mean(ma < mb)),
+        win_rate=float(np.mean(mean_a < mean_b)),
         instants=n,
         block=int(block),
     )
