@@ -28,6 +28,7 @@ __all__ = [
     "WorldUp",
     "resolve_up",
     "rig_with_up",
+    "stored_up_or_z",
     "up_from_labels",
     "with_world_up",
     "world_up",
@@ -98,6 +99,16 @@ def with_world_up(rig: CameraRig, up: WorldUp | None) -> CameraRig:
     if up is not None:
         md.update(up.metadata())
     return CameraRig(rig.cameras, md)
+
+
+def stored_up_or_z(rig: CameraRig) -> np.ndarray:
+    """(3,) the rig's stored unit up, else world z, without a warning.
+
+    For callers that need a direction before one can be estimated, or that warn about the
+    assumption elsewhere (training warns per session when it resolves the up).
+    """
+    known = world_up(rig)
+    return np.array([0.0, 0.0, 1.0]) if known is None else known.up
 
 
 def up_from_labels(rig: CameraRig, points: np.ndarray, what: str = "labeled") -> WorldUp:

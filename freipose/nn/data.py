@@ -24,7 +24,7 @@ from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.geometry.crops import crop_affine, crop_camera, cube_crop_boxes, label_centers
 from freipose.geometry.transforms import rodrigues
-from freipose.io.calibration_world import world_up
+from freipose.io.calibration_world import stored_up_or_z
 from freipose.nn.config import AugmentConfig, ModelConfig
 from freipose.nn.types import Batch, PreparedSample, Sample, SampleSource
 
@@ -146,9 +146,7 @@ def _grid_rotation(aug: Augmentation | None, rig: CameraRig) -> np.ndarray:
     if aug is None or aug.config.grid_rotation <= 0:
         return np.eye(3)
     a = math.radians(aug.rng.uniform(-aug.config.grid_rotation, aug.config.grid_rotation))
-    known = world_up(rig)
-    up = np.array([0.0, 0.0, 1.0]) if known is None else known.up
-    return rodrigues(a * up)
+    return rodrigues(a * stored_up_or_z(rig))
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ import numpy as np
 from freipose import __version__
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
-from freipose.io.calibration_world import WorldUp, resolve_up, world_up
+from freipose.io.calibration_world import WorldUp, resolve_up, stored_up_or_z, world_up
 from freipose.io.lock import output_lock
 from freipose.io.session import Session
 from freipose.io.video import frame_range
@@ -336,7 +336,7 @@ def _predict_locked(
         fps=session.fps,
         skeleton=skeleton,
         provenance=session_provenance(session, estimator, provenance),
-        up=tuple(_stored_up(session.rig).tolist()),
+        up=tuple(stored_up_or_z(session.rig).tolist()),  # final unless estimated at the end
         run_start=plan.start,
         run_stop=plan.stop,
         shard=shard,
@@ -358,12 +358,6 @@ def _predict_locked(
         missing=loop.missing,
         status_counts=_status_counts(out),
     )
-
-
-def _stored_up(rig: CameraRig) -> np.ndarray:
-    """(3,) the calibration's up, or world z as a placeholder until the poses give one."""
-    known = world_up(rig)
-    return np.array([0.0, 0.0, 1.0]) if known is None else known.up
 
 
 def _predicted_up(rig: CameraRig, writer: IncrementalPosesWriter) -> WorldUp | None:
