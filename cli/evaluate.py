@@ -73,10 +73,11 @@ def evaluate(
     median JPE is not below the first has learned nothing beyond that pose (warned).
 
     Paired comparisons: for the two networks, and each against that reference, the
-    difference of their median JPE on the same instants with a 95 % interval from a
-    block bootstrap over the instants in time order (consecutive frames are near-copies),
-    and the share of instants where the first is better; an interval that contains 0
-    says the held-out data cannot tell the two apart.
+    differences of their median and of their mean JPE on the same instants, each with a
+    95 % interval from a block bootstrap over the instants in time order (consecutive
+    frames are near-copies), and the share of instants where the first is better; an
+    interval that contains 0 says the held-out data cannot tell the two apart. The mean
+    also weighs the few large errors (a hidden paw far off) that the median hides.
 
     \b
     Example:
@@ -140,8 +141,8 @@ def _echo_results(summary: dict[str, Any], sanity: Sanity) -> None:
     if sanity.comparisons:
         c0 = sanity.comparisons[0]
         click.echo(
-            f"paired comparisons on the same {c0.instants} held-out instants (median JPE, "
-            f"difference, its interval from a block bootstrap in blocks of {c0.block} "
+            f"paired comparisons on the same {c0.instants} held-out instants (median and mean "
+            f"JPE, differences, their intervals from a block bootstrap in blocks of {c0.block} "
             "consecutive instants):"
         )
         for c in sanity.comparisons:

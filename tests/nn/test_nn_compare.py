@@ -31,7 +31,22 @@ def test_a_clearly_better_result_is_lower_and_equal_ones_are_not_distinguishable
     worse = paired_difference(b + 1.0, b, "x", "y")
     assert worse is not None and worse.verdict == "higher" and worse.low > 0
     assert worse.to_dict()["verdict"] == "higher"
-    assert "x vs y: " in worse.sentence() and worse.sentence().endswith("higher")
+    assert worse.mean_verdict == "higher" and worse.mean_difference == pytest.approx(1.0)
+    assert "x vs y: median " in worse.sentence() and ": higher; mean " in worse.sentence()
+    assert better.mean_difference == pytest.approx(-0.3 * b.mean())
+    assert better.mean_low <= better.mean_difference <= better.mean_high < 0
+
+
+def test_the_mean_sees_large_errors_on_few_keypoints_that_the_median_does_not():
+    a = _errors(120, k=10)
+    b = a.copy()
+    b[:, 9] += 20.0  # b loses one keypoint (a hidden paw) by 2 cm, a finds it
+    got = paired_difference(a, b, "a", "b")
+    assert got is not None
+    assert got.mean_verdict == "lower" and got.mean_difference == pytest.approx(-2.0)
+    assert abs(got.difference) < 0.5  # the median of ten keypoints hardly moves
+    assert got.win_rate == 1.0
+    assert got.to_dict()["mean_verdict"] == "lower"
 
 
 def test_only_instants_both_were_evaluated_on_count_and_missing_predictions_lose():
@@ -43,6 +58,9 @@ def test_only_instants_both_were_evaluated_on_count_and_missing_predictions_lose
     got = paired_difference(a, b, "a", "b")
     assert got is not None and got.instants == 30
     assert got.win_rate == 0.0  # the infinite errors make every instant's mean worse
+    assert got.missed_a == 30 and got.missed_b == 0
+    assert got.mean_difference == pytest.approx(-0.5)  # the means skip the missed keypoints
+    assert "no prediction: 30 keypoints of a, 0 of b" in got.sentence()
     assert paired_difference(np.full((3, 2), np.nan), np.ones((3, 2)), "a", "b") is None
     with pytest.raises(ValueError, match="one shape"):
         paired_difference(np.ones((3, 2)), np.ones((3, 3)), "a", "b")
