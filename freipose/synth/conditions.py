@@ -32,6 +32,7 @@ import numpy as np
 
 from freipose.synth.errors import SynthError
 from freipose.synth.look import SceneStyle
+from freipose.synth.rig import LAYOUTS  # randomized draws the first four
 
 # a freipose.synth.scene.SceneConfig (which imports this module; not imported back)
 SceneConfig = Any
@@ -39,7 +40,6 @@ SceneConfig = Any
 ANIMALS = ("rat", "mouse")
 ANIMAL_SCALE = {"rat": 1.0, "mouse": 0.42}  # body size factor (rat: ~23 cm nose to tail root)
 LENSES = ("standard", "fisheye", "pinhole")
-LAYOUTS = ("ring", "above", "side", "below", "arc")  # randomized draws the first four
 FLOORS = ("mat", "bedding")
 WALLS = ("opaque", "acrylic")
 LABEL_FORMATS = ("sleap", "dlc")

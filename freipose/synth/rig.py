@@ -37,6 +37,7 @@ from freipose.geometry import Camera, CameraRig
 from freipose.io.toml import check_keys, read_toml
 from freipose.synth.errors import RigFileError, SynthError
 
+LAYOUTS = ("ring", "above", "side", "below", "arc")  # the camera layouts of default_rig
 
 @dataclass(frozen=True)
 class ArenaConfig:
@@ -184,8 +185,8 @@ def default_rig(
     """
     if not 1 <= int(n_cameras) <= 32:
         raise SynthError(f"n_cameras must be in 1..32, got {n_cameras}")
-    if layout not in ("ring", "above", "side", "below", "arc"):
-        raise SynthError(f"layout must be ring, above, side, below or arc, got {layout!r}")
+    if layout not in LAYOUTS:
+        raise SynthError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
     arena = arena or ArenaConfig()
     w, h = (int(v) for v in size)
     if w < 16 or h < 16:
