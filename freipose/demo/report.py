@@ -211,6 +211,21 @@ def _failure_modes(ev: dict[str, Any]) -> dict[str, Any] | None:
     return {"pairs": pairs, "bones": bones, "warnings": list(fm.get("warnings", []))}
 
 
+def _comparison_row(c: dict[str, Any]) -> list[str]:
+    """One paired comparison (:mod:`freipose.nn.compare`) as table cells."""
+
+    def diff(prefix: str) -> str:
+        d, lo, hi = (float(c[f"{prefix}{k}"]) for k in ("difference", "low", "high"))
+        return f"{d:+.2f} ({lo:+.2f} to {hi:+.2f}): {c[prefix + 'verdict']}"
+
+    return [
+        f"{_METHODS.get(c['a'], c['a'])} vs {_METHODS.get(c['b'], c['b'])}",
+        diff(""),
+        diff("mean_") if "mean_difference" in c else "-",
+        f"{100 * float(c['win_rate']):.0f} %",
+    ]
+
+
 def _evaluation(ctx: DemoContext, ev: dict[str, Any]) -> dict[str, Any]:
     """Steps 5-6: the error tables and figures."""
     labels = [
@@ -227,6 +242,7 @@ def _evaluation(ctx: DemoContext, ev: dict[str, Any]) -> dict[str, Any]:
         "labels": labels,
         "pipeline": pipeline,
         "references": refs,
+        "comparisons": [_comparison_row(c) for c in ev.get("comparisons", [])],
         "failure_modes": _failure_modes(ev),
         "instants": ctx.preset.eval_instants,
         "figures": [

@@ -91,6 +91,10 @@ def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
     if failure_modes:
         ev["failure_modes"] = FAILURE_MODES
         ev["references"] = {"median pose at the held-out centre": {"median_mm": 41.5, "n": 96}}
+        ev["comparisons"] = [{"a": "voxel_P1", "b": "baseline", "difference": -0.04,
+                              "low": -0.16, "high": 0.07, "verdict": "not distinguishable",
+                              "mean_difference": -0.15, "mean_low": -0.28, "mean_high": -0.05,
+                              "mean_verdict": "lower", "win_rate": 0.66}]  # fmt: skip
     write_marker(out, p, "evaluate", ev, 5.0)
     analysis = {"classification": [
         {"animal": "rat1", "evaluated_on": "rat1", "balanced_accuracy": 0.43, "f1": 0.43,
@@ -124,6 +128,10 @@ def test_report_tables_name_their_columns(tmp_path):
     assert "Nose - Tail" in text and "171.9" not in text and "172" in text
     assert 'class="warning"' in page and "collapsed: predicted 5.6 mm" in text
     assert "median pose at the held-out centre" in text
+    # the paired comparison: both statistics with their intervals and verdicts
+    assert "Paired comparisons" in text
+    row = r"2D views\) vs baseline .{0,60}-0\.04 \(-0\.16 to \+0\.07\): not distinguishable"
+    assert re.search(row + r" -0\.15 \(-0\.28 to -0\.05\): lower 66 %", text)
     # the overlay video embedded, the smoothing figure shown, every path relative
     assert '<video controls preload="auto" src="overlay/rat1_day2.mp4">' in page
     assert 'src="overlay/smooth.png"' in page
@@ -135,7 +143,7 @@ def test_report_without_optional_sections(tmp_path):
     ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
     page = Path(report.run(ctx)["report"]).read_text()
     assert "Failure modes" not in page and "Smoothing" not in page
-    assert "For comparison" not in page
+    assert "For comparison" not in page and "Paired comparisons" not in page
     assert "Figure not written: <code>train/baseline/log.png</code>" in page
 
 
