@@ -39,6 +39,7 @@ from freipose.synth.errors import RigFileError, SynthError
 
 LAYOUTS = ("ring", "above", "side", "below", "arc")  # the camera layouts of default_rig
 
+
 @dataclass(frozen=True)
 class ArenaConfig:
     """An open-field box: inner ``size`` (x, y) mm centred on the origin, ``wall_height`` mm."""
