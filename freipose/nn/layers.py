@@ -131,8 +131,11 @@ def unproject(
     ).reshape(B, V, C, P)
     valid_f = valid.to(sampled.dtype)
     count = valid_f.sum(1)  # (B, P)
-    volume = (sampled * valid_f[:, :, None, :]).sum(1) / count.clamp_min(1.0)[:, None, :]
-    return volume, count
+    # view by view: a (B, V, C, P) product would be written and read again in full
+    total = sampled[:, 0] * valid_f[:, 0, None, :]
+    for v in range(1, V):
+        total = total.addcmul_(sampled[:, v], valid_f[:, v, None, :])
+    return total / count.clamp_min(1.0)[:, None, :], count
 
 
 class UNet3D(nn.Module):
