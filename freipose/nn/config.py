@@ -65,6 +65,10 @@ class ModelConfig:
             cross-entropy loss (``schedule.weight_map``).
         volume_sigma: sigma (voxels) of the Gaussian target of the volumetric
             cross-entropy loss (``schedule.weight_volume``).
+        map_window: at inference, the 2D points of the refinement and of the baseline are
+            the soft-argmax within this many map pixels (per axis) of each map's peak, so
+            that a second mode (the other ear, the other paw) does not pull them toward the
+            midpoint; 0 takes the whole map. Training always decodes the whole map.
         pretrained: optional local file with encoder weights (a state dict; loaded
             non-strictly, the missing and unexpected keys are logged).
         init: the weights a new run starts from: ``"base"`` (the base model shipped for
@@ -94,6 +98,7 @@ class ModelConfig:
     heatmap_sigma: float = 2.0
     map_sigma: float = 1.0
     volume_sigma: float = 1.0
+    map_window: int = 3
     pretrained: str = ""
     init: str = "base"
 
@@ -121,6 +126,11 @@ class ModelConfig:
             raise ConfigError(
                 f"model.unproject_levels must be in 0..encoder_pools ({self.encoder_pools}), "
                 f"got {self.unproject_levels}"
+            )
+        if self.map_window < 0:
+            raise ConfigError(
+                f"model.map_window must be >= 0 (map pixels; 0: the whole map), "
+                f"got {self.map_window}"
             )
         if self.crop_size % self.stride:
             raise ConfigError(

@@ -234,7 +234,7 @@ class VoxelPoseNet(nn.Module):
             uv0.reshape(B * V, -1, 2), maps.shape[-1], ms, cfg.heatmap_sigma * cfg.stride / ms
         )
         logits = maps.float() + prior
-        uv, conf = decode_head(logits, conf_logits, ms)
+        uv, conf = decode_head(logits, conf_logits, ms, 0 if self.training else cfg.map_window)
         uv = uv.reshape(B, V, -1, 2)
         conf = conf.reshape(B, V, -1) * mask[:, :, None]
         # P0 enters the fusion as a prior whose weight is a learnt multiple of the views'
@@ -280,7 +280,8 @@ class BaselineNet(nn.Module):
         B, V = images.shape[:2]
         feats, skip = self.encoder(images.reshape(B * V, *images.shape[2:]))
         maps, conf_logits = self.head(feats, skip)
-        uv, conf = decode_head(maps, conf_logits, self.cfg.map_stride)
+        window = 0 if self.training else self.cfg.map_window
+        uv, conf = decode_head(maps, conf_logits, self.cfg.map_stride, window)
         conf = conf.reshape(B, V, -1) * batch["view_mask"][:, :, None]
         return {
             "points2d": uv.reshape(B, V, -1, 2),

@@ -18,6 +18,7 @@ from freipose.nn.layers import (
     Head2D,
     decode_head,
     gaussian_heatmaps,
+    peak_window,
     softargmax2d,
     softargmax3d,
     triangulate_with_prior,
@@ -120,6 +121,48 @@ def test_softargmax2d_and_heatmap_round_trip():
     dec, _ = softargmax2d(torch.log(heat + 1e-12) * 1.0, stride)
     # a sampled gaussian's soft-argmax is its centre away from the borders
     torch.testing.assert_close(dec[0, 0], uv[0, 0], atol=0.05, rtol=0)
+
+
+def test_peak_window_keeps_the_main_mode():
+    # two Gaussians on a 16x16 map: the main one at (x 4.3, y 5.0), a weaker one 8 px away
+    stride, size = 1.0, 16
+    main = torch.tensor([[[4.3, 5.0]]])
+    heat = gaussian_heatmaps(main, size, stride, 1.0) + 0.4 * gaussian_heatmaps(
+        main + torch.tensor([8.0, 0.0]), size, stride, 1.0
+    )
+    logits = torch.log(heat + 1e-12)
+    whole, probs = softargmax2d(logits, stride)
+    local, probs_w = softargmax2d(logits, stride, window=3)
+    assert float(whole[0, 0, 0]) > 6.0  # pulled ~2.3 px toward the second mode
+    torch.testing.assert_close(local[0, 0], main[0, 0], atol=0.05, rtol=0)
+    torch.testing.assert_close(probs_w, probs)  # the distributions returned are whole
+    kept = peak_window(probs, (size, size), 3).reshape(size, size)
+    rows, cols = torch.nonzero(kept, as_tuple=True)
+    assert (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max())) == (2, 8, 1, 7)
+    torch.testing.assert_close(kept.sum(), torch.tensor(1.0))
+    assert peak_window(probs, (size, size), 0) is probs
+
+
+def test_model_decodes_windows_at_inference_only():
+    from nn_toydata import toy_batch
+
+    cfg = config_from_dict({"model": {"preset": "tiny", "map_window": 0}}).model
+    torch.manual_seed(0)
+    whole = build_model(cfg, 3)
+    windowed = build_model(replace(cfg, map_window=1), 3)
+    windowed.load_state_dict(whole.state_dict())
+    b = toy_batch(cfg, 2, cams=3)
+    with torch.no_grad():
+        train_a, train_b = whole(b), windowed(b)  # training mode: the whole maps
+        torch.testing.assert_close(train_a["P1"], train_b["P1"])
+        whole.eval(), windowed.eval()
+        eval_a, eval_b = whole(b), windowed(b)
+    torch.testing.assert_close(eval_a["P0"], eval_b["P0"])  # P0 decodes the whole volume
+    assert float((eval_a["points2d"] - eval_b["points2d"]).abs().max()) > 1e-3
+    torch.testing.assert_close(eval_a["confidence2d"], eval_b["confidence2d"])
+    assert float((eval_a["P1"] - eval_b["P1"]).abs().max()) > 1e-3
+    with pytest.raises(Exception, match="map_window"):
+        config_from_dict({"model": {"preset": "tiny", "map_window": -1}})
 
 
 def test_triangulation_with_prior(circle_rig, rng):
