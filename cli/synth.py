@@ -42,6 +42,13 @@ def _formats(text: str) -> tuple[str, ...]:
 @click.option("--size", type=str, default=None, help="Image size WIDTHxHEIGHT [320x256].")
 @click.option("--seed", type=int, default=None, help="Random seed [0]; same seed, same scene.")
 @click.option(
+    "--animal-seed",
+    type=int,
+    default=None,
+    help="Seed of the individual (size, proportions, random coat) [the --seed]: sessions with "
+    "the same animal seed film the same animal.",
+)
+@click.option(
     "--appearance",
     type=click.Choice(["hooded", "albino", "dark", "piebald", "random"]),
     default=None,
@@ -161,6 +168,7 @@ def synth(
     fps: float | None,
     size: str | None,
     seed: int | None,
+    animal_seed: int | None,
     appearance: str | None,
     animal: str | None,
     animal_scale: float | None,
@@ -212,6 +220,7 @@ def synth(
             "fps": fps,
             "size": _parse_size(size) if size is not None else None,
             "seed": seed,
+            "animal_seed": animal_seed,
             "appearance": appearance,
             "stimulation": StimulationConfig.parse(stim) if stim is not None else None,
             "calibration_video": True if calibration_video else None,

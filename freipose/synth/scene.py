@@ -89,6 +89,11 @@ class SceneConfig:
         size: image size (width, height) of the default rig (and of rig-file cameras that
             give none).
         seed: the one seed everything random derives from.
+        animal_seed: the seed the individual (body proportions, size within the animal's
+            range, and the coat when ``appearance = "random"``) is drawn from; sessions with
+            the same ``animal_seed`` film the same animal (another day of one rat). None: the
+            session's ``seed``. With ``randomize`` the coat and the size class are drawn from
+            ``seed`` with the other settings.
         appearance: ``"hooded"``, ``"albino"``, ``"dark"``, ``"piebald"`` (never drawn at
             random: a coat outside the shipped base models' training data) or ``"random"``
             (drawn from the seed).
@@ -149,6 +154,7 @@ class SceneConfig:
     fps: float = 50.0
     size: tuple[int, int] = (320, 256)
     seed: int = 0
+    animal_seed: int | None = None
     appearance: str = "random"
     stimulation: StimulationConfig | None = None
     calibration_video: bool = False
@@ -203,6 +209,12 @@ class SceneConfig:
             raise SynthError(f"calibration_frames must be >= 2, got {self.calibration_frames}")
         if not 0 <= int(self.seed) < 2**63:
             raise SynthError(f"seed must be a non-negative integer, got {self.seed}")
+        if self.animal_seed is not None and not 0 <= int(self.animal_seed) < 2**63:
+            raise SynthError(
+                f"animal_seed must be a non-negative integer or unset, got {self.animal_seed}"
+            )
+        if self.animal_seed is not None:
+            object.__setattr__(self, "animal_seed", int(self.animal_seed))
         object.__setattr__(self, "size", (w, h))
         object.__setattr__(self, "n_cameras", int(self.n_cameras))
         object.__setattr__(self, "frames", int(self.frames))
@@ -331,8 +343,9 @@ def build_scene(config: SceneConfig) -> Scene:
         config = replace(config, grayscale=gray) if gray else config
     rig, arena = resolve_rig(config)
     coats = MOUSE_COATS if config.animal == "mouse" else APPEARANCES
+    individual = config.seed if config.animal_seed is None else config.animal_seed
     body = RatBody.random(
-        np.random.default_rng(_seed(config.seed, 2)), config.appearance, body_scale(config), coats
+        np.random.default_rng(_seed(individual, 2)), config.appearance, body_scale(config), coats
     )
     state = simulate_motion(
         config.frames, config.fps, np.random.default_rng(_seed(config.seed, 3)), body,

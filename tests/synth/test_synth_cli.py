@@ -39,6 +39,15 @@ def test_synth_command_end_to_end(tmp_path):
     )
     assert res.exit_code == 1 and "--overwrite" in res.output
 
+    # another day of the same animal: --animal-seed is recorded in scene.toml
+    res = runner.invoke(
+        cli,
+        ["synth", str(tmp_path / "day2"), "--frames", "5", "--size", "160x128", "--cameras",
+         "3", "--seed", "3", "--animal-seed", "0"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "animal_seed = 0" in (tmp_path / "day2" / "scene.toml").read_text()
+
 
 def test_synth_command_errors(tmp_path):
     runner = CliRunner()

@@ -10,6 +10,9 @@ from freipose.demo.context import DemoContext
 def run(ctx: DemoContext) -> dict[str, Any]:
     """Render every session of the preset (the first one with the board videos).
 
+    Every session films the same animal (the first session's seed draws it) on another day:
+    its own motion and stimulation, the same body.
+
     Args:
         ctx: the demo run.
 
@@ -29,6 +32,7 @@ def run(ctx: DemoContext) -> dict[str, Any]:
             fps=p.fps,
             size=tuple(p.size),
             seed=s.seed,
+            animal_seed=p.sessions[0].seed,  # one rat, filmed on every day
             appearance="hooded",
             stimulation=stim,
             calibration_video=(i == 0),
