@@ -207,19 +207,15 @@ class SceneConfig:
             )
         if int(self.calibration_frames) < 2:
             raise SynthError(f"calibration_frames must be >= 2, got {self.calibration_frames}")
-        if not 0 <= int(self.seed) < 2**63:
-            raise SynthError(f"seed must be a non-negative integer, got {self.seed}")
-        if self.animal_seed is not None and not 0 <= int(self.animal_seed) < 2**63:
-            raise SynthError(
-                f"animal_seed must be a non-negative integer or unset, got {self.animal_seed}"
-            )
-        if self.animal_seed is not None:
-            object.__setattr__(self, "animal_seed", int(self.animal_seed))
+        for name in ("seed", "animal_seed"):  # animal_seed may be unset (None)
+            v = getattr(self, name)
+            if (v is None and name == "seed") or (v is not None and not 0 <= int(v) < 2**63):
+                raise SynthError(f"{name} must be a non-negative integer, got {v}")
+            object.__setattr__(self, name, None if v is None else int(v))
         object.__setattr__(self, "size", (w, h))
         object.__setattr__(self, "n_cameras", int(self.n_cameras))
         object.__setattr__(self, "frames", int(self.frames))
         object.__setattr__(self, "fps", float(self.fps))
-        object.__setattr__(self, "seed", int(self.seed))
         object.__setattr__(self, "arena_size", tuple(float(v) for v in self.arena_size))
         if self.board is not None:
             object.__setattr__(self, "board", dict(self.board))
