@@ -119,7 +119,7 @@ _PRESETS = {
         batch=8,
         detection="bgsub",
     ),
-    # The default: the real workflow, about 8 minutes on an idle 2-core CPU.
+    # The default: the real workflow, under 10 minutes on an idle 2-core CPU.
     "small": DemoPreset(
         name="small",
         size=(320, 256),
@@ -143,12 +143,12 @@ _PRESETS = {
         # trained already)
         pose=dict(
             preset="small",
-            steps=500,
+            steps=1000,
             lr=1e-3,
-            lr_decay_steps=333,
+            lr_decay_steps=667,
             refine_start=0.0,
             checkpoint_every=100,
-            eval_every=250,
+            eval_every=500,
             eval_samples=16,
             log_every=10,
             augment=dict(max_views=4),
