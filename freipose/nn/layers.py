@@ -134,7 +134,7 @@ def unproject(
     # view by view: a (B, V, C, P) product would be written and read again in full
     total = sampled[:, 0] * valid_f[:, 0, None, :]
     for v in range(1, V):
-        total = total.addcmul_(sampled[:, v], valid_f[:, v, None, :])
+        total.addcmul_(sampled[:, v], valid_f[:, v, None, :])
     return total / count.clamp_min(1.0)[:, None, :], count
 
 
@@ -206,9 +206,8 @@ def peak_window(probs: torch.Tensor, shape: tuple[int, ...], radius: int) -> tor
 
     Soft-argmax is the mean of the whole distribution, so a second mode (the left ear's map
     lighting up at the right ear too) pulls it toward the midpoint of the two; restricted to a
-    window around the peak it is the position of the main mode alone. (The 3D volumes are
-    decoded whole: at the ``small`` preset's 11 mm voxels a window of 1-3 voxels loses more
-    sub-voxel precision than it removes bias.)
+    window around the peak it is the position of the main mode alone. The 2D maps use it
+    (:func:`softargmax2d`); the 3D volumes are decoded whole (docs/models.md, "Decoding").
 
     Args:
         probs: (N, K, prod(shape)) distributions over a grid of ``shape`` (row-major).
