@@ -506,7 +506,7 @@ def _render_videos(
 def _write_calibration_video(
     scene: Scene, out: Path, workers: int, progress: bool | None
 ) -> tuple[dict[str, Path], Path]:
-    """Render the rig filming the board into ``out/calibration``: (videos, board.toml)."""
+    """Film the board into ``out/calibration`` (double-sided if a camera is under the floor)."""
     config = scene.config
     board = default_board(scene.arena) if config.board is None else _board_from(config.board)
     cal_videos, _ = write_board_videos(
@@ -521,6 +521,7 @@ def _write_calibration_video(
         workers=workers,
         progress=progress,
         styles=_board_styles(config, scene.rig),
+        transparent=any(c.center[2] < 0 for c in scene.rig),
     )
     return cal_videos, out / "calibration" / "board.toml"
 

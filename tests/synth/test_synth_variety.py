@@ -148,3 +148,20 @@ def test_label_files_import_into_freipose_and_triangulate_near_the_truth(tmp_pat
     assert got.cameras == truth.cameras and len(got) == cfg.frames
     err = np.linalg.norm(got.points3d - truth.points3d[got.frame_index], axis=-1)
     assert np.isfinite(err).sum() >= 3 * cfg.frames and np.nanmedian(err) < 8.0
+
+
+def test_rig_with_a_camera_below_the_floor_films_a_double_sided_board(tmp_path):
+    """The camera under the floor sees the board's pattern (mirrored), so the rig calibrates."""
+    from freipose.calibration.board_files import load_board
+    from freipose.calibration.detect_videos import detect_cameras
+
+    cfg = SceneConfig(n_cameras=3, frames=2, size=(320, 256), seed=3, layout="below",
+                      calibration_video=True, calibration_frames=30)  # fmt: skip
+    paths = generate_session(tmp_path / "s", cfg, workers=1, progress=False)
+    board = load_board(paths.board)
+    vids = {p.stem: p for p in sorted((tmp_path / "s" / "calibration").glob("cam*.mp4"))}
+    dets = detect_cameras([vids[n] for n in ("cam0", "cam1", "cam2")], board, jobs=1,
+                          progress=False)  # fmt: skip
+    seen = int((dets[2].counts >= 4).sum())
+    assert seen >= 10
+    assert dets[2].back_views == seen  # from below it sees only the back of the board
