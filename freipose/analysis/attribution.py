@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import pandas as pd
 
@@ -98,6 +99,40 @@ class GroupResult:
     timecourses: list[dict]
 
 
+OVERFIT_FIT = 0.95  # balanced accuracy on its own train frames from which a fit is "perfect"
+OVERFIT_GAP = 0.1  # how far the full classifier may fall below the best single variable
+
+
+def overfit_note(row: Mapping[str, Any], attribution: pd.DataFrame, n_vars: int) -> str | None:
+    """A warning when the full classifier fits its train frames but not the test recordings.
+
+    Args:
+        row: the full classifier's ``classification.csv`` row on its own animal.
+        attribution: the group's ``attribution.csv`` rows (single-variable scores).
+        n_vars: number of variables.
+
+    Returns:
+        The warning, or None when the full classifier is not at least
+        :data:`OVERFIT_GAP` below the best single variable after a near-perfect fit
+        (:data:`OVERFIT_FIT`) of its train frames.
+    """
+    fit, test = float(row["train_balanced_accuracy"]), float(row["balanced_accuracy"])
+    if attribution.empty or not fit >= OVERFIT_FIT:
+        return None
+    best = attribution.loc[attribution["balanced_accuracy"].idxmax()]
+    if not float(best["balanced_accuracy"]) - test >= OVERFIT_GAP:
+        return None
+    return (
+        f"    warning: the full classifier separates its train frames (balanced accuracy "
+        f"{fit:.2f}) but scores {test:.2f} on the test recordings, below the best single "
+        f"variable ({best['variable']}: {float(best['balanced_accuracy']):.2f}, chosen on "
+        f"those frames): on {n_vars} variables it has learned chance features of the train "
+        "recordings. Record more stimulation trials; and if the train recordings' frames "
+        "trained the pose network, their poses are cleaner than the test recordings' "
+        "(docs/own-data.md, section 9)"
+    )
+
+
 def analyze_group(
     study: Study,
     recs: dict[str, LabelledRecording],
@@ -147,6 +182,9 @@ def analyze_group(
         f"(p_adjusted < {config.alpha}); best {df['variable'].iloc[0]} "
         f"F1 {df['f1'].iloc[0]:.3f}"
     )
+    note = overfit_note(full.classification[0], df, len(names))
+    if note:
+        say(note)
     top = df.head(config.top)
     tc = timecourse_rows(
         animal, condition, own, train.values, top, names, layout.fps, config.pre_s, span_s

@@ -33,6 +33,7 @@ CLASSIFICATION_COLUMNS = (
     "n_train_frames",
     "n_train_nan_excluded",
     "n_variables_used",
+    "train_balanced_accuracy",
 )
 
 
@@ -87,12 +88,14 @@ class GroupClassifier:
         columns: (U,) indices of the variables it uses.
         n_train: number of train frames it was fitted on.
         n_nan: train frames left out because a used variable is NaN.
+        train_balanced_accuracy: its balanced accuracy on the frames it was fitted on.
     """
 
     model: Any
     columns: np.ndarray
     n_train: int
     n_nan: int
+    train_balanced_accuracy: float = float("nan")
 
 
 def train_classifier(
@@ -125,6 +128,7 @@ def train_classifier(
         StudyError: no variable varies, or the train frames lack one of the two classes.
     """
     from sklearn.exceptions import ConvergenceWarning
+    from sklearn.metrics import balanced_accuracy_score
 
     cols = np.flatnonzero(informative_columns(train.values, config.constant_rtol))
     if len(cols) == 0:
@@ -153,7 +157,8 @@ def train_classifier(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         model.fit(xtr, ytr)
-    return GroupClassifier(model, cols, int(len(ytr)), n_nan)
+    fitted = float(balanced_accuracy_score(ytr, model.predict(xtr)))
+    return GroupClassifier(model, cols, int(len(ytr)), n_nan, fitted)
 
 
 def evaluation_targets(study: Study, animal: str, condition: str) -> list[str]:
@@ -235,6 +240,7 @@ def evaluate_classifier(
         "n_train_frames": clf.n_train,
         "n_train_nan_excluded": clf.n_nan,
         "n_variables_used": int(len(clf.columns)),
+        "train_balanced_accuracy": clf.train_balanced_accuracy,
     }
     return Evaluation(row, prediction_trials(preds, fps, config.pre_s, span_s))
 

@@ -135,3 +135,20 @@ def test_full_classifier_is_reproducible():
     coefs = [make_svm(1.0, max_iter=50).fit(X, y)[-1].coef_ for _ in range(3)]
     for c in coefs[1:]:
         np.testing.assert_array_equal(c, coefs[0])
+
+
+def test_classification_reports_the_fit_of_the_train_frames(short_study):
+    row = pd.read_csv(short_study / "classification.csv").iloc[0]
+    assert row["balanced_accuracy"] <= row["train_balanced_accuracy"] <= 1.0
+
+
+def test_overfit_note_names_a_perfect_fit_that_does_not_generalise():
+    from freipose.analysis.attribution import overfit_note
+
+    att = pd.DataFrame({"variable": ["a", "paw"], "balanced_accuracy": [0.55, 0.83]})
+    note = overfit_note({"train_balanced_accuracy": 1.0, "balanced_accuracy": 0.44}, att, 528)
+    assert note is not None and "0.44" in note and "paw: 0.83" in note and "528" in note
+    # no warning: the fit is imperfect, or the full classifier is near the best variable
+    for fit, test, table in ((0.9, 0.44, att), (1.0, 0.76, att), (1.0, 0.5, att[:0])):
+        row = {"train_balanced_accuracy": fit, "balanced_accuracy": test}
+        assert overfit_note(row, table, 2) is None
