@@ -1,0 +1,154 @@
+"""Benchmark: the demo's stimulation classifier trained on its labeled day or on other days.
+
+The demo trains the full classifier on the day whose frames trained the pose network
+and scores it on the held-out day. This script renders more recordings of the demo's rat
+(the preset's scene with other seeds), predicts them with the demo's trained detector and
+voxel network, and prints the full classifier's balanced accuracy on the held-out day
+when it is trained on the labeled day, on each day without labels, and on all of those;
+with the classifier's score on its own train frames and the best single variable's score.
+
+    python benchmarks/classifier_days.py DEMO [--seeds 3 4] [--out DEMO/classifier_days]
+
+``DEMO`` is a finished ``freipose demo`` folder of the ``small`` preset. Rendering and
+predicting a recording take about 1.5 minutes on 2 cores; finished ones are kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A recording of the study: its poses, its events and its split."""
+
+    name: str
+    poses: Path
+    events: Path
+
+
+@dataclass(frozen=True)
+class Score:
+    """The full classifier trained on ``train``, scored on the held-out day."""
+
+    train: tuple[str, ...]
+    balanced_accuracy: float
+    train_balanced_accuracy: float
+    best_variable: str
+    best_variable_accuracy: float
+
+
+def study_text(train: list[Recording], test: Recording) -> str:
+    """A study manifest of one rat and one condition: ``train`` recordings and ``test``."""
+    lines = ['skeleton = "rat"', ""]
+    for rec, split in [(r, "train") for r in train] + [(test, "test")]:
+        lines += [
+            "[[recordings]]",
+            f'name = "{rec.name}"',
+            f'poses = "{rec.poses.resolve().as_posix()}"',
+            f'events = "{rec.events.resolve().as_posix()}"',
+            'animal = "rat1"',
+            'condition = "stimulation"',
+            f'split = "{split}"',
+            "",
+        ]
+    return "\n".join(lines)
+
+
+def score(folder: Path, train: list[Recording], test: Recording, acfg, vcfg) -> Score:
+    """Run ``freipose analyze`` on one study in ``folder`` and read the full classifier."""
+    from freipose.analysis.report import analyze_study
+
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "study.toml").write_text(study_text(train, test), encoding="utf-8")
+    res = analyze_study(
+        folder / "study.toml", folder / "results", None, "world", vcfg, acfg,
+        make_figures=False, say=lambda m: None,
+    )  # fmt: skip
+    row = res.classification.iloc[0]
+    best = res.attribution.loc[res.attribution["balanced_accuracy"].idxmax()]
+    return Score(
+        tuple(r.name for r in train),
+        float(row["balanced_accuracy"]),
+        float(row["train_balanced_accuracy"]),
+        str(best["variable"]),
+        float(best["balanced_accuracy"]),
+    )
+
+
+def train_sets(labeled: Recording, others: list[Recording]) -> list[list[Recording]]:
+    """The labeled day alone, each other day alone, and all other days together."""
+    sets = [[labeled]] + [[r] for r in others]
+    return sets + [list(others)] if len(others) > 1 else sets
+
+
+def unlabeled_days(demo: Path, seeds: list[int], out: Path, preset: str) -> list[Recording]:
+    """Render and predict one recording of the demo's rat per seed (kept when finished)."""
+    from freipose.demo.markers import step_results
+    from freipose.demo.presets import PRESETS
+    from freipose.demo.steps.synth import session_scene
+    from freipose.io.session import discover_sessions
+    from freipose.predict.network import DetectorSpec, predict_sessions
+    from freipose.synth import generate_session
+
+    trained = step_results(demo, "train")
+    spec = DetectorSpec("detector", Path(trained["detector"]["checkpoint"]), None, 40, 2)
+    recs = []
+    for seed in seeds:
+        name = f"rat1_seed{seed}"
+        folder = out / "recordings" / name
+        if not (folder / "events.csv").is_file():
+            generate_session(folder, session_scene(PRESETS[preset], seed), progress=False)
+        sessions = discover_sessions([folder], demo / "calibration" / "calibration.toml")
+        predict_sessions(
+            sessions, Path(trained["pose"]["checkpoint"]), spec, out / "poses", progress=False
+        )
+        recs.append(Recording(name, out / "poses" / f"{name}.poses.h5", folder / "events.csv"))
+    return recs
+
+
+def demo_recording(demo: Path, name: str) -> Recording:
+    """A recording of the demo itself, with its predicted poses."""
+    return Recording(
+        name, demo / "poses" / f"{name}.poses.h5", demo / "recordings" / name / "events.csv"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("demo", type=Path, help="a finished `freipose demo` folder")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[3, 4])
+    ap.add_argument("--out", type=Path, default=None, help="default: DEMO/classifier_days")
+    ap.add_argument("--preset", default="small")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    import torch
+
+    from freipose.analysis.config import AttributionConfig
+    from freipose.analysis.variables import VariableConfig
+    from freipose.demo.presets import PRESETS
+
+    torch.set_num_threads(args.threads)
+    p = PRESETS[args.preset]
+    out = args.out or args.demo / "classifier_days"
+    train_name = next(s.name for s in p.sessions if s.split == "train")
+    test_name = next(s.name for s in p.sessions if s.split == "test")
+    others = unlabeled_days(args.demo, args.seeds, out, args.preset)
+    test = demo_recording(args.demo, test_name)
+    acfg, vcfg = AttributionConfig(**p.analysis), VariableConfig(stft_window=p.stft_window)
+    print(f"full classifier scored on {test_name} (predicted poses of {args.demo}):")
+    print("trained on                      | balanced acc. | on its train frames | best single")
+    for train in train_sets(demo_recording(args.demo, train_name), others):
+        s = score(out / "studies" / "+".join(r.name for r in train), train, test, acfg, vcfg)
+        label = " + ".join(s.train) + (" (labeled)" if s.train == (train_name,) else "")
+        print(f"{label:31s} | {s.balanced_accuracy:13.3f} | {s.train_balanced_accuracy:19.3f} "
+              f"| {s.best_variable_accuracy:.3f} {s.best_variable}")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
