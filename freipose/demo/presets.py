@@ -119,7 +119,7 @@ _PRESETS = {
         batch=8,
         detection="bgsub",
     ),
-    # The default: the real workflow, under 10 minutes on an idle 2-core CPU.
+    # The default: the real workflow, about 10 minutes on an idle 2-core CPU (9:34 to 10:07).
     "small": DemoPreset(
         name="small",
         size=(320, 256),
