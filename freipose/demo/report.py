@@ -283,6 +283,7 @@ def _analysis_one(ctx: DemoContext, a: dict[str, Any] | None, sub: str) -> dict[
                 f"{splits.get('test', c['evaluated_on'])} (test day)",
                 num(float(c["balanced_accuracy"])), num(float(c["f1"])),
                 num(float(c["p_value"])), num(float(c["n_effective"])),
+                num(float(c.get("train_balanced_accuracy", float("nan")))),
             ])  # fmt: skip
         for t in a["top_variables"]:
             out["top"].append([

@@ -98,7 +98,8 @@ def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
     write_marker(out, p, "evaluate", ev, 5.0)
     analysis = {"classification": [
         {"animal": "rat1", "evaluated_on": "rat1", "balanced_accuracy": 0.43, "f1": 0.43,
-         "p_value": 0.49, "n_effective": 54.3, "n_variables_used": 528}],
+         "p_value": 0.49, "n_effective": 54.3, "n_variables_used": 528,
+         "train_balanced_accuracy": 1.0}],
         "top_variables": [{"variable": "local_z[Ear Right]", "part": "Ear Right", "f1": 0.66,
                            "p_value": 0.024, "p_adjusted": 1.0, "significant": False}],
         "top10_share_stimulated_part": 0.0, "significant": 0}  # fmt: skip
@@ -122,6 +123,8 @@ def test_report_tables_name_their_columns(tmp_path):
     assert "p (unadjusted)" in text and "p (Bonferroni-adjusted)" in text
     assert "rat1_day1 (train day)" in text and "rat1_day2 (test day)" in text
     assert "best of 528 tries" in text
+    assert "balanced accuracy on its training frames" in text
+    assert re.search(r"rat1_day2 \(test day\) 0\.43 0\.43 0\.49 54\.3 1\b", text), text
     # failure modes: tables and the warning
     assert "Failure modes" in text and "Ear Left / Ear Right" in text
     assert re.search(r"Ear Left / Ear Right\s+5\.6\s+28\.3\s+42\.0 %\s+yes", text)
