@@ -43,19 +43,13 @@ class Score:
 
 def study_text(train: list[Recording], test: Recording) -> str:
     """A study manifest of one rat and one condition: ``train`` recordings and ``test``."""
-    lines = ['skeleton = "rat"', ""]
-    for rec, split in [(r, "train") for r in train] + [(test, "test")]:
-        lines += [
-            "[[recordings]]",
-            f'name = "{rec.name}"',
-            f'poses = "{rec.poses.resolve().as_posix()}"',
-            f'events = "{rec.events.resolve().as_posix()}"',
-            'animal = "rat1"',
-            'condition = "stimulation"',
-            f'split = "{split}"',
-            "",
-        ]
-    return "\n".join(lines)
+    from freipose.analysis.study import recording_entry
+
+    entries = []
+    for r, split in [(r, "train") for r in train] + [(test, "test")]:
+        poses, events = r.poses.resolve().as_posix(), r.events.resolve().as_posix()
+        entries.append(recording_entry(r.name, poses, events, "rat1", "stimulation", split))
+    return 'skeleton = "rat"\n\n' + "\n".join(entries)
 
 
 def score(folder: Path, train: list[Recording], test: Recording, acfg, vcfg) -> Score:

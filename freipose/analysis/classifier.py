@@ -95,7 +95,7 @@ class GroupClassifier:
     columns: np.ndarray
     n_train: int
     n_nan: int
-    train_balanced_accuracy: float = float("nan")
+    train_balanced_accuracy: float
 
 
 def train_classifier(

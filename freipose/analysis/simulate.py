@@ -14,6 +14,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from freipose.analysis.study import recording_entry
 from freipose.io.atomic import atomic_write_text
 from freipose.io.poses import PoseData, write_poses_h5
 from freipose.skeleton import load_skeleton
@@ -213,9 +214,9 @@ def simulate_study(
             write_poses_h5(data, folder / f"{name}.poses.h5")
             write_events_csv(win, folder / f"{name}_events.csv")
             entries.append(
-                f'[[recordings]]\nname = "{name}"\nposes = "{name}.poses.h5"\n'
-                f'events = "{name}_events.csv"\nanimal = "{animal}"\n'
-                f'condition = "{condition}"\nsplit = "{split}"\n'
+                recording_entry(
+                    name, f"{name}.poses.h5", f"{name}_events.csv", animal, condition, split
+                )
             )
     path = folder / "study.toml"
     header = "# Synthetic study written by freipose.analysis.simulate.simulate_study\n\n"

@@ -21,6 +21,7 @@ stimulated" (a control recording).
 from __future__ import annotations
 
 import csv
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -90,6 +91,27 @@ class Study:
             for r in self.recordings
             if r.animal == animal and r.condition == condition and r.split == split
         ]
+
+
+def recording_entry(
+    name: str, poses: str, events: str, animal: str, condition: str, split: str
+) -> str:
+    """One ``[[recordings]]`` table of a study manifest, as TOML text ending in a newline.
+
+    Args:
+        name: the recording's name.
+        poses: its poses file (relative to the manifest, or absolute).
+        events: its events file (likewise).
+        animal: its animal.
+        condition: its condition.
+        split: ``"train"`` or ``"test"``.
+
+    Returns:
+        The table; the values are TOML basic strings (quotes and backslashes escaped).
+    """
+    values = dict(name=name, poses=poses, events=events, animal=animal, condition=condition,
+                  split=split)  # fmt: skip
+    return "[[recordings]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in values.items())
 
 
 def _floor_entry(value: object, base: Path) -> str | None:

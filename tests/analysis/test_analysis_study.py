@@ -19,6 +19,7 @@ from freipose.analysis.study import (
     label_frames,
     load_study,
     read_events,
+    recording_entry,
 )
 from freipose.cli.main import cli
 from freipose.io.poses import PoseData, write_poses_h5
@@ -252,3 +253,17 @@ def test_variables_and_floor_commands(tmp_path):
     assert r.exit_code == 0 and "variables" in r.output
     r = CliRunner().invoke(cli, ["analyze", "run", "--help"])
     assert "default: 0.4" in r.output and "default: 1.5" in r.output
+
+
+def test_recording_entry_reads_back_with_quotes_and_backslashes(tmp_path):
+    entries = [
+        recording_entry('rat "A"', "a.poses.h5", "a.csv", "rat A", "10\\Hz", "train"),
+        recording_entry("rat_b", "b.poses.h5", "b.csv", "rat A", "10\\Hz", "test"),
+    ]
+    path = tmp_path / "study.toml"
+    path.write_text('skeleton = "rat"\n\n' + "\n".join(entries), encoding="utf-8")
+    study = load_study(path, check_files=False)
+    first = study.recordings[0]
+    assert (first.name, first.animal, first.split) == ('rat "A"', "rat A", "train")
+    assert first.condition == "10\\Hz" and first.poses.name == "a.poses.h5"
+    assert study.recordings[1].split == "test"

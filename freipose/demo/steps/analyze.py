@@ -28,26 +28,20 @@ def study_toml(ctx: DemoContext, study_dir: Path, poses_dir: Path | None = None)
     Returns:
         The manifest's TOML text.
     """
+    from freipose.analysis.study import recording_entry
+
     poses_dir = ctx.poses_dir if poses_dir is None else poses_dir
-    lines = [
-        "# written by freipose demo: one animal, one condition, a train and a test recording",
-        'skeleton = "rat"',
-        "",
-    ]
+    header = (
+        "# written by freipose demo: one animal, one condition, a train and a test recording\n"
+        'skeleton = "rat"\n\n'
+    )
+    entries = []
     for s in ctx.preset.sessions:
         poses = os.path.relpath(poses_dir / f"{s.name}.poses.h5", study_dir)
         events = os.path.relpath(ctx.session_dir(s.name) / "events.csv", study_dir)
-        lines += [
-            "[[recordings]]",
-            f'name = "{s.name}"',
-            f'poses = "{Path(poses).as_posix()}"',
-            f'events = "{Path(events).as_posix()}"',
-            'animal = "rat1"',
-            'condition = "paw_stimulation"',
-            f'split = "{s.split}"',
-            "",
-        ]
-    return "\n".join(lines)
+        entries.append(recording_entry(s.name, Path(poses).as_posix(), Path(events).as_posix(),
+                                       "rat1", "paw_stimulation", s.split))  # fmt: skip
+    return header + "\n".join(entries)
 
 
 def _write_truth_poses(ctx: DemoContext, folder: Path) -> None:

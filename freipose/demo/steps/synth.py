@@ -21,17 +21,16 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         ``{"sessions": {name: {"folder", "windows"}}}``: each session's folder and number of
         stimulation windows.
     """
-    from freipose.synth import StimulationConfig, generate_session
+    from freipose.synth import generate_session
 
     p = ctx.preset
-    stim = StimulationConfig.from_dict(dict(p.stimulation))
     out: dict[str, Any] = {"sessions": {}}
     for i, s in enumerate(p.sessions):
         cfg = session_scene(p, s.seed, calibration=(i == 0))
         ctx.say(f"  rendering {s.name}: {p.n_cameras} cameras, {p.session_frames} frames"
                 + (f" + {p.calibration_frames} board frames" if i == 0 else ""))  # fmt: skip
         paths = generate_session(ctx.session_dir(s.name), cfg, progress=ctx.progress)
-        n_events = len(stim.windows(p.session_frames / p.fps))
+        n_events = len(cfg.stimulation.windows(p.session_frames / p.fps))
         out["sessions"][s.name] = {"folder": str(paths.folder), "windows": n_events}
     return out
 
