@@ -192,6 +192,7 @@ class FrameSource:
 
     def _put(self, i: int, frame: np.ndarray) -> None:
         if self.cache_size > 0:
+            frame.setflags(write=False)  # shared by every later read of the frame
             self._cache[i] = frame
             self._cache.move_to_end(i)
             while len(self._cache) > self.cache_size:
@@ -201,7 +202,7 @@ class FrameSource:
         return self.num_frames
 
     def read(self, index: int) -> np.ndarray:
-        """Frame ``index`` as BGR uint8 (H, W, 3).
+        """Frame ``index`` as BGR uint8 (H, W, 3); read-only when the source caches frames.
 
         Raises:
             IndexError: the index is outside the video.

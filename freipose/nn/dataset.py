@@ -36,6 +36,12 @@ from freipose.nn.types import Sample
 log = logging.getLogger(__name__)
 
 
+CACHE_BYTES = 768 * 2**20
+"""Decoded frames a dataset keeps by default, per process: every labeled frame of every
+video when they fit (training visits each many times), else :data:`CACHE_FRAMES` per video."""
+CACHE_FRAMES = 64
+
+
 class LabelsDataError(FreiPoseError):
     """A sample cannot be assembled (missing video, frame past a video's end, ...)."""
 
@@ -106,7 +112,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
         root: the folder video paths are relative to (default: the labels file's folder,
             or the current folder when ``labels`` is a ``LabelSet``).
         cameras: use only these cameras (names); others are dropped from every sample.
-        cache_size: decoded frames kept per video (least recently used).
+        cache_size: decoded frames kept per video (least recently used); None (default):
+            every labeled frame when all of them take at most :data:`CACHE_BYTES`, else
+            :data:`CACHE_FRAMES`.
         load_images: read the frames; with False, ``images`` is ``[]`` and no video is
             opened (labels and cameras only).
 
@@ -119,7 +127,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
         labels: LabelSet | str | Path,
         root: Path | None = None,
         cameras: Sequence[str] | None = None,
-        cache_size: int = 64,
+        cache_size: int | None = None,
         load_images: bool = True,
     ):
         if isinstance(labels, LabelSet):
@@ -129,7 +137,6 @@ class MultiViewDataset(torch.utils.data.Dataset):
             path = Path(labels)
             self.labels = read_labels_h5(path)
             self.root = Path(root) if root is not None else path.resolve().parent
-        self.cache_size = int(cache_size)
         self.load_images = bool(load_images)
         all_cams = self.labels.cameras
         if cameras is not None:
@@ -167,12 +174,26 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 if c in videos:
                     p = Path(videos[c])
                     self._video_paths[(s, c)] = p if p.is_absolute() else self.root / p
+        self.cache_size = self._cache_frames() if cache_size is None else int(cache_size)
         self._sources: dict[tuple[str, str], FrameSource] = {}
         self._inherited: list[FrameSource] = []
         self._pid = os.getpid()
 
     def __len__(self) -> int:
         return len(self.labels)
+
+    def _cache_frames(self) -> int:
+        """Frames to cache per video: the most any video has labeled, if all fit the budget."""
+        total, most = 0, 0
+        for (s, c), _ in self._video_paths.items():
+            rig = self._views[s][2]
+            if rig is None:
+                return CACHE_FRAMES
+            cam = rig[c]
+            n = len(np.unique(self.labels.frame_index[np.asarray(self.labels.session) == s]))
+            total += n * int(cam.width) * int(cam.height) * 3
+            most = max(most, n)
+        return max(most, CACHE_FRAMES) if total <= CACHE_BYTES else CACHE_FRAMES
 
     # Sources are per process: after fork or unpickling in a worker they are reopened.
     def __getstate__(self) -> dict[str, Any]:
