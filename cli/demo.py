@@ -18,7 +18,7 @@ from freipose.cli._threads import threads_option, use_threads
     default="small",
     show_default=True,
     help="small: the real workflow, about 10 min on an otherwise idle 2-core CPU (measured: "
-    "9 min 34 s to 10 min 7 s); other processes on the same cores slow it down (the thread "
+    "8 min 40 s to 10 min 7 s); other processes on the same cores slow it down (the thread "
     "count follows the free cores, see --threads); tiny: a few minutes, meaningless numbers "
     "(a smoke test).",
 )
@@ -28,13 +28,14 @@ from freipose.cli._threads import threads_option, use_threads
 def demo(ctx: click.Context, outdir: Path, preset: str, device: str, threads: int | None) -> None:
     """Run the whole FreiPose workflow on synthetic data and write OUTDIR/report.html.
 
-    Renders a calibration recording and stimulated sessions of a rat filmed by 7 cameras,
-    calibrates the cameras and compares them with the true rig, imports labels, trains the
-    detector, the voxel network and the triangulation baseline, predicts every session,
-    evaluates against the truth, analyzes the stimulation effect and writes a report with
-    every step's figures. Each step runs the library code of the matching command
-    (examples/workflow.sh runs the commands themselves). Finished steps are recorded in
-    OUTDIR/.demo/; running the command again skips them and continues an interrupted step.
+    Renders a calibration recording and three stimulated days of a rat filmed by 7 cameras,
+    calibrates the cameras and compares them with the true rig, imports labels of day 1,
+    trains the detector, the voxel network and the triangulation baseline, predicts days 2
+    and 3, evaluates against the truth, analyzes the stimulation effect (the classifier
+    trains on day 3 and is tested on day 2) and writes a report with every step's figures.
+    Each step runs the library code of the matching command (examples/workflow.sh runs the
+    commands themselves). Finished steps are recorded in OUTDIR/.demo/; running the command
+    again skips them and continues an interrupted step.
 
     \b
     Example:

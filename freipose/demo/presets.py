@@ -11,14 +11,32 @@ from typing import Any
 
 STIM_PART = "Paw Front Right"
 
+#: what each ``DemoSession.split`` is for (as the report says it)
+SPLIT_ROLES: Mapping[str, str] = MappingProxyType({
+    "label": "labeling day: the training labels come from it; not analysed",
+    "train": "training day of the stimulation classifier",
+    "test": "test day: held out for evaluation",
+})  # fmt: skip
+SPLITS = tuple(SPLIT_ROLES)
+
 
 @dataclass(frozen=True)
 class DemoSession:
-    """One synthetic recording: its name, seed and role in the study."""
+    """One synthetic recording: its name, seed and role.
+
+    ``split`` is ``"label"`` (the training labels come from it; not analysed: the pose
+    network fits its frames better than any other recording's, which a classifier trained
+    on it would learn), ``"train"`` (the classifier's training day) or ``"test"`` (held
+    out: the evaluation labels and the classifier's test day).
+    """
 
     name: str
     seed: int
-    split: str  # "train" (labels come from it) or "test" (held out: evaluation)
+    split: str
+
+    def __post_init__(self) -> None:
+        if self.split not in SPLITS:
+            raise ValueError(f"demo session {self.name}: split must be one of {SPLITS}")
 
 
 @dataclass(frozen=True)
@@ -31,7 +49,8 @@ class DemoPreset:
         fps: frame rate of the sessions.
         session_frames: frames of each session.
         calibration_frames: frames of the board videos.
-        sessions: the recordings (one animal, one condition, train and test splits).
+        sessions: the recordings of one animal and condition: the labeling recording
+            first (it also films the board), then the classifier's test and train days.
         stimulation: ``freipose.synth`` stimulation protocol as a dict.
         label_instants: labeled time instants imported from the train sessions.
         eval_instants: held-out time instants with true 3D keypoints for ``freipose eval``.
@@ -71,12 +90,26 @@ class DemoPreset:
     n_cameras: int = 7
     detection: str = "detector"
 
+    def with_split(self, *splits: str) -> tuple[DemoSession, ...]:
+        """The recordings whose ``split`` is one of ``splits``, in the preset's order."""
+        return tuple(s for s in self.sessions if s.split in splits)
+
+    @property
+    def analysed(self) -> tuple[DemoSession, ...]:
+        """The recordings of the study (predicted and analysed): the train and test days."""
+        return self.with_split("train", "test")
+
     def to_dict(self) -> dict[str, Any]:
         """The preset as JSON-compatible nested dicts and lists (as stored in the markers)."""
         return json.loads(json.dumps(dataclasses.asdict(self)))
 
 
-_SESSIONS = (DemoSession("rat1_day1", 1, "train"), DemoSession("rat1_day2", 2, "test"))
+# the labels come from day 1, the classifier trains on day 3 and is tested on day 2
+_SESSIONS = (
+    DemoSession("rat1_day1", 1, "label"),
+    DemoSession("rat1_day2", 2, "test"),
+    DemoSession("rat1_day3", 3, "train"),
+)
 
 _PRESETS = {
     # End to end in a few minutes (CI): everything tiny, numbers meaningless.
@@ -119,7 +152,7 @@ _PRESETS = {
         batch=8,
         detection="bgsub",
     ),
-    # The default: the real workflow, about 10 minutes on an idle 2-core CPU (9:34 to 10:07).
+    # The default: the real workflow, about 10 minutes on an idle 2-core CPU (8:40 to 10:07).
     "small": DemoPreset(
         name="small",
         size=(320, 256),

@@ -17,7 +17,7 @@ from typing import Any
 from freipose import __version__
 from freipose.demo.context import DemoContext
 from freipose.demo.markers import STEPS, read_marker
-from freipose.demo.presets import STIM_PART
+from freipose.demo.presets import SPLIT_ROLES, STIM_PART
 from freipose.io.atomic import atomic_write_text
 from freipose.io.toml import read_toml
 
@@ -93,7 +93,7 @@ def _intro(ctx: DemoContext, markers: dict[str, dict[str, Any]]) -> dict[str, An
         "fps": num(float(p.fps)),
         "frames": p.session_frames,
         "seconds": num(p.session_frames / p.fps),
-        "sessions": [(s.name, s.split) for s in p.sessions],
+        "sessions": [(s.name, SPLIT_ROLES[s.split]) for s in p.sessions],
         "stim_part": STIM_PART,
         "stimulation": _stimulation_rows(dict(p.stimulation)),
         "times": [(s, num(t)) for s, t in times],

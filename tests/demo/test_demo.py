@@ -58,8 +58,11 @@ def test_tiny_demo_outputs(tiny_demo):
     # 4 training: detector, voxel network, baseline
     for f in ("detector/detector.pt", "pose/model.pt", "baseline/model.pt", "pose/log.png"):
         assert (out / "train" / f).is_file(), f
-    # 5 predict: readable poses for every session, covering every frame
-    for s in p.sessions:
+    # 5 predict: readable poses for every analysed session, covering every frame; the
+    # labeling session is not predicted
+    assert [s.split for s in p.sessions] == ["label", "test", "train"]
+    assert not (out / "poses" / f"{p.sessions[0].name}.poses.h5").exists()
+    for s in p.analysed:
         data = read_poses_h5(out / "poses" / f"{s.name}.poses.h5")
         assert data.poses.shape == (p.session_frames, 12, 3)
         assert np.isfinite(data.poses).all(-1).any(-1).mean() > 0.5
@@ -80,6 +83,7 @@ def test_tiny_demo_outputs(tiny_demo):
     # 7 analysis: a valid study and its tables and figures
     study = load_study(out / "analysis" / "study.toml")
     assert {r.split for r in study.recordings} == {"train", "test"}
+    assert [r.name for r in study.recordings] == [s.name for s in p.analysed]
     for sub in ("results", "results_truth", "results_smoothed"):  # + truth, smoothed poses
         res = out / "analysis" / sub
         for f in ("classification.csv", "attribution.csv", "classifier_response.png"):
@@ -132,9 +136,12 @@ def test_study_manifest_is_valid(tmp_path):
     path.parent.mkdir()
     path.write_text(study_toml(ctx, path.parent))
     study = load_study(path, check_files=False)
-    assert [r.name for r in study.recordings] == [s.name for s in PRESETS["small"].sessions]
+    assert [(r.name, r.split) for r in study.recordings] == [
+        ("rat1_day2", "test"),
+        ("rat1_day3", "train"),
+    ]  # the labeling day (rat1_day1) is not analysed
     poses = study.recordings[0].poses.resolve()
-    assert poses == (tmp_path / "poses" / "rat1_day1.poses.h5").resolve()
+    assert poses == (tmp_path / "poses" / "rat1_day2.poses.h5").resolve()
 
 
 def test_unknown_preset_is_a_clear_error(tmp_path):

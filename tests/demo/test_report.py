@@ -121,7 +121,8 @@ def test_report_tables_name_their_columns(tmp_path):
     assert "pixel aspect ratio fixed" in text and "fx error" not in text
     assert "validates on 4 evenly spread of the 8 held-out" in text
     assert "p (unadjusted)" in text and "p (Bonferroni-adjusted)" in text
-    assert "rat1_day1 (train day)" in text and "rat1_day2 (test day)" in text
+    assert "rat1_day3 (train day)" in text and "rat1_day2 (test day)" in text
+    assert "rat1_day1 (labeling day: the training labels come from it; not analysed)" in text
     assert "best of 528 tries" in text
     assert "balanced accuracy on its training frames" in text
     assert re.search(r"rat1_day2 \(test day\) 0\.43 0\.43 0\.49 54\.3 1\b", text), text

@@ -36,7 +36,7 @@ def study_toml(ctx: DemoContext, study_dir: Path, poses_dir: Path | None = None)
         'skeleton = "rat"\n\n'
     )
     entries = []
-    for s in ctx.preset.sessions:
+    for s in ctx.preset.analysed:
         poses = os.path.relpath(poses_dir / f"{s.name}.poses.h5", study_dir)
         events = os.path.relpath(ctx.session_dir(s.name) / "events.csv", study_dir)
         entries.append(recording_entry(s.name, Path(poses).as_posix(), Path(events).as_posix(),
@@ -53,7 +53,7 @@ def _write_truth_poses(ctx: DemoContext, folder: Path) -> None:
     align = step_results(ctx.out, "calibrate")["alignment"]
     rig = load_calibration(ctx.calibration)
     skel = load_skeleton("rat")
-    for s in ctx.preset.sessions:
+    for s in ctx.preset.analysed:
         path = folder / f"{s.name}.poses.h5"
         if path.is_file():
             continue
@@ -135,6 +135,13 @@ def run(ctx: DemoContext) -> dict[str, Any]:
     """
     out = ctx.out / "analysis"
     out.mkdir(parents=True, exist_ok=True)
+    p = ctx.preset
+    ctx.say(
+        f"  the classifier trains on {p.with_split('train')[0].name} and is tested on "
+        f"{p.with_split('test')[0].name}; the labeled {p.with_split('label')[0].name} is "
+        "left out (the network fits its labeled frames better than any other day's, and a "
+        "classifier trained on them does not carry over)"
+    )
     ctx.say("  on the predicted poses:")
     pred = analyze_poses(ctx, out / "study.toml", study_toml(ctx, out), out / "results")
     # The same analysis on the true keypoints: what perfect tracking would show.
@@ -155,7 +162,7 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         out / "results_smoothed",
     )
     ctx.say(_side_by_side(pred, res["smoothed"]))
-    test = next(s.name for s in ctx.preset.sessions if s.split == "test")
+    test = next(s.name for s in ctx.preset.analysed if s.split == "test")
     res["smooth"] = {
         **smooth_info,
         "figure": str(_trajectory_figure(ctx, test, smoothed_dir, out / "smoothed_vs_raw.png")),
@@ -189,7 +196,7 @@ def _smooth_predictions(ctx: DemoContext, folder: Path) -> dict[str, Any]:
     from freipose.predict.smooth_error import ValidationLabelsError, model_validation_error
 
     model = step_results(ctx.out, "train")["pose"]["checkpoint"]
-    todo = [s.name for s in ctx.preset.sessions if not (folder / f"{s.name}.poses.h5").is_file()]
+    todo = [s.name for s in ctx.preset.analysed if not (folder / f"{s.name}.poses.h5").is_file()]
     held_out, note = None, "not needed: every session was smoothed before"
     if todo:
         try:
@@ -205,7 +212,7 @@ def _smooth_predictions(ctx: DemoContext, folder: Path) -> dict[str, Any]:
         ctx.say(f"  smoothing the predictions; held-out error of the network: {note}")
     folder.mkdir(parents=True, exist_ok=True)
     files = []
-    for s in ctx.preset.sessions:
+    for s in ctx.preset.analysed:
         dst = folder / f"{s.name}.poses.h5"
         if not dst.is_file():
             smooth_file(ctx.poses_dir / f"{s.name}.poses.h5", dst, error_floor=held_out)

@@ -69,7 +69,7 @@ def _pipeline(ctx: DemoContext, keypoints: tuple[str, ...]) -> dict[str, Any]:
     align = step_results(ctx.out, "calibrate")["alignment"]
     pipe: dict[str, np.ndarray] = {}
     modes: dict[str, Any] = {}
-    for s in ctx.preset.sessions:
+    for s in ctx.preset.analysed:
         data = read_poses_h5(ctx.poses_dir / f"{s.name}.poses.h5")
         truth = session_labels(ctx, s.name)
         gt = truth_to_calibrated(truth.points3d, align)

@@ -102,8 +102,8 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         ``train`` and ``eval``: what :func:`_labels_file` returned for each file.
     """
     p = ctx.preset
-    train = [s.name for s in p.sessions if s.split == "train"]
-    test = [s.name for s in p.sessions if s.split == "test"]
+    train = [s.name for s in p.with_split("label")]
+    test = [s.name for s in p.with_split("test")]
     _say_sources(ctx, train, "training")
     tr = _labels_file(
         ctx, train, p.label_instants // len(train), "triangulate", ctx.out / "labels" / "train.h5"

@@ -26,7 +26,7 @@ def _predict(ctx: DemoContext, trained: dict[str, Any]) -> dict[str, Any]:
     from freipose.predict.network import DetectorSpec, predict_sessions
 
     p = ctx.preset
-    folders = [ctx.session_dir(s.name) for s in p.sessions]
+    folders = [ctx.session_dir(s.name) for s in p.analysed]
     sessions = discover_sessions(folders, ctx.calibration)
     if p.detection == "detector":
         spec = DetectorSpec("detector", Path(trained["detector"]["checkpoint"]), None, 40, 2)
@@ -51,7 +51,7 @@ def _predict(ctx: DemoContext, trained: dict[str, Any]) -> dict[str, Any]:
         report=report,
     )
     poses: dict[str, Any] = {}
-    for s, res in zip(p.sessions, results):
+    for s, res in zip(p.analysed, results):
         data = read_poses_h5(res.path)
         found = float(np.isfinite(data.poses).all(-1).any(-1).mean())
         poses[s.name] = {"path": str(res.path), "found_fraction": found}
@@ -65,7 +65,7 @@ def _overlay(ctx: DemoContext) -> dict[str, Any]:
     from freipose.predict.render import render_overlay, render_stills
 
     p = ctx.preset
-    test = next(s.name for s in p.sessions if s.split == "test")
+    test = p.with_split("test")[0].name
     data = read_poses_h5(ctx.poses_dir / f"{test}.poses.h5")
     videos = find_camera_videos(ctx.session_dir(test))
     rig = data.calibration
