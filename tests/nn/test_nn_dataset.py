@@ -123,3 +123,23 @@ def test_errors_missing_video_and_frame_past_end(tmp_path, rng):
         ds[3]
     with pytest.raises(IndexError):
         ds[5]
+
+
+def test_default_cache_keeps_every_labeled_frame_when_they_fit(tmp_path, rng, monkeypatch):
+    import freipose.nn.dataset as dataset
+
+    path = _labels(tmp_path, rng)  # 3 labeled frames of session a, 2 of b
+    monkeypatch.setattr(dataset, "CACHE_FRAMES", 2)
+    assert MultiViewDataset(path).cache_size == 3  # the most labeled frames of one video
+    # 3 videos x 3 frames + 2 x 2 frames of 64 x 48 x 3 bytes: over a smaller budget, the
+    # fixed count
+    monkeypatch.setattr(dataset, "CACHE_BYTES", 13 * W * H * 3 - 1)
+    assert MultiViewDataset(path).cache_size == 2
+    monkeypatch.setattr(dataset, "CACHE_BYTES", 13 * W * H * 3)
+    ds = MultiViewDataset(path)
+    assert ds.cache_size == 3
+    first = ds[2]["images"][0]
+    again = ds[2]["images"][0]
+    assert again is first  # from the cache, shared: so read-only
+    with pytest.raises(ValueError, match="read-only"):
+        first[0, 0, 0] = 1
