@@ -18,7 +18,7 @@ from freipose.cli._threads import threads_option, use_threads
     default="small",
     show_default=True,
     help="small: the real workflow, about 10 min on an otherwise idle 2-core CPU (measured: "
-    "8 min 40 s to 10 min 7 s); other processes on the same cores slow it down (the thread "
+    "8 min 18 s to 10 min 7 s); other processes on the same cores slow it down (the thread "
     "count follows the free cores, see --threads); tiny: a few minutes, meaningless numbers "
     "(a smoke test).",
 )
