@@ -52,7 +52,7 @@ class DemoPreset:
         sessions: the recordings of one animal and condition: the labeling recording
             first (it also films the board), then the classifier's test and train days.
         stimulation: ``freipose.synth`` stimulation protocol as a dict.
-        label_instants: labeled time instants imported from the train sessions.
+        label_instants: labeled time instants imported from the labeling session.
         eval_instants: held-out time instants with true 3D keypoints for ``freipose eval``.
         pose: ``[model]`` preset and ``[schedule]`` overrides of the voxel network, and
             under ``augment`` the ``[augment]`` ones; the triangulation baseline trains with

@@ -184,15 +184,15 @@ class MultiViewDataset(torch.utils.data.Dataset):
 
     def _cache_frames(self) -> int:
         """Frames to cache per video: the most any video has labeled, if all fit the budget."""
-        total, most = 0, 0
-        for (s, c), _ in self._video_paths.items():
+        session = np.asarray(self.labels.session)
+        frames = {s: len(np.unique(self.labels.frame_index[session == s])) for s in self._views}
+        total = 0
+        for s, c in self._video_paths:
             rig = self._views[s][2]
             if rig is None:
                 return CACHE_FRAMES
-            cam = rig[c]
-            n = len(np.unique(self.labels.frame_index[np.asarray(self.labels.session) == s]))
-            total += n * int(cam.width) * int(cam.height) * 3
-            most = max(most, n)
+            total += frames[s] * int(rig[c].width) * int(rig[c].height) * 3
+        most = max((frames[s] for s, _ in self._video_paths), default=0)
         return max(most, CACHE_FRAMES) if total <= CACHE_BYTES else CACHE_FRAMES
 
     # Sources are per process: after fork or unpickling in a worker they are reopened.

@@ -162,7 +162,7 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         out / "results_smoothed",
     )
     ctx.say(_side_by_side(pred, res["smoothed"]))
-    test = next(s.name for s in ctx.preset.analysed if s.split == "test")
+    test = p.with_split("test")[0].name
     res["smooth"] = {
         **smooth_info,
         "figure": str(_trajectory_figure(ctx, test, smoothed_dir, out / "smoothed_vs_raw.png")),
