@@ -131,10 +131,13 @@ def unproject(
     ).reshape(B, V, C, P)
     valid_f = valid.to(sampled.dtype)
     count = valid_f.sum(1)  # (B, P)
-    # view by view: a (B, V, C, P) product would be written and read again in full
-    total = sampled[:, 0] * valid_f[:, 0, None, :]
+    # view by view: a (B, V, C, P) product would be written and read again in full;
+    # unbind, not indexing: its backward stacks the views' gradients once, where each
+    # index's backward would zero-fill a whole (B, V, C, P) gradient of its own
+    views = sampled.unbind(1)
+    total = views[0] * valid_f[:, 0, None, :]
     for v in range(1, V):
-        total.addcmul_(sampled[:, v], valid_f[:, v, None, :])
+        total.addcmul_(views[v], valid_f[:, v, None, :])
     return total / count.clamp_min(1.0)[:, None, :], count
 
 
