@@ -9,6 +9,8 @@ so projecting with the crop camera lands exactly on the cropped image.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -34,21 +36,79 @@ def crop_camera(camera: Camera, box: np.ndarray, out_size: int) -> Camera:
     return camera.replace(K=A @ camera.K, size=(out_size, out_size))
 
 
-def crop_image(image: np.ndarray, box: np.ndarray, out_size: int, border: int = 128) -> np.ndarray:
-    """Cut ``box`` out of ``image`` (H, W[, 3]) and resize to (out_size, out_size[, 3]).
+def warp_to_crop(
+    image: np.ndarray, A: np.ndarray, out_size: int, border: int | tuple[int, ...] = 128
+) -> np.ndarray:
+    """Resample ``image`` (H, W[, C]) through the affine ``A`` (3, 3) into an ``out_size`` crop.
 
-    Areas outside the image are filled with ``border`` (grey).
+    Bilinear resampling alone aliases when the crop shrinks the image by more than 2x (fur
+    texture turns into moire, a paw a few pixels wide flickers in and out): the part of the
+    image the crop samples is first halved with a Gaussian pyramid (``cv2.pyrDown``) until
+    the remaining shrink is at most 2x. A crop that shrinks less is a plain bilinear warp.
+    Areas outside the image are filled with ``border``.
+
+    Args:
+        image: the full frame, uint8.
+        A: (3, 3) affine map from full-image pixels to crop pixels (pixel centres at
+            integers, as everywhere in FreiPose).
+        out_size: side of the square crop.
+        border: fill value (one per channel, or one for all).
+
+    Returns:
+        (out_size, out_size[, C]) the crop, same dtype as ``image``.
     """
-    A = crop_affine(box, out_size)
-    bv = (border,) * (image.shape[2] if image.ndim == 3 else 1)
+    src, M = _pyramid_source(image, np.asarray(A, dtype=np.float64), out_size)
+    channels = src.shape[2] if src.ndim == 3 else 1
+    bv = tuple(border) if isinstance(border, tuple) else (border,) * channels
     return cv2.warpAffine(
-        image,
-        A[:2],
+        src,
+        M[:2],
         (out_size, out_size),
         flags=cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=bv,
     )
+
+
+def _pyramid_source(
+    image: np.ndarray, A: np.ndarray, out_size: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The region of ``image`` that the crop ``A`` samples, halved while ``A`` shrinks it > 2x.
+
+    Returns:
+        ``(source, M)``: the (possibly cut and halved) image and the affine from its pixels
+        to the crop's. Pyramid pixel ``i`` is the Gaussian-weighted mean around pixel ``2i``
+        of the level below, so each halving multiplies the affine by ``diag(2, 2, 1)``.
+    """
+    scale = math.sqrt(abs(float(np.linalg.det(A[:2, :2]))))
+    if not scale < 0.5:
+        return image, A
+    h, w = image.shape[:2]
+    e = out_size - 0.5
+    corners = np.linalg.inv(A) @ np.array([[-0.5, e, -0.5, e], [-0.5, -0.5, e, e], [1, 1, 1, 1]])
+    margin = 4.0 / scale  # the pyramid's 5-tap filters read beyond the sampled area
+    x0 = max(int(math.floor(corners[0].min() - margin)) // 2 * 2, 0)
+    y0 = max(int(math.floor(corners[1].min() - margin)) // 2 * 2, 0)
+    x1 = min(int(math.ceil(corners[0].max() + margin)), w)
+    y1 = min(int(math.ceil(corners[1].max() + margin)), h)
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return image, A  # the crop lies (almost) outside the image: border fill
+    src = image[y0:y1, x0:x1]
+    M = A @ np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+    while scale < 0.5 and min(src.shape[:2]) >= 2:
+        src = cv2.pyrDown(src)
+        M = M @ np.diag([2.0, 2.0, 1.0])
+        scale *= 2.0
+    return src, M
+
+
+def crop_image(image: np.ndarray, box: np.ndarray, out_size: int, border: int = 128) -> np.ndarray:
+    """Cut ``box`` out of ``image`` (H, W[, 3]) and resize to (out_size, out_size[, 3]).
+
+    Areas outside the image are filled with ``border`` (grey); a box more than twice the
+    crop's size is antialiased (:func:`warp_to_crop`).
+    """
+    return warp_to_crop(image, crop_affine(box, out_size), out_size, border)
 
 
 def label_centers(points3d: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:

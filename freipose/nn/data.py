@@ -22,7 +22,13 @@ import torch
 
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
-from freipose.geometry.crops import crop_affine, crop_camera, cube_crop_boxes, label_centers
+from freipose.geometry.crops import (
+    crop_affine,
+    crop_camera,
+    cube_crop_boxes,
+    label_centers,
+    warp_to_crop,
+)
 from freipose.geometry.transforms import rodrigues
 from freipose.io.calibration_world import stored_up_or_z
 from freipose.nn.config import AugmentConfig, ModelConfig
@@ -172,15 +178,11 @@ def _crop_image(
     size: int,
     aug: Augmentation | None,
 ) -> np.ndarray:
-    """Warp a full frame into its (3, S, S) float32 crop (BGR / 255 - 0.5), augmented."""
-    crop = cv2.warpAffine(
-        img,
-        A[:2],
-        (size, size),
-        flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=(BORDER, BORDER, BORDER),
-    )
+    """Warp a full frame into its (3, S, S) float32 crop (BGR / 255 - 0.5), augmented.
+
+    A crop that shrinks the frame by more than 2x is antialiased (:func:`warp_to_crop`).
+    """
+    crop = warp_to_crop(img, A, size, (BORDER, BORDER, BORDER))
     if crop.ndim == 2:
         crop = np.repeat(crop[..., None], 3, axis=-1)
     if aug is not None:

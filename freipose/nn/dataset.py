@@ -36,10 +36,24 @@ from freipose.nn.types import Sample
 log = logging.getLogger(__name__)
 
 
-CACHE_BYTES = 768 * 2**20
+CACHE_BYTES = 3 * 2**30
 """Decoded frames a dataset keeps by default, per process: every labeled frame of every
-video when they fit (training visits each many times), else :data:`CACHE_FRAMES` per video."""
+video when they fit in this many bytes and an eighth of the machine's memory (training
+visits each many times), else :data:`CACHE_FRAMES` per video."""
 CACHE_FRAMES = 64
+
+
+def cache_budget() -> int:
+    """Bytes of decoded frames a dataset may keep.
+
+    :data:`CACHE_BYTES`, at most an eighth of the machine's physical memory (where the
+    system tells it).
+    """
+    try:
+        physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return CACHE_BYTES
+    return min(CACHE_BYTES, physical // 8) if physical > 0 else CACHE_BYTES
 
 
 class LabelsDataError(FreiPoseError):
@@ -113,7 +127,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             or the current folder when ``labels`` is a ``LabelSet``).
         cameras: use only these cameras (names); others are dropped from every sample.
         cache_size: decoded frames kept per video (least recently used); None (default):
-            every labeled frame when all of them take at most :data:`CACHE_BYTES`, else
+            every labeled frame when all of them take at most :func:`cache_budget`, else
             :data:`CACHE_FRAMES`.
         load_images: read the frames; with False, ``images`` is ``[]`` and no video is
             opened (labels and cameras only).
@@ -193,7 +207,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 return CACHE_FRAMES
             total += frames[s] * int(rig[c].width) * int(rig[c].height) * 3
         most = max((frames[s] for s, _ in self._video_paths), default=0)
-        return max(most, CACHE_FRAMES) if total <= CACHE_BYTES else CACHE_FRAMES
+        return max(most, CACHE_FRAMES) if total <= cache_budget() else CACHE_FRAMES
 
     # Sources are per process: after fork or unpickling in a worker they are reopened.
     def __getstate__(self) -> dict[str, Any]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,6 +13,7 @@ from freipose.geometry.crops import (
     crop_image,
     cube_corners,
     cube_crop_boxes,
+    warp_to_crop,
 )
 from freipose.geometry.transforms import matrix_to_rodrigues, rodrigues_to_matrix
 
@@ -111,6 +113,45 @@ def test_crop_image_samples_the_box():
     assert crop[5:15, 5:15].min() == 255
     out = crop_image(np.zeros((10, 10, 3), np.uint8), np.array([-50.0, -50.0, -10.0, -10.0]), 8)
     assert out.shape == (8, 8, 3) and (out == 128).all()
+
+
+def test_crop_shrinking_less_than_2x_is_the_plain_bilinear_warp(rng):
+    img = rng.integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    A = crop_affine(np.array([20.5, 10.0, 110.5, 100.0]), 64)  # shrinks 1.4x
+    plain = cv2.warpAffine(img, A[:2], (64, 64), flags=cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=(128, 128, 128))  # fmt: skip
+    np.testing.assert_array_equal(warp_to_crop(img, A, 64), plain)
+
+
+def test_crop_shrinking_more_than_2x_is_antialiased():
+    # a one-pixel checkerboard averages to grey; bilinear sampling at a 4x shrink picks
+    # single pixels and keeps full contrast (aliasing)
+    yy, xx = np.mgrid[:512, :640]
+    img = np.where((xx + yy) % 2 == 0, 255, 0).astype(np.uint8)
+    box = np.array([64.0, 64.0, 576.0, 448.0 + 128.0])  # 512 px -> 128 px
+    crop = crop_image(img, box, 128).astype(float)
+    assert abs(crop.mean() - 127.5) < 3 and crop.std() < 10
+    A = crop_affine(box, 128)
+    aliased = cv2.warpAffine(img, A[:2], (128, 128), flags=cv2.INTER_LINEAR)
+    assert aliased.std() > 30
+
+
+@pytest.mark.parametrize("angle", [0.0, 30.0])
+def test_antialiased_crop_keeps_points_where_the_affine_maps_them(angle):
+    # a bright blob at a known image point lands where the crop affine puts it, also when
+    # the crop is rotated and shrinks the image 5x (two pyramid halvings, then the warp)
+    img = np.zeros((1024, 1280), np.uint8)
+    u = np.array([701.0, 433.0])
+    cv2.circle(img, (int(u[0]), int(u[1])), 9, 255, -1)
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    T = np.array([[1.0, 0.0, 64.0], [0.0, 1.0, 64.0], [0.0, 0.0, 1.0]])
+    A = T @ R @ np.diag([0.2, 0.2, 1.0]) @ np.array([[1.0, 0, -640.0], [0, 1.0, -512.0], [0, 0, 1]])
+    crop = warp_to_crop(img, A, 128, 0).astype(float)
+    ys, xs = np.mgrid[:128, :128]
+    got = np.array([(crop * xs).sum(), (crop * ys).sum()]) / crop.sum()
+    want = (A @ [u[0], u[1], 1.0])[:2]
+    np.testing.assert_allclose(got, want, atol=0.1)
 
 
 def test_cube_boxes_contain_the_cube(circle_rig, rng):

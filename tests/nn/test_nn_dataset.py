@@ -125,6 +125,22 @@ def test_errors_missing_video_and_frame_past_end(tmp_path, rng):
         ds[5]
 
 
+def test_cache_budget_is_at_most_an_eighth_of_the_memory(monkeypatch):
+    import freipose.nn.dataset as dataset
+
+    pages = {"SC_PAGE_SIZE": 4096, "SC_PHYS_PAGES": 2**20}  # a 4 GiB machine
+    monkeypatch.setattr(dataset.os, "sysconf", lambda name: pages[name])
+    assert dataset.cache_budget() == 2**29  # 512 MiB, below CACHE_BYTES
+    pages["SC_PHYS_PAGES"] = 2**24  # 64 GiB
+    assert dataset.cache_budget() == dataset.CACHE_BYTES
+
+    def unknown(name):
+        raise ValueError(name)
+
+    monkeypatch.setattr(dataset.os, "sysconf", unknown)
+    assert dataset.cache_budget() == dataset.CACHE_BYTES
+
+
 def test_default_cache_keeps_every_labeled_frame_when_they_fit(tmp_path, rng, monkeypatch):
     import freipose.nn.dataset as dataset
 
