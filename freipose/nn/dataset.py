@@ -127,7 +127,8 @@ class MultiViewDataset(torch.utils.data.Dataset):
             or the current folder when ``labels`` is a ``LabelSet``).
         cameras: use only these cameras (names); others are dropped from every sample.
         cache_size: decoded frames kept per video (least recently used); None (default):
-            every labeled frame when all of them take at most :func:`cache_budget`, else
+            every labeled frame when all of them take at most :func:`cache_budget` (read
+            in one forward pass through each video when it is first used), else
             :data:`CACHE_FRAMES`.
         load_images: read the frames; with False, ``images`` is ``[]`` and no video is
             opened (labels and cameras only).
@@ -189,6 +190,15 @@ class MultiViewDataset(torch.utils.data.Dataset):
                     p = Path(videos[c])
                     self._video_paths[(s, c)] = p if p.is_absolute() else self.root / p
         self.cache_size = self._cache_frames() if cache_size is None else int(cache_size)
+        session = np.asarray(self.labels.session)
+        self._labeled_frames = {
+            s: np.unique(self.labels.frame_index[session == s]) for s in self._views
+        }
+        # Filling the cache in the order training visits the frames seeks the video for each
+        # one; when every labeled frame is kept they are decoded in one forward pass instead.
+        self._prefill = cache_size is None and all(
+            len(f) <= self.cache_size for f in self._labeled_frames.values()
+        )
         self._sources: dict[tuple[str, str], FrameSource] = {}
         self._inherited: list[FrameSource] = []
         self._pid = os.getpid()
@@ -239,7 +249,24 @@ class MultiViewDataset(torch.utils.data.Dataset):
                     "or pass --root to `freipose eval`)"
                 ) from exc
             self._sources[key] = src
+            if self._prefill:
+                self._read_ahead(src, self._labeled_frames[session])
         return src
+
+    @staticmethod
+    def _read_ahead(src: FrameSource, frames: np.ndarray) -> None:
+        """Decode ``frames`` (ascending) into ``src``'s cache in one forward pass.
+
+        A frame past the video's end or one that cannot be decoded stops it; reading that
+        sample raises the error that names it.
+        """
+        for f in frames:
+            if f >= src.num_frames:
+                return
+            try:
+                src.read(int(f))
+            except MediaError:
+                return
 
     def __getitem__(self, i: int) -> Sample:
         n = len(self)

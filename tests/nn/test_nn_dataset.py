@@ -125,6 +125,23 @@ def test_errors_missing_video_and_frame_past_end(tmp_path, rng):
         ds[5]
 
 
+def test_full_cache_reads_each_video_ahead_in_one_pass(tmp_path, rng):
+    from freipose.io.video import FrameSource
+
+    path = _labels(tmp_path, rng)  # session a: frames 0, 2 and 5 labeled
+    ds = MultiViewDataset(path)
+    first = ds[2]  # frame 5 of session a
+    src = ds._sources[("a", "cam1")]
+    assert sorted(src._cache) == [0, 2, 5]  # every labeled frame, decoded in order
+    plain = FrameSource(tmp_path / "a" / "cam1.mkv")
+    np.testing.assert_array_equal(first["images"][1], plain.read(5))
+    np.testing.assert_array_equal(ds[0]["images"][1], plain.read(0))
+    assert ("b", "cam0") not in ds._sources  # a video is read when first used
+    fixed = MultiViewDataset(path, cache_size=8)  # a cache size given: no read-ahead
+    fixed[2]
+    assert 2 not in fixed._sources[("a", "cam1")]._cache
+
+
 def test_cache_budget_is_at_most_an_eighth_of_the_memory(monkeypatch):
     import freipose.nn.dataset as dataset
 
