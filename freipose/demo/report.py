@@ -226,6 +226,24 @@ def _comparison_row(c: dict[str, Any]) -> list[str]:
     ]
 
 
+def _stimulated_rows(ev: dict[str, Any]) -> list[list[str]]:
+    """Per recording: the stimulated keypoint's errors and lift, stimulated frames vs rest."""
+
+    def cell(v: Any) -> str:
+        return "-" if v is None else num(float(v))
+
+    rows = []
+    for k, v in ev.get("pipeline", {}).items():
+        r = v.get("stimulated_part")
+        if not r:
+            continue
+        st, rest = r["stimulated"], r["rest"]
+        rows.append([k, cell(st["median_error_mm"]), cell(rest["median_error_mm"]),
+                     cell(st["median_height_error_mm"]), cell(rest["median_height_error_mm"]),
+                     cell(r.get("lift_pred_mm")), cell(r.get("lift_true_mm"))])  # fmt: skip
+    return rows
+
+
 def _evaluation(ctx: DemoContext, ev: dict[str, Any]) -> dict[str, Any]:
     """Steps 5-6: the error tables and figures."""
     labels = [
@@ -241,6 +259,7 @@ def _evaluation(ctx: DemoContext, ev: dict[str, Any]) -> dict[str, Any]:
     return {
         "labels": labels,
         "pipeline": pipeline,
+        "stimulated": _stimulated_rows(ev),
         "references": refs,
         "comparisons": [_comparison_row(c) for c in ev.get("comparisons", [])],
         "failure_modes": _failure_modes(ev),

@@ -12,11 +12,35 @@ from click.testing import CliRunner
 
 from freipose.cli.main import cli
 from freipose.demo.markers import STEPS
-from freipose.demo.presets import PRESETS
+from freipose.demo.presets import PRESETS, STIM_PART
 from freipose.demo.steps.analyze import study_toml
 from freipose.geometry.alignment import align_similarity
 
 # tiny_demo: the shared tiny demo run (tests/demo/conftest.py)
+
+
+def test_stimulated_part_errors_split_frames_as_the_analysis_does():
+    from freipose.demo.steps.evaluate import stimulated_part_errors
+
+    times = np.arange(100) / 10.0  # 10 s at 10 fps
+    truth = np.zeros((100, 3))
+    inside = (times >= 2.0) & (times < 4.0)
+    truth[inside, 2] = 20.0  # lifted 20 mm during the window 2-4 s
+    pred = truth.copy()
+    pred[inside, 2] = 12.0  # the prediction lifts it 12 mm: 8 mm too low
+    pred[~inside, 0] = 3.0  # and 3 mm off sideways elsewhere
+    pred[0] = np.nan
+    r = stimulated_part_errors(pred, truth, times, np.array([[2.0, 4.0]]), 0.5, 1.0)
+    # stimulated: 2.5-4.0 s (frames 25-39 and 40: the end is included, and it is not lifted)
+    assert r["stimulated"]["n"] == 16
+    assert r["stimulated"]["median_error_mm"] == pytest.approx(8.0)
+    assert r["stimulated"]["median_height_error_mm"] == pytest.approx(-8.0)
+    # rest: further than 1 s from the window, frame 0 missing
+    assert r["rest"]["n"] == 100 - 41 - 1  # frames 10-50 are near the window
+    assert r["rest"]["median_error_mm"] == pytest.approx(3.0)
+    assert r["rest"]["median_height_error_mm"] == pytest.approx(0.0)
+    assert r["lift_true_mm"] == pytest.approx(20.0 * 15 / 16)
+    assert r["lift_pred_mm"] == pytest.approx(12.0 * 15 / 16)
 
 
 @pytest.mark.slow
@@ -80,6 +104,12 @@ def test_tiny_demo_outputs(tiny_demo):
     assert {("voxel_P1", "baseline"), ("voxel_P0", "baseline")} <= ends
     assert all(np.isfinite(metrics[m]["overall"]["median"]) for m in ("voxel_P0", "baseline"))
     assert (out / "evaluation" / "pipeline" / "jpe_boxplot.png").is_file()
+    pipeline = json.loads((out / ".demo" / "evaluate.done").read_text())["results"]["pipeline"]
+    for s in p.analysed:
+        stim = pipeline[f"{s.name} ({s.split})"]["stimulated_part"]
+        assert stim["stimulated"]["n"] > 0 and stim["rest"]["n"] > 0
+        assert np.isfinite(stim["lift_true_mm"]) and stim["stimulated"]["median_error_mm"] >= 0
+    assert f"{STIM_PART} in the stimulated frames vs the rest" in output
     # 7 analysis: a valid study and its tables and figures
     study = load_study(out / "analysis" / "study.toml")
     assert {r.split for r in study.recordings} == {"train", "test"}

@@ -86,7 +86,10 @@ def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
     ev: dict = {
         "labels": {"voxel_P0": {"median": 21.22, "p30": 16.5, "p70": 28.7},
                    "voxel_P1": {"median": 18.72, "p30": 14.7, "p70": 26.8}},
-        "pipeline": {"rat1_day2 (test)": {"median": 22.99, "missing": 0}},
+        "pipeline": {"rat1_day2 (test)": {"median": 22.99, "missing": 0, "stimulated_part": {
+            "stimulated": {"n": 40, "median_error_mm": 15.61, "median_height_error_mm": -11.2},
+            "rest": {"n": 90, "median_error_mm": 9.47, "median_height_error_mm": -3.4},
+            "lift_true_mm": 12.3, "lift_pred_mm": 5.1}}},
     }  # fmt: skip
     if failure_modes:
         ev["failure_modes"] = FAILURE_MODES
@@ -132,6 +135,8 @@ def test_report_tables_name_their_columns(tmp_path):
     assert "Nose - Tail" in text and "171.9" not in text and "172" in text
     assert 'class="warning"' in page and "collapsed: predicted 5.6 mm" in text
     assert "median pose at the held-out centre" in text
+    assert "lift predicted (mm)" in text
+    assert re.search(r"rat1_day2 \(test\) 15\.6 9\.47 -11\.2 -3\.4 5\.1 12\.3", text), text
     # the paired comparison: both statistics with their intervals and verdicts
     assert "Paired comparisons" in text
     row = r"2D views\) vs baseline .{0,60}-0\.04 \(-0\.16 to \+0\.07\): not distinguishable"

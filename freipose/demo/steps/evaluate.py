@@ -9,6 +9,7 @@ import numpy as np
 
 from freipose.demo.context import DemoContext, session_labels, truth_to_calibrated
 from freipose.demo.markers import step_results
+from freipose.demo.presets import STIM_PART
 
 
 @dataclass(frozen=True)
@@ -61,7 +62,11 @@ def _on_labels(ctx: DemoContext, trained: dict[str, Any]) -> _LabelScores:
 
 
 def _pipeline(ctx: DemoContext, keypoints: tuple[str, ...]) -> dict[str, Any]:
-    """The whole pipeline (detector + voxel network) on every frame of every session."""
+    """The whole pipeline (detector + voxel network) on every frame of every session.
+
+    Also the stimulated keypoint's errors inside and outside the stimulation, since the
+    analysis looks for the effect there.
+    """
     from freipose.io.poses import read_poses_h5
     from freipose.nn.evaluate import jpe, write_report
     from freipose.nn.failure_modes import failure_modes
@@ -69,6 +74,7 @@ def _pipeline(ctx: DemoContext, keypoints: tuple[str, ...]) -> dict[str, Any]:
     align = step_results(ctx.out, "calibrate")["alignment"]
     pipe: dict[str, np.ndarray] = {}
     modes: dict[str, Any] = {}
+    stim: dict[str, dict[str, Any] | None] = {}
     for s in ctx.preset.analysed:
         data = read_poses_h5(ctx.poses_dir / f"{s.name}.poses.h5")
         truth = session_labels(ctx, s.name)
@@ -79,6 +85,8 @@ def _pipeline(ctx: DemoContext, keypoints: tuple[str, ...]) -> dict[str, Any]:
         pipe[name] = jpe(data.poses, gt[idx])
         if data.skeleton is not None:
             modes[name] = failure_modes(data.poses, gt[idx], data.skeleton, name)
+        stim[name] = _stimulated_part(ctx, s.name, data.poses, gt[idx], tuple(data.keypoints),
+                                      np.asarray(data.frame_index, dtype=float))  # fmt: skip
     summary = write_report(ctx.out / "evaluation" / "pipeline", pipe, keypoints)
     res: dict[str, Any] = {}
     ctx.say("  whole pipeline (detector + voxel network, every frame, vs. the truth):")
@@ -88,9 +96,95 @@ def _pipeline(ctx: DemoContext, keypoints: tuple[str, ...]) -> dict[str, Any]:
         if name in modes:
             res[name]["failure_modes"] = modes[name]
         ctx.say(f"    {name:22s} median JPE {o['median']:7.2f} mm over {o['n']} keypoints")
+        if stim.get(name) is not None:
+            res[name]["stimulated_part"] = stim[name]
+            _say_stimulated(ctx, name, stim[name])
         for w in modes.get(name, {}).get("warnings", []):
             ctx.say("    " + w)
     return res
+
+
+def stimulated_part_errors(
+    pred: np.ndarray,
+    truth: np.ndarray,
+    times: np.ndarray,
+    windows: np.ndarray,
+    onset_delay_s: float,
+    margin_s: float,
+) -> dict[str, Any]:
+    """The stimulated keypoint in the frames the analysis calls stimulated, and in the rest.
+
+    Stimulated frames run from ``start + onset_delay_s`` to ``end`` of a window; the rest
+    are the frames further than ``margin_s`` from every window (the analysis's own split).
+    Heights are world z (up, after the calibration's origin frame).
+
+    Args:
+        pred: (T, 3) predicted positions (mm), NaN where missing.
+        truth: (T, 3) true positions (mm).
+        times: (T,) frame times (s).
+        windows: (W, 2) stimulation windows (start, end) in s.
+        onset_delay_s: the analysis's onset delay.
+        margin_s: the analysis's margin.
+
+    Returns:
+        ``stimulated`` and ``rest``: frame count ``n``, ``median_error_mm`` and
+        ``median_height_error_mm`` (predicted minus true); ``lift_true_mm`` and
+        ``lift_pred_mm``: mean height in the stimulated frames minus that in the rest.
+    """
+    stim = np.zeros(len(times), bool)
+    near = np.zeros(len(times), bool)
+    for start, end in np.asarray(windows, dtype=float).reshape(-1, 2):
+        stim |= (times >= start + onset_delay_s) & (times <= end)
+        near |= (times >= start - margin_s) & (times <= end + margin_s)
+    ok = np.isfinite(pred).all(-1)
+    err = np.linalg.norm(pred - truth, axis=-1)
+    dz = pred[:, 2] - truth[:, 2]
+    out: dict[str, Any] = {}
+    for name, m in (("stimulated", stim & ok), ("rest", ~near & ok)):
+        n = int(m.sum())
+        out[name] = {
+            "n": n,
+            "median_error_mm": float(np.median(err[m])) if n else None,
+            "median_height_error_mm": float(np.median(dz[m])) if n else None,
+        }
+    s, r = stim & ok, ~near & ok
+    if s.any() and r.any():
+        out["lift_true_mm"] = float(truth[s, 2].mean() - truth[r, 2].mean())
+        out["lift_pred_mm"] = float(pred[s, 2].mean() - pred[r, 2].mean())
+    return out
+
+
+def _stimulated_part(
+    ctx: DemoContext,
+    name: str,
+    pred: np.ndarray,
+    gt: np.ndarray,
+    keypoints: tuple[str, ...],
+    frames: np.ndarray,
+) -> dict[str, Any] | None:
+    """:func:`stimulated_part_errors` of the demo's stimulated keypoint in session ``name``."""
+    events = ctx.session_dir(name) / "events.csv"
+    if STIM_PART not in keypoints or not events.is_file():
+        return None
+    windows = np.loadtxt(events, delimiter=",", skiprows=1, ndmin=2)
+    k = keypoints.index(STIM_PART)
+    a = ctx.preset.analysis
+    return stimulated_part_errors(pred[:, k], gt[:, k], frames / ctx.preset.fps, windows,
+                                  a["onset_delay_s"], a["margin_s"])  # fmt: skip
+
+
+def _say_stimulated(ctx: DemoContext, name: str, r: dict[str, Any]) -> None:
+    """One line on the stimulated keypoint of session ``name``."""
+    st, rest = r["stimulated"], r["rest"]
+    if st["n"] == 0 or rest["n"] == 0 or "lift_true_mm" not in r:
+        return
+    ctx.say(
+        f"      {STIM_PART} in the stimulated frames vs the rest: median error "
+        f"{st['median_error_mm']:.1f} vs {rest['median_error_mm']:.1f} mm, height "
+        f"{st['median_height_error_mm']:+.1f} vs {rest['median_height_error_mm']:+.1f} mm off; "
+        f"lifted {r['lift_pred_mm']:.1f} mm in the prediction, {r['lift_true_mm']:.1f} mm "
+        "in the truth"
+    )
 
 
 def run(ctx: DemoContext) -> dict[str, Any]:
@@ -106,8 +200,9 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         constant-pose reference: ``median_mm``, ``n``), ``comparisons`` (paired
         differences of the networks and against the reference, see
         :mod:`freipose.nn.compare`) and ``pipeline`` (per session:
-        median JPE, missing keypoints and, where the poses name their skeleton, the
-        ``failure_modes`` of every frame).
+        median JPE, missing keypoints, where the poses name their skeleton the
+        ``failure_modes`` of every frame, and ``stimulated_part``: the stimulated keypoint's
+        errors in the stimulated frames and in the rest, :func:`stimulated_part_errors`).
     """
     scores = _on_labels(ctx, step_results(ctx.out, "train"))
     return {
