@@ -182,8 +182,8 @@ def _say_stimulated(ctx: DemoContext, name: str, r: dict[str, Any]) -> None:
         f"      {STIM_PART} in the stimulated frames vs the rest: median error "
         f"{st['median_error_mm']:.1f} vs {rest['median_error_mm']:.1f} mm, height "
         f"{st['median_height_error_mm']:+.1f} vs {rest['median_height_error_mm']:+.1f} mm off; "
-        f"lifted {r['lift_pred_mm']:.1f} mm in the prediction, {r['lift_true_mm']:.1f} mm "
-        "in the truth"
+        f"mean height in the stimulated frames minus the rest {r['lift_pred_mm']:+.1f} mm "
+        f"predicted, {r['lift_true_mm']:+.1f} mm true"
     )
 
 
