@@ -152,7 +152,8 @@ _PRESETS = {
         batch=8,
         detection="bgsub",
     ),
-    # The default: the real workflow, about 10 minutes on an idle 2-core CPU (8:18 to 10:07).
+    # The default: the real workflow, about 10 minutes on an idle 2-core CPU with AVX-512
+    # (8:18 to 10:07), about 18 on one with AVX2 only (17:33).
     "small": DemoPreset(
         name="small",
         size=(320, 256),
