@@ -189,11 +189,11 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 if c in videos:
                     p = Path(videos[c])
                     self._video_paths[(s, c)] = p if p.is_absolute() else self.root / p
-        self.cache_size = self._cache_frames() if cache_size is None else int(cache_size)
         session = np.asarray(self.labels.session)
         self._labeled_frames = {
             s: np.unique(self.labels.frame_index[session == s]) for s in self._views
         }
+        self.cache_size = self._cache_frames() if cache_size is None else int(cache_size)
         # Filling the cache in the order training visits the frames seeks the video for each
         # one; when every labeled frame is kept they are decoded in one forward pass instead.
         self._prefill = cache_size is None and all(
@@ -208,8 +208,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
 
     def _cache_frames(self) -> int:
         """Frames to cache per video: the most any video has labeled, if all fit the budget."""
-        session = np.asarray(self.labels.session)
-        frames = {s: len(np.unique(self.labels.frame_index[session == s])) for s in self._views}
+        frames = {s: len(f) for s, f in self._labeled_frames.items()}
         total = 0
         for s, c in self._video_paths:
             rig = self._views[s][2]

@@ -114,15 +114,16 @@ def stimulated_part_errors(
 ) -> dict[str, Any]:
     """The stimulated keypoint in the frames the analysis calls stimulated, and in the rest.
 
-    Stimulated frames run from ``start + onset_delay_s`` to ``end`` of a window; the rest
-    are the frames further than ``margin_s`` from every window (the analysis's own split).
-    Heights are world z (up, after the calibration's origin frame).
+    The frames are split by the analysis's own rule
+    (:func:`freipose.analysis.study.label_frames`): stimulated from ``start +
+    onset_delay_s`` to ``end`` of a window, the rest further than ``margin_s`` from every
+    window. Heights are world z (up, after the calibration's origin frame).
 
     Args:
         pred: (T, 3) predicted positions (mm), NaN where missing.
         truth: (T, 3) true positions (mm).
         times: (T,) frame times (s).
-        windows: (W, 2) stimulation windows (start, end) in s.
+        windows: (W, 2) sorted, non-overlapping stimulation windows (start, end) in s.
         onset_delay_s: the analysis's onset delay.
         margin_s: the analysis's margin.
 
@@ -131,23 +132,22 @@ def stimulated_part_errors(
         ``median_height_error_mm`` (predicted minus true); ``lift_true_mm`` and
         ``lift_pred_mm``: mean height in the stimulated frames minus that in the rest.
     """
-    stim = np.zeros(len(times), bool)
-    near = np.zeros(len(times), bool)
-    for start, end in np.asarray(windows, dtype=float).reshape(-1, 2):
-        stim |= (times >= start + onset_delay_s) & (times <= end)
-        near |= (times >= start - margin_s) & (times <= end + margin_s)
+    from freipose.analysis.study import NOT_STIMULATED, STIMULATED, label_frames
+
+    labels = label_frames(times, windows, onset_delay_s, margin_s)
     ok = np.isfinite(pred).all(-1)
     err = np.linalg.norm(pred - truth, axis=-1)
     dz = pred[:, 2] - truth[:, 2]
+    masks = {"stimulated": (labels == STIMULATED) & ok, "rest": (labels == NOT_STIMULATED) & ok}
     out: dict[str, Any] = {}
-    for name, m in (("stimulated", stim & ok), ("rest", ~near & ok)):
+    for name, m in masks.items():
         n = int(m.sum())
         out[name] = {
             "n": n,
             "median_error_mm": float(np.median(err[m])) if n else None,
             "median_height_error_mm": float(np.median(dz[m])) if n else None,
         }
-    s, r = stim & ok, ~near & ok
+    s, r = masks["stimulated"], masks["rest"]
     if s.any() and r.any():
         out["lift_true_mm"] = float(truth[s, 2].mean() - truth[r, 2].mean())
         out["lift_pred_mm"] = float(pred[s, 2].mean() - pred[r, 2].mean())
@@ -163,10 +163,12 @@ def _stimulated_part(
     frames: np.ndarray,
 ) -> dict[str, Any] | None:
     """:func:`stimulated_part_errors` of the demo's stimulated keypoint in session ``name``."""
+    from freipose.analysis.study import read_events
+
     events = ctx.session_dir(name) / "events.csv"
     if STIM_PART not in keypoints or not events.is_file():
         return None
-    windows = np.loadtxt(events, delimiter=",", skiprows=1, ndmin=2)
+    windows = read_events(events)
     k = keypoints.index(STIM_PART)
     a = ctx.preset.analysis
     return stimulated_part_errors(pred[:, k], gt[:, k], frames / ctx.preset.fps, windows,
@@ -175,9 +177,9 @@ def _stimulated_part(
 
 def _say_stimulated(ctx: DemoContext, name: str, r: dict[str, Any]) -> None:
     """One line on the stimulated keypoint of session ``name``."""
-    st, rest = r["stimulated"], r["rest"]
-    if st["n"] == 0 or rest["n"] == 0 or "lift_true_mm" not in r:
+    if "lift_true_mm" not in r:  # no stimulated or no rest frame with a pose
         return
+    st, rest = r["stimulated"], r["rest"]
     ctx.say(
         f"      {STIM_PART} in the stimulated frames vs the rest: median error "
         f"{st['median_error_mm']:.1f} vs {rest['median_error_mm']:.1f} mm, height "
