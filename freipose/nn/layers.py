@@ -148,7 +148,8 @@ class UNet3D(nn.Module):
     stride-2 transposed conv, concatenation with the (1x1x1-reduced) skip and a 3x3x3 conv.
     The full-resolution output adds a 1x1x1 projection of the input volume. Returns the list
     of score volumes (B, K, G, G, G): the deep-supervision ones (coarse levels, upsampled
-    trilinearly) first, the final one last.
+    trilinearly) first, the final one last. In eval mode only the final one: the
+    deep-supervision volumes serve the training loss alone.
     """
 
     def __init__(self, cin: int, channels: tuple[int, ...], out: int, norm: str, deep: bool):
@@ -184,6 +185,7 @@ class UNet3D(nn.Module):
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Score volumes of a (B, C, G, G, G) feature volume (see the class docstring)."""
         size = x.shape[-3:]
+        deep = self.deep and self.training
         inp = x
         acts = []
         for down in self.downs:
@@ -191,12 +193,12 @@ class UNet3D(nn.Module):
             acts.append(x)
         x = self.bottleneck(x)
         outs = []
-        if self.deep:
+        if deep:
             outs.append(self.bottleneck_head(x))
         for i, (up, skip, fuse) in enumerate(zip(self.ups, self.skips, self.fuses)):
             lvl = len(self.downs) - 2 - i
             x = fuse(torch.cat([F.relu(up(x)), skip(acts[lvl])], dim=1))
-            if self.deep:
+            if deep:
                 outs.append(self.heads[i](x))
         x = F.relu(self.final_up(x) + self.final_in(inp))
         outs = [F.interpolate(o, size=size, mode="trilinear", align_corners=False) for o in outs]
@@ -266,6 +268,9 @@ def softargmax3d(
 def volume_confidence(probs: torch.Tensor, grid_size: int) -> torch.Tensor:
     """Peak mass of soft-argmax distributions: the largest probability in any 3x3x3 block.
 
+    The block sums are separable (three 3-cell sums, one per axis, zero outside the grid).
+    No gradient flows through the result: it reports how sharp a volume is, no loss uses it.
+
     Args:
         probs: (B, K, G**3) distributions.
         grid_size: G, voxels per cube edge.
@@ -274,8 +279,13 @@ def volume_confidence(probs: torch.Tensor, grid_size: int) -> torch.Tensor:
         (B, K) in [0, 1]; near 1 for a sharp, unimodal score volume.
     """
     B, K = probs.shape[:2]
-    vol = probs.reshape(B * K, 1, grid_size, grid_size, grid_size)
-    mass = F.avg_pool3d(vol, 3, stride=1, padding=1, count_include_pad=True) * 27.0
+    G = grid_size
+    mass = probs.detach().reshape(B * K, G, G, G)
+    for dim in (1, 2, 3):
+        total = mass.clone()
+        total.narrow(dim, 1, G - 1).add_(mass.narrow(dim, 0, G - 1))
+        total.narrow(dim, 0, G - 1).add_(mass.narrow(dim, 1, G - 1))
+        mass = total
     return mass.reshape(B, K, -1).amax(-1).clamp(0.0, 1.0)
 
 

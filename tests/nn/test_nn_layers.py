@@ -148,6 +148,36 @@ def test_peaked_volume_decodes_to_voxel_centre():
     assert float(flat.max()) < 0.1
 
 
+def test_volume_confidence_is_the_largest_3x3x3_block_mass():
+    torch.manual_seed(0)
+    G = 6
+    probs = torch.softmax(3 * torch.randn(2, 4, G**3), -1)
+    probs[1, 0] = 0.0
+    probs[1, 0, 0] = 1.0  # a peak in a corner: the block there is cut by the grid
+    vol = probs.reshape(8, 1, G, G, G)
+    blocks = torch.nn.functional.avg_pool3d(vol, 3, stride=1, padding=1) * 27
+    expect = blocks.reshape(2, 4, -1).amax(-1)
+    torch.testing.assert_close(volume_confidence(probs, G), expect, atol=1e-6, rtol=0)
+    assert float(volume_confidence(probs, G)[1, 0]) == pytest.approx(1.0)
+    assert not volume_confidence(probs.requires_grad_(), G).requires_grad
+
+
+def test_eval_mode_skips_the_deep_supervision_volumes():
+    from nn_toydata import toy_batch
+
+    cfg = config_from_dict({"model": {"preset": "tiny"}}).model
+    assert cfg.deep_supervision
+    torch.manual_seed(0)
+    model = build_model(cfg, 3)
+    b = toy_batch(cfg, 2, cams=3)
+    with torch.no_grad():
+        train = model(b)
+        model.eval()
+        ev = model(b)
+    assert len(train["P0_aux"]) == len(cfg.unet_channels) and ev["P0_aux"] == []
+    torch.testing.assert_close(ev["P0"], train["P0"])  # group norm: same in both modes
+
+
 def test_softargmax2d_and_heatmap_round_trip():
     stride, size = 4.0, 16
     uv = torch.tensor([[[10.3, 40.7], [0.0, 63.0]]])
