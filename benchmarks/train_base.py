@@ -1,8 +1,9 @@
 r"""Train the pretrained base models that FreiPose ships in ``freipose/models`` (resumable).
 
 Renders many varied synthetic sessions with ``freipose.synth`` (3 to 8 cameras, every coat,
-several image sizes and arena sizes, stimulated and unstimulated animals, and the
-generator's domain randomisation where it has one), then trains, in turns, the ``small``
+several image sizes and arena sizes, stimulated and unstimulated animals (from session
+``FIRST_MOVING`` on, three in four lift or oscillate a paw, mostly a front one, or the head),
+and the generator's domain randomisation where it has one), then trains, in turns, the ``small``
 voxel network, the triangulation baseline's 2D network (same preset) and the box detector
 (the demo's architecture), each in chunks of steps that end with a checkpoint. After every
 chunk the newest weights are exported (without optimizer state) to ``--export`` together
@@ -13,7 +14,8 @@ Running the same command again continues where it stopped (the trainers' resume:
 optimizer, step, random state); ``--until HH:MM`` (UTC) or ``--minutes`` stops it at a
 chunk boundary. A later session without the work folder regenerates the same data (the
 seeds fix it) and, with ``--warm-start``, continues from the shipped weights with a fresh
-optimizer.
+optimizer. ``--networks`` trains some of the three only (the others keep their exported
+weights and manifest entries).
 
 Seeds: training sessions use ``10000 + i``, the held-out sessions ``10900 + j``; the demo
 uses 1 and 2, ``benchmarks/accuracy.py`` 101+ and 9001, the tests small numbers, so no
@@ -47,6 +49,11 @@ SIZES = ((320, 256), (384, 288), (256, 208), (320, 240))
 APPEARANCES = ("hooded", "albino", "random")
 STIM_EFFECTS = ("oscillate", "lift", "freeze")
 STIM_PARTS = ("Paw Front Right", "Paw Front Left", "Paw Back Right", "Head")
+#: sessions from this index on draw their stimulation: lifted and oscillating paws (the
+#: front ones most), which the first sessions had too rarely for the base to follow them
+FIRST_MOVING = 16
+MOVED_PARTS = ("Paw Front Right", "Paw Front Left", "Paw Back Right", "Paw Back Left", "Head")
+MOVED_PART_SHARES = (0.3, 0.3, 0.15, 0.15, 0.1)
 #: the demo's detector architecture (``freipose.demo.presets``), so the demo can start from it
 DETECTOR_ARCH = {"input_size": 128, "width": 0.35, "neck_channels": 24}
 
@@ -68,10 +75,16 @@ def scene_config(seed: int, index: int, frames: int, fps: float) -> Any:
         appearance=APPEARANCES[index % len(APPEARANCES)],
         arena_size=(float(rng.uniform(480, 720)),) * 2,
     )
-    if index % 2:
+    if index < FIRST_MOVING:  # the first sessions: every other one stimulated, in turn
+        part = STIM_PARTS[(index // 2) % len(STIM_PARTS)]
+        effect = STIM_EFFECTS[(index // 2) % len(STIM_EFFECTS)] if index % 2 else None
+    else:  # later sessions: three in four move a paw or the head (lifted, oscillating)
+        part = str(rng.choice(MOVED_PARTS, p=MOVED_PART_SHARES))
+        effect = str(rng.choice(STIM_EFFECTS, p=(0.45, 0.45, 0.1))) if index % 4 else None
+    if effect is not None:
         kw["stimulation"] = StimulationConfig(
-            body_part=STIM_PARTS[(index // 2) % len(STIM_PARTS)],
-            effect=STIM_EFFECTS[(index // 2) % len(STIM_EFFECTS)],
+            body_part=part,
+            effect=effect,
             frequency_hz=float(rng.uniform(3, 10)),
             amplitude_mm=float(rng.uniform(10, 35)),
             duration_s=2.0,
@@ -371,6 +384,11 @@ def _provenance(trainer: Trainer, job: Job, dest: Path, step: int, command: str)
             "cameras": "3 to 8",
             "sizes": [list(s) for s in SIZES],
             "appearances": APPEARANCES,
+            "stimulation": (
+                f"sessions 0-{FIRST_MOVING - 1}: every other one, parts and effects in turn; "
+                f"from {FIRST_MOVING} on: 3 in 4, the part drawn from {MOVED_PARTS} with "
+                f"shares {MOVED_PART_SHARES}, lifted or oscillating (45 % each) or frozen"
+            ),
         },
         "exported": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
     }
@@ -414,6 +432,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--warm-start", action="store_true",
                     help="without a run folder, start from the shipped weights")  # fmt: skip
     ap.add_argument("--export-only", action="store_true", help="export and evaluate, no training")
+    ap.add_argument("--networks", default="voxel,baseline,detector",
+                    help="the networks to train (comma-separated); the others keep their "
+                    "shipped weights")  # fmt: skip
+    ap.add_argument("--threads", type=int, default=1, help="PyTorch threads")
     return ap
 
 
@@ -423,7 +445,10 @@ def main(argv: list[str] | None = None) -> int:
 
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    torch.set_num_threads(1)
+    torch.set_num_threads(args.threads)
+    names = {n.strip() for n in args.networks.split(",") if n.strip()}
+    if not names <= {"voxel", "baseline", "detector"}:
+        raise SystemExit(f"--networks: expected voxel, baseline, detector; got {args.networks}")
     t0 = time.perf_counter()
     train, held = make_data(args.work, args.sessions, args.held_out, args.frames, args.fps)
     log.info("data: %d training, %d held-out sessions (%.0f s)", len(train), len(held),
@@ -439,7 +464,7 @@ def main(argv: list[str] | None = None) -> int:
     end = _deadline(args)
     command = shlex.join([sys.executable.rsplit("/", 1)[-1], *sys.argv])
     while not args.export_only and time.time() < end:
-        todo = [j for j in jobs if j.done < j.steps]
+        todo = [j for j in jobs if j.done < j.steps and j.name in names]
         if not todo:
             break
         job = min(todo, key=lambda j: j.seconds / j.share)
