@@ -323,17 +323,23 @@ def _validation_rows(path: Path) -> list[list[float]]:
     return [[int(r["step"]), float(r["val_jpe_p0"]), float(r["val_jpe_p1"])] for r in rows]
 
 
-def export_all(trainer: Trainer, jobs: list[Job], command: str, evaluate: bool) -> None:
-    """Export every trained network to ``--export`` and rewrite its ``bases.json``."""
-    from freipose.models import MANIFEST, read_manifest
+def export_all(
+    trainer: Trainer, jobs: list[Job], command: str, evaluate: bool, trained: set[str]
+) -> None:
+    """Export the networks to ``--export`` and rewrite its ``bases.json``.
+
+    Networks not in ``trained`` (this run's ``--networks``) that are already exported keep
+    their weights and entry.
+    """
+    from freipose.models import MANIFEST, read_manifest, total_steps
 
     export = trainer.args.export
     old = {b["name"]: b for b in read_manifest(export / MANIFEST)}
     entries = []
     for job in jobs:
         run = trainer.run_dir(job.name)
-        if current_step(trainer, job) == 0:
-            if job.name in old:
+        if current_step(trainer, job) == 0 or (job.name not in trained and job.name in old):
+            if job.name in old:  # not trained here: its weights and entry stay as they are
                 entries.append(old[job.name])
             continue
         dest = trainer.shipped(job.name)
@@ -346,6 +352,13 @@ def export_all(trainer: Trainer, jobs: list[Job], command: str, evaluate: bool) 
             figures = {**ev, "evaluated": True, "samples": int(len(trainer.ev_idx))}
         # an --export-only run keeps the command that trained the weights
         made_by = entry.get("command") if trainer.args.export_only else None
+        if trainer.args.warm_start and entry.get("work") != str(trainer.work) and entry:
+            # the first export of a warm start (another run folder made the entry): remember
+            # the weights it started from
+            keep = ("command", "exported", "held_out")
+            entry["started_from"] = {"steps": total_steps(entry)} | {
+                k: entry[k] for k in keep if k in entry
+            }
         entry.update(_provenance(trainer, job, dest, step, made_by or command))
         entry["held_out"] = figures
         entry["validation"] = _validation_rows(run / "log.csv")
@@ -372,6 +385,7 @@ def _provenance(trainer: Trainer, job: Job, dest: Path, step: int, command: str)
         "architecture": arch,
         "skeleton": list(trainer.skeleton.keypoints) if job.name != "detector" else None,
         "steps": step,
+        "work": str(a.work),
         "schedule": schedule,
         "size_bytes": dest.stat().st_size,
         "command": command,
@@ -476,8 +490,8 @@ def main(argv: list[str] | None = None) -> int:
         job.seconds += time.perf_counter() - t
         log.info("%s: step %d of %d (%.0f s this session)", job.name, job.done, job.steps,
                  job.seconds)  # fmt: skip
-        export_all(trainer, jobs, command, evaluate=False)
-    export_all(trainer, jobs, command, evaluate=True)
+        export_all(trainer, jobs, command, evaluate=False, trained=names)
+    export_all(trainer, jobs, command, evaluate=True, trained=names)
     return 0
 
 

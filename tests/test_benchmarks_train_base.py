@@ -45,3 +45,39 @@ def test_held_out_sessions_are_not_training_sessions(bench):
 def test_unknown_network_names_are_refused(bench, tmp_path):
     with pytest.raises(SystemExit, match="--networks"):
         bench.main(["--work", str(tmp_path), "--networks", "voxel,unet", "--export-only"])
+
+
+def test_export_keeps_untrained_bases_and_records_a_warm_start_once(bench, tmp_path, monkeypatch):
+    import json
+    from types import SimpleNamespace
+
+    shipped = [
+        {"name": "voxel", "steps": 5000, "command": "first", "work": "old", "held_out": {}},
+        {"name": "baseline", "steps": 4000, "command": "first", "work": "old", "held_out": {}},
+    ]
+    (tmp_path / "bases.json").write_text(json.dumps({"bases": shipped}))
+    args = SimpleNamespace(export=tmp_path, export_only=False, warm_start=True)
+    trainer = SimpleNamespace(
+        args=args, work=tmp_path / "run", run_dir=lambda n: tmp_path / n, shipped=lambda n: n
+    )
+    steps = {"voxel": 200, "baseline": 7}
+    monkeypatch.setattr(bench, "current_step", lambda t, job: steps[job.name])
+    monkeypatch.setattr(bench, "_export_one", lambda t, job, dest: steps[job.name])
+    monkeypatch.setattr(bench, "_validation_rows", lambda path: [])
+    monkeypatch.setattr(
+        bench,
+        "_provenance",
+        lambda t, job, dest, step, command: {
+            "steps": step,
+            "command": command,
+            "work": str(t.work),
+        },
+    )
+    jobs = [bench.Job("voxel", 8000, 0.5), bench.Job("baseline", 3000, 0.25)]
+    for step in (200, 400):  # two chunks of the same warm-started run
+        steps["voxel"] = step
+        bench.export_all(trainer, jobs, "second", evaluate=False, trained={"voxel"})
+        voxel, baseline = json.loads((tmp_path / "bases.json").read_text())["bases"]
+        assert baseline == shipped[1]
+        assert voxel["steps"] == step and voxel["command"] == "second"
+        assert voxel["started_from"] == {"steps": 5000, "command": "first", "held_out": {}}

@@ -32,7 +32,8 @@ class BaseModel:
         file: the weights file's name in this package.
         architecture: the settings that fix the weights' shapes (and the rest of the
             ``[model]`` table it was trained with).
-        steps: optimizer steps it was trained for.
+        steps: optimizer steps it was trained for, those of the weights it was warm-started
+            from included (:func:`total_steps`).
         entry: the whole manifest entry (provenance, held-out figures).
     """
 
@@ -58,6 +59,19 @@ def read_manifest(path: Path) -> list[dict[str, Any]]:
     return list(json.loads(path.read_text(encoding="utf-8")).get("bases", []))
 
 
+def total_steps(entry: Mapping[str, Any]) -> int:
+    """The steps of a manifest entry plus those of the weights it was warm-started from.
+
+    Args:
+        entry: a ``bases.json`` entry; its ``started_from`` (if any) holds the total steps
+            of the weights its training started from.
+
+    Returns:
+        All optimizer steps behind the weights.
+    """
+    return int(entry["steps"]) + int(entry.get("started_from", {}).get("steps", 0))
+
+
 def _root() -> Traversable:
     """The folder of the shipped weights: this package's data."""
     return resources.files(__name__)
@@ -72,7 +86,8 @@ def shipped_bases() -> tuple[BaseModel, ...]:
     out = []
     for e in json.loads(manifest.read_text(encoding="utf-8")).get("bases", []):
         if (root / e["file"]).is_file():
-            out.append(BaseModel(e["name"], e["kind"], e["file"], e["architecture"], e["steps"], e))
+            arch, steps = e["architecture"], total_steps(e)
+            out.append(BaseModel(e["name"], e["kind"], e["file"], arch, steps, e))
     return tuple(out)
 
 

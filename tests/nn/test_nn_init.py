@@ -174,3 +174,13 @@ def test_the_shipped_bases_fit_the_small_preset_and_the_demo_detector():
     det = DetectorNet(DetectorConfig(input_size=128, width=0.35, neck_channels=24))
     assert initialize_detector(det, "base") == "base:detector"
     assert sum(b.entry["size_bytes"] for b in bases.values()) < 5_000_000
+
+
+def test_a_warm_started_base_counts_the_steps_it_started_from(tmp_path, monkeypatch):
+    entry = {"name": "voxel", "kind": "voxel", "file": "v.pt", "architecture": {}, "steps": 8000}
+    entry["started_from"] = {"steps": 5000, "command": "python benchmarks/train_base.py"}
+    (tmp_path / "v.pt").write_bytes(b"")
+    (tmp_path / "bases.json").write_text(json.dumps({"bases": [entry]}))
+    monkeypatch.setattr(models, "_root", lambda: tmp_path)
+    (base,) = models.shipped_bases()
+    assert base.steps == 13000 and models.total_steps({"steps": 7}) == 7
