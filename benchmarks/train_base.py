@@ -54,6 +54,9 @@ STIM_PARTS = ("Paw Front Right", "Paw Front Left", "Paw Back Right", "Head")
 FIRST_MOVING = 16
 MOVED_PARTS = ("Paw Front Right", "Paw Front Left", "Paw Back Right", "Paw Back Left", "Head")
 MOVED_PART_SHARES = (0.3, 0.3, 0.15, 0.15, 0.1)
+MOVED_EFFECT_SHARES = (0.45, 0.45, 0.1)  # of STIM_EFFECTS
+#: the networks the script trains, in the order of their jobs
+NETWORKS = ("voxel", "baseline", "detector")
 #: the demo's detector architecture (``freipose.demo.presets``), so the demo can start from it
 DETECTOR_ARCH = {"input_size": 128, "width": 0.35, "neck_channels": 24}
 
@@ -80,7 +83,7 @@ def scene_config(seed: int, index: int, frames: int, fps: float) -> Any:
         effect = STIM_EFFECTS[(index // 2) % len(STIM_EFFECTS)] if index % 2 else None
     else:  # later sessions: three in four move a paw or the head (lifted, oscillating)
         part = str(rng.choice(MOVED_PARTS, p=MOVED_PART_SHARES))
-        effect = str(rng.choice(STIM_EFFECTS, p=(0.45, 0.45, 0.1))) if index % 4 else None
+        effect = str(rng.choice(STIM_EFFECTS, p=MOVED_EFFECT_SHARES)) if index % 4 else None
     if effect is not None:
         kw["stimulation"] = StimulationConfig(
             body_part=part,
@@ -401,7 +404,8 @@ def _provenance(trainer: Trainer, job: Job, dest: Path, step: int, command: str)
             "stimulation": (
                 f"sessions 0-{FIRST_MOVING - 1}: every other one, parts and effects in turn; "
                 f"from {FIRST_MOVING} on: 3 in 4, the part drawn from {MOVED_PARTS} with "
-                f"shares {MOVED_PART_SHARES}, lifted or oscillating (45 % each) or frozen"
+                f"shares {MOVED_PART_SHARES}, the effect drawn from {STIM_EFFECTS} with shares "
+                f"{MOVED_EFFECT_SHARES}"
             ),
         },
         "exported": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
@@ -446,7 +450,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--warm-start", action="store_true",
                     help="without a run folder, start from the shipped weights")  # fmt: skip
     ap.add_argument("--export-only", action="store_true", help="export and evaluate, no training")
-    ap.add_argument("--networks", default="voxel,baseline,detector",
+    ap.add_argument("--networks", default=",".join(NETWORKS),
                     help="the networks to train (comma-separated); the others keep their "
                     "shipped weights")  # fmt: skip
     ap.add_argument("--threads", type=int, default=1, help="PyTorch threads")
@@ -461,8 +465,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     torch.set_num_threads(args.threads)
     names = {n.strip() for n in args.networks.split(",") if n.strip()}
-    if not names <= {"voxel", "baseline", "detector"}:
-        raise SystemExit(f"--networks: expected voxel, baseline, detector; got {args.networks}")
+    if not names <= set(NETWORKS):
+        raise SystemExit(f"--networks: expected some of {', '.join(NETWORKS)}; got {args.networks}")
     t0 = time.perf_counter()
     train, held = make_data(args.work, args.sessions, args.held_out, args.frames, args.fps)
     log.info("data: %d training, %d held-out sessions (%.0f s)", len(train), len(held),

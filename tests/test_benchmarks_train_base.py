@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from collections import Counter
+from types import SimpleNamespace
 
 import pytest
 
@@ -48,9 +50,6 @@ def test_unknown_network_names_are_refused(bench, tmp_path):
 
 
 def test_export_keeps_untrained_bases_and_records_a_warm_start_once(bench, tmp_path, monkeypatch):
-    import json
-    from types import SimpleNamespace
-
     shipped = [
         {"name": "voxel", "steps": 5000, "command": "first", "work": "old", "held_out": {}},
         {"name": "baseline", "steps": 4000, "command": "first", "work": "old", "held_out": {}},
