@@ -355,9 +355,15 @@ def export_all(
             figures = {**ev, "evaluated": True, "samples": int(len(trainer.ev_idx))}
         # an --export-only run keeps the command that trained the weights
         made_by = entry.get("command") if trainer.args.export_only else None
-        if trainer.args.warm_start and entry.get("work") != str(trainer.work) and entry:
+        first_of_warm_start = (
+            trainer.args.warm_start
+            and not trainer.args.export_only
+            and entry
+            and entry.get("work") != str(trainer.work)
+        )
+        if first_of_warm_start:
             # the first export of a warm start (another run folder made the entry): remember
-            # the weights it started from
+            # the weights it started from (an --export-only run trains nothing)
             keep = ("command", "exported", "held_out")
             entry["started_from"] = {"steps": total_steps(entry)} | {
                 k: entry[k] for k in keep if k in entry

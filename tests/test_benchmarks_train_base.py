@@ -80,3 +80,24 @@ def test_export_keeps_untrained_bases_and_records_a_warm_start_once(bench, tmp_p
         assert baseline == shipped[1]
         assert voxel["steps"] == step and voxel["command"] == "second"
         assert voxel["started_from"] == {"steps": 5000, "command": "first", "held_out": {}}
+
+
+def test_an_export_only_run_records_no_warm_start(bench, tmp_path, monkeypatch):
+    shipped = [{"name": "voxel", "steps": 5000, "command": "first", "work": "old"}]
+    (tmp_path / "bases.json").write_text(json.dumps({"bases": shipped}))
+    args = SimpleNamespace(export=tmp_path, export_only=True, warm_start=True)
+    trainer = SimpleNamespace(
+        args=args, work=tmp_path / "run", run_dir=lambda n: tmp_path / n, shipped=lambda n: n
+    )
+    monkeypatch.setattr(bench, "current_step", lambda t, job: 5000)
+    monkeypatch.setattr(bench, "_export_one", lambda t, job, dest: 5000)
+    monkeypatch.setattr(bench, "_validation_rows", lambda path: [])
+    monkeypatch.setattr(
+        bench,
+        "_provenance",
+        lambda t, job, dest, step, command: {"steps": step, "command": command, "work": "run"},
+    )
+    bench.export_all(trainer, [bench.Job("voxel", 5000, 1.0)], "again", False, {"voxel"})
+    (voxel,) = json.loads((tmp_path / "bases.json").read_text())["bases"]
+    assert "started_from" not in voxel
+    assert voxel["command"] == "first"  # an --export-only run keeps the training command
