@@ -153,7 +153,7 @@ _PRESETS = {
         detection="bgsub",
     ),
     # The default: the real workflow, about 10 minutes on an idle 2-core CPU with AVX-512
-    # (8:18 to 10:07), about 18 on one with AVX2 only (17:33).
+    # (8:18 to 10:07), 15 to 18 on one with AVX2 only (15:25 to 17:33).
     "small": DemoPreset(
         name="small",
         size=(320, 256),

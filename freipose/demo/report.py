@@ -227,10 +227,13 @@ def _comparison_row(c: dict[str, Any]) -> list[str]:
 
 
 def _stimulated_rows(ev: dict[str, Any]) -> list[list[str]]:
-    """Per recording: the stimulated keypoint's errors and lift, stimulated frames vs rest."""
+    """Per recording: the stimulated keypoint's errors and lift, stimulated frames vs rest.
 
-    def cell(v: Any) -> str:
-        return "-" if v is None else num(float(v))
+    Millimetres with one decimal as the demo prints them; heights and their changes signed.
+    """
+
+    def mm(v: Any, sign: str = "") -> str:
+        return "-" if v is None or not math.isfinite(float(v)) else f"{float(v):{sign}.1f}"
 
     rows = []
     for k, v in ev.get("pipeline", {}).items():
@@ -238,9 +241,9 @@ def _stimulated_rows(ev: dict[str, Any]) -> list[list[str]]:
         if not r:
             continue
         st, rest = r["stimulated"], r["rest"]
-        rows.append([k, cell(st["median_error_mm"]), cell(rest["median_error_mm"]),
-                     cell(st["median_height_error_mm"]), cell(rest["median_height_error_mm"]),
-                     cell(r.get("lift_pred_mm")), cell(r.get("lift_true_mm"))])  # fmt: skip
+        rows.append([k, mm(st["median_error_mm"]), mm(rest["median_error_mm"]),
+                     mm(st["median_height_error_mm"], "+"), mm(rest["median_height_error_mm"], "+"),
+                     mm(r.get("lift_pred_mm"), "+"), mm(r.get("lift_true_mm"), "+")])  # fmt: skip
     return rows
 
 
