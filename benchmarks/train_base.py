@@ -358,7 +358,7 @@ def export_all(
         first_of_warm_start = (
             trainer.args.warm_start
             and not trainer.args.export_only
-            and entry
+            and bool(entry)
             and entry.get("work") != str(trainer.work)
         )
         if first_of_warm_start:

@@ -49,17 +49,17 @@ def test_unknown_network_names_are_refused(bench, tmp_path):
         bench.main(["--work", str(tmp_path), "--networks", "voxel,unet", "--export-only"])
 
 
-def test_export_keeps_untrained_bases_and_records_a_warm_start_once(bench, tmp_path, monkeypatch):
-    shipped = [
-        {"name": "voxel", "steps": 5000, "command": "first", "work": "old", "held_out": {}},
-        {"name": "baseline", "steps": 4000, "command": "first", "work": "old", "held_out": {}},
-    ]
-    (tmp_path / "bases.json").write_text(json.dumps({"bases": shipped}))
-    args = SimpleNamespace(export=tmp_path, export_only=False, warm_start=True)
+def _fake_export(bench, folder, monkeypatch, shipped, steps, export_only):
+    """``export_all`` on ``folder`` holding ``shipped`` as its manifest, without networks.
+
+    ``steps`` maps a network to its run's step (read when exporting, so it may change).
+    Returns a function ``export(jobs, command, trained)`` and the manifest's path.
+    """
+    (folder / "bases.json").write_text(json.dumps({"bases": shipped}))
+    args = SimpleNamespace(export=folder, export_only=export_only, warm_start=True)
     trainer = SimpleNamespace(
-        args=args, work=tmp_path / "run", run_dir=lambda n: tmp_path / n, shipped=lambda n: n
+        args=args, work=folder / "run", run_dir=lambda n: folder / n, shipped=lambda n: n
     )
-    steps = {"voxel": 200, "baseline": 7}
     monkeypatch.setattr(bench, "current_step", lambda t, job: steps[job.name])
     monkeypatch.setattr(bench, "_export_one", lambda t, job, dest: steps[job.name])
     monkeypatch.setattr(bench, "_validation_rows", lambda path: [])
@@ -72,11 +72,25 @@ def test_export_keeps_untrained_bases_and_records_a_warm_start_once(bench, tmp_p
             "work": str(t.work),
         },
     )
+
+    def export(jobs, command, trained):
+        bench.export_all(trainer, jobs, command, evaluate=False, trained=trained)
+
+    return export, folder / "bases.json"
+
+
+def test_export_keeps_untrained_bases_and_records_a_warm_start_once(bench, tmp_path, monkeypatch):
+    shipped = [
+        {"name": "voxel", "steps": 5000, "command": "first", "work": "old", "held_out": {}},
+        {"name": "baseline", "steps": 4000, "command": "first", "work": "old", "held_out": {}},
+    ]
+    steps = {"voxel": 200, "baseline": 7}
+    export, manifest = _fake_export(bench, tmp_path, monkeypatch, shipped, steps, False)
     jobs = [bench.Job("voxel", 8000, 0.5), bench.Job("baseline", 3000, 0.25)]
     for step in (200, 400):  # two chunks of the same warm-started run
         steps["voxel"] = step
-        bench.export_all(trainer, jobs, "second", evaluate=False, trained={"voxel"})
-        voxel, baseline = json.loads((tmp_path / "bases.json").read_text())["bases"]
+        export(jobs, "second", trained={"voxel"})
+        voxel, baseline = json.loads(manifest.read_text())["bases"]
         assert baseline == shipped[1]
         assert voxel["steps"] == step and voxel["command"] == "second"
         assert voxel["started_from"] == {"steps": 5000, "command": "first", "held_out": {}}
@@ -84,20 +98,8 @@ def test_export_keeps_untrained_bases_and_records_a_warm_start_once(bench, tmp_p
 
 def test_an_export_only_run_records_no_warm_start(bench, tmp_path, monkeypatch):
     shipped = [{"name": "voxel", "steps": 5000, "command": "first", "work": "old"}]
-    (tmp_path / "bases.json").write_text(json.dumps({"bases": shipped}))
-    args = SimpleNamespace(export=tmp_path, export_only=True, warm_start=True)
-    trainer = SimpleNamespace(
-        args=args, work=tmp_path / "run", run_dir=lambda n: tmp_path / n, shipped=lambda n: n
-    )
-    monkeypatch.setattr(bench, "current_step", lambda t, job: 5000)
-    monkeypatch.setattr(bench, "_export_one", lambda t, job, dest: 5000)
-    monkeypatch.setattr(bench, "_validation_rows", lambda path: [])
-    monkeypatch.setattr(
-        bench,
-        "_provenance",
-        lambda t, job, dest, step, command: {"steps": step, "command": command, "work": "run"},
-    )
-    bench.export_all(trainer, [bench.Job("voxel", 5000, 1.0)], "again", False, {"voxel"})
-    (voxel,) = json.loads((tmp_path / "bases.json").read_text())["bases"]
+    export, manifest = _fake_export(bench, tmp_path, monkeypatch, shipped, {"voxel": 5000}, True)
+    export([bench.Job("voxel", 5000, 1.0)], "again", trained={"voxel"})
+    (voxel,) = json.loads(manifest.read_text())["bases"]
     assert "started_from" not in voxel
     assert voxel["command"] == "first"  # an --export-only run keeps the training command
