@@ -39,6 +39,21 @@ def pixels_to_normalized(
     return xy
 
 
+def voxel_axis(
+    grid_size: int,
+    cube_size: float,
+    device: str | torch.device | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Offsets in mm of the voxel centres from the cube centre along one grid axis.
+
+    Returns:
+        (G,) offsets ``(index - (G - 1) / 2) * cube_size / (G - 1)``.
+    """
+    s = cube_size / (grid_size - 1)
+    return (torch.arange(grid_size, device=device, dtype=dtype) - (grid_size - 1) / 2) * s
+
+
 def voxel_offsets(
     grid_size: int,
     cube_size: float,
@@ -59,7 +74,6 @@ def voxel_offsets(
     Returns:
         (G**3, 3) offsets in mm.
     """
-    s = cube_size / (grid_size - 1)
-    ax = (torch.arange(grid_size, device=device, dtype=dtype) - (grid_size - 1) / 2) * s
+    ax = voxel_axis(grid_size, cube_size, device, dtype)
     gx, gy, gz = torch.meshgrid(ax, ax, ax, indexing="ij")
     return torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)

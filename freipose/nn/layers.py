@@ -224,15 +224,21 @@ def peak_window(probs: torch.Tensor, shape: tuple[int, ...], radius: int) -> tor
     """
     if radius <= 0:
         return probs
+    N, K = probs.shape[:2]
     peak = probs.argmax(-1)  # (N, K)
-    keep = torch.ones_like(probs, dtype=torch.bool)
+    # the window is a product of one interval per axis: build it from (N, K, size) masks
+    keep = torch.ones((N, K) + (1,) * len(shape), dtype=probs.dtype, device=probs.device)
     stride = 1
-    for size in reversed(shape):
-        cell = torch.arange(probs.shape[-1], device=probs.device) // stride % size
+    for axis in range(len(shape) - 1, -1, -1):
+        size = shape[axis]
+        cell = torch.arange(size, device=probs.device)
         centre = peak // stride % size
-        keep &= (cell[None, None, :] - centre[..., None]).abs() <= radius
+        inside = ((cell - centre[..., None]).abs() <= radius).to(probs.dtype)  # (N, K, size)
+        view = [N, K] + [1] * len(shape)
+        view[2 + axis] = size
+        keep = keep * inside.reshape(view)
         stride *= size
-    kept = probs * keep
+    kept = probs * keep.reshape(N, K, -1)
     return kept / kept.sum(-1, keepdim=True).clamp_min(1e-12)
 
 

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from freipose.nn.config import ModelConfig, ScheduleConfig
-from freipose.nn.geometry import voxel_offsets
+from freipose.nn.geometry import voxel_axis
 from freipose.nn.layers import gaussian_log_prior
 
 
@@ -65,9 +65,13 @@ def volume_cross_entropy(
         rel = rel @ rotation.float()  # world offsets -> grid axes (R^T applied per row)
     half = model.cube_size / 2
     inside = (rel.abs() <= half).all(-1) & mask
-    offs = voxel_offsets(G, model.cube_size, device=probs.device)  # (G^3, 3)
-    d2 = ((offs[None, None] - rel[:, :, None, :]) ** 2).sum(-1) / (vs * vs)  # (B, K, G^3)
-    target = torch.softmax(-d2 / (2 * model.volume_sigma**2), dim=-1)
+    # the Gaussian is a product of one factor per grid axis, and so is its normalisation:
+    # three (B, K, G) softmaxes and their outer product
+    ax = voxel_axis(G, model.cube_size, device=probs.device)
+    d2 = (ax[None, None, None, :] - rel[..., None]) ** 2 / (vs * vs)  # (B, K, 3, G)
+    f = torch.softmax(-d2 / (2 * model.volume_sigma**2), dim=-1)
+    target = f[:, :, 0, :, None, None] * f[:, :, 1, None, :, None] * f[:, :, 2, None, None, :]
+    target = target.reshape(*f.shape[:2], -1)  # (B, K, G^3)
     ce = -(target * torch.log(probs.float().clamp_min(1e-12))).sum(-1)  # (B, K)
     return _masked_mean(ce, inside)
 

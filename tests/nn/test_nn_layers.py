@@ -207,6 +207,21 @@ def test_peak_window_keeps_the_main_mode():
     assert peak_window(probs, (size, size), 0) is probs
 
 
+@pytest.mark.parametrize("shape", [(16, 16), (5, 7, 9), (11,)])
+def test_peak_window_is_the_box_around_the_peak(shape):
+    # reference: every cell's index per axis compared with the peak's, on the flat grid
+    torch.manual_seed(0)
+    n = int(np.prod(shape))
+    probs = torch.softmax(3 * torch.randn(2, 3, n), dim=-1)
+    idx = np.stack(np.unravel_index(np.arange(n), shape), -1)  # (n, D)
+    for radius in (1, 2, 4):
+        peak = idx[probs.argmax(-1).numpy()]  # (2, 3, D)
+        keep = (np.abs(idx[None, None] - peak[:, :, None]) <= radius).all(-1)
+        expected = probs * torch.from_numpy(keep)
+        expected = expected / expected.sum(-1, keepdim=True)
+        torch.testing.assert_close(peak_window(probs, shape, radius), expected)
+
+
 def test_model_decodes_windows_at_inference_only():
     from nn_toydata import toy_batch
 
@@ -335,6 +350,26 @@ def test_unprojected_peaks_meet_at_the_3d_point():
         assert np.linalg.norm(found - X) < 0.05 * vs, (found, X, vs)
     X, found, vs = _fused_peak(center, np.eye(3), shift=0.1)
     assert np.linalg.norm(found - X) > 0.2 * vs
+
+
+def test_volume_loss_is_the_cross_entropy_to_a_dense_gaussian():
+    from freipose.nn.config import ModelConfig
+    from freipose.nn.losses import volume_cross_entropy
+
+    G, cube, sigma = 10, 300.0, 1.5
+    cfg = ModelConfig(grid_size=G, cube_size=cube, unet_channels=(8,), volume_sigma=sigma)
+    torch.manual_seed(1)
+    probs = torch.softmax(2 * torch.randn(2, 4, G**3), dim=-1)
+    gt = 60 * torch.randn(2, 4, 3)
+    center = torch.tensor([[5.0, -3.0, 20.0], [0.0, 10.0, -4.0]])
+    mask = torch.ones(2, 4, dtype=torch.bool)
+    # reference: the Gaussian of every voxel's distance to the label, normalised over the grid
+    d2 = ((voxel_offsets(G, cube)[None, None] - (gt - center[:, None])[:, :, None]) ** 2).sum(-1)
+    target = torch.softmax(-d2 / (cfg.voxel_size**2 * 2 * sigma**2), dim=-1)
+    ce = -(target * probs.log()).sum(-1)
+    inside = ((gt - center[:, None]).abs() <= cube / 2).all(-1)
+    expected = torch.stack([ce[b][inside[b]].mean() for b in range(2)]).mean()
+    torch.testing.assert_close(volume_cross_entropy(probs, gt, mask, center, None, cfg), expected)
 
 
 def test_rotated_grid_decodes_and_volume_loss_prefers_the_label():
