@@ -439,6 +439,9 @@ def main(argv: list[str] | None = None) -> int:
     from freipose.io.labels import read_labels_h5
 
     torch.set_num_threads(torch_threads)
+    from freipose.workers import keep_freed_memory
+
+    keep_freed_memory()  # as the commands do (cli/_threads.py)
     kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
     if not kinds or not kinds <= {"voxel", "baseline"}:
         ap.error(f"--kinds takes voxel and/or baseline, got {args.kinds!r}")

@@ -46,6 +46,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    from freipose.workers import keep_freed_memory
+
+    keep_freed_memory()  # as the commands do (cli/_threads.py)
 
     from freipose.detect.fallback import FixedBoxes
     from freipose.io.session import discover_sessions

@@ -43,6 +43,9 @@ def main(argv: list[str] | None = None) -> int:
     from freipose.synth import default_rig
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    from freipose.workers import keep_freed_memory
+
+    keep_freed_memory()  # as the commands do (cli/_threads.py)
     rig = default_rig(args.cameras, tuple(args.size), seed=0)
     rng = np.random.default_rng(0)
     images = [

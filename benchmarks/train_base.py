@@ -470,6 +470,9 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     torch.set_num_threads(args.threads)
+    from freipose.workers import keep_freed_memory
+
+    keep_freed_memory()  # as the commands do (cli/_threads.py)
     names = {n.strip() for n in args.networks.split(",") if n.strip()}
     if not names <= set(NETWORKS):
         raise SystemExit(f"--networks: expected some of {', '.join(NETWORKS)}; got {args.networks}")

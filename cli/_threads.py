@@ -22,6 +22,10 @@ def threads_option() -> Callable[[Any], Any]:
 def use_threads(threads: int | None, workers: int = 1) -> int:
     """Choose the thread count and set it for PyTorch and OpenCV in this process.
 
+    The process also keeps the memory of freed tensors for reuse
+    (:func:`freipose.workers.keep_freed_memory`): repeated network steps run without page
+    faults.
+
     Args:
         threads: the ``--threads`` value (None: chosen from the free cores).
         workers: processes that each run that many threads.
@@ -32,9 +36,10 @@ def use_threads(threads: int | None, workers: int = 1) -> int:
     import cv2
     import torch
 
-    from freipose.workers import choose_threads
+    from freipose.workers import choose_threads, keep_freed_memory
 
     n = choose_threads(threads, workers)
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
+    keep_freed_memory()
     return n

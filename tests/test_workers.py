@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 
 import cv2
 import pytest
@@ -31,3 +32,35 @@ def test_pool_context_start_methods():
     assert pool_context(start_method="spawn").get_start_method() == "spawn"
     with pytest.raises(ValueError, match="start_method"):
         pool_context(start_method="fork")
+
+
+_REALLOCATE = """
+import resource, sys
+import torch
+from freipose.workers import keep_freed_memory
+if sys.argv[1] == "keep" and not keep_freed_memory():
+    print("unsupported"); raise SystemExit
+faults = []
+for _ in range(4):
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    a = torch.ones(16 << 20)  # 64 MB: above glibc's largest mmap threshold
+    del a
+    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+print(min(faults[1:]))
+"""
+
+
+def test_keep_freed_memory_reuses_large_blocks():
+    import subprocess
+
+    def faults(mode: str) -> str:
+        run = subprocess.run([sys.executable, "-c", _REALLOCATE, mode], capture_output=True)
+        assert run.returncode == 0, run.stderr.decode()
+        return run.stdout.decode().strip()
+
+    kept = faults("keep")
+    if kept == "unsupported":
+        pytest.skip("the C library is not glibc: keep_freed_memory changes nothing here")
+    # 64 MB is 16384 pages of 4 kB: faulted in again on every allocation by default
+    assert int(faults("default")) > 10000
+    assert int(kept) < 100
