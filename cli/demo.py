@@ -17,8 +17,8 @@ from freipose.cli._threads import threads_option, use_threads
     type=click.Choice(["small", "tiny"]),
     default="small",
     show_default=True,
-    help="small: the real workflow, about 10 min on an otherwise idle 2-core CPU with "
-    "AVX-512 (measured: 8 min 18 s to 10 min 7 s; 17 min 33 s on one with AVX2 only); other "
+    help="small: the real workflow, under 10 min on an otherwise idle 2-core CPU "
+    "(measured: 8 min 39 s on one with AVX2 only); other "
     "processes on the same cores slow it down (the thread "
     "count follows the free cores, see --threads); tiny: a few minutes, meaningless numbers "
     "(a smoke test).",

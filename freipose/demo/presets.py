@@ -152,8 +152,8 @@ _PRESETS = {
         batch=8,
         detection="bgsub",
     ),
-    # The default: the real workflow, about 10 minutes on an idle 2-core CPU with AVX-512
-    # (8:18 to 10:07), 15 to 18 on one with AVX2 only (15:25 to 17:33).
+    # The default: the real workflow, under 10 minutes on an idle 2-core CPU (8:39 with
+    # AVX2 only, session 18; the AVX-512 machines ran the 1000-step version in 8:18 to 10:07).
     "small": DemoPreset(
         name="small",
         size=(320, 256),
@@ -177,12 +177,12 @@ _PRESETS = {
         # trained already)
         pose=dict(
             preset="small",
-            steps=1000,
+            steps=600,
             lr=1e-3,
-            lr_decay_steps=667,
+            lr_decay_steps=400,
             refine_start=0.0,
             checkpoint_every=100,
-            eval_every=500,
+            eval_every=300,
             eval_samples=16,
             log_every=10,
             augment=dict(max_views=4),

@@ -66,7 +66,7 @@ def run_demo(
 
     Args:
         outdir: output folder (created).
-        preset: ``"small"`` (default, < 15 min on 2 CPU cores), ``"tiny"`` (CI) or a preset.
+        preset: ``"small"`` (default, < 10 min on 2 CPU cores), ``"tiny"`` (CI) or a preset.
         device: torch device for training and prediction.
         say: where progress messages go.
         progress: progress bars (None: only on a terminal).
