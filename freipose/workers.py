@@ -118,8 +118,9 @@ def keep_freed_memory() -> bool:
     ``mmap`` and unmaps it when freed, and returns the heap's free top to the system; a
     network step that allocates and frees the same large tensors again and again then
     spends its time in page faults that zero new pages. With ``mmap`` off and the trim
-    threshold at 1 GB the freed blocks are reused; the peak memory stays what the step needs.
-    Elsewhere than Linux with glibc nothing changes.
+    threshold at 1 GB freed blocks stay in the heap and later steps reuse them; the process
+    holds on to its peak memory instead of returning it between steps. Elsewhere than Linux
+    with glibc nothing changes.
 
     Returns:
         True where the allocator took the settings.

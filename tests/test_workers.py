@@ -40,13 +40,14 @@ import torch
 from freipose.workers import keep_freed_memory
 if sys.argv[1] == "keep" and not keep_freed_memory():
     print("unsupported"); raise SystemExit
+x = torch.ones(16 << 20)  # 64 MB: above glibc's largest mmap threshold
 faults = []
-for _ in range(4):
+for _ in range(8):  # like a network step: temporaries of 64 MB each, freed again
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    a = torch.ones(16 << 20)  # 64 MB: above glibc's largest mmap threshold
-    del a
+    y = torch.nn.functional.relu(x * 2.0) + 1.0
+    del y
     faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
-print(min(faults[1:]))
+print(sum(faults[1:]))
 """
 
 
@@ -61,6 +62,9 @@ def test_keep_freed_memory_reuses_large_blocks():
     kept = faults("keep")
     if kept == "unsupported":
         pytest.skip("the C library is not glibc: keep_freed_memory changes nothing here")
-    # 64 MB is 16384 pages of 4 kB: faulted in again on every allocation by default
-    assert int(faults("default")) > 10000
-    assert int(kept) < 100
+    # by default every temporary is a fresh mmap: 3 x 16384 pages of 4 kB per step, faulted
+    # in again each time; kept, most steps reuse freed blocks (how many depends on where
+    # small allocations land between them: 0-24 % of the default's faults in 45 runs)
+    default = int(faults("default"))
+    assert default > 7 * 2 * 16384
+    assert int(kept) < default / 2
