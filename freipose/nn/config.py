@@ -69,6 +69,11 @@ class ModelConfig:
             the soft-argmax within this many map pixels (per axis) of each map's peak, so
             that a second mode (the other ear, the other paw) does not pull them toward the
             midpoint; 0 takes the whole map. Training always decodes the whole map.
+        fusion_reject: at inference, P1 is fused a second time without the views whose
+            refined point lies more than this many voxels (:attr:`voxel_size`) from the first
+            fusion's P1 (its distance from the view's ray at P1's depth), so that one view
+            that refined onto the wrong part does not pull the point; a keypoint that no view
+            supports within it falls back to P0. 0 fuses every view (as in training).
         pretrained: optional local file with encoder weights (a state dict; loaded
             non-strictly, the missing and unexpected keys are logged).
         init: the weights a new run starts from: ``"base"`` (the base model shipped for
@@ -99,6 +104,7 @@ class ModelConfig:
     map_sigma: float = 1.0
     volume_sigma: float = 1.0
     map_window: int = 3
+    fusion_reject: float = 1.0
     pretrained: str = ""
     init: str = "base"
 
@@ -131,6 +137,11 @@ class ModelConfig:
             raise ConfigError(
                 f"model.map_window must be >= 0 (map pixels; 0: the whole map), "
                 f"got {self.map_window}"
+            )
+        if not self.fusion_reject >= 0:
+            raise ConfigError(
+                f"model.fusion_reject must be >= 0 (voxels; 0: fuse every view), "
+                f"got {self.fusion_reject}"
             )
         if self.crop_size % self.stride:
             raise ConfigError(

@@ -39,6 +39,35 @@ def pixels_to_normalized(
     return xy
 
 
+def ray_distances(
+    points: torch.Tensor,
+    uv: torch.Tensor,
+    K: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    dist: torch.Tensor | None,
+) -> torch.Tensor:
+    """Distance in mm of 3D points from the rays of their 2D observations, at their depth.
+
+    Args:
+        points: (B, P, 3) world mm.
+        uv: (B, C, P, 2) observed crop pixels of the points in each camera.
+        K: (B, C, 3, 3) affine intrinsics.
+        R: (B, C, 3, 3) camera rotations.
+        t: (B, C, 3) camera translations (mm).
+        dist: (B, C, 5) distortion coefficients, or None.
+
+    Returns:
+        (B, C, P) lateral distance of each point from each camera's ray through its
+        observation, in mm at the point's depth (the DLT residual of
+        :func:`freipose.nn.layers.triangulate_with_prior`).
+    """
+    xy = pixels_to_normalized(uv.float(), K.float(), None if dist is None else dist.float())
+    cam = torch.einsum("bcij,bpj->bcpi", R.float(), points.float()) + t.float()[:, :, None]
+    z = cam[..., 2]
+    return (xy * z[..., None] - cam[..., :2]).norm(dim=-1)
+
+
 def voxel_axis(
     grid_size: int,
     cube_size: float,

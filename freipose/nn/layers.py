@@ -15,7 +15,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from freipose.nn.geometry import pixels_to_normalized, project_affine, voxel_offsets
+from freipose.nn.geometry import (
+    pixels_to_normalized,
+    project_affine,
+    ray_distances,
+    voxel_offsets,
+)
 
 
 def norm_layer(kind: str, channels: int, dims: int = 2) -> nn.Module:
@@ -510,3 +515,44 @@ def triangulate_with_prior(
     AtA = AtA + pw[..., None, None] * eye
     Atb = Atb + pw[..., None] * prior.float()
     return torch.linalg.solve(AtA, Atb[..., None])[..., 0]
+
+
+def refuse_outlier_views(
+    P1: torch.Tensor,
+    uv: torch.Tensor,
+    conf: torch.Tensor,
+    cameras: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None],
+    prior: torch.Tensor,
+    prior_scale: torch.Tensor,
+    max_distance: float,
+    rounds: int = 2,
+) -> torch.Tensor:
+    """The fusion of :func:`triangulate_with_prior` again, without the views that disagree.
+
+    A view whose 2D point lies more than ``max_distance`` mm from the fused point ``P1``
+    (its distance from the view's ray at the point's depth, :func:`ray_distances`) is left
+    out, so that one view that refined onto the wrong body part does not pull the point;
+    a keypoint that no view supports falls back to the prior. Each further round measures
+    the distances from the last point (a good view that the wrong one had pulled the first
+    fusion away from comes back).
+
+    Args:
+        P1: (B, K, 3) the fusion of every view, world mm.
+        uv: (B, V, K, 2) crop pixels of the views.
+        conf: (B, V, K) their confidences (0 for padding views).
+        cameras: ``(K (B, V, 3, 3), R (B, V, 3, 3), t (B, V, 3), dist (B, V, 5) or None)``.
+        prior: (B, K, 3) the prior point (P0), world mm.
+        prior_scale: (1 or B, K) the prior's weight per unit of the views' confidence.
+        max_distance: mm.
+        rounds: fusions after the first.
+
+    Returns:
+        (B, K, 3) world mm.
+    """
+    Kc, R, t, dist = cameras
+    for _ in range(rounds):
+        kept = conf * (ray_distances(P1, uv, Kc, R, t, dist) <= max_distance)
+        P1 = triangulate_with_prior(
+            uv, kept, Kc, R, t, dist, prior, prior_scale * kept.sum(1) + 1e-3
+        )
+    return P1

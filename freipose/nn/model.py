@@ -11,7 +11,10 @@ the views' total confidence, one per keypoint, so P1 moves from P0 only as far a
 views agree and the refinement has earned for that keypoint).
 The refinement is residual: its map logits are added to a Gaussian log-prior around the
 projected P0, so an untrained head reproduces P0 and training learns corrections; with a
-single view the fusion keeps P0's depth (eq. 5.3).
+single view the fusion keeps P0's depth (eq. 5.3). At inference the fusion is repeated
+without the views whose refined point lies more than ``model.fusion_reject`` voxels from
+P1 (:func:`freipose.nn.layers.refuse_outlier_views`), as the baseline's triangulation
+leaves out RANSAC outliers.
 
 :class:`BaselineNet`: the comparison the paper makes (DeepLabCut + triangulation): the same
 encoder and 2D head predict every view's keypoints independently; 3D comes from robust
@@ -41,6 +44,7 @@ from freipose.nn.layers import (
     decode_head,
     gaussian_heatmaps,
     gaussian_log_prior,
+    refuse_outlier_views,
     softargmax3d,
     triangulate_with_prior,
     unproject,
@@ -243,6 +247,11 @@ class VoxelPoseNet(nn.Module):
         # inference, while the head learns corrections from the jittered one)
         prior_w = prior_log_weight.exp()[None] * conf.sum(1)  # (B, K)
         P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0.detach(), prior_w + 1e-3)
+        if not self.training and cfg.fusion_reject > 0:
+            P1 = refuse_outlier_views(
+                P1, uv, conf, (K, R, t, dist), P0.detach(), prior_log_weight.exp()[None],
+                cfg.fusion_reject * cfg.voxel_size,
+            )  # fmt: skip
         return {
             "P1": P1,
             "points2d": uv,

@@ -11,7 +11,12 @@ import torch
 from freipose.geometry import project
 from freipose.geometry.crops import crop_camera, cube_crop_boxes
 from freipose.nn.config import config_from_dict
-from freipose.nn.geometry import pixels_to_normalized, project_affine, voxel_offsets
+from freipose.nn.geometry import (
+    pixels_to_normalized,
+    project_affine,
+    ray_distances,
+    voxel_offsets,
+)
 from freipose.nn.layers import (
     Encoder2D,
     FeatureDecoder,
@@ -19,6 +24,7 @@ from freipose.nn.layers import (
     decode_head,
     gaussian_heatmaps,
     peak_window,
+    refuse_outlier_views,
     softargmax2d,
     softargmax3d,
     triangulate_with_prior,
@@ -274,6 +280,77 @@ def test_triangulation_with_prior(circle_rig, rng):
     xy = pixels_to_normalized(uv, t["K"], t["dist"])
     Xc = torch.einsum("bcij,bpj->bcpi", t["R"], X) + t["t"][:, :, None]
     torch.testing.assert_close(xy, Xc[..., :2] / Xc[..., 2:], atol=1e-5, rtol=0)
+
+
+def _rig_tensors(n: int) -> tuple[torch.Tensor, ...]:
+    rig = make_circle_rig(n=n, distortion=True)
+    return tuple(
+        torch.tensor(getattr(rig, k), dtype=torch.float32)[None] for k in ("K", "R", "t", "dist")
+    )
+
+
+def test_ray_distances_are_lateral_mm_at_the_points_depth(rng):
+    K, R, t, dist = _rig_tensors(3)
+    X = torch.tensor(rng.normal(0, 50, size=(1, 4, 3)), dtype=torch.float32)
+    uv, _ = project_affine(X, K, R, t, dist)
+    torch.testing.assert_close(
+        ray_distances(X, uv, K, R, t, dist), torch.zeros(1, 3, 4), atol=1e-3, rtol=0
+    )
+    # moved 7 mm along camera 0's x axis: 7 mm from camera 0's ray
+    moved = X + 7.0 * R[0, 0, 0]
+    d = ray_distances(moved, uv, K, R, t, dist)
+    torch.testing.assert_close(d[:, 0], torch.full((1, 4), 7.0), atol=1e-2, rtol=0)
+    # along camera 0's viewing direction the point stays on its ray
+    cam = torch.einsum("ij,pj->pi", R[0, 0], X[0]) + t[0, 0]
+    ray = (X[0] + 0.0) - (-R[0, 0].T @ t[0, 0])
+    along = X + 40.0 * ray / ray.norm(dim=-1, keepdim=True)
+    assert float(ray_distances(along, uv, K, R, t, dist)[:, 0].abs().max()) < 1e-2
+    assert bool((cam[:, 2] > 0).all())
+
+
+def test_refuse_outlier_views_ignores_a_view_on_the_wrong_part(rng):
+    K, R, t, dist = _rig_tensors(5)
+    X = torch.tensor(rng.normal(0, 50, size=(1, 3, 3)), dtype=torch.float32)
+    uv, _ = project_affine(X, K, R, t, dist)
+    wrong, _ = project_affine(X + torch.tensor([60.0, -40.0, 20.0]), K, R, t, dist)
+    uv = uv.clone()
+    uv[:, 2, 0] = wrong[:, 2, 0]  # view 2 refined keypoint 0 onto another part, confidently
+    conf = torch.ones(1, 5, 3)
+    prior = X + 5.0
+    scale = torch.full((1, 3), 0.1)
+    P1 = triangulate_with_prior(uv, conf, K, R, t, dist, prior, scale * conf.sum(1))
+    assert float((P1[:, 0] - X[:, 0]).norm()) > 5.0  # the wrong view pulls the fusion
+    fixed = refuse_outlier_views(P1, uv, conf, (K, R, t, dist), prior, scale, 10.0)
+    good = conf.clone()
+    good[:, 2, 0] = 0.0
+    without = triangulate_with_prior(uv, good, K, R, t, dist, prior, scale * good.sum(1) + 1e-3)
+    torch.testing.assert_close(fixed[:, 0], without[:, 0], atol=1e-3, rtol=0)
+    assert float((fixed[:, 0] - X[:, 0]).norm()) < 1.5  # the prior's pull, 5 mm away
+    # the keypoints every view agrees on are fused as before
+    torch.testing.assert_close(fixed[:, 1:], P1[:, 1:], atol=5e-3, rtol=0)
+    # no view within the distance: the prior
+    none = refuse_outlier_views(P1, uv, conf, (K, R, t, dist), prior, scale, 1e-6)
+    torch.testing.assert_close(none, prior, atol=1e-3, rtol=0)
+
+
+def test_model_refuses_outlier_views_at_inference_only():
+    from nn_toydata import toy_batch
+
+    cfg = config_from_dict({"model": {"preset": "tiny", "fusion_reject": 0}}).model
+    torch.manual_seed(0)
+    every = build_model(cfg, 3)
+    refusing = build_model(replace(cfg, fusion_reject=0.05), 3)
+    refusing.load_state_dict(every.state_dict())
+    b = toy_batch(cfg, 2, cams=3)
+    with torch.no_grad():
+        torch.testing.assert_close(every(b)["P1"], refusing(b)["P1"])  # training mode
+        every.eval(), refusing.eval()
+        a, r = every(b), refusing(b)
+    torch.testing.assert_close(a["points2d"], r["points2d"])
+    torch.testing.assert_close(a["confidence"], r["confidence"])
+    assert float((a["P1"] - r["P1"]).abs().max()) > 1e-3
+    with pytest.raises(Exception, match="fusion_reject"):
+        config_from_dict({"model": {"preset": "tiny", "fusion_reject": -1}})
 
 
 def _fused_peak(center, grid_rot, shift=0.0):
