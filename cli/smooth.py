@@ -75,13 +75,15 @@ def smooth(
 
     Each keypoint follows a constant-velocity Kalman smoother whose measurement noise
     grows as the frame's confidence falls; its parameters are fitted on the recording,
-    and its process noise rises where the keypoint moves faster than that (brief fast
-    movements are kept). Frames without a prediction are filled (extra/filled), outliers
-    rejected (extra/rejected), and extra/smooth_std holds the posterior standard
-    deviation in mm per axis. Without --validation it covers only the frame-to-frame
-    noise; with --validation and --model it also covers the network's persistent error,
-    measured on held-out labels. The output has the poses.h5 schema; analyze, export and
-    render read it.
+    and its process noise rises where the keypoint moves clearly faster than that over
+    several frames (a large fast oscillation is kept; a small one may be damped). Frames
+    without a prediction are filled (extra/filled), outliers rejected (extra/rejected; a
+    warning names the keypoints with more than 2 % of their predictions rejected: the
+    fitted model does not describe their motion, so compare the smoothed track with the
+    raw one), and extra/smooth_std holds the posterior standard deviation in mm per axis.
+    Without --validation it covers only the frame-to-frame noise; with --validation and
+    --model it also covers the network's persistent error, measured on held-out labels.
+    The output has the poses.h5 schema; analyze, export and render read it.
 
     \b
     Example:

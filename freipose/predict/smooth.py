@@ -8,7 +8,10 @@ little; frames without a prediction have no measurement and are filled by the sm
 A measurement whose innovation is improbable under the filter (Mahalanobis distance over
 the three axes above the 99.9 % point of chi-square with 3 degrees of freedom) is
 rejected as an outlier; after :data:`MAX_REJECT_RUN` rejections in a row the keypoint is
-taken as lost and the filter restarts from the next measurement. A Rauch-Tung-Striebel
+taken as lost and the filter restarts from the next measurement. Where many more
+predictions of a keypoint are rejected than the gate would reject under the model
+(:func:`misfit_warning`), the model does not describe that keypoint's motion: the smoother
+logs a warning and writes it into the provenance. A Rauch-Tung-Striebel
 pass gives the posterior mean and variance of every frame; being a forward-backward
 smoother it adds no lag.
 
@@ -38,6 +41,7 @@ candidates at once as arrays.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,6 +66,9 @@ ADAPT_WINDOW = 9
 ADAPT_THRESHOLD = 4.0
 MAX_Q_SCALE = 1e5
 MAX_REJECT_RUN = 3
+MISFIT_REJECTED = 0.02
+
+log = logging.getLogger(__name__)
 
 
 class SmoothingError(FreiPoseError):
@@ -393,6 +400,34 @@ def smooth_arrays(
     )
 
 
+def misfit_warning(res: SmoothResult, keypoints: tuple[str, ...]) -> str | None:
+    """A warning when the smoother rejected many more predictions than its gate would.
+
+    Under the fitted noise model the outlier gate rejects about 0.1 % of the predictions;
+    where more than :data:`MISFIT_REJECTED` of a keypoint's predictions were rejected, the
+    model does not describe that keypoint's poses (typically a movement faster than the
+    process noise fitted on the rest of the recording), and the smoothed track may have
+    damped or dropped real motion.
+
+    Returns:
+        The warning naming those keypoints and their rejected fractions, or None.
+    """
+    n = np.maximum((~res.filled).sum(axis=0), 1)
+    frac = res.rejected.sum(axis=0) / n
+    bad = [
+        f"{k} {100 * f:.0f} %" for k, f in zip(keypoints, frac, strict=True) if f > MISFIT_REJECTED
+    ]
+    if not bad:
+        return None
+    return (
+        f"the smoother rejected more than {100 * MISFIT_REJECTED:.0f} % of the predictions of "
+        f"{len(bad)} keypoints as outliers ({', '.join(bad)}; its noise model rejects about "
+        "0.1 %): the model fitted on the recording does not describe their motion, and the "
+        "smoothed track may have damped or dropped fast real movements; compare it with the "
+        "raw poses before analysing it"
+    )
+
+
 def frame_intervals(frame_index: np.ndarray, fps: float) -> np.ndarray:
     """(T,) seconds between consecutive frames (the first is 1 / fps)."""
     steps = np.diff(np.asarray(frame_index, np.int64), prepend=frame_index[0] - 1)
@@ -486,6 +521,10 @@ def smooth_poses(
         "params": res.params.as_dict(data.keypoints),
         "source": source,
     }
+    warning = misfit_warning(res, data.keypoints)
+    if warning is not None:
+        log.warning("%s: %s", source or "poses", warning)
+        prov["smoother"]["warning"] = warning
     if persistent is not None:
         prov["smoother"]["persistent_error"] = persistent
     if bone_entry is not None:

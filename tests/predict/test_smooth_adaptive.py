@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from freipose.predict.smooth import smooth_arrays
+from freipose.predict.smooth import MISFIT_REJECTED, misfit_warning, smooth_arrays
 
 T, FPS = 800, 25.0
 
@@ -62,3 +62,13 @@ def test_lost_keypoint_reacquired():
     res = smooth_arrays(z, conf, np.full(T, 1 / FPS), adaptive=False)
     assert res.rejected[:, 1].sum() < 10
     np.testing.assert_allclose(res.mean[420:, 1], truth[420:, 1] + 200.0, atol=6.0)
+
+
+def test_misfit_warning_names_the_keypoints_whose_motion_the_model_rejects(bursts):
+    t, on, truth, z, res, fixed = bursts
+    names = ("burst", "slow a", "slow b")
+    assert misfit_warning(res, names) is None  # the adaptive process noise follows the burst
+    rejected = fixed.rejected.mean(axis=0)
+    assert rejected[0] > MISFIT_REJECTED > rejected[1:].max()
+    warning = misfit_warning(fixed, names)
+    assert warning is not None and "burst" in warning and "slow" not in warning
