@@ -18,7 +18,7 @@ from freipose.cli._threads import threads_option, use_threads
     default="small",
     show_default=True,
     help="small: the real workflow, under 10 min on an otherwise idle 2-core CPU "
-    "(measured: 8 min 39 s on one with AVX2 only); other "
+    "(measured: 7 min 38 s on one with AVX2 only); other "
     "processes on the same cores slow it down (the thread "
     "count follows the free cores, see --threads); tiny: a few minutes, meaningless numbers "
     "(a smoke test).",
