@@ -401,31 +401,22 @@ def smooth_arrays(
 
 
 def misfit_warning(res: SmoothResult, keypoints: tuple[str, ...]) -> str | None:
-    """A warning when the smoother rejected many more predictions than its gate would.
+    """The keypoints with more than :data:`MISFIT_REJECTED` of their predictions rejected.
 
-    Under the fitted noise model the outlier gate rejects about 0.1 % of the predictions;
-    where more than :data:`MISFIT_REJECTED` of a keypoint's predictions were rejected, the
-    model does not describe that keypoint's poses (typically a movement faster than the
-    process noise fitted on the rest of the recording), and the smoothed track may have
-    damped or dropped real motion.
-
-    Returns:
-        The warning naming those keypoints and their rejected fractions, or None.
+    The gate rejects about 0.1 % of what fits the fitted model; far more means that the
+    model does not describe the keypoint's motion, and the smoothed track may have damped
+    or dropped fast real movements. Returns the warning, or None.
     """
-    n = np.maximum((~res.filled).sum(axis=0), 1)
-    frac = res.rejected.sum(axis=0) / n
-    bad = [
-        f"{k} {100 * f:.0f} %" for k, f in zip(keypoints, frac, strict=True) if f > MISFIT_REJECTED
-    ]
-    if not bad:
-        return None
-    return (
+    frac = res.rejected.sum(axis=0) / np.maximum((~res.filled).sum(axis=0), 1)
+    bad = [f"{k} {100 * f:.0f} %" for k, f in zip(keypoints, frac, strict=True)]
+    bad = [b for b, f in zip(bad, frac, strict=True) if f > MISFIT_REJECTED]
+    return None if not bad else (
         f"the smoother rejected more than {100 * MISFIT_REJECTED:.0f} % of the predictions of "
         f"{len(bad)} keypoints as outliers ({', '.join(bad)}; its noise model rejects about "
         "0.1 %): the model fitted on the recording does not describe their motion, and the "
         "smoothed track may have damped or dropped fast real movements; compare it with the "
         "raw poses before analysing it"
-    )
+    )  # fmt: skip
 
 
 def frame_intervals(frame_index: np.ndarray, fps: float) -> np.ndarray:
