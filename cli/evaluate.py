@@ -44,6 +44,12 @@ if TYPE_CHECKING:
     "--center-noise", type=float, default=0.0, show_default=True,
     help="Std (mm) of Gaussian noise added to the cube centre (mimics detector error).",
 )  # fmt: skip
+@click.option(
+    "--fusion-reject", type=float,
+    help="VOXELS: the voxel network's P1 leaves out the views whose refined point lies "
+    "farther than this from the first fusion (0: every view); default: the checkpoint's "
+    "model.fusion_reject. Compare both on your held-out labels.",
+)  # fmt: skip
 @click.pass_context
 def evaluate(
     ctx: click.Context,
@@ -56,6 +62,7 @@ def evaluate(
     device: str,
     batch_size: int,
     center_noise: float,
+    fusion_reject: float | None,
 ) -> None:
     """Evaluate a pose network against 3D labels (JPE median, 30/70 % percentiles, PCK).
 
@@ -93,7 +100,7 @@ def evaluate(
         methods = {"": ckpt} if baseline is None else {"": ckpt, "baseline": baseline}
         ev = evaluate_checkpoints(
             methods, labels, root=root, device=device, batch_size=batch_size,
-            center_noise=center_noise, progress=not quiet,
+            center_noise=center_noise, progress=not quiet, fusion_reject=fusion_reject,
         )  # fmt: skip
         train3d = _training_points(ev, train_labels)
         sanity = sanity_checks(ev, train3d)

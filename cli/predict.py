@@ -49,6 +49,12 @@ from freipose.errors import FreiPoseError
     help="Report the refined pose (P1) or the 3D network's initial pose (P0).",
 )
 @click.option(
+    "--fusion-reject",
+    type=float,
+    help="VOXELS: P1 leaves out the views whose refined point lies farther than this from "
+    "the first fusion (0: every view); default: the model's model.fusion_reject.",
+)
+@click.option(
     "--shard",
     help="I/N: process only the I-th (0-based) of N contiguous parts of the frames; join the "
     "parts with `freipose merge`.",
@@ -82,6 +88,7 @@ def predict(
     batch: int,
     device: str,
     refine: bool,
+    fusion_reject: float | None,
     shard: str | None,
     skeleton: str | None,
     smooth: bool,
@@ -139,6 +146,7 @@ def predict(
             batch_size=batch,
             device=device,
             refine=refine,
+            fusion_reject=fusion_reject,
             shard=shard_t,
             overwrite=overwrite,
             expected_skeleton=load_skeleton(skeleton) if skeleton else None,

@@ -111,7 +111,7 @@ def _held_out_error(
 ) -> HeldOutError | None:
     """The network's error on the held-out labels (None without ``--validation``)."""
     from freipose.predict.smooth import SmoothingError, check_same_model
-    from freipose.predict.smooth_error import model_validation_error
+    from freipose.predict.smooth_error import model_validation_error, poses_fusion_reject
 
     if validation is None and model is None:
         return None
@@ -121,6 +121,9 @@ def _held_out_error(
             "that predicted the poses (pass both, or neither)"
         )
     refine = check_same_model(poses, model)
-    err = model_validation_error(model, validation, refine=refine, device=device)
+    fusion = poses_fusion_reject(poses)
+    err = model_validation_error(
+        model, validation, refine=refine, device=device, fusion_reject=fusion
+    )
     click.echo(f"held-out error of the network: {err.source}")
     return err

@@ -211,7 +211,10 @@ def serialize_checkpoint(ckpt: dict[str, Any]) -> bytes:
 
 
 def load_checkpoint(
-    path: str | Path, device: str | torch.device = "cpu", option: str | None = None
+    path: str | Path,
+    device: str | torch.device = "cpu",
+    option: str | None = None,
+    fusion_reject: float | None = None,
 ) -> tuple[nn.Module, TrainConfig, Skeleton]:
     """Load a trained network for inference.
 
@@ -219,6 +222,8 @@ def load_checkpoint(
         path: a checkpoint written by ``freipose train``.
         device: where the network runs.
         option: the option (or argument) that named the file, for the messages.
+        fusion_reject: ``model.fusion_reject`` for this inference instead of the training
+            config's (it acts at inference only; the returned config holds the value used).
 
     Returns:
         ``(model, config, skeleton)``: the network in eval mode on ``device``, its
@@ -227,9 +232,13 @@ def load_checkpoint(
     Raises:
         InputFileError: no such file.
         CheckpointError: see :func:`read_checkpoint`.
+        ConfigError: a negative ``fusion_reject``.
     """
     ckpt = read_checkpoint(path, option)
     config = config_from_dict(ckpt["config"])
+    if fusion_reject is not None:
+        model_cfg = dataclasses.replace(config.model, fusion_reject=float(fusion_reject))
+        config = dataclasses.replace(config, model=model_cfg)
     skeleton = skeleton_from_dict(ckpt["skeleton"], f"{path}:skeleton")
     model = build_model(dataclasses.replace(config.model, pretrained=""), len(skeleton.keypoints))
     model.load_state_dict(ckpt["model"])

@@ -156,6 +156,7 @@ def evaluate_checkpoints(
     batch_size: int = 4,
     center_noise: float = 0.0,
     progress: bool = False,
+    fusion_reject: float | None = None,
 ) -> Evaluation:
     """Joint position errors of trained networks on a labels file (``freipose eval``).
 
@@ -168,6 +169,8 @@ def evaluate_checkpoints(
         batch_size: samples per forward pass.
         center_noise: std (mm) of Gaussian noise added to each cube centre.
         progress: show progress bars.
+        fusion_reject: ``model.fusion_reject`` of the voxel networks' P1 instead of their
+            checkpoints' (None: their own).
 
     Returns:
         The predictions and errors of every network.
@@ -186,7 +189,7 @@ def evaluate_checkpoints(
     gt = np.zeros((0, len(lab.keypoints), 3))
     skel = Skeleton(name="labels", keypoints=tuple(lab.keypoints))
     for name, path in checkpoints.items():
-        model, config, skeleton = load_checkpoint(path, device)
+        model, config, skeleton = load_checkpoint(path, device, fusion_reject=fusion_reject)
         if tuple(skeleton.keypoints) != tuple(lab.keypoints):
             raise EvaluationError(
                 f"{path}: the network predicts keypoints {list(skeleton.keypoints)} but "

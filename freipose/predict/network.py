@@ -186,12 +186,15 @@ class NetworkEstimator:
         )
 
 
-def load_model(model_path: str | Path, device: str = "cpu") -> tuple[Any, Any, Skeleton, str]:
+def load_model(
+    model_path: str | Path, device: str = "cpu", fusion_reject: float | None = None
+) -> tuple[Any, Any, Skeleton, str]:
     """Load a pose checkpoint for prediction.
 
     Args:
         model_path: the checkpoint.
         device: where the network runs.
+        fusion_reject: ``model.fusion_reject`` instead of the checkpoint's (None: its own).
 
     Returns:
         ``(model, config, skeleton, sha256 of the file)``.
@@ -202,11 +205,12 @@ def load_model(model_path: str | Path, device: str = "cpu") -> tuple[Any, Any, S
         PredictError: weights that do not fit the network (e.g. a hand-edited file).
     """
     from freipose.nn.checkpoint import load_checkpoint
+    from freipose.nn.config import ConfigError
 
     path = Path(model_path)
     try:
-        model, config, skeleton = load_checkpoint(path, device)
-    except (FileNotFoundError, ValueError):
+        model, config, skeleton = load_checkpoint(path, device, fusion_reject=fusion_reject)
+    except (FileNotFoundError, ValueError, ConfigError):
         raise
     except Exception as exc:  # noqa: BLE001 - e.g. state-dict mismatches in a hand-edited file
         raise PredictError(f"{path}: cannot load the pose network ({exc})") from exc
@@ -302,6 +306,7 @@ def predict_sessions(
     batch_size: int = 8,
     device: str = "auto",
     refine: bool = True,
+    fusion_reject: float | None = None,
     shard: tuple[int, int] | None = None,
     overwrite: bool = False,
     expected_skeleton: Skeleton | None = None,
@@ -323,6 +328,8 @@ def predict_sessions(
         batch_size: time steps per network call.
         device: ``cpu``, ``cuda``, ``cuda:N`` or ``auto``.
         refine: report P1 (default) or P0.
+        fusion_reject: ``model.fusion_reject`` of the voxel network's P1 instead of the
+            checkpoint's (None: its own); the value used is in the provenance.
         shard: ``(i, n)``: predict shard i of n.
         overwrite: redo complete outputs.
         expected_skeleton: the keypoints the model must predict (None: any).
@@ -335,7 +342,7 @@ def predict_sessions(
     dev = resolve_device(device)
     bounds = {s.name: frame_range(frames, s.num_frames) for s in sessions}
     ranges = {name: (r.start, r.stop) for name, r in bounds.items()}
-    net, config, skel, sha = load_model(model_path, dev)
+    net, config, skel, sha = load_model(model_path, dev, fusion_reject)
     check_keypoints(skel, expected_skeleton, model_path)
     if spec.method == "auto" and spec.labels is None and config.data.labels:
         spec = dataclasses.replace(spec, labels=Path(config.data.labels))  # the training labels
@@ -351,6 +358,8 @@ def predict_sessions(
         "refine": refine,
         **spec.describe(),
     }
+    if config.model.kind == "voxel" and refine:
+        provenance["fusion_reject"] = config.model.fusion_reject
     results = []
     for s in sessions:
         out = output_path(outdir, s.name, shard)

@@ -105,6 +105,7 @@ def model_validation_error(
     device: str = "cpu",
     batch_size: int = 4,
     max_instants: int | None = None,
+    fusion_reject: float | None = None,
 ) -> HeldOutError:
     """Predict the 3D-labeled instants of ``labels_path`` and measure the error.
 
@@ -117,6 +118,8 @@ def model_validation_error(
         device: torch device.
         batch_size: instants per forward pass.
         max_instants: predict at most this many instants, evenly spread (None: all).
+        fusion_reject: the ``model.fusion_reject`` the poses were predicted with (None: the
+            checkpoint's; :func:`poses_fusion_reject`).
 
     Raises:
         ValidationLabelsError: the labels have no usable instant, or too few per keypoint.
@@ -129,7 +132,7 @@ def model_validation_error(
 
     labels_path = Path(labels_path)
     labels = read_labels_h5(labels_path)
-    model, _, skeleton = load_checkpoint(model_path, device)
+    model, _, skeleton = load_checkpoint(model_path, device, fusion_reject=fusion_reject)
     if tuple(labels.keypoints) != tuple(skeleton.keypoints):
         raise ValidationLabelsError(
             f"--validation {labels_path} has keypoints {list(labels.keypoints)}, the model "
@@ -148,6 +151,24 @@ def model_validation_error(
     which = "P1" if refine else "P0"
     what = f"{which} of {Path(model_path).name} on {len(pred['index'])} instants of {labels_path}"
     return validation_error(pred[which], pred["gt"], skeleton.keypoints, what)
+
+
+def poses_fusion_reject(poses: Sequence[Path]) -> float | None:
+    """The ``model.fusion_reject`` that predicted the poses files (None: not recorded).
+
+    Raises:
+        ValidationLabelsError: the files were predicted with different values.
+    """
+    from freipose.io.poses import read_poses_h5
+
+    seen = {read_poses_h5(p).provenance.get("fusion_reject") for p in poses}
+    if len(seen) > 1:
+        raise ValidationLabelsError(
+            f"the poses files were predicted with different --fusion-reject values "
+            f"{sorted(map(str, seen))}; smooth them separately"
+        )
+    value = seen.pop() if seen else None
+    return None if value is None else float(value)
 
 
 def fit_error_floor(

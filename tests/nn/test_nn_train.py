@@ -233,6 +233,19 @@ def test_train_and_eval_commands(tmp_path):
     assert "voxel_P1 vs baseline: " in r.output
     for f in ("pck.csv", "pck.png", "jpe_boxplot.png", "jpe_per_keypoint.csv"):
         assert (tmp_path / "ev" / f).stat().st_size > 0
+    # --fusion-reject overrides the checkpoint's setting for this evaluation: P0 is the same
+    ev_args = [
+        "-q",
+        "eval",
+        str(tmp_path / "run" / "model.pt"),
+        str(tmp_path / "eval" / "labels.h5"),
+    ]
+    r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev0"), "--fusion-reject", "0"])
+    assert r.exit_code == 0, r.output
+    m0 = json.loads((tmp_path / "ev0" / "metrics.json").read_text())
+    assert m0["voxel_P0"]["overall"] == m["voxel_P0"]["overall"]
+    r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev1"), "--fusion-reject", "-1"])
+    assert r.exit_code != 0 and "fusion_reject must be >= 0" in r.output
     # errors are user errors, not tracebacks
     r = runner.invoke(cli, ["train", str(cfg), "--out", str(tmp_path / "run")])
     assert r.exit_code != 0 and "--resume" in r.output

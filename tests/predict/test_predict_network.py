@@ -166,3 +166,23 @@ def test_wrong_checkpoints_and_skeleton_fail_before_work(trained, tmp_path):
     res = _run([*base, "--model", str(model), "--method", "detector"])  # (no option: auto)
     assert res.exit_code != 0 and "--detector CKPT" in res.output
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_predict_fusion_reject_is_recorded_and_smoothing_matches_it(trained, tmp_path):
+    from freipose.predict.smooth_error import ValidationLabelsError, poses_fusion_reject
+
+    model, session, _ = trained
+    base = ["predict", str(session), "--model", str(model), "--method", "bgsub", "--device",
+            "cpu", "--batch", "4", "--frames", "0:8"]  # fmt: skip
+    for name, value in (("every", "0"), ("near", "0.2")):
+        res = _run([*base, "-o", str(tmp_path / name), "--fusion-reject", value])
+        assert res.exit_code == 0, res.output
+    every = tmp_path / "every" / "toy.poses.h5"
+    near = tmp_path / "near" / "toy.poses.h5"
+    assert read_poses_h5(every).provenance["fusion_reject"] == 0.0
+    assert read_poses_h5(near).provenance["fusion_reject"] == pytest.approx(0.2)
+    assert poses_fusion_reject([near, near]) == pytest.approx(0.2)
+    with pytest.raises(ValidationLabelsError, match="different --fusion-reject"):
+        poses_fusion_reject([every, near])
+    res = CliRunner().invoke(cli, [*base, "-o", str(tmp_path / "bad"), "--fusion-reject", "-1"])
+    assert res.exit_code != 0 and "fusion_reject must be >= 0" in res.output
