@@ -228,20 +228,26 @@ def test_peak_window_is_the_box_around_the_peak(shape):
         torch.testing.assert_close(peak_window(probs, shape, radius), expected)
 
 
-def test_model_decodes_windows_at_inference_only():
+def _twin_outputs(key: str, off: float, on: float) -> tuple[tuple[dict, dict], tuple[dict, dict]]:
+    """Outputs of two tiny networks with the same weights that differ in one inference
+    setting ``model.<key>`` (``off`` vs ``on``): ``(training mode, eval mode)`` pairs."""
     from nn_toydata import toy_batch
 
-    cfg = config_from_dict({"model": {"preset": "tiny", "map_window": 0}}).model
+    cfg = config_from_dict({"model": {"preset": "tiny", key: off}}).model
     torch.manual_seed(0)
-    whole = build_model(cfg, 3)
-    windowed = build_model(replace(cfg, map_window=1), 3)
-    windowed.load_state_dict(whole.state_dict())
-    b = toy_batch(cfg, 2, cams=3)
+    a = build_model(cfg, 3)
+    b = build_model(replace(cfg, **{key: on}), 3)
+    b.load_state_dict(a.state_dict())
+    batch = toy_batch(cfg, 2, cams=3)
     with torch.no_grad():
-        train_a, train_b = whole(b), windowed(b)  # training mode: the whole maps
-        torch.testing.assert_close(train_a["P1"], train_b["P1"])
-        whole.eval(), windowed.eval()
-        eval_a, eval_b = whole(b), windowed(b)
+        train = a(batch), b(batch)
+        a.eval(), b.eval()
+        return train, (a(batch), b(batch))
+
+
+def test_model_decodes_windows_at_inference_only():
+    (train_a, train_b), (eval_a, eval_b) = _twin_outputs("map_window", 0, 1)
+    torch.testing.assert_close(train_a["P1"], train_b["P1"])  # training: the whole maps
     torch.testing.assert_close(eval_a["P0"], eval_b["P0"])  # P0 decodes the whole volume
     assert float((eval_a["points2d"] - eval_b["points2d"]).abs().max()) > 1e-3
     torch.testing.assert_close(eval_a["confidence2d"], eval_b["confidence2d"])
@@ -250,43 +256,40 @@ def test_model_decodes_windows_at_inference_only():
         config_from_dict({"model": {"preset": "tiny", "map_window": -1}})
 
 
-def test_triangulation_with_prior(circle_rig, rng):
-    rig = make_circle_rig(n=4, distortion=True)
-    X = torch.tensor(rng.normal(0, 50, size=(1, 5, 3)), dtype=torch.float32)
-    t = {
-        k: torch.tensor(getattr(rig, k), dtype=torch.float32)[None] for k in ("K", "R", "t", "dist")
-    }
-    uv, _ = project_affine(X, t["K"], t["R"], t["t"], t["dist"])
-    w = torch.ones(1, 4, 5)
-    prior = X + 30.0
-    Xh = triangulate_with_prior(uv, w, t["K"], t["R"], t["t"], t["dist"], prior)
-    torch.testing.assert_close(Xh, X, atol=0.05, rtol=0)
-    # a single view: the point on that view's ray nearest the prior
-    w1 = torch.zeros(1, 4, 5)
-    w1[:, 0] = 1.0
-    X1 = triangulate_with_prior(uv, w1, t["K"], t["R"], t["t"], t["dist"], prior)
-    uv1, _ = project_affine(X1, t["K"], t["R"], t["t"], t["dist"])
-    torch.testing.assert_close(uv1[:, 0], uv[:, 0], atol=0.05, rtol=0)
-    assert float((X1 - X).norm(dim=-1).max()) < float((prior - X).norm(dim=-1).max())
-    # a per-point prior weight: huge keeps the prior, tiny the triangulation, in between
-    # the point lies between the two
-    pw = torch.tensor([[1e9, 1e-6, 4.0, 4.0, 4.0]])
-    Xp = triangulate_with_prior(uv, w, t["K"], t["R"], t["t"], t["dist"], prior, pw)
-    torch.testing.assert_close(Xp[:, 0], prior[:, 0], atol=1e-3, rtol=0)
-    torch.testing.assert_close(Xp[:, 1], X[:, 1], atol=0.05, rtol=0)
-    d_mid = (Xp[:, 2:] - X[:, 2:]).norm(dim=-1)
-    assert bool((d_mid > 0.1).all() and (d_mid < 30.0 * 3**0.5 - 0.1).all())
-    # undistortion inverts distortion
-    xy = pixels_to_normalized(uv, t["K"], t["dist"])
-    Xc = torch.einsum("bcij,bpj->bcpi", t["R"], X) + t["t"][:, :, None]
-    torch.testing.assert_close(xy, Xc[..., :2] / Xc[..., 2:], atol=1e-5, rtol=0)
-
-
 def _rig_tensors(n: int) -> tuple[torch.Tensor, ...]:
     rig = make_circle_rig(n=n, distortion=True)
     return tuple(
         torch.tensor(getattr(rig, k), dtype=torch.float32)[None] for k in ("K", "R", "t", "dist")
     )
+
+
+def test_triangulation_with_prior(circle_rig, rng):
+    K, R, t, dist = _rig_tensors(4)
+    X = torch.tensor(rng.normal(0, 50, size=(1, 5, 3)), dtype=torch.float32)
+    uv, _ = project_affine(X, K, R, t, dist)
+    w = torch.ones(1, 4, 5)
+    prior = X + 30.0
+    Xh = triangulate_with_prior(uv, w, K, R, t, dist, prior)
+    torch.testing.assert_close(Xh, X, atol=0.05, rtol=0)
+    # a single view: the point on that view's ray nearest the prior
+    w1 = torch.zeros(1, 4, 5)
+    w1[:, 0] = 1.0
+    X1 = triangulate_with_prior(uv, w1, K, R, t, dist, prior)
+    uv1, _ = project_affine(X1, K, R, t, dist)
+    torch.testing.assert_close(uv1[:, 0], uv[:, 0], atol=0.05, rtol=0)
+    assert float((X1 - X).norm(dim=-1).max()) < float((prior - X).norm(dim=-1).max())
+    # a per-point prior weight: huge keeps the prior, tiny the triangulation, in between
+    # the point lies between the two
+    pw = torch.tensor([[1e9, 1e-6, 4.0, 4.0, 4.0]])
+    Xp = triangulate_with_prior(uv, w, K, R, t, dist, prior, pw)
+    torch.testing.assert_close(Xp[:, 0], prior[:, 0], atol=1e-3, rtol=0)
+    torch.testing.assert_close(Xp[:, 1], X[:, 1], atol=0.05, rtol=0)
+    d_mid = (Xp[:, 2:] - X[:, 2:]).norm(dim=-1)
+    assert bool((d_mid > 0.1).all() and (d_mid < 30.0 * 3**0.5 - 0.1).all())
+    # undistortion inverts distortion
+    xy = pixels_to_normalized(uv, K, dist)
+    Xc = torch.einsum("bcij,bpj->bcpi", R, X) + t[:, :, None]
+    torch.testing.assert_close(xy, Xc[..., :2] / Xc[..., 2:], atol=1e-5, rtol=0)
 
 
 def test_ray_distances_are_lateral_mm_at_the_points_depth(rng):
@@ -302,7 +305,7 @@ def test_ray_distances_are_lateral_mm_at_the_points_depth(rng):
     torch.testing.assert_close(d[:, 0], torch.full((1, 4), 7.0), atol=1e-2, rtol=0)
     # along camera 0's viewing direction the point stays on its ray
     cam = torch.einsum("ij,pj->pi", R[0, 0], X[0]) + t[0, 0]
-    ray = (X[0] + 0.0) - (-R[0, 0].T @ t[0, 0])
+    ray = X[0] + R[0, 0].T @ t[0, 0]  # from camera 0's centre -R^T t to the points
     along = X + 40.0 * ray / ray.norm(dim=-1, keepdim=True)
     assert float(ray_distances(along, uv, K, R, t, dist)[:, 0].abs().max()) < 1e-2
     assert bool((cam[:, 2] > 0).all())
@@ -334,18 +337,8 @@ def test_refuse_outlier_views_ignores_a_view_on_the_wrong_part(rng):
 
 
 def test_model_refuses_outlier_views_at_inference_only():
-    from nn_toydata import toy_batch
-
-    cfg = config_from_dict({"model": {"preset": "tiny", "fusion_reject": 0}}).model
-    torch.manual_seed(0)
-    every = build_model(cfg, 3)
-    refusing = build_model(replace(cfg, fusion_reject=0.05), 3)
-    refusing.load_state_dict(every.state_dict())
-    b = toy_batch(cfg, 2, cams=3)
-    with torch.no_grad():
-        torch.testing.assert_close(every(b)["P1"], refusing(b)["P1"])  # training mode
-        every.eval(), refusing.eval()
-        a, r = every(b), refusing(b)
+    (train_a, train_r), (a, r) = _twin_outputs("fusion_reject", 0, 0.05)
+    torch.testing.assert_close(train_a["P1"], train_r["P1"])  # training mode
     torch.testing.assert_close(a["points2d"], r["points2d"])
     torch.testing.assert_close(a["confidence"], r["confidence"])
     assert float((a["P1"] - r["P1"]).abs().max()) > 1e-3
