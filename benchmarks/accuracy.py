@@ -285,7 +285,7 @@ def _parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="TABLE.KEY=VALUE",
-        help="override a [model] or [schedule] key of the preset (TOML value), e.g. "
+        help="override a [model], [schedule] or [augment] key of the preset (TOML value), e.g. "
         "--set model.unproject_levels=1; repeatable",
     )
     return ap
@@ -306,11 +306,15 @@ def _base_config(ap: argparse.ArgumentParser, args: argparse.Namespace) -> Any:
         "checkpoint_every": 100,
         "log_every": 10,
     }
+    augment: dict[str, Any] = {}
     for item in args.set:
         key, sep, value = item.partition("=")
         table, dot, name = key.strip().partition(".")
-        if not sep or not dot or table not in ("model", "schedule"):
-            ap.error(f"--set expects model.KEY=VALUE or schedule.KEY=VALUE, got {item!r}")
+        if not sep or not dot or table not in ("model", "schedule", "augment"):
+            ap.error(
+                "--set expects model.KEY=VALUE, schedule.KEY=VALUE or augment.KEY=VALUE, "
+                f"got {item!r}"
+            )
         try:
             parsed = tomllib.loads(f"v = {value.strip()}")["v"]
         except tomllib.TOMLDecodeError:
@@ -318,9 +322,9 @@ def _base_config(ap: argparse.ArgumentParser, args: argparse.Namespace) -> Any:
                 f"--set {item!r}: the value is not a TOML value (numbers, true/false, "
                 f"quoted strings, [lists]), e.g. --set model.norm='\"batch\"'"
             )
-        (model_over if table == "model" else sched)[name] = parsed
+        {"model": model_over, "schedule": sched, "augment": augment}[table][name] = parsed
     try:
-        return config_from_dict({"model": model_over, "schedule": sched})
+        return config_from_dict({"model": model_over, "schedule": sched, "augment": augment})
     except ConfigError as exc:
         ap.error(f"--set: {exc}")
 

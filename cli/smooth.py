@@ -110,8 +110,8 @@ def _held_out_error(
     validation: Path | None, model: Path | None, poses: list[Path], device: str
 ) -> HeldOutError | None:
     """The network's error on the held-out labels (None without ``--validation``)."""
-    from freipose.predict.smooth import SmoothingError, check_same_model
-    from freipose.predict.smooth_error import model_validation_error, poses_fusion_reject
+    from freipose.predict.smooth import SmoothingError
+    from freipose.predict.smooth_error import model_validation_error, predicted_by
 
     if validation is None and model is None:
         return None
@@ -120,10 +120,9 @@ def _held_out_error(
             "--validation and --model go together: the held-out labels and the checkpoint "
             "that predicted the poses (pass both, or neither)"
         )
-    refine = check_same_model(poses, model)
-    fusion = poses_fusion_reject(poses)
+    how = predicted_by(poses, model)
     err = model_validation_error(
-        model, validation, refine=refine, device=device, fusion_reject=fusion
+        model, validation, refine=how.refine, device=device, fusion_reject=how.fusion_reject
     )
     click.echo(f"held-out error of the network: {err.source}")
     return err

@@ -45,11 +45,11 @@ class BaseModel:
     entry: Mapping[str, Any]
 
 
-def read_manifest(path: Path) -> list[dict[str, Any]]:
+def read_manifest(path: Path | Traversable) -> list[dict[str, Any]]:
     """The entries of a ``bases.json`` file (empty when there is no such file).
 
     Args:
-        path: the manifest.
+        path: the manifest, on disk or in the installed package.
 
     Returns:
         Its ``bases`` list.
@@ -80,11 +80,8 @@ def _root() -> Traversable:
 def shipped_bases() -> tuple[BaseModel, ...]:
     """The base models in the installed package whose weights file is present."""
     root = _root()
-    manifest = root / MANIFEST
-    if not manifest.is_file():
-        return ()
     out = []
-    for e in json.loads(manifest.read_text(encoding="utf-8")).get("bases", []):
+    for e in read_manifest(root / MANIFEST):
         if (root / e["file"]).is_file():
             arch, steps = e["architecture"], total_steps(e)
             out.append(BaseModel(e["name"], e["kind"], e["file"], arch, steps, e))

@@ -541,34 +541,6 @@ def refuse_same(src: Path, dst: Path) -> None:
         )
 
 
-def check_same_model(poses: list[Path], model: Path) -> bool:
-    """Check that the poses files were predicted by ``model``; return whether refined (P1).
-
-    Raises:
-        SmoothingError: a poses file names another model (by hash), or the files differ in
-            whether they report the refined pose.
-    """
-    from freipose.predict.network import file_sha256
-
-    digest = file_sha256(model)
-    refine = set()
-    for p in poses:
-        prov = read_poses_h5(p).provenance
-        theirs = prov.get("model_sha256")
-        if theirs is not None and theirs != digest:
-            raise SmoothingError(
-                f"{p} was predicted by {prov.get('model_file', 'another model')} "
-                f"(sha256 {str(theirs)[:12]}), not by --model {model} (sha256 {digest[:12]}); "
-                "pass the checkpoint that predicted the poses"
-            )
-        refine.add(bool(prov.get("refine", True)))
-    if len(refine) > 1:
-        raise SmoothingError(
-            "some poses files report the refined pose P1 and some P0; smooth them separately"
-        )
-    return refine.pop() if refine else True
-
-
 def smooth_file(
     src: str | Path,
     dst: str | Path,

@@ -119,7 +119,7 @@ def model_validation_error(
         batch_size: instants per forward pass.
         max_instants: predict at most this many instants, evenly spread (None: all).
         fusion_reject: the ``model.fusion_reject`` the poses were predicted with (None: the
-            checkpoint's; :func:`poses_fusion_reject`).
+            checkpoint's; :func:`predicted_by`).
 
     Raises:
         ValidationLabelsError: the labels have no usable instant, or too few per keypoint.
@@ -153,22 +153,57 @@ def model_validation_error(
     return validation_error(pred[which], pred["gt"], skeleton.keypoints, what)
 
 
-def poses_fusion_reject(poses: Sequence[Path]) -> float | None:
-    """The ``model.fusion_reject`` that predicted the poses files (None: not recorded).
+@dataclass(frozen=True)
+class PredictedBy:
+    """What the poses files' provenance says of how they were predicted.
+
+    Attributes:
+        refine: whether they report the refined pose P1 (else P0).
+        fusion_reject: the ``model.fusion_reject`` P1 was fused with (None: not recorded).
+    """
+
+    refine: bool
+    fusion_reject: float | None
+
+
+def predicted_by(poses: Sequence[Path], model: Path) -> PredictedBy:
+    """Check that the poses files were predicted alike by ``model``; say how.
+
+    Args:
+        poses: the poses files.
+        model: the checkpoint that should have predicted them.
 
     Raises:
-        ValidationLabelsError: the files were predicted with different values.
+        ValidationLabelsError: a file names another model (by hash), or the files differ in
+            whether they report P1 or in their ``--fusion-reject``.
     """
     from freipose.io.poses import read_poses_h5
+    from freipose.predict.network import file_sha256
 
-    seen = {read_poses_h5(p).provenance.get("fusion_reject") for p in poses}
-    if len(seen) > 1:
+    digest = file_sha256(model)
+    refine, fusion = set(), set()
+    for p in poses:
+        prov = read_poses_h5(p).provenance
+        theirs = prov.get("model_sha256")
+        if theirs is not None and theirs != digest:
+            raise ValidationLabelsError(
+                f"{p} was predicted by {prov.get('model_file', 'another model')} "
+                f"(sha256 {str(theirs)[:12]}), not by --model {model} (sha256 {digest[:12]}); "
+                "pass the checkpoint that predicted the poses"
+            )
+        refine.add(bool(prov.get("refine", True)))
+        value = prov.get("fusion_reject")
+        fusion.add(None if value is None else float(value))
+    if len(refine) > 1:
+        raise ValidationLabelsError(
+            "some poses files report the refined pose P1 and some P0; smooth them separately"
+        )
+    if len(fusion) > 1:
         raise ValidationLabelsError(
             f"the poses files were predicted with different --fusion-reject values "
-            f"{sorted(map(str, seen))}; smooth them separately"
+            f"{sorted(map(str, fusion))}; smooth them separately"
         )
-    value = seen.pop() if seen else None
-    return None if value is None else float(value)
+    return PredictedBy(refine.pop() if refine else True, fusion.pop() if fusion else None)
 
 
 def fit_error_floor(

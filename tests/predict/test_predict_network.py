@@ -169,7 +169,7 @@ def test_wrong_checkpoints_and_skeleton_fail_before_work(trained, tmp_path):
 
 
 def test_predict_fusion_reject_is_recorded_and_smoothing_matches_it(trained, tmp_path):
-    from freipose.predict.smooth_error import ValidationLabelsError, poses_fusion_reject
+    from freipose.predict.smooth_error import ValidationLabelsError, predicted_by
 
     model, session, _ = trained
     base = ["predict", str(session), "--model", str(model), "--method", "bgsub", "--device",
@@ -181,8 +181,8 @@ def test_predict_fusion_reject_is_recorded_and_smoothing_matches_it(trained, tmp
     near = tmp_path / "near" / "toy.poses.h5"
     assert read_poses_h5(every).provenance["fusion_reject"] == 0.0
     assert read_poses_h5(near).provenance["fusion_reject"] == pytest.approx(0.2)
-    assert poses_fusion_reject([near, near]) == pytest.approx(0.2)
+    assert predicted_by([near, near], model).fusion_reject == pytest.approx(0.2)
     with pytest.raises(ValidationLabelsError, match="different --fusion-reject"):
-        poses_fusion_reject([every, near])
+        predicted_by([every, near], model)
     res = CliRunner().invoke(cli, [*base, "-o", str(tmp_path / "bad"), "--fusion-reject", "-1"])
     assert res.exit_code != 0 and "fusion_reject must be >= 0" in res.output

@@ -8,8 +8,8 @@ from click.testing import CliRunner
 
 from freipose.cli.main import cli
 from freipose.io.poses import PoseData, write_poses_h5
-from freipose.predict.smooth import SmoothingError, check_same_model, smooth_arrays, smooth_poses
-from freipose.predict.smooth_error import ValidationLabelsError, validation_error
+from freipose.predict.smooth import smooth_arrays, smooth_poses
+from freipose.predict.smooth_error import ValidationLabelsError, predicted_by, validation_error
 
 T, K, FPS = 1000, 3, 25.0
 NAMES = ("a", "b", "c")
@@ -104,11 +104,11 @@ def test_same_model_checked(tmp_path):
     model.write_bytes(b"weights")
     a = tmp_path / "a.poses.h5"
     _poses(a, sha=file_sha256(model), refine=False)
-    assert check_same_model([a], model) is False
+    assert predicted_by([a], model).refine is False
     b = tmp_path / "b.poses.h5"
     _poses(b, sha="0" * 64)
-    with pytest.raises(SmoothingError, match="pass the checkpoint that predicted the poses"):
-        check_same_model([a, b], model)
+    with pytest.raises(ValidationLabelsError, match="pass the checkpoint that predicted the poses"):
+        predicted_by([a, b], model)
 
 
 def test_cli_validation_needs_model(tmp_path):
