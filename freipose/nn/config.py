@@ -224,7 +224,7 @@ class ScheduleConfig:
     weight_2d: float = 1.0
     weight_conf: float = 0.1
     weight_map: float = 0.1
-    weight_p1: float = 0.1
+    weight_p1: float = 1.0
     checkpoint_every: int = 1000
     eval_every: int = 1000
     eval_samples: int = 64
