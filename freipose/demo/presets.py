@@ -152,8 +152,8 @@ _PRESETS = {
         batch=8,
         detection="bgsub",
     ),
-    # The default: the real workflow, under 10 minutes on an idle 2-core CPU (7:38 with
-    # AVX2 only, session 19; the AVX-512 machines ran the 1000-step version in 8:18 to 10:07).
+    # The default: the real workflow, under 10 minutes on an idle 2-core CPU (7:04 with
+    # AVX2 only, session 20; the AVX-512 machines ran the 1000-step version in 8:18 to 10:07).
     "small": DemoPreset(
         name="small",
         size=(320, 256),
