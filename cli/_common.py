@@ -132,6 +132,39 @@ def detector_spec(
     return DetectorSpec(method, detector, fixed_boxes, bg_samples, min_views)
 
 
+def inference_options(f: Any) -> Any:
+    """The inference-only network settings one run may change (``eval``, ``predict``)."""
+    opts = [
+        click.option(
+            "--fusion-reject",
+            type=float,
+            metavar="VOXELS",
+            help="The voxel network's P1 leaves out the views whose refined point lies "
+            "farther than this from the first fusion (0: every view) [default: the "
+            "checkpoint's model.fusion_reject]. Compare both on your held-out labels.",
+        ),
+        click.option(
+            "--map-window",
+            type=int,
+            metavar="PIXELS",
+            help="The 2D points of the refinement and of the baseline are the soft-argmax "
+            "within this many map pixels of each map's peak (0: the whole map, which can help "
+            "a network trained for few steps whose peaks are off) [default: the checkpoint's "
+            "model.map_window].",
+        ),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def inference_overrides(fusion_reject: float | None, map_window: int | None) -> Any:
+    """The :class:`~freipose.nn.config.InferenceOverrides` of :func:`inference_options`."""
+    from freipose.nn.config import InferenceOverrides
+
+    return InferenceOverrides(fusion_reject=fusion_reject, map_window=map_window)
+
+
 def echo_result(res: Any) -> None:
     """Report one session's prediction result (a ``predict_sessions`` report callback)."""
     if res.skipped:

@@ -7,7 +7,12 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from freipose.cli._common import device_option, user_errors
+from freipose.cli._common import (
+    device_option,
+    inference_options,
+    inference_overrides,
+    user_errors,
+)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -44,12 +49,7 @@ if TYPE_CHECKING:
     "--center-noise", type=float, default=0.0, show_default=True,
     help="Std (mm) of Gaussian noise added to the cube centre (mimics detector error).",
 )  # fmt: skip
-@click.option(
-    "--fusion-reject", type=float,
-    help="VOXELS: the voxel network's P1 leaves out the views whose refined point lies "
-    "farther than this from the first fusion (0: every view); default: the checkpoint's "
-    "model.fusion_reject. Compare both on your held-out labels.",
-)  # fmt: skip
+@inference_options
 @click.pass_context
 def evaluate(
     ctx: click.Context,
@@ -63,6 +63,7 @@ def evaluate(
     batch_size: int,
     center_noise: float,
     fusion_reject: float | None,
+    map_window: int | None,
 ) -> None:
     """Evaluate a pose network against 3D labels (JPE median, 30/70 % percentiles, PCK).
 
@@ -100,7 +101,8 @@ def evaluate(
         methods = {"": ckpt} if baseline is None else {"": ckpt, "baseline": baseline}
         ev = evaluate_checkpoints(
             methods, labels, root=root, device=device, batch_size=batch_size,
-            center_noise=center_noise, progress=not quiet, fusion_reject=fusion_reject,
+            center_noise=center_noise, progress=not quiet,
+            overrides=inference_overrides(fusion_reject, map_window),
         )  # fmt: skip
         train3d = _training_points(ev, train_labels)
         sanity = sanity_checks(ev, train3d)

@@ -15,6 +15,8 @@ from freipose.cli._common import (
     device_option,
     echo_result,
     frames_option,
+    inference_options,
+    inference_overrides,
     user_errors,
 )
 from freipose.cli._threads import threads_option, use_threads
@@ -48,12 +50,7 @@ from freipose.errors import FreiPoseError
     show_default=True,
     help="Report the refined pose (P1) or the 3D network's initial pose (P0).",
 )
-@click.option(
-    "--fusion-reject",
-    type=float,
-    help="VOXELS: P1 leaves out the views whose refined point lies farther than this from "
-    "the first fusion (0: every view); default: the model's model.fusion_reject.",
-)
+@inference_options
 @click.option(
     "--shard",
     help="I/N: process only the I-th (0-based) of N contiguous parts of the frames; join the "
@@ -89,6 +86,7 @@ def predict(
     device: str,
     refine: bool,
     fusion_reject: float | None,
+    map_window: int | None,
     shard: str | None,
     skeleton: str | None,
     smooth: bool,
@@ -146,7 +144,7 @@ def predict(
             batch_size=batch,
             device=device,
             refine=refine,
-            fusion_reject=fusion_reject,
+            overrides=inference_overrides(fusion_reject, map_window),
             shard=shard_t,
             overwrite=overwrite,
             expected_skeleton=load_skeleton(skeleton) if skeleton else None,

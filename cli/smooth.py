@@ -122,7 +122,7 @@ def _held_out_error(
         )
     how = predicted_by(poses, model)
     err = model_validation_error(
-        model, validation, refine=how.refine, device=device, fusion_reject=how.fusion_reject
+        model, validation, refine=how.refine, device=device, overrides=how.overrides
     )
     click.echo(f"held-out error of the network: {err.source}")
     return err

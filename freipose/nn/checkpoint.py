@@ -33,7 +33,7 @@ from torch import nn
 from freipose import __version__
 from freipose.io.checkpoints import POSE_FORMAT, POSE_NETWORK, CheckpointFileError
 from freipose.io.checkpoints import read_checkpoint_as as _read_checkpoint_as
-from freipose.nn.config import TrainConfig, config_from_dict, config_to_dict
+from freipose.nn.config import InferenceOverrides, TrainConfig, config_from_dict, config_to_dict
 from freipose.nn.model import build_model
 from freipose.skeleton import Skeleton, skeleton_from_dict
 
@@ -214,7 +214,7 @@ def load_checkpoint(
     path: str | Path,
     device: str | torch.device = "cpu",
     option: str | None = None,
-    fusion_reject: float | None = None,
+    overrides: InferenceOverrides | None = None,
 ) -> tuple[nn.Module, TrainConfig, Skeleton]:
     """Load a trained network for inference.
 
@@ -222,8 +222,8 @@ def load_checkpoint(
         path: a checkpoint written by ``freipose train``.
         device: where the network runs.
         option: the option (or argument) that named the file, for the messages.
-        fusion_reject: ``model.fusion_reject`` for this inference instead of the training
-            config's (it acts at inference only; the returned config holds the value used).
+        overrides: inference-only settings of ``[model]`` for this run instead of the
+            training config's (the returned config holds the values used).
 
     Returns:
         ``(model, config, skeleton)``: the network in eval mode on ``device``, its
@@ -232,13 +232,12 @@ def load_checkpoint(
     Raises:
         InputFileError: no such file.
         CheckpointError: see :func:`read_checkpoint`.
-        ConfigError: a negative ``fusion_reject``.
+        ConfigError: a negative override.
     """
     ckpt = read_checkpoint(path, option)
     config = config_from_dict(ckpt["config"])
-    if fusion_reject is not None:
-        model_cfg = dataclasses.replace(config.model, fusion_reject=float(fusion_reject))
-        config = dataclasses.replace(config, model=model_cfg)
+    if overrides is not None:
+        config = dataclasses.replace(config, model=overrides.apply(config.model))
     skeleton = skeleton_from_dict(ckpt["skeleton"], f"{path}:skeleton")
     model = build_model(dataclasses.replace(config.model, pretrained=""), len(skeleton.keypoints))
     model.load_state_dict(ckpt["model"])

@@ -203,6 +203,48 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
+class InferenceOverrides:
+    """The ``[model]`` settings that act at inference only, changed for one run.
+
+    A trained network is the same with any of them, so ``freipose eval`` and ``predict``
+    may change them without retraining. None keeps the checkpoint's value.
+
+    Attributes:
+        fusion_reject: ``model.fusion_reject`` (voxels; 0: P1 fuses every view).
+        map_window: ``model.map_window`` (map pixels; 0: the 2D points are the soft-argmax
+            of the whole map).
+    """
+
+    fusion_reject: float | None = None
+    map_window: int | None = None
+
+    def apply(self, model: ModelConfig) -> ModelConfig:
+        """``model`` with the settings that are not None replaced.
+
+        Raises:
+            ConfigError: a negative value.
+        """
+        changes = {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+        return dataclasses.replace(model, **changes) if changes else model
+
+
+def inference_settings(model: ModelConfig, refine: bool = True) -> dict[str, float]:
+    """The inference-only settings that shape a network's reported pose (for provenance).
+
+    Args:
+        model: the config the network ran with.
+        refine: whether a voxel network's P1 is reported (P0 depends on neither setting).
+
+    Returns:
+        ``{"map_window": ..., "fusion_reject": ...}`` with the settings that act: both for
+        a voxel network's P1, ``map_window`` for the baseline, none for P0.
+    """
+    if model.kind != "voxel":
+        return {"map_window": model.map_window}
+    return {"map_window": model.map_window, "fusion_reject": model.fusion_reject} if refine else {}
+
+
+@dataclass(frozen=True)
 class ScheduleConfig:
     """Optimisation schedule (Adam with step decay).
 

@@ -24,7 +24,7 @@ from freipose.io.figures import new_figure, save_figure
 from freipose.io.labels import read_labels_h5
 from freipose.nn.checkpoint import load_checkpoint
 from freipose.nn.compare import PairedDifference, paired_difference
-from freipose.nn.config import TrainConfig
+from freipose.nn.config import InferenceOverrides, TrainConfig
 from freipose.nn.data import collate_prepared, prepare_sample
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.inference import predict_prepared
@@ -156,7 +156,7 @@ def evaluate_checkpoints(
     batch_size: int = 4,
     center_noise: float = 0.0,
     progress: bool = False,
-    fusion_reject: float | None = None,
+    overrides: InferenceOverrides | None = None,
 ) -> Evaluation:
     """Joint position errors of trained networks on a labels file (``freipose eval``).
 
@@ -169,8 +169,8 @@ def evaluate_checkpoints(
         batch_size: samples per forward pass.
         center_noise: std (mm) of Gaussian noise added to each cube centre.
         progress: show progress bars.
-        fusion_reject: ``model.fusion_reject`` of the voxel networks' P1 instead of their
-            checkpoints' (None: their own).
+        overrides: inference-only ``[model]`` settings of every network instead of their
+            checkpoints' (``--fusion-reject``, ``--map-window``; None: their own).
 
     Returns:
         The predictions and errors of every network.
@@ -189,7 +189,7 @@ def evaluate_checkpoints(
     gt = np.zeros((0, len(lab.keypoints), 3))
     skel = Skeleton(name="labels", keypoints=tuple(lab.keypoints))
     for name, path in checkpoints.items():
-        model, config, skeleton = load_checkpoint(path, device, fusion_reject=fusion_reject)
+        model, config, skeleton = load_checkpoint(path, device, overrides=overrides)
         if tuple(skeleton.keypoints) != tuple(lab.keypoints):
             raise EvaluationError(
                 f"{path}: the network predicts keypoints {list(skeleton.keypoints)} but "

@@ -15,7 +15,7 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,9 @@ from freipose.predict.estimator import Estimate
 from freipose.predict.run import PredictError, PredictResult, output_path, predict_session
 from freipose.predict.writer import is_complete
 from freipose.skeleton import Skeleton
+
+if TYPE_CHECKING:
+    from freipose.nn.config import InferenceOverrides
 
 log = logging.getLogger(__name__)
 
@@ -187,14 +190,15 @@ class NetworkEstimator:
 
 
 def load_model(
-    model_path: str | Path, device: str = "cpu", fusion_reject: float | None = None
+    model_path: str | Path, device: str = "cpu", overrides: InferenceOverrides | None = None
 ) -> tuple[Any, Any, Skeleton, str]:
     """Load a pose checkpoint for prediction.
 
     Args:
         model_path: the checkpoint.
         device: where the network runs.
-        fusion_reject: ``model.fusion_reject`` instead of the checkpoint's (None: its own).
+        overrides: inference-only ``[model]`` settings instead of the checkpoint's (None:
+            its own).
 
     Returns:
         ``(model, config, skeleton, sha256 of the file)``.
@@ -209,7 +213,7 @@ def load_model(
 
     path = Path(model_path)
     try:
-        model, config, skeleton = load_checkpoint(path, device, fusion_reject=fusion_reject)
+        model, config, skeleton = load_checkpoint(path, device, overrides=overrides)
     except (FileNotFoundError, ValueError, ConfigError):
         raise
     except Exception as exc:  # noqa: BLE001 - e.g. state-dict mismatches in a hand-edited file
@@ -306,7 +310,7 @@ def predict_sessions(
     batch_size: int = 8,
     device: str = "auto",
     refine: bool = True,
-    fusion_reject: float | None = None,
+    overrides: InferenceOverrides | None = None,
     shard: tuple[int, int] | None = None,
     overwrite: bool = False,
     expected_skeleton: Skeleton | None = None,
@@ -328,8 +332,8 @@ def predict_sessions(
         batch_size: time steps per network call.
         device: ``cpu``, ``cuda``, ``cuda:N`` or ``auto``.
         refine: report P1 (default) or P0.
-        fusion_reject: ``model.fusion_reject`` of the voxel network's P1 instead of the
-            checkpoint's (None: its own); the value used is in the provenance.
+        overrides: inference-only ``[model]`` settings instead of the checkpoint's (None:
+            its own); the values that shape the reported pose are in the provenance.
         shard: ``(i, n)``: predict shard i of n.
         overwrite: redo complete outputs.
         expected_skeleton: the keypoints the model must predict (None: any).
@@ -339,10 +343,12 @@ def predict_sessions(
     Returns:
         One :class:`~freipose.predict.run.PredictResult` per session.
     """
+    from freipose.nn.config import inference_settings
+
     dev = resolve_device(device)
     bounds = {s.name: frame_range(frames, s.num_frames) for s in sessions}
     ranges = {name: (r.start, r.stop) for name, r in bounds.items()}
-    net, config, skel, sha = load_model(model_path, dev, fusion_reject)
+    net, config, skel, sha = load_model(model_path, dev, overrides)
     check_keypoints(skel, expected_skeleton, model_path)
     if spec.method == "auto" and spec.labels is None and config.data.labels:
         spec = dataclasses.replace(spec, labels=Path(config.data.labels))  # the training labels
@@ -357,9 +363,8 @@ def predict_sessions(
         "model_file": Path(model_path).name,
         "refine": refine,
         **spec.describe(),
+        **inference_settings(config.model, refine),
     }
-    if config.model.kind == "voxel" and refine:
-        provenance["fusion_reject"] = config.model.fusion_reject
     results = []
     for s in sessions:
         out = output_path(outdir, s.name, shard)

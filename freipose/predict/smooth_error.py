@@ -16,11 +16,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from freipose.errors import FreiPoseError
+
+if TYPE_CHECKING:
+    from freipose.nn.config import InferenceOverrides
 
 MIN_INSTANTS = 5
 
@@ -105,7 +108,7 @@ def model_validation_error(
     device: str = "cpu",
     batch_size: int = 4,
     max_instants: int | None = None,
-    fusion_reject: float | None = None,
+    overrides: InferenceOverrides | None = None,
 ) -> HeldOutError:
     """Predict the 3D-labeled instants of ``labels_path`` and measure the error.
 
@@ -118,7 +121,7 @@ def model_validation_error(
         device: torch device.
         batch_size: instants per forward pass.
         max_instants: predict at most this many instants, evenly spread (None: all).
-        fusion_reject: the ``model.fusion_reject`` the poses were predicted with (None: the
+        overrides: the inference-only settings the poses were predicted with (None: the
             checkpoint's; :func:`predicted_by`).
 
     Raises:
@@ -132,7 +135,7 @@ def model_validation_error(
 
     labels_path = Path(labels_path)
     labels = read_labels_h5(labels_path)
-    model, _, skeleton = load_checkpoint(model_path, device, fusion_reject=fusion_reject)
+    model, _, skeleton = load_checkpoint(model_path, device, overrides=overrides)
     if tuple(labels.keypoints) != tuple(skeleton.keypoints):
         raise ValidationLabelsError(
             f"--validation {labels_path} has keypoints {list(labels.keypoints)}, the model "
@@ -159,11 +162,15 @@ class PredictedBy:
 
     Attributes:
         refine: whether they report the refined pose P1 (else P0).
-        fusion_reject: the ``model.fusion_reject`` P1 was fused with (None: not recorded).
+        overrides: the inference-only settings they record (None where not recorded: the
+            checkpoint's own).
     """
 
     refine: bool
-    fusion_reject: float | None
+    overrides: InferenceOverrides
+
+
+_SETTING_OPTIONS = {"fusion_reject": "--fusion-reject", "map_window": "--map-window"}
 
 
 def predicted_by(poses: Sequence[Path], model: Path) -> PredictedBy:
@@ -175,13 +182,15 @@ def predicted_by(poses: Sequence[Path], model: Path) -> PredictedBy:
 
     Raises:
         ValidationLabelsError: a file names another model (by hash), or the files differ in
-            whether they report P1 or in their ``--fusion-reject``.
+            whether they report P1 or in their ``--fusion-reject`` or ``--map-window``.
     """
     from freipose.io.poses import read_poses_h5
+    from freipose.nn.config import InferenceOverrides
     from freipose.predict.network import file_sha256
 
     digest = file_sha256(model)
-    refine, fusion = set(), set()
+    refine: set[bool] = set()
+    values: dict[str, set[Any]] = {name: set() for name in _SETTING_OPTIONS}
     for p in poses:
         prov = read_poses_h5(p).provenance
         theirs = prov.get("model_sha256")
@@ -192,18 +201,26 @@ def predicted_by(poses: Sequence[Path], model: Path) -> PredictedBy:
                 "pass the checkpoint that predicted the poses"
             )
         refine.add(bool(prov.get("refine", True)))
-        value = prov.get("fusion_reject")
-        fusion.add(None if value is None else float(value))
+        for name, seen in values.items():
+            seen.add(prov.get(name))
     if len(refine) > 1:
         raise ValidationLabelsError(
             "some poses files report the refined pose P1 and some P0; smooth them separately"
         )
-    if len(fusion) > 1:
-        raise ValidationLabelsError(
-            f"the poses files were predicted with different --fusion-reject values "
-            f"{sorted(map(str, fusion))}; smooth them separately"
-        )
-    return PredictedBy(refine.pop() if refine else True, fusion.pop() if fusion else None)
+    for name, seen in values.items():
+        if len(seen) > 1:
+            raise ValidationLabelsError(
+                f"the poses files were predicted with different {_SETTING_OPTIONS[name]} "
+                f"values {sorted(map(str, seen))}; smooth them separately"
+            )
+    fusion, window = (values[name].pop() if values[name] else None for name in _SETTING_OPTIONS)
+    return PredictedBy(
+        refine.pop() if refine else True,
+        InferenceOverrides(
+            fusion_reject=None if fusion is None else float(fusion),
+            map_window=None if window is None else int(window),
+        ),
+    )
 
 
 def fit_error_floor(

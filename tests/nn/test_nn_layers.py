@@ -10,7 +10,12 @@ import torch
 
 from freipose.geometry import project
 from freipose.geometry.crops import crop_camera, cube_crop_boxes
-from freipose.nn.config import config_from_dict
+from freipose.nn.config import (
+    ConfigError,
+    InferenceOverrides,
+    config_from_dict,
+    inference_settings,
+)
 from freipose.nn.geometry import (
     pixels_to_normalized,
     project_affine,
@@ -344,6 +349,22 @@ def test_model_refuses_outlier_views_at_inference_only():
     assert float((a["P1"] - r["P1"]).abs().max()) > 1e-3
     with pytest.raises(Exception, match="fusion_reject"):
         config_from_dict({"model": {"preset": "tiny", "fusion_reject": -1}})
+
+
+def test_inference_overrides_replace_only_what_they_name():
+    model = config_from_dict({"model": {"preset": "tiny", "map_window": 2}}).model
+    assert InferenceOverrides().apply(model) is model
+    both = InferenceOverrides(fusion_reject=0.0, map_window=0).apply(model)
+    assert (both.fusion_reject, both.map_window) == (0.0, 0)
+    assert replace(both, fusion_reject=model.fusion_reject, map_window=2) == model
+    window = InferenceOverrides(map_window=5).apply(model)
+    assert (window.fusion_reject, window.map_window) == (model.fusion_reject, 5)
+    with pytest.raises(ConfigError, match="map_window must be >= 0"):
+        InferenceOverrides(map_window=-1).apply(model)
+    # what a poses file records: what shapes the reported pose
+    assert inference_settings(model) == {"map_window": 2, "fusion_reject": model.fusion_reject}
+    assert inference_settings(model, refine=False) == {}
+    assert inference_settings(replace(model, kind="baseline"), refine=False) == {"map_window": 2}
 
 
 def _fused_peak(center, grid_rot, shift=0.0):

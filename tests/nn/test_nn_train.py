@@ -193,7 +193,7 @@ def test_config_validation(tmp_path):
     assert cfg.model.grid_size == 16 and cfg.model.crop_size == 128
 
 
-def test_train_and_eval_commands(tmp_path):
+def test_train_and_eval_commands(tmp_path, monkeypatch):
     from freipose.cli.main import cli
 
     write_toy_labels(tmp_path / "train", toy_samples(4))
@@ -246,6 +246,26 @@ def test_train_and_eval_commands(tmp_path):
     assert m0["voxel_P0"]["overall"] == m["voxel_P0"]["overall"]
     r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev1"), "--fusion-reject", "-1"])
     assert r.exit_code != 0 and "fusion_reject must be >= 0" in r.output
+    # --map-window 0 decodes the whole maps: the refinement's points (P1) change, P0 does not
+    r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev2"), "--map-window", "0"])
+    assert r.exit_code == 0, r.output
+    m2 = json.loads((tmp_path / "ev2" / "metrics.json").read_text())
+    assert m2["voxel_P0"]["overall"] == m["voxel_P0"]["overall"]
+    assert m2["voxel_P1"]["overall"] != m["voxel_P1"]["overall"]
+    # smooth --validation measures the held-out error with the settings the poses record
+    # (its predictions, before the per-keypoint RMS that needs more than these 3 instants)
+    from freipose.nn.config import InferenceOverrides
+    from freipose.predict import smooth_error
+
+    monkeypatch.setattr(smooth_error, "validation_error", lambda pred, *_: pred)
+    ckpt, held_out = tmp_path / "run" / "model.pt", tmp_path / "eval" / "labels.h5"
+    own = smooth_error.model_validation_error(ckpt, held_out)
+    whole = smooth_error.model_validation_error(
+        ckpt, held_out, overrides=InferenceOverrides(map_window=0)
+    )
+    assert own.shape == whole.shape == (3, 5, 3) and not np.allclose(own, whole)
+    r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev3"), "--map-window", "-1"])
+    assert r.exit_code != 0 and "map_window must be >= 0" in r.output
     # errors are user errors, not tracebacks
     r = runner.invoke(cli, ["train", str(cfg), "--out", str(tmp_path / "run")])
     assert r.exit_code != 0 and "--resume" in r.output

@@ -168,21 +168,32 @@ def test_wrong_checkpoints_and_skeleton_fail_before_work(trained, tmp_path):
     assert not out.exists() or not any(out.iterdir())
 
 
-def test_predict_fusion_reject_is_recorded_and_smoothing_matches_it(trained, tmp_path):
+def test_predict_inference_settings_are_recorded_and_smoothing_matches_them(trained, tmp_path):
+    from freipose.nn.config import InferenceOverrides
     from freipose.predict.smooth_error import ValidationLabelsError, predicted_by
 
     model, session, _ = trained
     base = ["predict", str(session), "--model", str(model), "--method", "bgsub", "--device",
             "cpu", "--batch", "4", "--frames", "0:8"]  # fmt: skip
-    for name, value in (("every", "0"), ("near", "0.2")):
-        res = _run([*base, "-o", str(tmp_path / name), "--fusion-reject", value])
+    runs = {
+        "every": ["--fusion-reject", "0"],
+        "near": ["--fusion-reject", "0.2"],
+        "whole": ["--fusion-reject", "0.2", "--map-window", "0"],
+    }
+    for name, options in runs.items():
+        res = _run([*base, "-o", str(tmp_path / name), *options])
         assert res.exit_code == 0, res.output
-    every = tmp_path / "every" / "toy.poses.h5"
-    near = tmp_path / "near" / "toy.poses.h5"
+    every, near, whole = (tmp_path / name / "toy.poses.h5" for name in runs)
+    window = read_poses_h5(every).provenance["map_window"]  # the checkpoint's own
     assert read_poses_h5(every).provenance["fusion_reject"] == 0.0
     assert read_poses_h5(near).provenance["fusion_reject"] == pytest.approx(0.2)
-    assert predicted_by([near, near], model).fusion_reject == pytest.approx(0.2)
+    assert read_poses_h5(whole).provenance["map_window"] == 0 != window
+    assert predicted_by([near, near], model).overrides == InferenceOverrides(0.2, int(window))
+    assert predicted_by([whole], model).overrides == InferenceOverrides(0.2, 0)
     with pytest.raises(ValidationLabelsError, match="different --fusion-reject"):
         predicted_by([every, near], model)
-    res = CliRunner().invoke(cli, [*base, "-o", str(tmp_path / "bad"), "--fusion-reject", "-1"])
-    assert res.exit_code != 0 and "fusion_reject must be >= 0" in res.output
+    with pytest.raises(ValidationLabelsError, match="different --map-window"):
+        predicted_by([near, whole], model)
+    for option in ("--fusion-reject", "--map-window"):
+        res = CliRunner().invoke(cli, [*base, "-o", str(tmp_path / "bad"), option, "-1"])
+        assert res.exit_code != 0 and "must be >= 0" in res.output
