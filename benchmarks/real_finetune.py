@@ -31,6 +31,10 @@ N`` repeats every training with N seeds. It prints one table and writes
 Example (CPU, one thread)::
 
     OMP_NUM_THREADS=1 python benchmarks/real_finetune.py --out bench/real --steps 150 --seeds 3
+
+``--map-window 0`` evaluates the same trained networks again with their 2D points from
+the whole maps (``freipose eval --map-window``), into other folders of the same ``--out``
+and ``results_map_window0.json``.
 """
 
 from __future__ import annotations
@@ -185,16 +189,22 @@ def train_runs(
     return info
 
 
-def run_eval(out: Path, eval_h5: Path, tag: str, train_h5: Path, sub: str = "") -> dict[str, Any]:
+def run_eval(
+    out: Path, eval_h5: Path, tag: str, train_h5: Path, sub: str = "", window: int | None = None
+) -> dict[str, Any]:
     """``freipose eval`` of both networks of run ``tag``: the metrics.json it writes.
 
-    ``sub``: a subfolder of the run's evaluation folder (another labels file).
+    ``sub``: a subfolder of the run's evaluation folder (another labels file); ``window``:
+    ``--map-window`` (None: the checkpoints' own; another value evaluates into a
+    ``map_window<W>`` subfolder).
     """
     run = out / "runs" / tag
     dest = out / "eval" / tag / sub if sub else out / "eval" / tag
+    dest = dest if window is None else dest / f"map_window{window}"
     if not (dest / "metrics.json").exists():
         cmd = ["eval", str(run / "pose" / "model.pt"), str(eval_h5), "-o", str(dest)]
         cmd += ["--baseline", str(run / "baseline" / "model.pt"), "--train-labels", str(train_h5)]
+        cmd += [] if window is None else ["--map-window", str(window)]
         freipose(cmd, dest / "eval.log")
     return json.loads((dest / "metrics.json").read_text())
 
@@ -217,14 +227,14 @@ def nearest_instant(train3d: np.ndarray, gt: np.ndarray) -> np.ndarray:
 
 
 def reprojection_errors(
-    out: Path, eval_h5: Path, train_h5: Path, tag: str
+    out: Path, eval_h5: Path, train_h5: Path, tag: str, window: int | None = None
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Pixel distance of every answer's reprojection to the held-out 2D labels.
 
     The networks predict as in ``freipose eval`` (the cube on the label centre); the
     constant-pose references are those of ``freipose eval``; ``nearest training
     instant`` is :func:`nearest_instant`. ``labels`` is the held-out 3D labels' own
-    reprojection error (their triangulation residual).
+    reprojection error (their triangulation residual). ``window``: as in :func:`run_eval`.
 
     Returns:
         name -> (N, C, K) errors in px, NaN where a view has no 2D label; and the (N, K)
@@ -232,12 +242,13 @@ def reprojection_errors(
     """
     from freipose.geometry.triangulation import reprojection_errors as pixel_errors
     from freipose.io.labels import read_labels_h5
+    from freipose.nn.config import InferenceOverrides
     from freipose.nn.evaluate import evaluate_checkpoints, jpe
     from freipose.nn.references import reference_predictions
 
     run = out / "runs" / tag
     ckpts = {"": run / "pose" / "model.pt", "baseline": run / "baseline" / "model.pt"}
-    ev = evaluate_checkpoints(ckpts, eval_h5)
+    ev = evaluate_checkpoints(ckpts, eval_h5, overrides=InferenceOverrides(map_window=window))
     lab = read_labels_h5(eval_h5)
     answers = dict(ev.predictions)
     train3d = read_labels_h5(train_h5).points3d
@@ -312,8 +323,9 @@ def print_table(results: dict[str, Any], log: _Log) -> None:
     log(
         f"\nREAL DATA ({results['data']}): {results['steps']} steps x batch 2 per network, "
         f"preset {results['preset']}, {results['instances']} instances, training seeds "
-        f"{seeds}; median JPE and 2D error on the held-out frame (the mean over the seeds, "
-        "then each seed's JPE), fit: median JPE on the training frames"
+        f"{seeds}, map window {_window(results['map_window'])}; median JPE and 2D error on "
+        "the held-out frame (the mean over the seeds, then each seed's JPE), fit: median JPE "
+        "on the training frames"
     )
     head = f"{'JPE mm':>7s} {'n':>3s} {'2D px':>6s} {'n 2D':>4s} {'fit mm':>6s}"
     log(f"  {'init':8s} {'method':28s} {head}  seeds")
@@ -355,6 +367,13 @@ def print_table(results: dict[str, Any], log: _Log) -> None:
     )
 
 
+def _window(value: int | None) -> str:
+    """How the 2D maps were decoded, for the table's title."""
+    if value is None:
+        return "the networks' own"
+    return "0 (whole maps)" if value == 0 else f"{value} px"
+
+
 def _train_summary(trains: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Each seed's training facts and their means."""
     runs = list(trains.values())
@@ -385,6 +404,11 @@ def _parser() -> argparse.ArgumentParser:
         "predictions)",
     )  # fmt: skip
     ap.add_argument(
+        "--map-window", type=int,
+        help="evaluate with freipose eval --map-window W (0: 2D points from the whole maps) "
+        "[default: the networks' own, 3]",
+    )  # fmt: skip
+    ap.add_argument(
         "--threads", type=int, default=int(os.environ.get("OMP_NUM_THREADS", "1")),
         help="PyTorch threads of every run (freipose train --threads)",
     )  # fmt: skip
@@ -409,21 +433,25 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, Any] = {
         "data": str(args.data), "steps": args.steps, "preset": args.preset,
         "instances": args.instances, "threads": args.threads, "seeds": seeds, "init": {},
+        "map_window": args.map_window,
     }  # fmt: skip
     for init in inits:
         runs, trains = [], {}
         for seed in seeds:
             train = train_runs(out, train_h5, args, init, seed, log)
             tag = f"{init}/seed{seed}"
-            metrics = run_eval(out, eval_h5, tag, train_h5)
-            fit = run_eval(out, train_h5, tag, train_h5, "training_frames")
-            reproj, nearest = reprojection_errors(out, eval_h5, train_h5, tag)
+            window = args.map_window
+            metrics = run_eval(out, eval_h5, tag, train_h5, window=window)
+            fit = run_eval(out, train_h5, tag, train_h5, "training_frames", window)
+            reproj, nearest = reprojection_errors(out, eval_h5, train_h5, tag, window)
             runs.append(summarize(metrics, reproj, nearest, fit))
             trains[f"seed{seed}"] = train
         results["init"][init] = {"rows": over_seeds(runs), "train": _train_summary(trains)}
     print_table(results, log)
-    (out / "results.json").write_text(json.dumps(results, indent=2))
-    log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / 'results.json'}")
+    window = args.map_window
+    name = "results.json" if window is None else f"results_map_window{window}.json"
+    (out / name).write_text(json.dumps(results, indent=2))
+    log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / name}")
     return 0
 
 

@@ -53,6 +53,15 @@ def test_real_finetune_minimal_budget(bench, tmp_path, capsys):
     assert json.loads((out / "timings.json").read_text()) == seconds
     again = json.loads((out / "results.json").read_text())["init"]["scratch"]["rows"]
     assert again == rows
+    # the same networks decoded over the whole maps: P0 as before, the 2D points' rows not
+    assert bench.main([*args, "--map-window", "0"]) == 0
+    assert json.loads((out / "timings.json").read_text()) == seconds  # nothing trained again
+    assert (out / "eval" / "scratch" / "seed0" / "map_window0" / "metrics.json").is_file()
+    whole = json.loads((out / "results_map_window0.json").read_text())
+    assert whole["map_window"] == 0 and "map window 0 (whole maps)" in capsys.readouterr().out
+    rows0 = whole["init"]["scratch"]["rows"]
+    assert rows0["voxel P0"] == rows["voxel P0"]
+    assert rows0["baseline"]["jpe_mm"] != rows["baseline"]["jpe_mm"]
 
 
 def test_nearest_instant_takes_the_nearest_training_pose(bench):
