@@ -435,12 +435,12 @@ def main(argv: list[str] | None = None) -> int:
         "instances": args.instances, "threads": args.threads, "seeds": seeds, "init": {},
         "map_window": args.map_window,
     }  # fmt: skip
+    window = args.map_window
     for init in inits:
         runs, trains = [], {}
         for seed in seeds:
             train = train_runs(out, train_h5, args, init, seed, log)
             tag = f"{init}/seed{seed}"
-            window = args.map_window
             metrics = run_eval(out, eval_h5, tag, train_h5, window=window)
             fit = run_eval(out, train_h5, tag, train_h5, "training_frames", window)
             reproj, nearest = reprojection_errors(out, eval_h5, train_h5, tag, window)
@@ -448,7 +448,6 @@ def main(argv: list[str] | None = None) -> int:
             trains[f"seed{seed}"] = train
         results["init"][init] = {"rows": over_seeds(runs), "train": _train_summary(trains)}
     print_table(results, log)
-    window = args.map_window
     name = "results.json" if window is None else f"results_map_window{window}.json"
     (out / name).write_text(json.dumps(results, indent=2))
     log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / name}")

@@ -110,6 +110,11 @@ def detection_options(f: Any) -> Any:
             help="Frames for the bgsub background.",
         ),
     ]
+    return _with_options(f, opts)
+
+
+def _with_options(f: Any, opts: list[Decorator]) -> Any:
+    """``f`` with the click options ``opts``, listed in ``--help`` in this order."""
     for opt in reversed(opts):
         f = opt(f)
     return f
@@ -153,9 +158,7 @@ def inference_options(f: Any) -> Any:
             "model.map_window].",
         ),
     ]
-    for opt in reversed(opts):
-        f = opt(f)
-    return f
+    return _with_options(f, opts)
 
 
 def inference_overrides(fusion_reject: float | None, map_window: int | None) -> Any:

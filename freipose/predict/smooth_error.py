@@ -170,7 +170,8 @@ class PredictedBy:
     overrides: InferenceOverrides
 
 
-_SETTING_OPTIONS = {"fusion_reject": "--fusion-reject", "map_window": "--map-window"}
+# the inference-only settings a poses file records: their option and their type
+_SETTINGS = {"fusion_reject": ("--fusion-reject", float), "map_window": ("--map-window", int)}
 
 
 def predicted_by(poses: Sequence[Path], model: Path) -> PredictedBy:
@@ -190,7 +191,7 @@ def predicted_by(poses: Sequence[Path], model: Path) -> PredictedBy:
 
     digest = file_sha256(model)
     refine: set[bool] = set()
-    values: dict[str, set[Any]] = {name: set() for name in _SETTING_OPTIONS}
+    values: dict[str, set[Any]] = {name: set() for name in _SETTINGS}
     for p in poses:
         prov = read_poses_h5(p).provenance
         theirs = prov.get("model_sha256")
@@ -210,17 +211,15 @@ def predicted_by(poses: Sequence[Path], model: Path) -> PredictedBy:
     for name, seen in values.items():
         if len(seen) > 1:
             raise ValidationLabelsError(
-                f"the poses files were predicted with different {_SETTING_OPTIONS[name]} "
+                f"the poses files were predicted with different {_SETTINGS[name][0]} "
                 f"values {sorted(map(str, seen))}; smooth them separately"
             )
-    fusion, window = (values[name].pop() if values[name] else None for name in _SETTING_OPTIONS)
-    return PredictedBy(
-        refine.pop() if refine else True,
-        InferenceOverrides(
-            fusion_reject=None if fusion is None else float(fusion),
-            map_window=None if window is None else int(window),
-        ),
-    )
+    recorded = {name: seen.pop() if seen else None for name, seen in values.items()}
+    overrides = {
+        name: None if value is None else _SETTINGS[name][1](value)
+        for name, value in recorded.items()
+    }
+    return PredictedBy(refine.pop() if refine else True, InferenceOverrides(**overrides))
 
 
 def fit_error_floor(
