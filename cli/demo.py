@@ -23,10 +23,20 @@ from freipose.cli._threads import threads_option, use_threads
     "count follows the free cores, see --threads); tiny: a few minutes, meaningless numbers "
     "(a smoke test).",
 )
+@click.option(
+    "--seed",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Training seed of the networks (the data stay the same): run a few to see how much "
+    "the figures move with the training alone.",
+)
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
 @threads_option()
 @click.pass_context
-def demo(ctx: click.Context, outdir: Path, preset: str, device: str, threads: int | None) -> None:
+def demo(
+    ctx: click.Context, outdir: Path, preset: str, seed: int, device: str, threads: int | None
+) -> None:
     """Run the whole FreiPose workflow on synthetic data and write OUTDIR/report.html.
 
     Renders a calibration recording and three stimulated days of a rat filmed by 7 cameras,
@@ -54,6 +64,7 @@ def demo(ctx: click.Context, outdir: Path, preset: str, device: str, threads: in
             device=device,
             say=(lambda m: None) if quiet else click.echo,
             progress=None if not quiet else False,
+            seed=seed,
         )
         if quiet:
             click.echo(f"wrote {report}")

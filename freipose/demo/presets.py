@@ -99,6 +99,21 @@ class DemoPreset:
         """The recordings of the study (predicted and analysed): the train and test days."""
         return self.with_split("train", "test")
 
+    def with_seed(self, seed: int) -> DemoPreset:
+        """The same preset whose networks train from seed ``seed`` (0: the preset itself).
+
+        The seed draws the networks' training samples, augmentation and (from scratch) initial
+        weights; the synthetic recordings, calibration and labels stay the same, so runs with
+        different seeds show how much the figures move with the training alone.
+        """
+        if seed == 0:
+            return self
+        return dataclasses.replace(
+            self,
+            pose={**self.pose, "seed": seed},
+            detector={**self.detector, "seed": seed},
+        )
+
     def to_dict(self) -> dict[str, Any]:
         """The preset as JSON-compatible nested dicts and lists (as stored in the markers)."""
         return json.loads(json.dumps(dataclasses.asdict(self)))

@@ -61,6 +61,7 @@ def run_demo(
     device: str = "cpu",
     say: Callable[[str], None] = print,
     progress: bool | None = None,
+    seed: int = 0,
 ) -> Path:
     """Run (or resume) the demo in ``outdir``; returns the path of ``report.html``.
 
@@ -70,6 +71,8 @@ def run_demo(
         device: torch device for training and prediction.
         say: where progress messages go.
         progress: progress bars (None: only on a terminal).
+        seed: training seed of the detector, the voxel network and the baseline (the data
+            stay the same; see :meth:`DemoPreset.with_seed`).
 
     Returns:
         The path of ``outdir/report.html`` (``outdir/summary.json`` holds every figure).
@@ -78,7 +81,9 @@ def run_demo(
         DemoError: unknown preset, ``outdir`` is not a folder or holds a demo run with
             another preset.
     """
-    preset = _resolve_preset(preset)
+    if seed < 0:
+        raise DemoError(f"--seed must be >= 0, got {seed}")
+    preset = _resolve_preset(preset).with_seed(seed)
     out = Path(outdir)
     if out.exists() and not out.is_dir():
         raise DemoError(f"{out} exists and is not a folder; choose another output folder")
