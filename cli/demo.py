@@ -17,9 +17,8 @@ from freipose.cli._threads import threads_option, use_threads
     type=click.Choice(["small", "tiny"]),
     default="small",
     show_default=True,
-    help="small: the real workflow, under 10 min on an otherwise idle 2-core CPU "
-    "(measured: 7 min 38 s on one with AVX2 only); other "
-    "processes on the same cores slow it down (the thread "
+    help="small: the real workflow, under 10 min on an otherwise idle 2-core CPU (measured "
+    "times: docs/benchmarks.md); other processes on the same cores slow it down (the thread "
     "count follows the free cores, see --threads); tiny: a few minutes, meaningless numbers "
     "(a smoke test).",
 )
