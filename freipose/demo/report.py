@@ -18,6 +18,8 @@ from freipose import __version__
 from freipose.demo.context import DemoContext
 from freipose.demo.markers import STEPS, read_marker
 from freipose.demo.presets import SPLIT_ROLES, STIM_PART
+from freipose.demo.steps.analyze import ranked, raw_vs_smoothed, significant_variables
+from freipose.demo.steps.evaluate import lift_note
 from freipose.io.atomic import atomic_write_text
 from freipose.io.toml import read_toml
 
@@ -37,6 +39,7 @@ _STIMULATION = {
 # The analyses of the demo: marker key, what they analysed, results folder under analysis/.
 _ANALYSES = (
     ("predicted", "the predicted poses", "results"),
+    ("smoothed", "the smoothed predicted poses (freipose smooth)", "results_smoothed"),
     ("truth", "the true keypoints (perfect tracking, for comparison)", "results_truth"),
 )
 
@@ -226,6 +229,13 @@ def _comparison_row(c: dict[str, Any]) -> list[str]:
     ]
 
 
+def _lift_notes(ev: dict[str, Any]) -> list[str]:
+    """Per recording, a sentence where the predicted lift disagrees with the true one."""
+    notes = [lift_note(k, v["stimulated_part"])
+             for k, v in ev.get("pipeline", {}).items() if v.get("stimulated_part")]  # fmt: skip
+    return [n for n in notes if n]
+
+
 def _stimulated_rows(ev: dict[str, Any]) -> list[list[str]]:
     """Per recording: the stimulated keypoint's errors and lift, stimulated frames vs rest.
 
@@ -263,6 +273,7 @@ def _evaluation(ctx: DemoContext, ev: dict[str, Any]) -> dict[str, Any]:
         "labels": labels,
         "pipeline": pipeline,
         "stimulated": _stimulated_rows(ev),
+        "lift_notes": _lift_notes(ev),
         "references": refs,
         "comparisons": [_comparison_row(c) for c in ev.get("comparisons", [])],
         "failure_modes": _failure_modes(ev),
@@ -279,18 +290,51 @@ def _evaluation(ctx: DemoContext, ev: dict[str, Any]) -> dict[str, Any]:
 
 
 def _overlay(ctx: DemoContext, predicted: dict[str, Any]) -> dict[str, Any]:
-    """Step 5's overlay clip, its still frames and the smoothing figure, when present."""
+    """Step 5's overlay clip and its still frames, when present."""
     ov = predicted.get("overlay", {})
-    smooth = predicted.get("smooth", {})
     return {
         "video": _figure(ctx, ov["clip"], "") if ov.get("clip") else None,
         "frames": [
             _figure(ctx, f, f"Frame {int(Path(f).stem.rsplit('frame', 1)[-1])} of the test "
                     "recording.") for f in ov.get("frames", [])
         ],
-        "smooth": _figure(ctx, smooth["figure"], "Raw and smoothed trajectories "
-                          "(freipose smooth).") if smooth.get("figure") else None,
     }  # fmt: skip
+
+
+def _smoothing(ctx: DemoContext, an: dict[str, Any]) -> dict[str, Any] | None:
+    """The analysis of the raw and the smoothed predictions side by side, and the figure.
+
+    The rows are :func:`~freipose.demo.steps.analyze.raw_vs_smoothed`'s, the text the
+    demo prints; None when the smoothed predictions were not analysed.
+    """
+    smooth = an.get("smooth", {})
+    if not (an.get("predicted") and an.get("smoothed")):
+        return None
+    test = ctx.preset.with_split("test")[0].name
+    caption = (f"The stimulated {STIM_PART}, the nose and the tail on the test day "
+               f"({test}): height above the floor (z, mm) of the raw prediction (dots), the "
+               "smoothed one (line, band: 2 standard deviations) and the truth (dashed); "
+               "grey: stimulation.")  # fmt: skip
+    return {
+        "rows": [list(r) for r in raw_vs_smoothed(an["predicted"], an["smoothed"])],
+        "figure": _figure(ctx, smooth["figure"], caption) if smooth.get("figure") else None,
+    }
+
+
+def _significant(a: dict[str, Any], res_dir: Path) -> list[dict[str, Any]]:
+    """The significant single variables of an analysis, from its marker or its results.
+
+    A marker written without the list (an older demo folder) gets it from the analysis's
+    ``attribution.csv``.
+    """
+    if "significant_variables" in a:
+        return list(a["significant_variables"])
+    csv = res_dir / "attribution.csv"
+    if not a.get("significant") or not csv.is_file():
+        return []
+    import pandas as pd
+
+    return significant_variables(ranked(pd.read_csv(csv)))
 
 
 def _analysis_one(ctx: DemoContext, a: dict[str, Any] | None, sub: str) -> dict[str, Any]:
@@ -315,6 +359,10 @@ def _analysis_one(ctx: DemoContext, a: dict[str, Any] | None, sub: str) -> dict[
             ])  # fmt: skip
         out["n_top"] = int(round(a["top10_share_stimulated_part"] * 10))
         out["significant"] = a["significant"]
+        out["significant_variables"] = [
+            [v["variable"], str(v["rank"]), num(float(v["f1"])), num(float(v["p_value"])),
+             num(float(v["p_adjusted"]))] for v in _significant(a, res_dir)
+        ]  # fmt: skip
         out["n_variables"] = a["classification"][0].get("n_variables_used", "all")
     heat = (
         "F-score of each single variable by body part (rows) and variable (columns); white: "
@@ -343,6 +391,7 @@ def context(ctx: DemoContext) -> dict[str, Any]:
         "training": _training(ctx, r["train"], r["evaluate"]) if r["train"] else None,
         "evaluation": _evaluation(ctx, r["evaluate"]) if r["evaluate"] else None,
         "overlay": _overlay(ctx, r["predict"]),
+        "smoothing": _smoothing(ctx, an),
         "analysis": [
             (label, _analysis_one(ctx, an.get(key), sub))
             for key, label, sub in _ANALYSES

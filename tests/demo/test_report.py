@@ -17,6 +17,8 @@ from freipose.demo import report
 from freipose.demo.context import DemoContext
 from freipose.demo.markers import write_marker
 from freipose.demo.presets import PRESETS
+from freipose.demo.steps.analyze import _side_by_side
+from freipose.demo.steps.evaluate import lift_note
 from freipose.io.figures import new_figure, save_figure
 from freipose.io.video import VideoWriter
 
@@ -80,8 +82,6 @@ def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
     predicted: dict = {"overlay": {
         "clip": _clip(out / "overlay" / "rat1_day2.mp4"),
         "frames": [_png(out / "overlay" / "rat1_day2_frame00020.png", "frame")]}}  # fmt: skip
-    if smooth:
-        predicted["smooth"] = {"figure": _png(out / "overlay" / "smooth.png", "smooth")}
     write_marker(out, p, "predict", predicted, 20.0)
     ev: dict = {
         "labels": {"voxel_P0": {"median": 21.22, "p30": 16.5, "p70": 28.7},
@@ -89,7 +89,11 @@ def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
         "pipeline": {"rat1_day2 (test)": {"median": 22.99, "missing": 0, "stimulated_part": {
             "stimulated": {"n": 40, "median_error_mm": 15.61, "median_height_error_mm": -11.2},
             "rest": {"n": 90, "median_error_mm": 9.47, "median_height_error_mm": -3.4},
-            "lift_true_mm": 12.3, "lift_pred_mm": 5.1}}},
+            "lift_true_mm": 12.3, "lift_pred_mm": 5.1}},
+                     "rat1_day3 (train)": {"median": 21.5, "missing": 0, "stimulated_part": {
+            "stimulated": {"n": 40, "median_error_mm": 14.2, "median_height_error_mm": -7.0},
+            "rest": {"n": 90, "median_error_mm": 9.1, "median_height_error_mm": -0.1},
+            "lift_true_mm": 5.4, "lift_pred_mm": -1.6}}},
     }  # fmt: skip
     if failure_modes:
         ev["failure_modes"] = FAILURE_MODES
@@ -105,8 +109,20 @@ def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
          "train_balanced_accuracy": 1.0}],
         "top_variables": [{"variable": "local_z[Ear Right]", "part": "Ear Right", "f1": 0.66,
                            "p_value": 0.024, "p_adjusted": 1.0, "significant": False}],
-        "top10_share_stimulated_part": 0.0, "significant": 0}  # fmt: skip
-    write_marker(out, p, "analyze", {"predicted": analysis}, 30.0)
+        "top10_share_stimulated_part": 0.0, "significant": 0, "significant_variables": [],
+        "balanced_accuracy": 0.43,
+        "stimulated_best_rank": 4, "stimulated_best_variable": "local_z[Paw Front Right]",
+        "stimulated_best_f1": 0.613}  # fmt: skip
+    analyzed: dict = {"predicted": analysis}
+    if smooth:
+        sig = {"variable": "floor_dist_stft_3.12Hz[Tail]", "rank": 85, "f1": 0.574,
+               "p_value": 2.1e-5, "p_adjusted": 0.011}  # fmt: skip
+        analyzed["smoothed"] = {**analysis, "balanced_accuracy": 0.554, "significant": 1,
+                                "significant_variables": [sig], "stimulated_best_rank": 12,
+                                "stimulated_best_f1": 0.5449}  # fmt: skip
+        (out / "analysis").mkdir()
+        analyzed["smooth"] = {"figure": _png(out / "analysis" / "smoothed_vs_raw.png", "smooth")}
+    write_marker(out, p, "analyze", analyzed, 30.0)
     return ctx
 
 
@@ -143,14 +159,79 @@ def test_report_tables_name_their_columns(tmp_path):
     assert re.search(row + r" -0\.15 \(-0\.28 to -0\.05\): lower 66 %", text)
     # the overlay video embedded, the smoothing figure shown, every path relative
     assert '<video controls preload="auto" src="overlay/rat1_day2.mp4">' in page
-    assert 'src="overlay/smooth.png"' in page
+    assert 'src="analysis/smoothed_vs_raw.png"' in page
     assert str(tmp_path) not in page
     assert "http://" not in page and "https://" not in page  # nothing fetched
+
+
+def _text(page: str) -> str:
+    """The page's visible text, whitespace collapsed."""
+    text = re.sub(r"<[^>]+>", " ", re.sub(r"<style>.*</style>", "", page, flags=re.S))
+    return re.sub(r"\s+", " ", text)
+
+
+def test_report_shows_raw_vs_smoothed_as_the_terminal_does(tmp_path):
+    ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=True)
+    page = Path(report.run(ctx)["report"]).read_text()
+    text = _text(page)
+    assert "Raw vs smoothed predictions" in text and 'href="#smoothing"' in page
+    marker = json.loads((tmp_path / "demo" / ".demo" / "analyze.done").read_text())["results"]
+    printed = _side_by_side(marker["predicted"], marker["smoothed"])
+    # every line the terminal prints is a row of the report's table, with the same numbers
+    lines = [ln.strip() for ln in printed.splitlines()[1:]]
+    assert len(lines) == 4
+    for line in lines:
+        name, values = line.split(": ", 1)
+        raw, smoothed = values.split(" vs ")
+        assert f"{name} {raw} {smoothed}" in text, (line, text)
+    assert "balanced accuracy of the classifier on the test day 0.43 0.55" in text
+    assert "local_z[Paw Front Right] (rank 4, F1 0.61) local_z[Paw Front Right] (rank 12" in text
+    assert 'src="analysis/smoothed_vs_raw.png"' in page
+
+
+def test_report_names_the_significant_variables(tmp_path):
+    ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=True)
+    text = _text(Path(report.run(ctx)["report"]).read_text())
+    smoothed = text.split("On the smoothed predicted poses")[1]
+    assert "1 significant after the adjustment, listed below the table" in smoothed
+    row = "floor_dist_stft_3.12Hz[Tail] 85 0.574 2.1e-05 0.011"
+    assert "The 1 significant variable (rank: place by F1 among all 528): " in smoothed
+    assert f"p (Bonferroni-adjusted) {row}" in smoothed
+    predicted = text.split("On the predicted poses")[1].split("On the smoothed")[0]
+    assert "0 significant after the adjustment)" in predicted
+    assert "significant variable (rank" not in predicted
+
+
+def test_report_says_when_the_predicted_lift_disagrees(tmp_path):
+    ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
+    page = Path(report.run(ctx)["report"]).read_text()
+    text = _text(page)
+    flip = ("The network does not reproduce the lift on rat1_day3 (train): predicted -1.6 mm, "
+            "true +5.4 mm (the opposite direction).")  # fmt: skip
+    assert flip in text
+    part = "reproduces only part of the lift on rat1_day2 (test): predicted +5.1 mm, true +12.3 mm"
+    assert part in text
+    # next to the table: after it, before the next section's figures
+    table_end = text.index("+5.1 +12.3")
+    assert table_end < text.index(flip) < text.index("Overlay")
+    assert page.count('<p class="warning">The network') == 2
+
+
+def test_lift_note_only_when_prediction_and_truth_disagree():
+    def note(pred, true):
+        return lift_note("day", {"lift_pred_mm": pred, "lift_true_mm": true})
+
+    assert note(5.0, 5.4) is None and note(4.0, 5.4) is None  # within half the true lift
+    assert note(-0.3, 0.4) is None  # both within 1 mm of each other: no lift either way
+    assert note(None, 5.4) is None and lift_note("day", {}) is None
+    assert "does not reproduce" in note(-1.6, 5.4) and "opposite" in note(3.0, -4.0)
+    assert "only part" in note(2.0, 5.4) and "exaggerates" in note(9.0, 5.4)
 
 
 def test_report_without_optional_sections(tmp_path):
     ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
     page = Path(report.run(ctx)["report"]).read_text()
+    assert "Raw vs smoothed" not in page and "smoothed_vs_raw" not in page
     assert "Failure modes" not in page and "Smoothing" not in page
     assert "For comparison" not in page and "Paired comparisons" not in page
     assert "Figure not written: <code>train/baseline/log.png</code>" in page

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -13,6 +13,9 @@ from freipose.demo.context import DemoContext, session_labels, truth_to_calibrat
 from freipose.demo.markers import step_results
 from freipose.demo.presets import STIM_PART
 from freipose.io.atomic import atomic_write_text
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 HELD_OUT_INSTANTS = 24  # held-out instants predicted to measure the network's error
 
@@ -93,7 +96,7 @@ def analyze_poses(ctx: DemoContext, study: Path, text: str, results: Path) -> di
     result = analyze_study(
         study, results, None, "world", vcfg, acfg, say=lambda m: ctx.say("    " + m)
     )
-    att = result.attribution.sort_values("f1", ascending=False).reset_index(drop=True)
+    att = ranked(result.attribution)
     top = att.head(10)
     parts = top["part"].tolist()
     share = float(np.mean([pt == STIM_PART for pt in parts])) if parts else 0.0
@@ -111,14 +114,82 @@ def analyze_poses(ctx: DemoContext, study: Path, text: str, results: Path) -> di
         ),
         "top10_share_stimulated_part": share,
         "significant": int(att["significant"].sum()),
+        "significant_variables": significant_variables(att),
     }
     ctx.say(
         f"    -> {int(round(share * 10))} of the 10 best single variables belong to the "
         f"stimulated {STIM_PART} (best: {top.iloc[0]['variable']}, F1 "
-        f"{top.iloc[0]['f1']:.2f}); {res['significant']} significant after the "
+        f"{top.iloc[0]['f1']:.2f}); {significant_text(res)} after the "
         "autocorrelation-corrected, Bonferroni-adjusted test"
     )
     return res
+
+
+def ranked(attribution: pd.DataFrame) -> pd.DataFrame:
+    """The single variables (``attribution.csv`` rows) best first: row i has rank i + 1."""
+    return attribution.sort_values("f1", ascending=False, kind="stable").reset_index(drop=True)
+
+
+def significant_variables(att: pd.DataFrame) -> list[dict[str, Any]]:
+    """The significant single variables of :func:`ranked` rows, best first.
+
+    Returns:
+        Per variable: ``variable``, ``rank`` (1 = best F1), ``f1``, ``p_value`` and
+        ``p_adjusted`` (Bonferroni).
+    """
+    rows = np.flatnonzero(att["significant"].to_numpy(dtype=bool))
+    return [
+        {"variable": str(att["variable"].iloc[i]), "rank": int(i) + 1,
+         "f1": float(att["f1"].iloc[i]), "p_value": float(att["p_value"].iloc[i]),
+         "p_adjusted": float(att["p_adjusted"].iloc[i])} for i in rows
+    ]  # fmt: skip
+
+
+def significant_text(res: dict[str, Any]) -> str:
+    """How many single variables are significant, naming each with its rank and F1.
+
+    Args:
+        res: what :func:`analyze_poses` returned.
+
+    Returns:
+        E.g. ``"1 significant (local_z[Tail], rank 85, F1 0.61)"`` or ``"0 significant"``.
+    """
+    named = [f"{v['variable']}, rank {v['rank']}, F1 {v['f1']:.2f}"
+             for v in res.get("significant_variables", [])]  # fmt: skip
+    listed = f" ({'; '.join(named)})" if named else ""
+    return f"{res['significant']} significant{listed}"
+
+
+def raw_vs_smoothed(raw: dict[str, Any], smoothed: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """The analysis figures of the raw and the smoothed predictions, as the demo prints them.
+
+    Args:
+        raw: what :func:`analyze_poses` returned for the predicted poses.
+        smoothed: the same for the smoothed predicted poses.
+
+    Returns:
+        (figure, raw, smoothed) rows of text: the balanced accuracy on the test day, the
+        best single variable with its F1, the rank and F1 of the stimulated part's best
+        variable and the number of significant variables.
+    """
+
+    def best(r: dict[str, Any]) -> str:
+        t = r["top_variables"][0] if r.get("top_variables") else None
+        return f"{t['variable']} (F1 {t['f1']:.2f})" if t else "-"
+
+    def stim(r: dict[str, Any]) -> str:
+        if r.get("stimulated_best_rank") is None:
+            return "-"
+        return (f"{r['stimulated_best_variable']} (rank {r['stimulated_best_rank']}, "
+                f"F1 {r['stimulated_best_f1']:.2f})")  # fmt: skip
+
+    return [
+        ("balanced accuracy of the classifier on the test day",
+         f"{raw['balanced_accuracy']:.2f}", f"{smoothed['balanced_accuracy']:.2f}"),
+        ("best single variable", best(raw), best(smoothed)),
+        (f"best {STIM_PART} variable", stim(raw), stim(smoothed)),
+        ("significant single variables", str(raw["significant"]), str(smoothed["significant"])),
+    ]  # fmt: skip
 
 
 def run(ctx: DemoContext) -> dict[str, Any]:
@@ -175,12 +246,9 @@ def run(ctx: DemoContext) -> dict[str, Any]:
 
 
 def _side_by_side(raw: dict[str, Any], smoothed: dict[str, Any]) -> str:
-    """Balanced accuracy and the stimulated part's best rank, raw next to smoothed."""
-    return (
-        f"    raw vs smoothed: balanced accuracy {raw['balanced_accuracy']:.2f} vs "
-        f"{smoothed['balanced_accuracy']:.2f}; best {STIM_PART} variable at rank "
-        f"{raw['stimulated_best_rank']} vs {smoothed['stimulated_best_rank']}"
-    )
+    """:func:`raw_vs_smoothed` as terminal lines: each figure, raw vs smoothed."""
+    rows = raw_vs_smoothed(raw, smoothed)
+    return "    raw vs smoothed:\n" + "\n".join(f"      {n}: {a} vs {b}" for n, a, b in rows)
 
 
 def _smooth_predictions(ctx: DemoContext, folder: Path) -> dict[str, Any]:
@@ -220,6 +288,21 @@ def _smooth_predictions(ctx: DemoContext, folder: Path) -> dict[str, Any]:
     return {"held_out_error": note, "files": files}
 
 
+def figure_seconds(events: np.ndarray, windows: int = 2) -> float:
+    """How long a trajectory figure runs to show ``windows`` whole stimulation windows.
+
+    Args:
+        events: (W, 2) stimulation windows (start, end) in s, as in ``events.csv``.
+        windows: how many windows to show.
+
+    Returns:
+        The end of the ``windows``-th window plus 1 s (6 s when there is no window).
+    """
+    if len(events) == 0:
+        return 6.0
+    return float(events[min(windows, len(events)) - 1, 1]) + 1.0
+
+
 def _trajectory_figure(ctx: DemoContext, session: str, smoothed_dir: Path, path: Path) -> Path:
     """Raw vs smoothed trajectories (with the 2-sigma band and the truth) of a few keypoints."""
     from freipose.demo.context import save_png
@@ -234,10 +317,10 @@ def _trajectory_figure(ctx: DemoContext, session: str, smoothed_dir: Path, path:
     gt = gt[[rows[int(f)] for f in raw.frame_index]]
     names = [k for k in (STIM_PART, "Nose", "Tail") if k in raw.keypoints]
     t = (raw.frame_index - raw.frame_index[0]) / raw.fps
-    n = min(len(t), int(round(6 * raw.fps)))
-    fig = new_figure(figsize=(9.0, 2.2 * len(names)))
-    axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
     events = np.loadtxt(ctx.session_dir(session) / "events.csv", delimiter=",", skiprows=1, ndmin=2)
+    n = min(len(t), int(round(figure_seconds(events) * raw.fps)))
+    fig = new_figure(figsize=(11.0, 2.2 * len(names)))
+    axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
     for ax, name in zip(axes, names, strict=True):
         for a, b in events:
             if a < t[n - 1]:

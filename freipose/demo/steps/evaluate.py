@@ -175,6 +175,34 @@ def _stimulated_part(
                                   a["onset_delay_s"], a["margin_s"])  # fmt: skip
 
 
+def lift_note(name: str, r: dict[str, Any]) -> str | None:
+    """A plain sentence when the predicted lift of the stimulated part disagrees with the truth.
+
+    They disagree when they differ by more than half the true lift and by at least 1 mm
+    (an opposite sign always differs by more than the true lift itself).
+
+    Args:
+        name: the recording.
+        r: what :func:`stimulated_part_errors` returned for it.
+
+    Returns:
+        E.g. ``"The network does not reproduce the lift on rat1_day3: predicted -1.6 mm,
+        true +5.4 mm (the opposite direction)."``; None when they agree or one is missing.
+    """
+    pred, true = r.get("lift_pred_mm"), r.get("lift_true_mm")
+    if pred is None or true is None or not np.isfinite([pred, true]).all():
+        return None
+    if abs(pred - true) <= max(0.5 * abs(true), 1.0):
+        return None
+    figures = f"predicted {pred:+.1f} mm, true {true:+.1f} mm"
+    if pred * true < 0:
+        return (f"The network does not reproduce the lift on {name}: {figures} "
+                "(the opposite direction).")  # fmt: skip
+    if abs(pred) < abs(true):
+        return f"The network reproduces only part of the lift on {name}: {figures}."
+    return f"The network exaggerates the lift on {name}: {figures}."
+
+
 def _say_stimulated(ctx: DemoContext, name: str, r: dict[str, Any]) -> None:
     """One line on the stimulated keypoint of session ``name``."""
     if "lift_true_mm" not in r:  # no stimulated or no rest frame with a pose
@@ -187,6 +215,9 @@ def _say_stimulated(ctx: DemoContext, name: str, r: dict[str, Any]) -> None:
         f"mean height in the stimulated frames minus the rest {r['lift_pred_mm']:+.1f} mm "
         f"predicted, {r['lift_true_mm']:+.1f} mm true"
     )
+    note = lift_note(name, r)
+    if note:
+        ctx.say(f"      {note}")
 
 
 def run(ctx: DemoContext) -> dict[str, Any]:
