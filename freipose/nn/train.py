@@ -359,7 +359,7 @@ def _save(run: TrainRun, step: int, final: bool) -> None:
     if final:
         with atomic_path(run.files.out / "model.pt") as tmp:
             tmp.write_bytes(data)
-    plot_log(run.files.log, run.files.out / "log.png")
+    plot_log(run.files.log, run.files.out / "log.png", run.config.model.kind)
 
 
 def _step_row(done: int, lr: float, t0: float) -> dict[str, Any]:

@@ -8,7 +8,9 @@ of P0 and P1 in mm when computed, and ``seconds`` since the training started or 
 from __future__ import annotations
 
 import csv
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -71,12 +73,22 @@ def _log_values(rows: list[dict[str, str]], column: str) -> np.ndarray:
     return np.array([float(r[column]) if r.get(column) not in (None, "") else np.nan for r in rows])
 
 
-def plot_log(csv_path: str | Path, png_path: str | Path) -> None:
+# the validation curves of each model kind: log column, legend (the baseline has one estimate,
+# which its log repeats under both columns)
+VALIDATION_CURVES: Mapping[str, tuple[tuple[str, str], ...]] = MappingProxyType({
+    "voxel": (("val_jpe_p0", "P0 (3D network)"), ("val_jpe_p1", "P1 (refined)")),
+    "baseline": (("val_jpe_p1", "triangulated 2D keypoints"),),
+})  # fmt: skip
+
+
+def plot_log(csv_path: str | Path, png_path: str | Path, kind: str = "voxel") -> None:
     """Plot the training log: losses (log scale) and validation JPE against the step.
 
     Args:
         csv_path: the run's ``log.csv``.
         png_path: the PNG to write (nothing is written for an empty log).
+        kind: the model's ``[model] kind``: ``voxel`` (curves of P0 and P1) or
+            ``baseline`` (one estimate, one curve).
     """
     rows = read_log(Path(csv_path), 1 << 62)
     if not rows:
@@ -93,7 +105,7 @@ def plot_log(csv_path: str | Path, png_path: str | Path) -> None:
     a1.set_ylabel("loss (log scale)")
     a1.set_title("training losses")
     a1.legend(fontsize=8)
-    for c, name in (("val_jpe_p0", "P0 (3D network)"), ("val_jpe_p1", "P1 (refined)")):
+    for c, name in VALIDATION_CURVES[kind]:
         v = _log_values(rows, c)
         ok = np.isfinite(v)
         if ok.any():

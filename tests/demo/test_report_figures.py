@@ -87,3 +87,18 @@ def test_training_log_plot_names_its_curves_and_units(monkeypatch, tmp_path):
     assert [t.get_text() for t in val.get_legend().get_texts()] == ["P0 (3D network)",
                                                                     "P1 (refined)"]  # fmt: skip
     assert val.get_ylabel() == "median JPE (mm)"
+
+
+def test_baseline_log_plot_has_one_validation_curve(monkeypatch, tmp_path):
+    from freipose.nn import train_log
+
+    kept = _capture(monkeypatch, train_log, "save_figure")
+    # the baseline's log repeats its one estimate under both validation columns
+    rows = [{"step": s, "loss": 5.0 / s, "2d": 2.0 / s, "val_jpe_p0": 30.0 - s,
+             "val_jpe_p1": 30.0 - s} for s in (1, 2, 3)]  # fmt: skip
+    train_log.write_log(tmp_path / "log.csv", rows)
+    train_log.plot_log(tmp_path / "log.csv", tmp_path / "log.png", "baseline")
+    (fig,) = kept
+    val = fig.axes[1]
+    assert len(val.get_lines()) == 1
+    assert [t.get_text() for t in val.get_legend().get_texts()] == ["triangulated 2D keypoints"]
