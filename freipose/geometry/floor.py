@@ -4,7 +4,8 @@ A floor is the plane ``{X : normal · X = offset}`` with a unit ``normal`` point
 height of a point above it is ``normal · X - offset`` (mm). :func:`fit_plane_below` fits
 that plane to the lowest of many points (paws in stance) given an approximate up;
 :func:`estimate_up` finds the up direction itself from points of an animal moving over
-the floor, seen by cameras most of which are above it.
+the floor, seen by cameras most of which are above it, and says how well the points
+determine it (:func:`up_uncertainty`: the spread of the estimate over resampled instants).
 """
 
 from __future__ import annotations
@@ -13,7 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LowPlane", "UpEstimate", "estimate_up", "fit_plane_below", "orthonormal_basis"]
+__all__ = [
+    "LowPlane",
+    "UpEstimate",
+    "estimate_up",
+    "fit_plane_below",
+    "orthonormal_basis",
+    "up_uncertainty",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,6 +124,9 @@ class UpEstimate:
             points spread over a plane; near 1 when the thin direction is not determined).
         cameras_above: how many of the cameras are above the floor.
         points: the finite points used.
+        instants: the instants (first axis of the points) with a finite point.
+        uncertainty_deg: the 95th percentile of the angle between ``up`` and the estimates
+            from resampled instants (:func:`up_uncertainty`), degrees.
     """
 
     up: np.ndarray
@@ -123,32 +134,28 @@ class UpEstimate:
     flatness: float
     cameras_above: int
     points: int
+    instants: int = 0
+    uncertainty_deg: float = float("nan")
 
 
-def estimate_up(points: np.ndarray, camera_centers: np.ndarray) -> UpEstimate | None:
-    """Estimate the up direction from points of an animal moving over a floor.
+def _by_instant(points: np.ndarray) -> np.ndarray:
+    """(T, P, 3) points per instant: the first axis is time; (N, 3): one point an instant."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim <= 2:
+        return pts.reshape(-1, 1, 3)
+    return pts.reshape(len(pts), -1, 3)
 
-    The animal's points over time spread along the floor more than across it, so the
-    direction of least scatter is the floor's normal up to its sign; the sign puts most
-    camera centres above the floor (a rig may have a camera below a transparent floor, not
-    most of them). The normal is then refined by :func:`fit_plane_below` on the lowest
-    points, which also gives the floor's height.
 
-    Args:
-        points: (..., 3) points over time (mm), NaN allowed.
-        camera_centers: (C, 3) camera centres in the same frame.
+def _finite(points: np.ndarray) -> np.ndarray:
+    pts = points.reshape(-1, 3)
+    return pts[np.isfinite(pts).all(axis=1)]
 
-    Returns:
-        The estimate, or None for fewer than 10 finite points.
-    """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if len(pts) < 10:
-        return None
+
+def _up_and_floor(pts: np.ndarray, centers: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """(up, floor, flatness) of finite (N, 3) points: least scatter, sided, plane-refined."""
     centred = pts - pts.mean(axis=0)
     evals, evecs = np.linalg.eigh(centred.T @ centred / len(pts))
     up = evecs[:, 0]
-    centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
     side = (centers - np.median(pts, axis=0)) @ up
     if np.sum(side > 0) < np.sum(side < 0) or (
         np.sum(side > 0) == np.sum(side < 0) and side.sum() < 0
@@ -159,6 +166,83 @@ def estimate_up(points: np.ndarray, camera_centers: np.ndarray) -> UpEstimate | 
         up, floor = plane.normal, plane.offset
     else:
         floor = float(np.min(pts @ up))
+    return up, float(floor), float(evals[0] / max(evals[1], 1e-12))
+
+
+def up_uncertainty(
+    points: np.ndarray,
+    camera_centers: np.ndarray,
+    up: np.ndarray,
+    resamples: int = 64,
+    blocks: int = 20,
+    max_instants: int = 2000,
+) -> float:
+    """How well the points determine the up: the spread of re-estimates over instants.
+
+    The instants (first axis) are cut into at most ``blocks`` runs of consecutive instants
+    (consecutive video frames are not independent evidence), the runs are drawn with
+    replacement ``resamples`` times and the up is estimated from each draw as
+    :func:`estimate_up` does. Deterministic (a fixed generator).
+
+    Args:
+        points: (T, ..., 3) points over time (mm), NaN allowed.
+        camera_centers: (C, 3) camera centres in the same frame.
+        up: (3,) the estimate from all the points.
+        resamples: the number of draws.
+        blocks: the most runs the instants are cut into.
+        max_instants: longer recordings are thinned to this many evenly spaced instants.
+
+    Returns:
+        The 95th percentile of the angle between ``up`` and the re-estimates (degrees);
+        180 when a draw has too few points to estimate anything.
+    """
+    per = _by_instant(points)
+    if len(per) > max_instants:
+        per = per[np.linspace(0, len(per) - 1, max_instants).round().astype(np.int64)]
+    runs = np.array_split(np.arange(len(per)), min(blocks, len(per)))
+    centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
+    rng = np.random.default_rng(0)
+    angles = np.empty(resamples)
+    for b in range(resamples):
+        pick = np.concatenate([runs[i] for i in rng.integers(0, len(runs), len(runs))])
+        pts = _finite(per[pick])
+        if len(pts) < 10:
+            angles[b] = 180.0
+            continue
+        u, _, _ = _up_and_floor(pts, centers)
+        angles[b] = np.degrees(np.arccos(np.clip(float(u @ up), -1.0, 1.0)))
+    return float(np.percentile(angles, 95))
+
+
+def estimate_up(
+    points: np.ndarray, camera_centers: np.ndarray, uncertainty: bool = True
+) -> UpEstimate | None:
+    """Estimate the up direction from points of an animal moving over a floor.
+
+    The animal's points over time spread along the floor more than across it, so the
+    direction of least scatter is the floor's normal up to its sign; the sign puts most
+    camera centres above the floor (a rig may have a camera below a transparent floor, not
+    most of them). The normal is then refined by :func:`fit_plane_below` on the lowest
+    points, which also gives the floor's height. A few instants, or an animal that walked
+    along one line or reared a lot, leave the direction poorly determined: its
+    :func:`up_uncertainty` says by how much.
+
+    Args:
+        points: (T, ..., 3) points over time (mm), NaN allowed; the first axis is time
+            (a (N, 3) array: every point its own instant).
+        camera_centers: (C, 3) camera centres in the same frame.
+        uncertainty: also measure the uncertainty (else ``uncertainty_deg`` is NaN).
+
+    Returns:
+        The estimate, or None for fewer than 10 finite points.
+    """
+    per = _by_instant(points)
+    pts = _finite(per)
+    if len(pts) < 10:
+        return None
+    centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
+    up, floor, flat = _up_and_floor(pts, centers)
     above = int(np.sum(centers @ up - floor > 0))
-    flat = float(evals[0] / max(evals[1], 1e-12))
-    return UpEstimate(up, float(floor), flat, above, len(pts))
+    instants = int(np.isfinite(per).all(axis=2).any(axis=1).sum())
+    spread = up_uncertainty(per, centers, up) if uncertainty else float("nan")
+    return UpEstimate(up, floor, flat, above, len(pts), instants, spread)

@@ -37,6 +37,9 @@ __all__ = [
 UP_KEYS = ("up", "up_source", "floor_mm")
 # The largest scatter ratio (smallest / middle eigenvalue) at which the labels fix the up.
 MAX_FLATNESS = 0.5
+# The largest uncertainty (95th percentile over resampled instants, degrees) of an
+# estimated up that is stored or used.
+MAX_UP_UNCERTAINTY_DEG = 3.0
 
 
 class WorldUpError(FreiPoseError):
@@ -123,8 +126,9 @@ def up_from_labels(rig: CameraRig, points: np.ndarray, what: str = "labeled") ->
         The estimate, its floor height and a source naming the evidence.
 
     Raises:
-        WorldUpError: too few points, or points that do not fix a plane (an animal that
-            never moved over the floor).
+        WorldUpError: too few points, points that do not fix a plane (an animal that
+            never moved over the floor), or an up that the points determine only to more
+            than ``MAX_UP_UNCERTAINTY_DEG`` (too few instants, or all along one line).
     """
     est = estimate_up(points, rig.centers)
     if est is None:
@@ -139,9 +143,22 @@ def up_from_labels(rig: CameraRig, points: np.ndarray, what: str = "labeled") ->
             f"animal hardly moved); give it with freipose calib up CALIBRATION --up X,Y,Z, or "
             f"calibrate with --origin-frame N (a frame with the board on the floor)"
         )
+    if not est.uncertainty_deg <= MAX_UP_UNCERTAINTY_DEG:
+        more = (
+            "label more instants spread over the whole arena (typically 100 or more)"
+            if what == "labeled"
+            else f"use more {what} frames of the animal moving over the whole arena"
+        )
+        raise WorldUpError(
+            f"cannot estimate the up direction from the {what} points: {est.instants} "
+            f"instants determine it only to within {est.uncertainty_deg:.1f} degrees "
+            f"(95 % over resampled instants; need at most {MAX_UP_UNCERTAINTY_DEG:g}); "
+            f"{more}, or give it with freipose calib up CALIBRATION --up X,Y,Z"
+        )
     return WorldUp(
         est.up,
-        f"estimated from {est.points} {what} 3D points (the plane the animal moves on; "
+        f"estimated from {est.points} {what} 3D points of {est.instants} instants (the "
+        f"plane the animal moves on, within {est.uncertainty_deg:.1f} degrees; "
         f"{est.cameras_above} of {len(rig)} cameras above it)",
         est.floor,
     )

@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from freipose.errors import FreiPoseError, InputFileError
-from freipose.io.atomic import atomic_path, refuse_existing, remove_leftover_partials
+from freipose.io.atomic import atomic_h5, refuse_existing, remove_leftover_partials
 from freipose.io.calibration_toml import rig_from_toml_text
 from freipose.io.calibration_world import resolve_up
 from freipose.io.lock import output_lock
@@ -126,7 +126,7 @@ def merge_shards(shards: Sequence[str | Path], output: str | Path) -> Path:
                 f"the shards' frames do not cover the run's frames {run_range[0]}:{run_range[1]} "
                 "exactly once"
             )
-        with atomic_path(output) as tmp, h5py.File(tmp, "w") as out:
+        with atomic_h5(output) as out:
             _write_merged(files, out)
     finally:
         for f in files:
@@ -181,7 +181,8 @@ def _write_merged(files: list[h5py.File], out: h5py.File) -> None:
 def _estimate_up_again(out: h5py.File) -> None:
     """The up of the joined poses, as an unsharded run estimates it from all its frames.
 
-    Shards of a calibration without an up estimate one each from their own frames.
+    Shards of a calibration without an up store none of their own (world z, flagged as
+    unknown); the joined frames give it when they determine it (see :func:`resolve_up`).
     """
     rig = rig_from_toml_text(str(out.attrs["calibration"]))
     found = resolve_up(rig, out["poses"][()], "the poses' up attribute", what="predicted")

@@ -274,7 +274,8 @@ def predict_session(
         frames: ``"START:STOP"`` or (start, stop); default all frames.
         batch_size: time steps per estimator call.
         shard: (i, n) to process only the i-th of n contiguous parts of the frames.
-        overwrite: redo an output that exists and is complete (default: skip it).
+        overwrite: redo an output that exists and is complete (default: skip it), and
+            never resume a partial file of an interrupted run.
         skeleton: stored with the poses (its keypoints must be the estimator's).
         provenance: further facts to store (e.g. settings such as ``refine``).
         chunk_frames: rows per committed chunk (rounded up to a multiple of ``batch_size``).
@@ -343,11 +344,11 @@ def _predict_locked(
     )
     writer = IncrementalPosesWriter(path, header, plan.rows_per_chunk)
     try:
-        done = writer.open()
+        done = writer.open(fresh=overwrite)
         loop = _predict_frames(
             session, estimator, writer, plan, done, batch_size, progress, prefetch, on_batch
         )
-        out = writer.finish(up=_predicted_up(session.rig, writer))
+        out = writer.finish(up=_predicted_up(session.rig, writer, shard))
     finally:
         writer.close()
     _warn_missing(session, loop.missing, plan.b)
@@ -360,14 +361,25 @@ def _predict_locked(
     )
 
 
-def _predicted_up(rig: CameraRig, writer: IncrementalPosesWriter) -> WorldUp | None:
-    """Without a stored up: the one the predicted poses give, as training's from the labels.
+def _predicted_up(
+    rig: CameraRig, writer: IncrementalPosesWriter, shard: tuple[int, int] | None = None
+) -> WorldUp | None:
+    """Without a stored up: the one the predicted poses determine, else world z (flagged).
 
-    The warning of :func:`resolve_up` says which it is (estimated, or world z assumed).
-    None when the calibration stores an up (the header's is final).
+    The estimate is kept only when the poses determine it to within a few degrees
+    (:func:`resolve_up`, whose warning says which it is). A shard estimates nothing from
+    its own few frames: it stores world z flagged as unknown, and merging the shards
+    estimates the up from all their frames. None when the calibration stores an up (the
+    header's is final).
     """
     if world_up(rig) is not None:
         return None
+    if shard is not None:
+        return WorldUp(
+            np.array([0.0, 0.0, 1.0]),
+            "unknown: world z assumed in every shard; freipose merge estimates the up "
+            "from all the frames",
+        )
     return resolve_up(rig, writer.poses(), "the poses' up attribute", what="predicted")
 
 
