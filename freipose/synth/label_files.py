@@ -20,6 +20,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -62,6 +63,34 @@ def noisy_labels(
     return NoisyLabels(pts, np.where(visible, score, np.nan))
 
 
+def _sleap_io() -> Any:
+    """The ``sleap_io`` module.
+
+    Raises:
+        SynthError: sleap-io is not installed (the message names the extra).
+    """
+    try:
+        import sleap_io
+    except ImportError:
+        raise SynthError(
+            "label_files = sleap needs sleap-io, which is not installed: install the sleap "
+            "extra with pip install 'freipose[sleap]' (or leave sleap out of --label-files)"
+        ) from None
+    return sleap_io
+
+
+def check_label_formats(formats: Sequence[str]) -> None:
+    """Check that the packages the label files of ``formats`` need are installed.
+
+    Called before anything is written, so that a missing extra leaves no half session.
+
+    Raises:
+        SynthError: a format needs a package that is not installed.
+    """
+    if "sleap" in formats:
+        _sleap_io()
+
+
 def write_sleap(
     path: Path, video: Path, keypoints: Sequence[str], points: np.ndarray, scores: np.ndarray
 ) -> Path:
@@ -80,13 +109,7 @@ def write_sleap(
     Raises:
         SynthError: sleap-io is not installed.
     """
-    try:
-        import sleap_io as sio
-    except ImportError:
-        raise SynthError(
-            "label_files = sleap needs sleap-io: pip install 'freipose[sleap]' "
-            "(or leave sleap out of --label-files)"
-        ) from None
+    sio = _sleap_io()
     skeleton = sio.Skeleton([sio.Node(k) for k in keypoints], name="rat")
     rel = os.path.relpath(video.resolve(), path.parent.resolve())  # portable with the folder
     vid = sio.Video(filename=Path(rel).as_posix(), open_backend=False)
@@ -166,4 +189,11 @@ def write_label_files(
     return out
 
 
-__all__ = ["NoisyLabels", "noisy_labels", "write_dlc", "write_label_files", "write_sleap"]
+__all__ = [
+    "NoisyLabels",
+    "check_label_formats",
+    "noisy_labels",
+    "write_dlc",
+    "write_label_files",
+    "write_sleap",
+]

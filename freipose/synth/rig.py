@@ -34,6 +34,7 @@ from typing import Any, Literal, overload
 import numpy as np
 
 from freipose.geometry import Camera, CameraRig
+from freipose.io.calibration_world import WorldUp
 from freipose.io.toml import check_keys, read_toml
 from freipose.synth.errors import RigFileError, SynthError
 
@@ -262,11 +263,14 @@ def camera_below_floor(
 
 
 def _metadata(arena: ArenaConfig) -> dict[str, Any]:
+    """The rig's metadata: the synthetic world's up (z) and floor (z = 0) and the arena."""
+    truth = WorldUp(np.array([0.0, 0.0, 1.0]), "the synthetic scene's truth", 0.0)
     return {
         "units": "mm",
         "world": "synthetic scene: origin at the arena floor centre, z up, floor z = 0",
         "arena_size": list(arena.size),
         "arena_wall_height": arena.wall_height,
+        **truth.metadata(),
     }
 
 

@@ -53,6 +53,7 @@ from freipose.synth.conditions import (
     scene_style,
 )
 from freipose.synth.errors import SynthError
+from freipose.synth.label_files import check_label_formats
 from freipose.synth.look import SceneStyle
 from freipose.synth.motion import simulate_motion
 from freipose.synth.rig import ArenaConfig, default_rig, grayscale_cameras, load_rig_file
@@ -563,6 +564,7 @@ def generate_session(
     config = scene.config  # resolved: with randomize, the drawn settings
     text = _scene_toml(config, scene)
     scene_path = out / "scene.toml"
+    check_label_formats(config.label_files)  # a missing extra: nothing written
     _prepare_folder(out, text, overwrite)
     atomic_write_text(scene_path, text)
     session = out.resolve().name

@@ -59,3 +59,31 @@ def test_synth_command_errors(tmp_path):
     assert res.exit_code == 2 and "WIDTHxHEIGHT" in res.output
     res = runner.invoke(cli, ["synth", str(tmp_path / "o"), "--stimulation", "body_part=Tail"])
     assert res.exit_code == 1 and "body_part must be one of" in res.output
+
+
+def test_true_calibration_stores_the_up_and_floor(tmp_path):
+    from freipose.io.calibration_world import world_up
+
+    out = tmp_path / "sess"
+    res = CliRunner().invoke(
+        cli, ["synth", str(out), "--frames", "3", "--size", "96x80", "--cameras", "2"]
+    )
+    assert res.exit_code == 0, res.output
+    up = world_up(load_calibration(out / "true_calibration.toml"))
+    assert up is not None and up.floor == 0.0
+    np.testing.assert_array_equal(up.up, [0.0, 0.0, 1.0])
+    labels = read_labels_h5(out / "labels.h5")
+    assert world_up(labels.sessions["sess"].calibration) is not None
+
+
+def test_missing_sleap_extra_writes_nothing_and_names_the_extra(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "sleap_io", None)  # import sleap_io: ImportError
+    out = tmp_path / "sess"
+    res = CliRunner().invoke(
+        cli, ["synth", str(out), "--frames", "3", "--size", "96x80", "--label-files", "sleap"]
+    )
+    assert res.exit_code != 0 and "Traceback" not in res.output
+    assert "pip install 'freipose[sleap]'" in res.output
+    assert not out.exists() or not any(out.iterdir())
