@@ -261,11 +261,13 @@ def variables(
     stft_window: int,
     allow_incomplete: bool,
 ) -> None:
-    """Compute the behavioral variables of a poses file (912 for the 12-keypoint rat).
+    """Compute the behavioral variables of a poses file.
 
     Keypoints in the body frame and their velocities, distances to the body origin and to
     the floor with their velocities and STFTs, and the skeleton's angles (docs/formats.md,
-    VARS.h5).
+    VARS.h5): 9 + 2F per keypoint and 2 per angle, with F = STFT window / 2 + 1
+    frequencies. The 12-keypoint rat with 6 angles has 912 at the default 64-frame
+    window and 528 at 32 frames (freipose demo).
 
     \b
     Example:
