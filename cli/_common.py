@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from freipose.errors import FreiPoseError
+from freipose.errors import FreiPoseError, filesystem_message
 
 
 @contextlib.contextmanager
@@ -18,7 +18,9 @@ def user_errors(*extra: type[BaseException]) -> Iterator[None]:
 
     Library code raises a :class:`~freipose.errors.FreiPoseError` (and subclasses such as
     the format errors) with a message that says what was expected, what was found and how
-    to fix it. Exactly those, and the ``extra`` types a command names, become messages;
+    to fix it. Exactly those, the ``extra`` types a command names, and an ``OSError`` of a
+    full disk, a read-only folder or a denied access (the message of
+    :func:`~freipose.errors.filesystem_message`: the path and what to do) become messages;
     any other exception is a bug and keeps its traceback.
 
     Args:
@@ -31,6 +33,11 @@ def user_errors(*extra: type[BaseException]) -> Iterator[None]:
     except (FreiPoseError, *extra) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
         raise click.ClickException(str(msg)) from exc
+    except OSError as exc:
+        fs_msg = filesystem_message(exc)
+        if fs_msg is None:
+            raise
+        raise click.ClickException(fs_msg) from exc
 
 
 Decorator = Callable[[Any], Any]

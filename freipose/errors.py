@@ -8,6 +8,10 @@ without a traceback; any other exception is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import errno
+import os
+import shutil
+
 
 class FreiPoseError(ValueError):
     """An error in the user's input or files, with a message that names the fix.
@@ -19,3 +23,75 @@ class FreiPoseError(ValueError):
 
 class InputFileError(FreiPoseError, FileNotFoundError):
     """A file or folder that the user named does not exist or cannot be read."""
+
+
+class OutputWriteError(FreiPoseError, OSError):
+    """An output that cannot be written: its disk is full, or its folder is read-only.
+
+    It is an ``OSError`` too (with the ``errno`` of the cause), so callers that catch
+    ``OSError`` for file problems keep working.
+
+    Args:
+        message: what cannot be written, why, and what to do.
+        code: the ``errno`` of the cause (``ENOSPC``, ``EROFS``...), when known.
+    """
+
+    def __init__(self, message: str, code: int | None = None) -> None:
+        super().__init__(message)
+        self.errno = code
+
+
+#: errno values that the user fixes outside FreiPose (free space, choose a writable folder)
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+NOT_WRITABLE_ERRNOS = frozenset({errno.EROFS, errno.EACCES, errno.EPERM})
+
+
+def filesystem_message(exc: OSError, path: str | os.PathLike[str] | None = None) -> str | None:
+    """The message for a full disk, a read-only folder or a denied access, else None.
+
+    Args:
+        exc: the error of a file operation.
+        path: the file it was about when ``exc`` does not name one (``exc.filename`` wins).
+
+    Returns:
+        One line that names the path, what is wrong and what to do, or None when ``exc`` is
+        another kind of error (a bug or an input problem that keeps its own message).
+    """
+    name = exc.filename if exc.filename is not None else path
+    where = f"{os.fsdecode(name)}" if name is not None else "an output file"
+    folder = os.path.dirname(os.path.abspath(where)) if name is not None else "its folder"
+    if exc.errno in DISK_FULL_ERRNOS:
+        what = (
+            f"your disk quota on the filesystem holding {folder} is used up"
+            if exc.errno == errno.EDQUOT
+            else f"the disk holding {folder} is full{_free_text(folder)}"
+        )
+        return (
+            f"cannot write {where}: {what}; free space there (or write to another folder) "
+            f"and run the command again"
+        )
+    if exc.errno == errno.EROFS:
+        return (
+            f"cannot write {where}: {folder} is on a read-only filesystem; choose an output "
+            f"in a folder you can write to and run the command again"
+        )
+    if exc.errno in NOT_WRITABLE_ERRNOS:
+        return (
+            f"{where}: permission denied; give yourself access to it (or choose another "
+            f"path) and run the command again"
+        )
+    return None
+
+
+def _free_text(folder: str) -> str:
+    """`` (N MB free)`` for the filesystem of ``folder``, or ``""`` when it cannot be read."""
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return ""
+    return f" ({bytes_text(free)} free)"
+
+
+def bytes_text(n: int) -> str:
+    """``"3.2 MB"``, or ``"45 kB"`` below 0.1 MB: a size for a message."""
+    return f"{n / 1e6:.1f} MB" if n >= 100_000 else f"{n // 1000} kB"

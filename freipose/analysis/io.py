@@ -26,7 +26,7 @@ from freipose.analysis.variables import (
     compute_variables,
 )
 from freipose.errors import FreiPoseError, InputFileError
-from freipose.io.atomic import atomic_path
+from freipose.io.atomic import atomic_h5
 from freipose.io.calibration_world import world_up
 from freipose.io.poses import PoseData, read_poses_h5
 from freipose.skeleton import Skeleton, load_skeleton
@@ -71,7 +71,7 @@ def write_variables_h5(
         source: the poses file the variables came from.
     """
     t, v = var.values.shape
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_h5(path) as f:
         f.attrs["schema"] = SCHEMA
         f.attrs["schema_version"] = SCHEMA_VERSION
         f.create_dataset("values", data=var.values, chunks=(min(t, max(1, 2**20 // max(v, 1))), v))

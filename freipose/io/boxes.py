@@ -28,13 +28,12 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-import h5py
 import numpy as np
 
 from freipose import __version__
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
-from freipose.io.atomic import atomic_path
+from freipose.io.atomic import atomic_h5
 from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
 from freipose.io.hdf5 import decode_strings, open_h5, str_array
 
@@ -97,7 +96,7 @@ class BoxesData:
 
 def write_boxes_h5(data: BoxesData, path: str | Path) -> None:
     """Write ``boxes.h5`` atomically."""
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_h5(path) as f:
         f.attrs["schema"] = SCHEMA
         f.attrs["schema_version"] = SCHEMA_VERSION
         f.attrs["units"] = "mm"

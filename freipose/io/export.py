@@ -36,7 +36,7 @@ import pandas as pd
 
 from freipose.errors import FreiPoseError
 from freipose.geometry.projection import project_rig
-from freipose.io.atomic import atomic_path, atomic_write_text
+from freipose.io.atomic import atomic_h5, atomic_path, atomic_write_text
 from freipose.io.poses import PoseData, read_poses_h5, write_movement_poses
 
 log = logging.getLogger(__name__)
@@ -339,7 +339,7 @@ def write_nwb(
     module = nwb.create_processing_module(name="behavior", description="processed behavioral data")
     module.add(ndx_pose.Skeletons(skeletons=[skeleton]))
     module.add(pe)
-    with atomic_path(path) as tmp, pynwb.NWBHDF5IO(str(tmp), mode="w") as io:
+    with atomic_h5(path) as f, pynwb.NWBHDF5IO(file=f, mode="w") as io:
         io.write(nwb)
     return Path(path)
 

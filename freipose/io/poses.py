@@ -26,7 +26,7 @@ from freipose import __version__
 from freipose._frozen import PicklableFrozen
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
-from freipose.io.atomic import atomic_path
+from freipose.io.atomic import atomic_h5
 from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
 from freipose.io.hdf5 import decode_strings, open_h5, str_array
 from freipose.io.movement import SUFFIX as MOVEMENT_SUFFIX
@@ -127,7 +127,7 @@ class PoseData(PicklableFrozen):
 
 def write_poses_h5(data: PoseData, path: str | Path) -> None:
     """Write ``poses.h5`` atomically (temporary name, then rename)."""
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_h5(path) as f:
         write_poses_group(f, data)
 
 

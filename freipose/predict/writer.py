@@ -8,16 +8,26 @@ file and continues after ``completed_frames``; when all rows are written the att
 ``complete`` is set to true and the file is renamed to ``<name>.poses.h5``.
 
 A partial file written with different settings (another model, calibration, frame range
-or shard) is discarded with a warning, as is one that cannot be opened (killed while HDF5
-was writing its metadata).
+or shard) is discarded with a warning, as is one that is damaged (killed while HDF5 was
+writing its metadata, or written until the disk was full): before resuming, the chunk index
+of every dataset is checked against the file's size and the last committed rows are read
+back. ``open(fresh=True)`` never resumes.
+
+The file is written through :class:`~freipose.io.atomic.H5Output`: a disk that fills up
+during the run ends it with :class:`~freipose.errors.OutputWriteError` (the damaged
+partial file is removed), and the run refuses to start when the disk has less free space
+than the output can take.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import json
 import logging
 import os
+import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +38,9 @@ import numpy as np
 import tomli_w
 
 from freipose import __version__
+from freipose.errors import OutputWriteError, bytes_text
 from freipose.geometry.camera import CameraRig
+from freipose.io.atomic import H5Output, output_errors
 from freipose.io.calibration_toml import rig_to_toml_text
 from freipose.io.calibration_world import WorldUp
 from freipose.io.hdf5 import str_array
@@ -162,6 +174,9 @@ def create_layout(f: h5py.File, header: OutputHeader, chunk_rows: int) -> None:
     nan = np.float32(np.nan)
 
     def ds(g: h5py.Group, name: str, shape: tuple, dtype: Any, fill: Any) -> None:
+        if T == 0:  # an empty shard: HDF5 chunks cannot be empty
+            g.create_dataset(name, shape=shape, dtype=dtype, fillvalue=fill)
+            return
         g.create_dataset(
             name, shape=shape, dtype=dtype, chunks=(ch, *shape[1:]), fillvalue=fill, **_COMPRESSION
         )
@@ -178,6 +193,58 @@ def create_layout(f: h5py.File, header: OutputHeader, chunk_rows: int) -> None:
     ds(g, "status", (T,), np.int8, np.int8(STATUS_PENDING))
     ds(g, "frame_ok", (T, C), bool, False)
     g.attrs["cameras"] = json.dumps(header.rig.names)
+
+
+#: bytes beyond the datasets that an output may take (attributes, chunk indexes)
+_OVERHEAD_BYTES = 64 * 1024
+
+
+def output_bytes(header: OutputHeader) -> int:
+    """At most how many bytes the output file of ``header`` takes (its data uncompressed)."""
+    T, K, C = header.num_frames, len(header.keypoints), len(header.rig)
+    floats = 3 * K + K + C * K * 2 + C * K + C * 4 + 3
+    row = 4 * floats + 1 + C + 8  # + status, frame_ok, frame_index
+    text = len(header.calibration_text()) + len(header.provenance_text())
+    return T * row + text + len(header.skeleton_text() or "") + _OVERHEAD_BYTES
+
+
+def check_free_space(path: Path, needed: int) -> None:
+    """Refuse to start writing ``needed`` bytes in ``path``'s folder when it has fewer free.
+
+    Raises:
+        OutputWriteError: the disk holding ``path`` has less than ``needed`` bytes free.
+    """
+    free = shutil.disk_usage(path.parent).free
+    if free < needed:
+        raise OutputWriteError(
+            f"cannot write {path}: it takes up to {bytes_text(needed)} and the disk holding "
+            f"{path.parent.absolute()} has {bytes_text(free)} free; free space there (or "
+            f"write to another folder) and run the command again",
+            errno.ENOSPC,
+        )
+
+
+def verify_partial(f: h5py.File, size: int) -> None:
+    """Raise if the partial file ``f`` (of ``size`` bytes) is damaged.
+
+    Every chunk of every dataset must lie inside the file, and the last committed rows
+    must read back.
+
+    Raises:
+        OSError, RuntimeError, ValueError, KeyError: the file is damaged.
+    """
+    done = int(f.attrs["completed_frames"])
+    for name in _PATHS.values():
+        d = f[name]
+        if d.chunks is not None:
+            for i in range(d.id.get_num_chunks()):
+                info = d.id.get_chunk_info(i)
+                if info.byte_offset is None or info.byte_offset + info.size > size:
+                    raise ValueError(f"{name}: chunk {i} lies beyond the end of the file")
+        if done:
+            d[max(0, done - 1) : done]
+    for name in ("keypoints", "frame_index"):
+        f[name][()]
 
 
 ROW_FIELDS = (
@@ -223,43 +290,66 @@ class IncrementalPosesWriter:
         self.partial = partial_path(self.path)
         self.header = header
         self.chunk_rows = int(chunk_rows)
-        self._f: h5py.File | None = None
+        self._out: H5Output | None = None
         self._buf: dict[str, list[np.ndarray]] = {k: [] for k in ROW_FIELDS}
         self._buffered = 0
         self.completed = 0
 
     # -- open / resume --------------------------------------------------------------------
-    def _try_resume(self) -> h5py.File | None:
+    def _try_resume(self) -> H5Output | None:
         if not self.partial.exists():
             return None
         try:
-            f = h5py.File(self.partial, "a")
+            out = H5Output(self.partial, "a", name=self.path)
+        except OutputWriteError:
+            raise
         except OSError as exc:
             log.warning("%s cannot be opened (%s); starting this output again", self.partial, exc)
             return None
-        key = str(f.attrs.get("run_key", ""))
-        shard = str(f.attrs.get("shard", ""))
-        T = f["poses"].shape[0] if "poses" in f else -1
-        if (
-            key != self.header.run_key()
-            or shard != self.header.shard_text()
-            or self.header.num_frames != T
-        ):
+        f = out.file
+        try:
+            key = str(f.attrs.get("run_key", ""))
+            shard = str(f.attrs.get("shard", ""))
+            T = f["poses"].shape[0] if "poses" in f else -1
+            if (
+                key != self.header.run_key()
+                or shard != self.header.shard_text()
+                or self.header.num_frames != T
+            ):
+                log.warning(
+                    "%s was written with other settings (model, calibration, frames or shard); "
+                    "starting this output again",
+                    self.partial,
+                )
+                out.abandon()
+                return None
+            verify_partial(f, self.partial.stat().st_size)
+        except (OSError, RuntimeError, ValueError, KeyError) as exc:
             log.warning(
-                "%s was written with other settings (model, calibration, frames or shard); "
-                "starting this output again",
+                "the partial file %s from an interrupted run is damaged (%s); starting this "
+                "output again",
                 self.partial,
+                str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
             )
-            f.close()
+            out.abandon()
             return None
-        return f
+        return out
 
-    def open(self) -> int:
-        """Open (resume or create) the partial file; returns the number of final rows."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        f = self._try_resume()
-        if f is not None:
-            self.completed = int(f.attrs.get("completed_frames", 0))
+    def open(self, fresh: bool = False) -> int:
+        """Open (resume or create) the partial file; returns the number of final rows.
+
+        Args:
+            fresh: start again even when a partial file of the same run could be resumed.
+
+        Raises:
+            OutputWriteError: the output folder cannot be written, or the disk holding it
+                has less free space than the output can take.
+        """
+        with output_errors(self.path):
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        out = None if fresh else self._try_resume()
+        if out is not None:
+            self.completed = int(out.file.attrs.get("completed_frames", 0))
             if self.completed:
                 log.info(
                     "%s: resuming after %d of %d frames",
@@ -267,14 +357,34 @@ class IncrementalPosesWriter:
                     self.completed,
                     self.header.num_frames,
                 )
-        else:
+            self._out = out
+            return self.completed
+        with output_errors(self.path, self.partial):
             self.partial.unlink(missing_ok=True)
-            f = h5py.File(self.partial, "w")
-            create_layout(f, self.header, self.chunk_rows)
-            f.flush()
-            self.completed = 0
-        self._f = f
+        check_free_space(self.path, output_bytes(self.header))
+        out = H5Output(self.partial, "w", name=self.path)
+        self._out = out
+        try:
+            create_layout(out.file, self.header, self.chunk_rows)
+            out.flush()
+        except BaseException:
+            self._give_up()
+            raise
+        self.completed = 0
         return self.completed
+
+    @property
+    def _f(self) -> h5py.File | None:
+        """The open HDF5 file, or None."""
+        return None if self._out is None else self._out.file
+
+    def _give_up(self) -> None:
+        """Close and remove a partial file that a failed write left damaged."""
+        if self._out is not None:
+            self._out.abandon()
+            self._out = None
+        with contextlib.suppress(OSError):
+            self.partial.unlink(missing_ok=True)
 
     # -- writing --------------------------------------------------------------------------
     def add(self, est: Estimate, status: np.ndarray, frame_ok: np.ndarray) -> None:
@@ -309,19 +419,27 @@ class IncrementalPosesWriter:
             self._commit(boundary - self.completed)
 
     def _commit(self, n: int) -> None:
-        assert self._f is not None
+        """Write the first ``n`` buffered rows; a failed write removes the partial file."""
+        assert self._out is not None
+        try:
+            self._write_rows(self._out, n)
+        except OutputWriteError:
+            self._give_up()
+            raise
+
+    def _write_rows(self, out: H5Output, n: int) -> None:
         a = self.completed
         rest: dict[str, list[np.ndarray]] = {}
         for k in ROW_FIELDS:
             arr = np.concatenate(self._buf[k], axis=0)
-            self._f[_PATHS[k]][a : a + n] = arr[:n]
+            out.file[_PATHS[k]][a : a + n] = arr[:n]
             rest[k] = [arr[n:]] if len(arr) > n else []
         self._buf = rest
         self._buffered -= n
-        self._f.flush()
+        out.flush()
         self.completed = a + n
-        self._f.attrs["completed_frames"] = self.completed
-        self._f.flush()
+        out.file.attrs["completed_frames"] = self.completed
+        out.flush()
 
     def poses(self) -> np.ndarray:
         """(T, K, 3) the poses committed so far (NaN in rows not yet written)."""
@@ -345,20 +463,35 @@ class IncrementalPosesWriter:
             raise RuntimeError(
                 f"{self.partial}: only {self.completed} of {self.header.num_frames} rows written"
             )
-        if up is not None:
-            self._f.attrs["up"] = up.up
-            self._f.attrs["up_source"] = up.source
-        self._f.attrs["complete"] = True
-        self._f.close()
-        self._f = None
-        os.replace(self.partial, self.path)
+        out = self._out
+        assert out is not None
+        try:
+            if up is not None:
+                out.file.attrs["up"] = up.up
+                out.file.attrs["up_source"] = up.source
+            out.file.attrs["complete"] = True
+            self._out = None
+            out.close()
+        except OutputWriteError:
+            self._out = out
+            self._give_up()
+            raise
+        with output_errors(self.path, self.partial):
+            os.replace(self.partial, self.path)
         return self.path
 
     def close(self) -> None:
-        """Close without finishing (rows of unfinished chunks are discarded; resume redoes them)."""
-        if self._f is not None:
-            self._f.close()
-            self._f = None
+        """Close without finishing (rows of unfinished chunks are discarded; resume redoes them).
+
+        A partial file that a failed write damaged is removed (a rerun starts it again).
+        """
+        if self._out is not None:
+            out, self._out = self._out, None
+            try:
+                out.close()
+            except OutputWriteError:
+                with contextlib.suppress(OSError):
+                    self.partial.unlink(missing_ok=True)
 
     def __enter__(self) -> IncrementalPosesWriter:
         return self
