@@ -22,7 +22,7 @@ from freipose.calibration.boards import Board
 from freipose.calibration.detect import CameraDetections, board_side
 from freipose.calibration.detection_cache import cache_file, load_cache, save_cache
 from freipose.calibration.tracking import BoardTracker
-from freipose.workers import pool_context, process_pool, worker_errors
+from freipose.workers import pool_context, process_pool, start_manager, worker_errors
 
 if TYPE_CHECKING:  # the bar: a tqdm bar or a freipose.progress.LineProgress
     from tqdm import tqdm
@@ -269,7 +269,7 @@ def _detect_parallel(
     preload = [__name__, "cv2"]
     ctx = pool_context(preload)
     # the progress queue's server process forks from the same clean server
-    manager = ctx.Manager() if not bar.disable else None
+    manager = start_manager(ctx) if not bar.disable else None
     ticks = manager.Queue() if manager is not None else None
     pending = deque(todo)
     lock = threading.Lock()

@@ -16,6 +16,12 @@ that the working folder does not shadow; the others are imported by each worker 
 after it has taken over the parent's ``sys.path``. :func:`worker_errors` turns a pool whose
 worker died into a one-line :class:`WorkerError`.
 
+A worker blocks on its job queue, whose pipe it holds both ends of, and the forkserver and
+the resource tracker stay up while any worker does: a parent killed with SIGKILL would leave
+them all running. The workers of :func:`process_pool` and the server of :func:`start_manager`
+therefore watch the process that started them (:func:`die_with`) and end with it; the
+forkserver and the resource tracker then see their pipes close and end too.
+
 :func:`choose_threads` picks the number of compute threads (PyTorch, OpenCV) from the cores
 that other processes leave free: on a 2-core machine where another process keeps one core
 busy, two PyTorch threads run several times slower than one. :func:`keep_freed_memory` makes
@@ -31,14 +37,18 @@ import importlib.util
 import logging
 import multiprocessing as mp
 import os
+import select
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from functools import partial
 from importlib.machinery import ModuleSpec, PathFinder
 from multiprocessing.context import BaseContext
+from multiprocessing.managers import SyncManager
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -307,6 +317,58 @@ def pool_context(preload: Sequence[str] = (), start_method: str = "forkserver") 
     return mp.get_context("spawn")
 
 
+def _exit_when_gone(pid: int, poll_s: float = 1.0) -> None:
+    """Block until process ``pid`` has ended, then end this process at once."""
+    try:
+        fd = os.pidfd_open(pid)  # Linux: readable when the process ends
+    except ProcessLookupError:
+        os._exit(1)
+    except (AttributeError, OSError):  # no pidfd here: poll
+        while True:
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except PermissionError:
+                pass
+            time.sleep(poll_s)
+    select.select([fd], [], [])
+    os._exit(1)
+
+
+def die_with(pid: int) -> None:
+    """End this process as soon as process ``pid`` ends (a daemon thread watches it).
+
+    Args:
+        pid: the process to outlive by no more than a moment (the one that started this).
+    """
+    watcher = threading.Thread(target=_exit_when_gone, args=(pid,), daemon=True)
+    watcher.start()
+
+
+def _init_worker(
+    parent: int, initializer: Callable[..., object] | None, initargs: tuple[Any, ...]
+) -> None:
+    """A pool worker's start: watch ``parent``, then run the caller's initializer."""
+    die_with(parent)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def start_manager(ctx: BaseContext) -> SyncManager:
+    """A started ``SyncManager`` of ``ctx`` whose server process ends with this process.
+
+    Args:
+        ctx: the multiprocessing context (e.g. from :func:`pool_context`).
+
+    Returns:
+        The manager (call ``shutdown()`` when done).
+    """
+    manager = SyncManager(ctx=ctx)
+    manager.start(die_with, (os.getpid(),))
+    return manager
+
+
 def process_pool(
     max_workers: int,
     preload: Sequence[str] = (),
@@ -324,12 +386,12 @@ def process_pool(
         start_method: ``"forkserver"`` (where available, else ``"spawn"``) or ``"spawn"``.
 
     Returns:
-        The executor (use it as a context manager).
+        The executor (use it as a context manager). Its workers end with this process
+        (:func:`die_with`), also when it is killed.
     """
     ctx = pool_context(preload, start_method)
-    return ProcessPoolExecutor(
-        max_workers, mp_context=ctx, initializer=initializer, initargs=initargs
-    )
+    init = partial(_init_worker, os.getpid(), initializer, initargs)
+    return ProcessPoolExecutor(max_workers, mp_context=ctx, initializer=init)
 
 
 def _main_is_a_file() -> bool:
@@ -386,10 +448,12 @@ __all__ = [
     "WorkerError",
     "choose_threads",
     "cpu_cores",
+    "die_with",
     "other_load",
     "pool_context",
     "process_pool",
     "run_jobs",
     "safe_preload",
+    "start_manager",
     "worker_errors",
 ]
