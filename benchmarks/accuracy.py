@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _results import write_result
 
 from freipose._compat import tomllib
 
@@ -522,9 +523,21 @@ def main(argv: list[str] | None = None) -> int:
         results["init"][init] = found
     results["experiments"] = results["init"][inits[0]]
     _compare_inits(results["init"], log)
+    figures = {init: _medians(found) for init, found in results["init"].items()}
+    settings = {k: str(v) for k, v in vars(args).items() if k != "out"}
+    write_result("accuracy", figures, extra=settings)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
     log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / 'results.json'}")
     return 0
+
+
+def _medians(table: Any) -> Any:
+    """The table with each (median, 30 %, 70 %) triple replaced by its median."""
+    if isinstance(table, dict):
+        return {str(k): _medians(v) for k, v in table.items()}
+    if isinstance(table, (list, tuple)) and table and not isinstance(table[0], (dict, list)):
+        return table[0]
+    return table
 
 
 def _compare_inits(by_init: dict[str, dict[str, Any]], log: Any) -> None:

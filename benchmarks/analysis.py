@@ -14,6 +14,8 @@ import argparse
 import os
 import time
 
+from _results import write_result
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -71,6 +73,15 @@ def main() -> None:
         f"STFT of 24 signals (CPU time): batched strided FFT {fast:.2f} s vs per-frame rfft loop "
         f"{naive:.1f} s (extrapolated from {m} frames): {naive / fast:.1f}x faster"
     )
+    figures = {
+        "frames": n,
+        "variables": v,
+        "compute_variables_wall_s": dt,
+        "compute_variables_cpu_s": dc,
+        "stft_batched_cpu_s": fast,
+        "stft_loop_cpu_s_extrapolated": naive,
+        "stft_speedup": naive / fast,
+    }
     if args.write:
         import tempfile
         from pathlib import Path
@@ -80,7 +91,10 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
             write_variables_h5(var, Path(d) / "bench.vars.h5")
-            print(f"write VARS.h5: {time.perf_counter() - t0:.1f} s")
+            figures["write_vars_h5_s"] = time.perf_counter() - t0
+            print(f"write VARS.h5: {figures['write_vars_h5_s']:.1f} s")
+    extra = {"minutes": args.minutes, "fps": args.fps, "threads": args.threads, "seed": 0}
+    write_result("analysis", figures, extra=extra)
 
 
 if __name__ == "__main__":

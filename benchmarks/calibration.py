@@ -129,6 +129,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _results import write_result
 
 DIVERGED_MM = 20.0  # an aniposelib result this far off counts as diverged
 
@@ -359,6 +360,12 @@ def bench_seed(args, seed: int, work: Path) -> dict:
     return rows
 
 
+def _figures(rows: dict) -> dict:
+    """One seed's table as figures: per method the largest errors and the times."""
+    keys = ("max_center_mm", "max_rotation_deg", "max_focal_percent", "detect_s", "solve_s")
+    return {m: dict(zip(keys, map(float, v))) for m, v in rows.items()}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cameras", type=int, default=4)
@@ -418,6 +425,10 @@ def main() -> None:
     root = args.workdir or Path(tmp.name)
     print(f"board {default_board()}")
     results = {s: bench_seed(args, s, root / f"seed{s}") for s in args.seed}
+    settings = {k: getattr(args, k) for k in ("cameras", "frames", "width", "format", "repeat")}
+    settings |= {"inverted": args.inverted, "below_floor": args.below_floor}
+    for s, rows in results.items():
+        write_result("calibration", _figures(rows), extra={"seed": s, **settings})
     print(
         "\nerrors are the maximum over cameras after a similarity alignment of all camera "
         "centres (the same for both tools); wall = detect + solve"

@@ -153,11 +153,14 @@ def run(covered: bool, seed: int, frames: int = 120) -> Outcome:
 
 def main() -> None:
     """Print the scale errors and warnings of both board recordings for each seed."""
+    from _results import write_result
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, nargs="+", default=[0])
     ap.add_argument("--frames", type=int, default=120)
     a = ap.parse_args()
     for seed in a.seed:
+        figures = {}
         for covered in (False, True):
             o = run(covered, seed, a.frames)
             res = o.result
@@ -177,6 +180,16 @@ def main() -> None:
                 + (f"; REFUSED without --force: {[f.check for f in res.findings]}"
                    if res.findings else "")
             )  # fmt: skip
+            figures["covered" if covered else "upper"] = {
+                "floor_median_pct": np.median(fl),
+                "floor_worst_pct": np.abs(fl).max(),
+                "board_height_median_pct": np.median(bo),
+                "board_height_worst_pct": np.abs(bo).max(),
+                "rms_px": rms,
+                "floor_warnings": sum("floor" in w for w in res.warnings),
+                "refused": bool(res.findings),
+            }
+        write_result("calibration_coverage", figures, extra={"seed": seed, "frames": a.frames})
 
 
 if __name__ == "__main__":

@@ -22,6 +22,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from _results import write_result
+
 
 @dataclass(frozen=True)
 class Recording:
@@ -154,11 +156,20 @@ def main(argv: list[str] | None = None) -> int:
     acfg, vcfg = AttributionConfig(**p.analysis), VariableConfig(stft_window=p.stft_window)
     print(f"full classifier scored on {test_name} (predicted poses of {args.demo}):")
     print("trained on                      | balanced acc. | on its train frames | best single")
+    figures = {}
     for train in train_sets(labeled, others):
         s = score(out / "studies" / "+".join(r.name for r in train), train, test, acfg, vcfg)
         label = " + ".join(s.train) + (" (labeled)" if s.train == (label_name,) else "")
         print(f"{label:31s} | {s.balanced_accuracy:13.3f} | {s.train_balanced_accuracy:19.3f} "
               f"| {s.best_variable_accuracy:.3f} {s.best_variable}")  # fmt: skip
+        figures[" + ".join(s.train)] = {
+            "balanced_accuracy": s.balanced_accuracy,
+            "train_balanced_accuracy": s.train_balanced_accuracy,
+            "best_variable_accuracy": s.best_variable_accuracy,
+            "best_variable": s.best_variable,
+        }
+    extra = {"demo": str(args.demo), "seeds": args.seeds, "preset": args.preset, "test": test_name}
+    write_result("classifier_days", figures, extra=extra)
     return 0
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _results import write_result
 
 
 def main() -> None:
@@ -126,6 +127,14 @@ def main() -> None:
     print(f"unseen coat ({other}, seed 37): {m_cross.summary()}")
     ok = m_det.recall >= 0.95 and m_det.median_center_error < 10.0
     print(f"targets (recall >= 0.95, median centre error < 10 mm): {'met' if ok else 'NOT met'}")
+    keys = ("recall", "recall_top1", "median_center_error", "center_rate", "mean_agree")
+    figures = {
+        "detector": {k: getattr(m_det, k) for k in keys} | {"cpu_images_per_s": fps_det},
+        "bgsub": {k: getattr(m_bg, k) for k in keys} | {"cpu_images_per_s": fps_bg},
+        f"detector unseen coat {other}": {k: getattr(m_cross, k) for k in keys},
+    }
+    settings = {k: v for k, v in vars(args).items() if k not in ("workdir", "resume")}
+    write_result("detector", figures, extra={"seed": 11, **settings})
 
 
 def _fps_bg(bg, frames: dict, names: list[str], n: int = 64) -> float:

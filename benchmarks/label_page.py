@@ -29,6 +29,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
+from _results import write_result
 
 from freipose.io.labels import read_labels_h5
 from freipose.labelui.server import Running, background_server
@@ -163,11 +164,16 @@ return [Math.round(x), Math.round(y)];
 """
 
 
-def clicks_per_keypoint(running: Running, truth_path: Path, frame: int, i: int) -> None:
+def clicks_per_keypoint(
+    running: Running, truth_path: Path, frame: int, i: int
+) -> dict[str, float] | None:
     """Label the Nose of instant ``i`` in every view with two clicks and Enter, as a user would.
 
     Prints the number of actions and how far the accepted projections lie from the true
     projections of the synthetic truth.
+
+    Returns:
+        The actions, views labeled and projection errors (px), or None without a browser.
     """
     import numpy as np
     from selenium.webdriver.common.actions.action_builder import ActionBuilder
@@ -179,7 +185,7 @@ def clicks_per_keypoint(running: Running, truth_path: Path, frame: int, i: int) 
     d = _chrome()
     if d is None or len(views) < 3:
         print("clicks: skipped (no browser, or the Nose is seen in fewer than 3 views)")
-        return
+        return None
     try:
         _open(d, running.url)
         d.execute_async_script(LOAD, i)
@@ -213,11 +219,14 @@ def clicks_per_keypoint(running: Running, truth_path: Path, frame: int, i: int) 
           f"with {actions} actions (2 clicks at its true positions, Enter); the {len(errs)} "
           f"accepted projections lie {worst:.2f} px at most (median {med:.2f} px) from the "
           "true projections")  # fmt: skip
+    return {"actions": actions, "views_labeled": 2 + len(errs), "views_seeing": len(views),
+            "projection_error_max_px": worst, "projection_error_median_px": med}  # fmt: skip
 
 
-def _report(name: str, ms: list[float]) -> None:
+def _report(name: str, ms: list[float]) -> dict[str, float]:
     med = statistics.median(ms)
     print(f"{name}: median {med:.0f} ms, max {max(ms):.0f} ms over {len(ms)} switches")
+    return {"median_ms": med, "max_ms": max(ms), "switches": len(ms)}
 
 
 def main() -> None:
@@ -248,17 +257,21 @@ def main() -> None:
         out = work / "labels.h5"
         store = open_store([folder], paths.calibration, "rat", out, per_session=per)
         cams = list(store.session(0).cameras)
+        figures: dict[str, object] = {}
         with background_server(store) as running:
-            _report(
-                f"api (dwell {args.dwell:g} s)", bench_api(running, args.switches, cams, args.dwell)
-            )
+            api = bench_api(running, args.switches, cams, args.dwell)
+            figures["api switch"] = _report(f"api (dwell {args.dwell:g} s)", api)
             ms = bench_browser(running, args.switches, args.switches + 1, args.dwell)
             if ms is not None:
-                _report(f"browser (dwell {args.dwell:g} s)", ms)
-            clicks_per_keypoint(running, paths.labels, store.instants[0].frame, 0)
+                figures["browser switch"] = _report(f"browser (dwell {args.dwell:g} s)", ms)
+            clicks = clicks_per_keypoint(running, paths.labels, store.instants[0].frame, 0)
+            if clicks is not None:
+                figures["clicks"] = clicks
             if args.screenshot is not None:
                 last = len(store) - 1
                 screenshot(running, paths.labels, store.instants[last].frame, last, args.screenshot)
+        settings = {k: getattr(args, k) for k in ("cameras", "size", "frames", "switches", "dwell")}
+        write_result("label_page", figures, extra={"seed": 5, **settings})
     finally:
         if tmp is not None:
             tmp.cleanup()

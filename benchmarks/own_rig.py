@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _results import write_result
 
 RIG = [
     "--animal", "mouse", "--arena-size", "250x250", "--cameras", "4", "--grayscale",
@@ -297,6 +298,13 @@ def main(argv: list[str] | None = None) -> int:
         total = data_s + sum(t.values())
         parts = ", ".join(f"{k} {v:.0f} s" for k, v in {**times["data"], **t}.items())
         say(f"seed {seed}: import + split + training + eval {total:.0f} s ({parts})")
+        sc = results["seeds"][str(seed)]
+        figures = {f"{stat} JPE mm vs {k}": sc[k][stat] for k, _ in SIDES if k in sc
+                   for stat in ("median", "mean")}  # fmt: skip
+        figures["labels vs truth median mm"] = float(align[3])
+        figures["seconds"] = {"total": total, **t}
+        settings = {k: str(v) for k, v in vars(a).items() if k not in ("out", "seeds")}
+        write_result("own_rig", figures, extra={"seed": seed, **settings})
     results["timings"] = times
     (a.out / "results.json").write_text(json.dumps(results, indent=2))
     say(f"wrote {a.out / 'results.json'}")

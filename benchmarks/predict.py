@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import torch
+from _results import write_result
 
 
 def main() -> None:
@@ -129,6 +130,10 @@ def main() -> None:
     print(f"network-only  {netfps:8.1f} frames/s")
     print(f"end-to-end    {e2e:8.1f} frames/s")
     print(f"end-to-end / slower of the two = {e2e / slower:.2f} (target >= 0.80)")
+    figures = {"decode_fps": dec, "network_fps": netfps, "end_to_end_fps": e2e,
+               "end_to_end_over_slower": e2e / slower}  # fmt: skip
+    settings = {k: str(v) for k, v in vars(args).items()}
+    write_result("predict", figures, extra={**settings, "torch_threads": torch.get_num_threads()})
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _results import write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "sleap-8cam-2mice"
@@ -386,6 +387,21 @@ def _train_summary(trains: dict[str, dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def _record(args: argparse.Namespace, per_init: dict[str, list[dict[str, Any]]]) -> None:
+    """One result per training seed: each init's held-out JPE and 2D error per method."""
+    keys = ("jpe_mm", "reproj_px", "train_jpe_mm")
+    settings = {"steps": args.steps, "preset": args.preset, "instances": args.instances,
+                "map_window": args.map_window, "threads": args.threads}  # fmt: skip
+    for seed in range(args.seeds):
+        figures = {
+            init: {
+                label: {k: row[k] for k in keys if k in row} for label, row in runs[seed].items()
+            }
+            for init, runs in per_init.items()
+        }
+        write_result("real_finetune", figures, extra={"seed": seed, **settings})
+
+
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("bench/real_finetune"))
@@ -436,6 +452,7 @@ def main(argv: list[str] | None = None) -> int:
         "map_window": args.map_window,
     }  # fmt: skip
     window = args.map_window
+    per_init: dict[str, list[dict[str, Any]]] = {}
     for init in inits:
         runs, trains = [], {}
         for seed in seeds:
@@ -447,7 +464,9 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(summarize(metrics, reproj, nearest, fit))
             trains[f"seed{seed}"] = train
         results["init"][init] = {"rows": over_seeds(runs), "train": _train_summary(trains)}
+        per_init[init] = runs
     print_table(results, log)
+    _record(args, per_init)
     name = "results.json" if window is None else f"results_map_window{window}.json"
     (out / name).write_text(json.dumps(results, indent=2))
     log(f"total {time.perf_counter() - t0:.0f} s; wrote {out / name}")

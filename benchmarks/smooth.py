@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _results import write_result
 
 from freipose.demo.context import truth_to_calibrated
 from freipose.demo.markers import step_results
@@ -112,7 +113,7 @@ def _amplitude(x: np.ndarray, fps: float, windows: np.ndarray) -> float:
     return float(np.mean(amps)) if amps else float("nan")
 
 
-def _errors(raw: PoseData, truth: np.ndarray, est: dict[str, np.ndarray]) -> None:
+def _errors(raw: PoseData, truth: np.ndarray, est: dict[str, np.ndarray]) -> dict[str, dict]:
     """Print JPE, velocity error and lag of the raw and each smoothed estimate."""
     fps = raw.fps
     vt = np.diff(truth, axis=0) * fps
@@ -120,6 +121,7 @@ def _errors(raw: PoseData, truth: np.ndarray, est: dict[str, np.ndarray]) -> Non
     vr = float(np.nanmedian(np.linalg.norm(np.diff(raw.poses, axis=0) * fps - vt, axis=-1)))
     print(f"{'':22s} {'median JPE':>11s} {'vel. error':>11s} {'vel/raw':>8s} {'lag':>4s}")
     print(f"{'raw':22s} {jr:8.2f} mm {vr:6.1f} mm/s {1:8.2f} {_lag(truth, raw.poses)[0]:4d}")
+    out = {"raw": {"median_jpe_mm": jr, "velocity_error_mm_s": vr}}
     for name, m in est.items():
         j = float(np.median(np.linalg.norm(m - truth, axis=-1)))
         v = float(np.median(np.linalg.norm(np.diff(m, axis=0) * fps - vt, axis=-1)))
@@ -128,9 +130,11 @@ def _errors(raw: PoseData, truth: np.ndarray, est: dict[str, np.ndarray]) -> Non
         spread = ", ".join(f"{a}: {b}" for a, b in zip(vals, counts, strict=True))
         print(f"{name:22s} {j:8.2f} mm {v:6.1f} mm/s {v / vr:8.2f} {pooled:4d}   (per axis "
               f"{spread})")  # fmt: skip
+        out[name] = {"median_jpe_mm": j, "velocity_error_mm_s": v, "lag_frames": pooled}
+    return out
 
 
-def _analysis(demo: Path, held_out) -> None:
+def _analysis(demo: Path, held_out) -> dict[str, dict]:
     """The demo's analysis on raw and smoothed poses of every session, side by side."""
     from freipose.demo.context import DemoContext
     from freipose.demo.markers import read_marker
@@ -158,6 +162,8 @@ def _analysis(demo: Path, held_out) -> None:
     for label, r in [("raw", raw), *rows]:
         print(f"  {label:22s} {r['balanced_accuracy']:.3f}  rank {r['stimulated_best_rank']:4d}  "
               f"F1 {r['stimulated_best_f1']:.3f} ({r['stimulated_best_variable']})")  # fmt: skip
+    keys = ("balanced_accuracy", "stimulated_best_rank", "stimulated_best_f1")
+    return {label: {k: r[k] for k in keys} for label, r in [("raw", raw), *rows]}
 
 
 def _smoothed(data: PoseData, adaptive: bool, held_out) -> PoseData:
@@ -192,7 +198,9 @@ def main() -> None:
     fixed = _smoothed(raw, False, None)
     print(f"session {args.session}: {raw.num_frames} frames, {len(raw.keypoints)} keypoints, "
           f"{raw.fps:g} fps")  # fmt: skip
-    _errors(raw, truth, {"smoothed": sm.poses, "smoothed, fixed q": fixed.poses})
+    figures: dict[str, object] = {
+        "errors": _errors(raw, truth, {"smoothed": sm.poses, "smoothed, fixed q": fixed.poses})
+    }
     own = smooth_poses(raw)
     err = np.abs(sm.poses - truth)
     lab_frames = set(int(f) for f in read_labels_h5(labels).frame_index)
@@ -221,12 +229,16 @@ def main() -> None:
                                                              fixed.poses)]  # fmt: skip
     print(f"Paw Front Right {STIM_HZ:g} Hz amplitude in the stimulation: truth {amps[0]:.1f} mm, "
           f"raw {amps[1]:.1f}, smoothed {amps[2]:.1f}, fixed q {amps[3]:.1f}")  # fmt: skip
-    _bones_figures(raw, truth, sm)
+    names = ("truth", "raw", "smoothed", "fixed q")
+    figures[f"paw front right {STIM_HZ:g} Hz amplitude mm"] = dict(zip(names, amps))
+    figures["bones"] = _bones_figures(raw, truth, sm)
     if args.analysis:
-        _analysis(demo, held_out)
+        figures["analysis"] = _analysis(demo, held_out)
+    extra = {"demo": str(demo), "session": args.session, "gap": args.gap}
+    write_result("smooth", figures, extra=extra)
 
 
-def _bones_figures(raw: PoseData, truth: np.ndarray, sm: PoseData) -> None:
+def _bones_figures(raw: PoseData, truth: np.ndarray, sm: PoseData) -> dict[str, float]:
     """Bone-length spread and JPE without and with ``--bones``."""
     from freipose.predict.smooth_bones import bone_pairs
     from freipose.skeleton import load_skeleton
@@ -234,7 +246,7 @@ def _bones_figures(raw: PoseData, truth: np.ndarray, sm: PoseData) -> None:
     pairs = bone_pairs(raw.skeleton or load_skeleton("rat"), raw.keypoints)
     if raw.skeleton is None or not len(pairs):
         print("--bones: the poses have no skeleton with single-keypoint limbs")
-        return
+        return {}
     bones = smooth_poses(raw, bones=True)
 
     def spread(x: np.ndarray) -> float:
@@ -246,6 +258,10 @@ def _bones_figures(raw: PoseData, truth: np.ndarray, sm: PoseData) -> None:
           f"raw {spread(raw.poses):.2f}, smoothed {spread(sm.poses):.2f}, with --bones "
           f"{spread(bones.poses):.2f}; median JPE smoothed {jpe[0]:.2f} mm, with --bones "
           f"{jpe[1]:.2f} mm")  # fmt: skip
+    return {"bone_length_std_truth_mm": spread(truth), "bone_length_std_raw_mm": spread(raw.poses),
+            "bone_length_std_smoothed_mm": spread(sm.poses),
+            "bone_length_std_bones_mm": spread(bones.poses), "median_jpe_smoothed_mm": jpe[0],
+            "median_jpe_bones_mm": jpe[1]}  # fmt: skip
 
 
 if __name__ == "__main__":

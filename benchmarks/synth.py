@@ -32,6 +32,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+from _results import write_result  # noqa: E402
 
 if TYPE_CHECKING:
     from freipose.synth.body import BodyGeometry
@@ -60,7 +61,7 @@ def _brute_force_ids(r: CameraRenderer, geom: BodyGeometry, f: int) -> np.ndarra
     return pid
 
 
-def bench_size(size: tuple[int, int], frames: int) -> None:
+def bench_size(size: tuple[int, int], frames: int) -> dict[str, float]:
     from freipose.io.video import VideoWriter
     from freipose.synth import SceneConfig
     from freipose.synth.camera_job import _blur_vectors
@@ -107,9 +108,18 @@ def bench_size(size: tuple[int, int], frames: int) -> None:
     print(f"  speed-up over the baseline   {base_s / render_s:8.1f} x")
     print(f"  part ids differing from it   {differ:8d} of {animal} animal pixels (grazing rays)")
     print(f"  7-camera 200-frame scene     {est:8.1f} s CPU on one core (estimate)")
+    return {
+        "setup_s": setup,
+        "render_fps": 1 / render_s,
+        "render_encode_fps": 1 / encode_s,
+        "brute_force_fps": 1 / base_s,
+        "speedup": base_s / render_s,
+        "part_ids_differing": differ,
+        "session_7cam_200f_cpu_s": est,
+    }
 
 
-def bench_board(size: tuple[int, int], frames: int) -> None:
+def bench_board(size: tuple[int, int], frames: int) -> dict[str, float]:
     from freipose.synth import board_poses, default_board, default_rig
     from freipose.synth.board import _auto_ppm, _BoardTexture, _iter_board_camera
 
@@ -124,9 +134,10 @@ def bench_board(size: tuple[int, int], frames: int) -> None:
     per = (time.process_time() - t0) / n
     print(f"board {size[0]}x{size[1]}: {1 / per:.1f} frames/s per camera incl. set-up "
           f"({per * 1e3:.1f} ms); board texture {tex_s:.2f} s once")  # fmt: skip
+    return {"board_fps": 1 / per, "board_texture_s": tex_s}
 
 
-def bench_conditions(size: tuple[int, int], frames: int) -> None:
+def bench_conditions(size: tuple[int, int], frames: int) -> dict[str, float]:
     from freipose.synth import SceneConfig
     from freipose.synth.camera_job import _blur_vectors
     from freipose.synth.conditions import scene_style
@@ -147,6 +158,7 @@ def bench_conditions(size: tuple[int, int], frames: int) -> None:
         },  # fmt: skip
     }
     print(f"{size[0]}x{size[1]}, camera 0, {frames} frames, by scene (CPU time, 1 core):")
+    fps = {}
     for name, cfg in configs.items():
         scene = build_scene(cfg)
         cam = scene.rig[0]
@@ -160,9 +172,11 @@ def bench_conditions(size: tuple[int, int], frames: int) -> None:
             r.render(scene.geometry, f, scene.body.palette, rng, vel[f])
         per = (time.process_time() - t0) / frames
         print(f"  {name:58s} {1 / per:7.1f} frames/s ({per * 1e3:.1f} ms), set-up {setup:.2f} s")
+        fps[name.split(":")[0]] = 1 / per
+    return fps
 
 
-def bench_session(size: tuple[int, int]) -> None:
+def bench_session(size: tuple[int, int]) -> float:
     from freipose.synth import SceneConfig, generate_session
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -171,6 +185,7 @@ def bench_session(size: tuple[int, int]) -> None:
                          progress=False)  # fmt: skip
         wall = time.perf_counter() - t0
     print(f"session 7 cameras x 200 frames {size[0]}x{size[1]}, 2 workers: {wall:.1f} s wall")
+    return wall
 
 
 def main() -> None:
@@ -181,13 +196,17 @@ def main() -> None:
     args = ap.parse_args()
     cv2.setNumThreads(1)
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
-    for size in sizes:
-        bench_size(size, args.frames)
-    bench_board(sizes[0], 20)
-    bench_conditions(sizes[-1], args.frames)
+    figures: dict[str, object] = {}
+    for w, h in sizes:
+        figures[f"{w}x{h}"] = bench_size((w, h), args.frames)
+    figures[f"board {sizes[0][0]}x{sizes[0][1]}"] = bench_board(sizes[0], 20)
+    figures[f"fps by scene {sizes[-1][0]}x{sizes[-1][1]}"] = bench_conditions(
+        sizes[-1], args.frames
+    )
     if args.session:
-        for size in sizes:
-            bench_session(size)
+        for w, h in sizes:
+            figures[f"{w}x{h}"]["session_2_workers_wall_s"] = bench_session((w, h))
+    write_result("synth", figures, extra={"frames": args.frames, "sizes": args.sizes})
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import os
 import time
 
 import numpy as np
+from _results import write_result
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,6 +107,11 @@ def main(argv: list[str] | None = None) -> int:
     if len(results) == 2:
         r = results["voxel"]["end-to-end"] / results["baseline"]["end-to-end"]
         print(f"  voxel / baseline end-to-end throughput ratio: {r:.2f}")
+    figures = {f"{k} samples/s": v for k, v in results.items()}
+    settings = {k: str(v) for k, v in vars(args).items()}
+    write_result(
+        "throughput", figures, extra={**settings, "torch_threads": torch.get_num_threads()}
+    )
     return 0
 
 

@@ -505,7 +505,25 @@ def main(argv: list[str] | None = None) -> int:
                  job.seconds)  # fmt: skip
         export_all(trainer, jobs, command, evaluate=False, trained=names)
     export_all(trainer, jobs, command, evaluate=True, trained=names)
+    _record(args, names)
     return 0
+
+
+def _record(args: argparse.Namespace, names: set[str]) -> None:
+    """The held-out figures of the networks this run trained, as exported, as a result."""
+    from _results import write_result
+
+    from freipose.models import MANIFEST, read_manifest, total_steps
+
+    figures = {}
+    for entry in read_manifest(args.export / MANIFEST):
+        held = entry.get("held_out", {})
+        if entry["name"] in names and held.get("evaluated"):
+            numbers = {k: v for k, v in held.items() if type(v) in (int, float)}
+            figures[entry["name"]] = {"steps": total_steps(entry), **numbers}
+    if figures:
+        settings = {k: str(v) for k, v in vars(args).items() if k not in ("until", "minutes")}
+        write_result("train_base", figures, extra=settings)
 
 
 if __name__ == "__main__":

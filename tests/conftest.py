@@ -20,9 +20,17 @@ SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 
 
 @pytest.fixture(scope="module")
-def bench(request: pytest.FixtureRequest) -> Iterator[ModuleType]:
-    """The script ``benchmarks/<BENCHMARK>.py`` of the test module, loaded as a module."""
+def bench(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[ModuleType]:
+    """The script ``benchmarks/<BENCHMARK>.py`` of the test module, loaded as a module.
+
+    Its results go to a temporary folder (``FREIPOSE_RESULTS_DIR``), not the repository's.
+    """
     name = request.module.BENCHMARK
+    mp = pytest.MonkeyPatch()
+    mp.syspath_prepend(str(REPO_ROOT / "benchmarks"))
+    mp.setenv("FREIPOSE_RESULTS_DIR", str(tmp_path_factory.mktemp("results")))
     spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "benchmarks" / f"{name}.py")
     if spec is None or spec.loader is None:
         raise FileNotFoundError(f"benchmarks/{name}.py")
@@ -31,6 +39,7 @@ def bench(request: pytest.FixtureRequest) -> Iterator[ModuleType]:
     spec.loader.exec_module(mod)
     yield mod
     del sys.modules[name]
+    mp.undo()
 
 
 @pytest.fixture

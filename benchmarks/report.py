@@ -1,0 +1,290 @@
+"""Generate ``docs/benchmarks.md`` and the README's demo table from the recorded results.
+
+Every figure is shown as the median and the range (min-max) over the recorded runs, with the
+number of runs, their seeds, CPU kinds and machines, dates and commits, and the command that
+reproduces them. Runs of one benchmark with different settings (apart from the seed) get
+separate tables. The README block between ``<!-- demo-figures:begin -->`` and
+``<!-- demo-figures:end -->`` gets the demo's key figures as ranges per CPU kind (a README
+without these markers is left as it is).
+
+    python benchmarks/report.py            # rewrite docs/benchmarks.md and the README block
+    python benchmarks/report.py --check    # exit 1 when either is out of date
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import statistics
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+from _results import RESULTS, ROOT, load_results
+
+from freipose.io.atomic import atomic_write_text
+
+PAGE = ROOT / "docs" / "benchmarks.md"
+README = ROOT / "README.md"
+BEGIN, END = "<!-- demo-figures:begin -->", "<!-- demo-figures:end -->"
+# settings that differ between runs of the same experiment (not a different experiment)
+RUN_KEYS = {"seed", "folder", "finished", "demo", "out", "workdir", "work", "export"}
+# the README's demo rows: (label, figure key, unit)
+DEMO_ROWS = (
+    ("Calibration: largest camera-centre error", "calibration/max_center_mm", "mm"),
+    ("Detector: recall at IoU 0.5", "detector/recall", ""),
+    ("Detector: median 3D centre error", "detector/median_center_error", "mm"),
+    ("Held-out median JPE, voxel network (P1)", "held_out_jpe_mm/voxel_P1", "mm"),
+    ("Held-out median JPE, voxel network (P0)", "held_out_jpe_mm/voxel_P0", "mm"),
+    ("Held-out median JPE, 2D + triangulation baseline", "held_out_jpe_mm/baseline", "mm"),
+    ("Best single variable, F1 (predicted poses)", "analysis/predicted/best_f1", ""),
+    ("Stimulated paw among the 10 best variables", "analysis/predicted/paw_share_top10", ""),
+    ("Balanced accuracy, raw predicted poses", "analysis/predicted/balanced_accuracy", ""),
+    ("Balanced accuracy, smoothed predicted poses", "analysis/smoothed/balanced_accuracy", ""),
+    ("Significant variables (predicted poses)", "analysis/predicted/significant", ""),
+    ("Demo wall time", "seconds/total", "s"),
+)
+
+
+def flatten(figures: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested figures as ``{"a/b/c": value}`` in their order."""
+    out: dict[str, Any] = {}
+    for k, v in figures.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, key + "/"))
+        else:
+            out[key] = v
+    return out
+
+
+def fmt(x: float) -> str:
+    """A number with three significant digits (integers as they are)."""
+    if float(x).is_integer() and abs(x) < 1e6:
+        return str(int(x))
+    return f"{x:.3g}" if abs(x) < 1000 else f"{x:.0f}"
+
+
+def is_number(v: Any) -> bool:
+    """A number figure (booleans are not)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def spread(values: list[Any]) -> dict[str, Any]:
+    """Median, min, max and count of the number values; value counts of the others."""
+    nums = [float(v) for v in values if is_number(v)]
+    if nums:
+        return {"median": statistics.median(nums), "min": min(nums), "max": max(nums),
+                "n": len(nums)}  # fmt: skip
+    counts = Counter(
+        json.dumps(v) if not isinstance(v, str) else v for v in values if v is not None
+    )
+    return {"values": counts.most_common(), "n": sum(counts.values())}
+
+
+def cell(s: dict[str, Any], unit: str = "") -> str:
+    """A spread as table text: ``median (min-max)``, one value, or values with counts."""
+    if s["n"] == 0:
+        return "-"
+    u = f" {unit}" if unit else ""
+    if "values" in s:
+        return ", ".join(v if c == 1 else f"{v} ({c}x)" for v, c in s["values"])
+    if s["min"] == s["max"]:
+        return fmt(s["median"]) + u
+    return f"{fmt(s['median'])} ({fmt(s['min'])}-{fmt(s['max'])}){u}"
+
+
+def value_range(s: dict[str, Any], unit: str = "") -> str:
+    """A spread as ``min-max`` (or the single value), for the README."""
+    if s["n"] == 0 or "values" in s:
+        return cell(s, unit)
+    u = f" {unit}" if unit else ""
+    if s["min"] == s["max"]:
+        return fmt(s["min"]) + u
+    return f"{fmt(s['min'])}-{fmt(s['max'])}{u}"
+
+
+def settings_key(rec: dict[str, Any]) -> str:
+    """The settings of a run apart from what differs between runs of one experiment."""
+    extra = {k: v for k, v in rec.get("extra", {}).items() if k not in RUN_KEYS}
+    return json.dumps(extra, sort_keys=True)
+
+
+def groups(records: list[dict[str, Any]]) -> dict[str, dict[str, list[dict[str, Any]]]]:
+    """Records by benchmark, then by settings (in the order first recorded)."""
+    out: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    for r in records:
+        out.setdefault(r["benchmark"], {}).setdefault(settings_key(r), []).append(r)
+    return dict(sorted(out.items()))
+
+
+def kinds(runs: list[dict[str, Any]]) -> list[str]:
+    """The CPU kinds of the runs, most runs first."""
+    return [k for k, _ in Counter(r["machine"]["cpu_kind"] for r in runs).most_common()]
+
+
+def seeds_text(runs: list[dict[str, Any]]) -> str:
+    """The seeds of the runs, e.g. ``0, 1, 2`` (``-`` when none are recorded)."""
+    seeds = sorted({r["extra"]["seed"] for r in runs if "seed" in r.get("extra", {})})
+    return ", ".join(map(str, seeds)) or "-"
+
+
+def runs_text(runs: list[dict[str, Any]]) -> str:
+    """E.g. ``3 runs, seeds 0, 1, 2`` or ``1 run, seed 0``."""
+    seeds = seeds_text(runs)
+    if len(runs) == 1:
+        return f"1 run, seed {seeds}"
+    return f"{len(runs)} runs, seed{'s' if ',' in seeds else ''} {seeds}"
+
+
+def command_text(rec: dict[str, Any]) -> str:
+    """The command line of a record, as a shell would take it."""
+    argv = list(rec.get("command") or [])
+    if argv and argv[0].endswith(".py"):
+        argv = ["python", *argv]
+    return shlex.join(argv)
+
+
+def provenance(runs: list[dict[str, Any]]) -> list[str]:
+    """Where the runs come from: count, seeds, CPU kinds and machines, dates, commits."""
+    by_kind = Counter(r["machine"]["cpu_kind"] for r in runs)
+    machines = Counter(
+        f"{r['machine']['cpu_model']}, {r['machine']['cores']} cores "
+        f"({r['machine']['cpu_kind']}; torch {r['versions'].get('torch')})"
+        for r in runs
+    )
+    dates = sorted(r["date"][:10] for r in runs)
+    commits = Counter((r["git"]["commit"] or "unknown")[:8] for r in runs)
+    dirty = sum(bool(r["git"].get("dirty")) for r in runs)
+    when = dates[0] if dates[0] == dates[-1] else f"{dates[0]} to {dates[-1]}"
+    return [
+        f"- runs: {len(runs)} (seeds {seeds_text(runs)}); CPU kinds: "
+        + ", ".join(f"{k} {n}" for k, n in by_kind.most_common()),
+        "- machines: " + "; ".join(f"{m} x{n}" for m, n in machines.most_common()),
+        f"- dates: {when}; commits: "
+        + ", ".join(f"`{c}`" for c in commits)
+        + (f" ({dirty} with uncommitted changes in the tree)" if dirty else ""),
+    ]
+
+
+def table(runs: list[dict[str, Any]]) -> list[str]:
+    """The figures of the runs: median (min-max) over all runs and per CPU kind."""
+    flat = [flatten(r["figures"]) for r in runs]
+    keys = list(dict.fromkeys(k for f in reversed(flat) for k in f))
+    ks = kinds(runs)
+    per_kind = len(ks) > 1
+    head = "| figure | all runs |" + "".join(f" {k} |" for k in ks if per_kind)
+    lines = [head, "|---|---|" + "---|" * (len(ks) if per_kind else 0)]
+    for key in keys:
+        row = f"| {key} | {cell(spread([f.get(key) for f in flat]))} |"
+        if per_kind:
+            for k in ks:
+                vals = [f.get(key) for f, r in zip(flat, runs) if r["machine"]["cpu_kind"] == k]
+                row += f" {cell(spread(vals))} |"
+        lines.append(row)
+    return lines
+
+
+def section(name: str, by_settings: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """One benchmark's section: per settings, provenance, figures and the command."""
+    lines = [f"## {name}", ""]
+    for key, runs in by_settings.items():
+        settings = json.loads(key)
+        if len(by_settings) > 1 and settings:
+            text = ", ".join(f"{k} {v}" for k, v in settings.items())
+            lines += [f"### {text}", ""]
+        lines += provenance(runs) + [""] + table(runs) + [""]
+        lines += ["Reproduce (one run):", "", "```bash", command_text(runs[-1]), "```", ""]
+    return lines
+
+
+def page(records: list[dict[str, Any]]) -> str:
+    """The text of ``docs/benchmarks.md``."""
+    lines = [
+        "# Benchmarks",
+        "",
+        "<!-- Generated by `python benchmarks/report.py` from benchmarks/results/; "
+        "do not edit by hand. -->",
+        "",
+        "Every figure below was measured by a script in `benchmarks/` and recorded under "
+        "`benchmarks/results/<benchmark>/` with the machine, its CPU flags, the versions, the "
+        "date, the git commit and the command. Each is shown as the median and, in "
+        "parentheses, the range (min-max) over the recorded runs; a column per CPU kind "
+        "appears where runs came from more than one (AVX2 and AVX-512 machines round floats "
+        "differently, and trainings drift apart from there). Run a benchmark, then "
+        "`python benchmarks/report.py` to add the run to this page.",
+        "",
+    ]
+    if not records:
+        lines += ["No results are recorded yet.", ""]
+    for name, by_settings in groups(records).items():
+        lines += section(name, by_settings)
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def demo_block(records: list[dict[str, Any]]) -> str:
+    """The README's demo table: each key figure's range per CPU kind (default preset only)."""
+    runs = [r for r in records if r["benchmark"] == "demo" and r["extra"].get("preset") == "small"]
+    if not runs:
+        return "No demo runs are recorded yet (`python benchmarks/demo.py`).\n"
+    ks = kinds(runs)
+    by_kind = {k: [r for r in runs if r["machine"]["cpu_kind"] == k] for k in ks}
+    head = "| figure |" + "".join(f" {k}: {runs_text(rs)} |" for k, rs in by_kind.items())
+    lines = [head, "|---|" + "---|" * len(ks)]
+    for label, key, unit in DEMO_ROWS:
+        vals = {k: [flatten(r["figures"]).get(key) for r in rs] for k, rs in by_kind.items()}
+        if not any(v is not None for vs in vals.values() for v in vs):
+            continue
+        lines.append(f"| {label} |" + "".join(f" {value_range(spread(v), unit)} |"
+                                               for v in vals.values()))  # fmt: skip
+    best = Counter(flatten(r["figures"]).get("analysis/predicted/best_variable") for r in runs)
+    best.pop(None, None)
+    lines += [
+        "",
+        "Ranges are min-max over the recorded runs of `freipose demo` (default preset, "
+        "`--seed` as listed, `--threads 2`); best single variable on the predicted poses: "
+        + ", ".join(f"{v} ({n} of {len(runs)})" for v, n in best.most_common())
+        + ". All runs and their machines: [docs/benchmarks.md](docs/benchmarks.md#demo).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def readme_text(readme: str, block: str) -> str | None:
+    """``readme`` with the marked block replaced by ``block`` (None without the markers)."""
+    if BEGIN not in readme or END not in readme:
+        return None
+    head, rest = readme.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    return f"{head}{BEGIN}\n{block}{END}{tail}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Write (or with ``--check`` compare) the page and the README block."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--check", action="store_true", help="exit 1 when a file is out of date")
+    ap.add_argument("--results", type=Path, default=None, help="results folder [the repo's]")
+    ap.add_argument("--page", type=Path, default=PAGE)
+    ap.add_argument("--readme", type=Path, default=README)
+    args = ap.parse_args(argv)
+    records = load_results(folder=args.results or RESULTS)
+    want = {args.page: page(records)}
+    if args.readme.is_file():
+        new = readme_text(args.readme.read_text(encoding="utf-8"), demo_block(records))
+        if new is not None:
+            want[args.readme] = new
+    stale = [p for p, text in want.items()
+             if not p.is_file() or p.read_text(encoding="utf-8") != text]  # fmt: skip
+    if args.check:
+        for p in stale:
+            print(f"{p} is out of date: run python benchmarks/report.py", file=sys.stderr)
+        return 1 if stale else 0
+    for p in stale:
+        atomic_write_text(p, want[p])
+        print(f"wrote {p}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

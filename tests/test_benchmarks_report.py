@@ -1,0 +1,105 @@
+"""``benchmarks/report.py``: docs/benchmarks.md and the README's demo table from result files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARK = "report"  # the script the conftest fixture ``bench`` loads
+
+
+def test_the_committed_page_and_readme_block_are_up_to_date(bench, capsys):
+    # a stale page (a result recorded or removed without regenerating) fails here
+    code = bench.main(["--check"])
+    assert code == 0, capsys.readouterr().err + " (run: python benchmarks/report.py)"
+
+
+def _result(mp, name: str, figures: dict, kind: str, seed: int, **extra) -> Path:
+    """Record a result as ``write_result`` does, on a pretend machine of CPU kind ``kind``."""
+    import _results
+
+    mp.setattr(_results, "machine", lambda: {
+        "platform": "Linux", "cpu_model": f"CPU {kind}", "cores": 2, "memory_gib": 8.0,
+        "cpu_flags": [], "cpu_kind": kind, "host_hash": kind[:6],
+    })  # fmt: skip
+    return _results.write_result(name, figures, command=["benchmarks/x.py", "--seed", str(seed)],
+                                 extra={"seed": seed, **extra})  # fmt: skip
+
+
+@pytest.fixture
+def fake_results(bench, tmp_path, monkeypatch):
+    folder = tmp_path / "results"
+    monkeypatch.setenv("FREIPOSE_RESULTS_DIR", str(folder))
+    mp = monkeypatch
+    for seed, (jpe, best) in enumerate([(3.6, "v1"), (3.9, "v1"), (3.7, "v2")]):
+        figs = {"held_out_jpe_mm": {"voxel_P1": jpe}, "analysis": {"predicted": {
+            "best_variable": best, "balanced_accuracy": 0.7 + seed / 100}}}  # fmt: skip
+        _result(mp, "demo", figs, "avx512", seed, preset="small")
+    _result(mp, "demo", {"held_out_jpe_mm": {"voxel_P1": 4.2}}, "avx2", 0, preset="small")
+    _result(mp, "demo", {"held_out_jpe_mm": {"voxel_P1": 99.0}}, "avx2", 0, preset="tiny")
+    _result(mp, "synth", {"render_fps": 10.0, "ok": True}, "avx2", 0, frames=100)
+    _result(mp, "synth", {"render_fps": 30.0, "ok": True}, "avx2", 0, frames=20)
+    return folder
+
+
+def test_files_name_the_date_commit_and_cpu_kind_and_hold_the_provenance(fake_results):
+    files = sorted((fake_results / "demo").glob("*.json"))
+    assert len(files) == 5
+    date, commit, machine, n = files[0].stem.split("_")
+    assert len(date) == 10 and machine.startswith(("avx512-", "avx2-")) and int(n) >= 1
+    rec = json.loads(files[0].read_text())
+    assert rec["benchmark"] == "demo" and rec["extra"]["seed"] in (0, 1, 2)
+    assert {"machine", "versions", "git", "date", "command", "figures"} <= set(rec)
+    assert rec["versions"]["python"] and "dirty" in rec["git"]
+
+
+def test_aggregation_gives_median_range_runs_and_seeds(bench, fake_results):
+    records = bench.load_results(folder=fake_results)
+    text = bench.page(records)
+    # 3 avx512 runs and 1 avx2 run of the default preset: a column per kind
+    assert "| held_out_jpe_mm/voxel_P1 | 3.8 (3.6-4.2) | 3.7 (3.6-3.9) | 4.2 |" in text
+    assert "- runs: 4 (seeds 0, 1, 2); CPU kinds: avx512 3, avx2 1" in text
+    assert "| analysis/predicted/best_variable | v1 (2x), v2 | v1 (2x), v2 | - |" in text
+    # other settings (the tiny preset, other frame counts) are other tables, not in the range
+    assert text.count("## demo") == 1 and "### preset tiny" in text and "99" in text
+    assert "### frames 100" in text and "### frames 20" in text
+    assert "| render_fps | 10 |" in text and "| ok | true |" in text
+    assert "```bash\npython benchmarks/x.py --seed " in text
+
+
+def test_readme_block_shows_ranges_per_cpu_kind(bench, fake_results, tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{bench.BEGIN}\nold\n{bench.END}\nrest\n")
+    page = tmp_path / "benchmarks.md"
+    args = ["--results", str(fake_results), "--page", str(page), "--readme", str(readme)]
+    assert bench.main([*args, "--check"]) == 1
+    assert bench.main(args) == 0
+    text = readme.read_text()
+    assert text.startswith("intro\n") and text.endswith(f"{bench.END}\nrest\n")
+    assert "old" not in text
+    assert "| figure | avx512: 3 runs, seeds 0, 1, 2 | avx2: 1 run, seed 0 |" in text
+    assert "| Held-out median JPE, voxel network (P1) | 3.6-3.9 mm | 4.2 mm |" in text
+    assert "v1 (2 of 4), v2 (1 of 4)" in text
+    assert bench.main([*args, "--check"]) == 0
+
+
+def test_a_readme_without_markers_is_left_alone(bench, fake_results, tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text("no markers\n")
+    args = ["--results", str(fake_results), "--page", str(tmp_path / "b.md")]
+    assert bench.main([*args, "--readme", str(readme)]) == 0
+    assert readme.read_text() == "no markers\n"
+
+
+def test_results_off_writes_nothing(bench, monkeypatch, tmp_path):
+    from _results import write_result
+
+    monkeypatch.setenv("FREIPOSE_RESULTS_DIR", "off")
+    assert write_result("x", {"a": 1.0}) is None
+    monkeypatch.setenv("FREIPOSE_RESULTS_DIR", str(tmp_path))
+    path = write_result("x", {"a": float("nan")})
+    assert json.loads(path.read_text())["figures"] == {"a": None}
+    assert write_result("x", {"a": 2.0}).name.endswith("_2.json")
