@@ -46,12 +46,13 @@ from freipose.cli._common import user_errors
 )
 @click.option(
     "--host", default="127.0.0.1", show_default=True,
-    help="Address to listen on (0.0.0.0: every network interface; anyone with the token "
-    "can then edit the labels).",
+    help="Address to listen on (0.0.0.0: every network interface; the page is then served "
+    "over plain HTTP to the network, and anyone with the token can edit the labels).",
 )  # fmt: skip
 @click.option(
-    "--port", type=int, default=0, show_default=True, help="Port to listen on (0: a free one)."
-)
+    "--port", type=click.IntRange(0, 65535), default=0, show_default=True,
+    help="Port to listen on (0: a free one).",
+)  # fmt: skip
 @click.option(
     "--max-residual", type=float, default=3.0, show_default=True,
     help="Reprojection residual (px) above which a label is highlighted.",
@@ -76,7 +77,7 @@ def label(
     Clicking a keypoint in one view draws its epipolar curve in the others; a second view
     triangulates it and projects it into the rest, where Enter accepts the projections.
     Every edit is written to OUTPUT at once (labels.h5, read by train, labels check and
-    labels export); Ctrl-C stops the server. See docs/labeling.md.
+    labels export); Ctrl-C stops the server. See docs/tutorials/labeling.md.
 
     \b
     Example:
@@ -85,23 +86,36 @@ def label(
           --frames selection.csv --poses-dir poses -o labels.h5
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
-        from freipose.labelui.server import serving
+        from freipose.io.labels import labels_file_lock
+        from freipose.labelui.server import network_warning, serving
         from freipose.labelui.startup import open_store
         from freipose.labelui.store import StoreSettings
 
-        store = open_store(
-            sessions, calibration, skeleton, output, frames=frames, poses_dir=poses_dir,
-            per_session=per_session, settings=StoreSettings(max_residual=max_residual),
-        )  # fmt: skip
-        with serving(store, host, port) as (running, handle):
-            click.echo(
-                f"labeling {len(store)} instants of {len(store.sessions)} sessions into {output}"
-            )
-            click.echo(f"open {running.url}")
-            if not no_browser:
-                import webbrowser
+        with labels_file_lock(output):  # before the file is read: no writer in between
+            store = open_store(
+                sessions, calibration, skeleton, output, frames=frames, poses_dir=poses_dir,
+                per_session=per_session, settings=StoreSettings(max_residual=max_residual),
+            )  # fmt: skip
+            with (
+                serving(store, host, port, lock=False) as (running, handle),
+                contextlib.suppress(KeyboardInterrupt),  # Ctrl-C: stop, report below
+            ):
+                click.echo(
+                    f"labeling {len(store)} instants of {len(store.sessions)} sessions "
+                    f"into {output}"
+                )
+                if (warning := network_warning(host)) is not None:
+                    click.echo(f"warning: {warning}", err=True)
+                click.echo(f"open {running.url}")
+                if not no_browser:
+                    import webbrowser
 
-                webbrowser.open(running.url)
-            with contextlib.suppress(KeyboardInterrupt):
+                    webbrowser.open(running.url)
                 handle.run()
-        click.echo(f"labels saved in {output}")
+        if store.saves:
+            edits = f"{store.saves} edit" + ("s" if store.saves > 1 else "")
+            click.echo(f"labels saved in {output} ({edits})")
+        elif output.exists():
+            click.echo(f"no edits; {output} left as it was")
+        else:
+            click.echo(f"no edits; nothing saved ({output} not written)")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,6 +39,24 @@ def labels() -> None:
       freipose labels split labels.h5 --eval 0.3 -o train.h5 eval.h5
       freipose labels split labels.h5 --by time --gap 50 -o train.h5 eval.h5
     """  # noqa: D301 (click needs the \b escape)
+
+
+@contextlib.contextmanager
+def writing_outputs(*outputs: Path, what: str = "labels file") -> Iterator[list[Path]]:
+    """Hold the labels-file lock of every output for the command; yield their real paths.
+
+    Taken before the work, so that a file in use (by a ``freipose label`` server) is
+    refused at once and nothing is written.
+    """
+    from freipose.io.labels import labels_file_lock
+
+    if len({o.resolve() for o in outputs}) < len(outputs):
+        raise click.BadParameter(
+            f"the outputs {[str(o) for o in outputs]} are one file; name different files",
+            param_hint="-o",
+        )
+    with contextlib.ExitStack() as stack:
+        yield [stack.enter_context(labels_file_lock(o, what)) for o in outputs]
 
 
 def _load_skeleton(spec: str | None) -> Skeleton | None:
@@ -134,7 +154,7 @@ def import_labels(
       freipose labels import --format sleap session1/ --instances predicted \\
           --calibration calibration.toml -o labels.h5
     """  # noqa: D301 (click needs the \b escape)
-    with user_errors():
+    with user_errors(), writing_outputs(output) as real:
         from freipose.io.calibration import load_calibration
         from freipose.io.labels import write_labels_h5
         from freipose.labels.formats import IMPORTERS
@@ -170,7 +190,7 @@ def import_labels(
             threshold=threshold,
         )
         result = build_labelset(srcs, opts, output)
-        write_labels_h5(result, output)
+        write_labels_h5(result, real[0], lock=False)
         import numpy as np
 
         n3 = int(np.isfinite(result.points3d).all(-1).sum())
@@ -260,13 +280,13 @@ def merge(inputs: tuple[Path, ...], output: Path) -> None:
     Example:
       freipose labels merge a.h5 b.h5 -o all.h5
     """  # noqa: D301 (click needs the \b escape)
-    with user_errors():
+    with user_errors(), writing_outputs(output) as real:
         from freipose.io.labels import read_labels_h5, write_labels_h5
         from freipose.labels.ops import merge_labels, rebase_videos
 
         parts = [rebase_videos(read_labels_h5(p), p.parent, output.parent) for p in inputs]
         res = merge_labels(parts, [str(p) for p in inputs])
-        write_labels_h5(res, output)
+        write_labels_h5(res, real[0], lock=False)
         click.echo(f"wrote {output}: {len(res)} labeled instants, {len(res.sessions)} sessions")
 
 
@@ -335,7 +355,7 @@ def split(
       freipose labels split labels.h5 --by session --eval 0.3 -o train.h5 eval.h5
       freipose labels split labels.h5 --by time --gap 50 --eval 0.25 -o train.h5 eval.h5
     """  # noqa: D301 (click needs the \b escape)
-    with user_errors():
+    with user_errors(), writing_outputs(*output) as real:
         from freipose.io.labels import read_labels_h5, write_labels_h5
         from freipose.labels.ops import rebase_videos, split_by_time, split_labels
 
@@ -351,11 +371,11 @@ def split(
             )
         tr = rebase_videos(tr, labels_file.parent, output[0].parent)
         ev = rebase_videos(ev, labels_file.parent, output[1].parent)
-        write_labels_h5(tr, output[0])
+        write_labels_h5(tr, real[0], lock=False)
         try:
-            write_labels_h5(ev, output[1])
+            write_labels_h5(ev, real[1], lock=False)
         except BaseException:
-            output[0].unlink(missing_ok=True)
+            real[0].unlink(missing_ok=True)
             raise
         dropped = len(lab) - len(tr) - len(ev)
         click.echo(
@@ -420,7 +440,7 @@ def boxes(labels_file: Path, calibration: Path | None, margin: float, output: Pa
     Example:
       freipose labels boxes train.h5 -o fixed_boxes.toml
     """  # noqa: D301 (click needs the \b escape)
-    with user_errors():
+    with user_errors(), writing_outputs(output, what="boxes file") as real:
         from freipose.detect.label_boxes import label_boxes, write_fixed_boxes
         from freipose.io.calibration import load_calibration
         from freipose.io.labels import read_labels_h5
@@ -432,7 +452,7 @@ def boxes(labels_file: Path, calibration: Path | None, margin: float, output: Pa
         if rig is None:
             raise LabelsOpError(f"{labels_file} has no calibrated session; pass --calibration FILE")
         res = label_boxes(lab, rig, margin)
-        write_fixed_boxes(res, output, str(labels_file))
+        write_fixed_boxes(res, real[0], str(labels_file))
         for cam, b in res.boxes.items():
             click.echo(f"{cam}: [{', '.join(f'{v:.0f}' for v in b)}]")
         click.echo(f"wrote {output}: boxes for {len(res.boxes)} of {len(rig)} cameras")

@@ -17,6 +17,7 @@ from freipose.cli._common import (
     frames_option,
     user_errors,
 )
+from freipose.cli.labels import writing_outputs
 
 
 @click.command("select")
@@ -97,7 +98,7 @@ def select(
       freipose labels select rec1/ rec2/ --model model.pt --detector det.pt --n 50
       freipose labels select rec1/ --poses-dir poses/ --labels labels.h5 --extract to_label/
     """  # noqa: D301 (click needs the \b escape)
-    with user_errors():
+    with user_errors(), writing_outputs(output, what="selection file") as real:
         from freipose.io.labels import read_labels_h5
         from freipose.io.poses import read_poses_h5
         from freipose.io.session import discover_sessions
@@ -135,5 +136,5 @@ def select(
             click.echo(f"{s.name}: {len(sel)} frames proposed (mean confidence {low:.2f})")
             if extract is not None:
                 extract_frames(dict(s.videos), sel.frame_index, extract / s.name)
-        write_selection_csv(picks, output)
+        write_selection_csv(picks, real[0])
         click.echo(f"wrote {output}")

@@ -19,8 +19,11 @@ camera that a session lacks has NaN labels there.
 
 from __future__ import annotations
 
+import contextlib
 import json
-from collections.abc import Mapping, Sequence
+import shlex
+import socket
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -35,6 +38,7 @@ from freipose.geometry.camera import CameraRig
 from freipose.io.atomic import atomic_path
 from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
 from freipose.io.hdf5 import decode_strings, open_h5, str_array
+from freipose.io.lock import OutputLockedError, lock_path, output_lock
 
 SCHEMA = "freipose.labels"
 SCHEMA_VERSION = 1
@@ -141,31 +145,108 @@ class LabelSet(PicklableFrozen):
         return None if info is None else info.calibration
 
 
-def write_labels_h5(labels: LabelSet, path: str | Path) -> None:
-    """Write ``labels.h5`` atomically."""
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
-        f.attrs["schema"] = SCHEMA
-        f.attrs["schema_version"] = SCHEMA_VERSION
-        f.attrs["units"] = "mm"
-        f.attrs["freipose_version"] = __version__
-        f.create_dataset("session", data=str_array(labels.session))
-        f.create_dataset("frame_index", data=labels.frame_index)
-        f.create_dataset("points2d", data=labels.points2d, compression="gzip")
-        f.create_dataset("points3d", data=labels.points3d, compression="gzip")
-        if labels.visible2d is not None:
-            f.create_dataset("visible2d", data=labels.visible2d, compression="gzip")
-        f.create_dataset("cameras", data=str_array(labels.cameras))
-        f.create_dataset("keypoints", data=str_array(labels.keypoints))
-        g = f.create_group("sessions")
-        for name, info in labels.sessions.items():
-            sg = g.create_group(name)
-            if info.calibration is not None:
-                sg.attrs["calibration"] = rig_to_toml_text(info.calibration)
-            sg.attrs["videos"] = json.dumps(dict(info.videos))
-            if info.fps is not None:
-                sg.attrs["fps"] = float(info.fps)
-            if info.instances is not None:
-                sg.attrs["instances"] = str(info.instances)
+@contextlib.contextmanager
+def labels_file_lock(
+    path: str | Path, what: str = "labels file", option: str = "-o"
+) -> Iterator[Path]:
+    """Hold the lock of the labels file ``path`` (taken on its real path) during the block.
+
+    Every writer of a labels file holds it: the ``freipose label`` server for as long as it
+    runs, the ``freipose labels`` commands while they write. A symbolic link and its target
+    share one lock, and the block writes to the yielded real path, so that a link stays a
+    link.
+
+    Args:
+        path: the labels file (or another output that may be one, such as ``-o`` of
+            ``labels boxes``).
+        what: what the output is, for the log.
+        option: the command's option that names another output, for the refusal.
+
+    Yields:
+        The real path of ``path`` (symbolic links resolved), to write to.
+
+    Raises:
+        OutputLockedError: another run holds the lock; the message names its command.
+    """
+    real = Path(path).resolve()
+    stack = contextlib.ExitStack()
+    try:
+        stack.enter_context(output_lock(real, what, option))
+    except OutputLockedError as exc:
+        raise _in_use(exc, real, option) from None
+    with stack:
+        yield real
+
+
+def _short(command: str) -> str:
+    """A command line with its program named by its file name (``freipose label ...``)."""
+    try:
+        words = shlex.split(command)
+    except ValueError:
+        return command
+    return shlex.join([Path(words[0]).name, *words[1:]]) if words else command
+
+
+def _in_use(exc: OutputLockedError, real: Path, option: str) -> OutputLockedError:
+    """The refusal of a labels file in use, naming the command that holds it."""
+    o = exc.owner
+    if o is None:
+        return exc
+    msg = (
+        f"{real} is in use by another run: `{_short(o.command)}` ({o.host}, pid {o.pid}, started "
+        f"{o.started}); wait for that run to end or stop it (a `freipose label` server "
+        f"stops with Ctrl-C in its terminal, every edit saved), or pass another {option}"
+    )
+    if o.host != socket.gethostname():
+        msg += f"; if that run is gone, delete {lock_path(real)}"
+    return OutputLockedError(msg, o)
+
+
+def write_labels_h5(labels: LabelSet, path: str | Path, *, lock: bool = True) -> None:
+    """Write ``labels.h5`` atomically, holding its :func:`labels_file_lock`.
+
+    Args:
+        labels: the labels.
+        path: the file (a symbolic link is written through).
+        lock: take the lock; False only when the caller holds it already (a command that
+            took it before its work).
+
+    Raises:
+        OutputLockedError: another run (a ``freipose label`` server) writes the file.
+    """
+    held = labels_file_lock(path) if lock else contextlib.nullcontext(Path(path).resolve())
+    with held as real, atomic_path(real) as tmp, h5py.File(tmp, "w") as f:
+        fill_labels_h5(f, labels)
+
+
+def fill_labels_h5(f: h5py.File, labels: LabelSet) -> None:
+    """Write the datasets of ``labels`` into the open, empty HDF5 file ``f``.
+
+    Only for a writer that holds the file's :func:`labels_file_lock` and writes to a
+    temporary name (the ``freipose label`` server); others call :func:`write_labels_h5`.
+    """
+    f.attrs["schema"] = SCHEMA
+    f.attrs["schema_version"] = SCHEMA_VERSION
+    f.attrs["units"] = "mm"
+    f.attrs["freipose_version"] = __version__
+    f.create_dataset("session", data=str_array(labels.session))
+    f.create_dataset("frame_index", data=labels.frame_index)
+    f.create_dataset("points2d", data=labels.points2d, compression="gzip")
+    f.create_dataset("points3d", data=labels.points3d, compression="gzip")
+    if labels.visible2d is not None:
+        f.create_dataset("visible2d", data=labels.visible2d, compression="gzip")
+    f.create_dataset("cameras", data=str_array(labels.cameras))
+    f.create_dataset("keypoints", data=str_array(labels.keypoints))
+    g = f.create_group("sessions")
+    for name, info in labels.sessions.items():
+        sg = g.create_group(name)
+        if info.calibration is not None:
+            sg.attrs["calibration"] = rig_to_toml_text(info.calibration)
+        sg.attrs["videos"] = json.dumps(dict(info.videos))
+        if info.fps is not None:
+            sg.attrs["fps"] = float(info.fps)
+        if info.instances is not None:
+            sg.attrs["instances"] = str(info.instances)
 
 
 def read_labels_h5(path: str | Path) -> LabelSet:

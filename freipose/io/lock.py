@@ -39,7 +39,15 @@ _ATTEMPTS = 5
 
 
 class OutputLockedError(FreiPoseError):
-    """Another run holds the lock of the output that this run was asked to write."""
+    """Another run holds the lock of the output that this run was asked to write.
+
+    Attributes:
+        owner: the run that holds it, as its lock file says (None: unreadable).
+    """
+
+    def __init__(self, message: str, owner: LockOwner | None = None):
+        super().__init__(message)
+        self.owner = owner
 
 
 @dataclass(frozen=True)
@@ -144,7 +152,7 @@ def _refusal(
     )
     if owner.host != host:
         msg += f"; if that run is gone, delete {lock}"
-    return OutputLockedError(msg)
+    return OutputLockedError(msg, owner)
 
 
 def _is_stale(owner: LockOwner | None, st: os.stat_result, host: str) -> bool:

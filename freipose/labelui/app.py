@@ -34,7 +34,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from freipose.io.video import MediaError
 from freipose.labelui.frames import FrameCache
-from freipose.labelui.schema import MAX_BODY_BYTES, BodyError, parse_save
+from freipose.labelui.schema import MAX_BODY_BYTES, BodyError, parse_body
 from freipose.labelui.store import LabelStore, StaleVersionError
 
 COOKIE = "freipose_label_token"
@@ -208,10 +208,10 @@ def create_app(store: LabelStore, frames: FrameCache, token: str) -> ASGIApp:
         except _TooLarge:
             return JSONResponse({"error": f"body larger than {MAX_BODY_BYTES} bytes"}, 413)
         try:
-            body = json.loads(raw)
-            rig, kps = store.session(i).rig, store.skeleton.keypoints
-            version, points, status = parse_save(body, rig, kps)
-        except (ValueError, BodyError) as exc:
+            version, points, status = parse_body(
+                raw, store.session(i).rig, store.skeleton.keypoints
+            )
+        except BodyError as exc:
             return JSONResponse({"error": str(exc)}, 422)
         try:
             state = await run_in_threadpool(store.save, i, version, points, status)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import logging
 import secrets
 import socket
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 import uvicorn
 
 from freipose.errors import FreiPoseError
-from freipose.io.lock import output_lock
+from freipose.io.labels import labels_file_lock
 from freipose.labelui.app import create_app
 from freipose.labelui.frames import FrameCache
 from freipose.labelui.store import LabelStore
@@ -65,6 +66,22 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
+def network_warning(host: str) -> str | None:
+    """What listening on ``host`` exposes, unless it is a loopback address (None then)."""
+    try:
+        loopback = ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:  # a host name
+        loopback = host.lower() == "localhost"
+    if loopback:
+        return None
+    return (
+        f"--host {host} makes the page reachable from the network, over plain HTTP: the "
+        f"access token still keeps out whoever lacks the URL, but the traffic (the token "
+        f"and the labels) is not encrypted; to label on another machine, keep the default "
+        f"--host 127.0.0.1 and forward the port over SSH (ssh -L PORT:127.0.0.1:PORT HOST)"
+    )
+
+
 def _url(host: str, port: int, token: str) -> str:
     shown = f"[{host}]" if ":" in host else host
     if host in ("0.0.0.0", "::"):
@@ -90,16 +107,31 @@ class ServerHandle:
 
 @contextlib.contextmanager
 def serving(
-    store: LabelStore, host: str = "127.0.0.1", port: int = 0, token: str | None = None
+    store: LabelStore,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    token: str | None = None,
+    *,
+    lock: bool = True,
 ) -> Iterator[tuple[Running, ServerHandle]]:
-    """Hold the output lock, bind, and yield the server (not yet serving) and its address.
+    """Hold the labels file's lock, bind, and yield the server (not yet serving) and its address.
+
+    Args:
+        store: the labels being edited.
+        host: the address to listen on.
+        port: the port (0: a free one).
+        token: the access token (None: a new random one).
+        lock: take the lock of ``store.output`` (:func:`~freipose.io.labels.labels_file_lock`);
+            False when the caller holds it already (since before it read the file).
 
     Raises:
-        OutputLockedError: another server writes the same labels file.
+        OutputLockedError: another run (a server, a ``freipose labels`` command) writes the
+            same labels file, also through a symbolic link.
         ServerStartError: the address cannot be bound.
     """
     token = token or secrets.token_urlsafe(24)
-    with output_lock(store.output, "labels file", "-o"):
+    held = labels_file_lock(store.output) if lock else contextlib.nullcontext()
+    with held:
         frames = FrameCache(store.sessions, store.instants)
         sock = bind(host, port)
         try:

@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 
 from freipose.io.atomic import atomic_path
-from freipose.io.labels import LabelSet, SessionInfo, write_labels_h5
+from freipose.io.labels import LabelSet, SessionInfo, fill_labels_h5
 from freipose.io.poses import PoseData
 from freipose.io.session import Session
 from freipose.labelui.geometry import (
@@ -99,6 +99,9 @@ class LabelStore:
         existing_status: (N, V, K) states stored with ``existing`` (None: from the labels).
         predictions: session name -> its predicted poses (pre-filled, unconfirmed).
         settings: feedback thresholds.
+
+    Attributes:
+        saves: the edits saved since the store was opened.
     """
 
     def __init__(
@@ -132,6 +135,7 @@ class LabelStore:
             self._points.append(np.full((v, skeleton.num_keypoints, 2), np.nan))
             self._status.append(np.zeros((v, skeleton.num_keypoints), np.int8))
         self._version = [0] * len(self.instants)
+        self.saves = 0
         if existing is not None:
             self._resume(existing, existing_status)
         K, L = skeleton.num_keypoints, len(skeleton.limbs)
@@ -327,6 +331,7 @@ class LabelStore:
                 self._update_3d(i, changed)
                 raise
             self._version[i] += 1
+            self.saves += 1
             return self._state(i)
 
     # -- output ---------------------------------------------------------------------------
@@ -384,13 +389,16 @@ class LabelStore:
 
     def _write(self) -> None:
         labels, status = self._label_set()
-        with atomic_path(self.output) as tmp:
-            write_labels_h5(labels, tmp)
-            with h5py.File(tmp, "a") as f:
-                f.create_dataset(STATUS_DATASET, data=status, compression="gzip")
+        with atomic_path(self.output.resolve()) as tmp, h5py.File(tmp, "w") as f:
+            fill_labels_h5(f, labels)
+            f.create_dataset(STATUS_DATASET, data=status, compression="gzip")
 
     def write(self) -> None:
-        """Write the labels file now (atomically)."""
+        """Write the labels file now (atomically; a symbolic link is written through).
+
+        The caller holds the file's :func:`~freipose.io.labels.labels_file_lock` (the
+        server does, while it runs).
+        """
         with self._lock:
             self._write()
 
