@@ -202,15 +202,17 @@ def _failure_modes(ev: dict[str, Any]) -> dict[str, Any] | None:
     fm = ev.get("failure_modes")
     if not fm:
         return None
+
+    def mm(v: float | None) -> str:  # None: not measured (see freipose.nn.failure_modes)
+        return "-" if v is None else num(float(v))
+
     pairs = [
-        [f"{p['left']} / {p['right']}", num(float(p["predicted_mm"])), num(float(p["true_mm"])),
-         f"{100 * float(p['swap_rate']):.1f} %", "yes" if p.get("collapsed") else "no"]
+        [f"{p['left']} / {p['right']}", mm(p["predicted_mm"]), mm(p["true_mm"]),
+         p.get("missing") or f"{100 * float(p['swap_rate']):.1f} %",
+         "yes" if p.get("collapsed") else "no"]
         for p in fm.get("pairs", [])
     ]  # fmt: skip
-    bones = [
-        [b["bone"], num(float(b["predicted_mm"])), num(float(b["true_mm"]))]
-        for b in fm.get("bones", [])
-    ]
+    bones = [[b["bone"], mm(b["predicted_mm"]), mm(b["true_mm"])] for b in fm.get("bones", [])]
     return {"pairs": pairs, "bones": bones, "warnings": list(fm.get("warnings", []))}
 
 
@@ -292,7 +294,16 @@ def _evaluation(ctx: DemoContext, ev: dict[str, Any]) -> dict[str, Any]:
 def _overlay(ctx: DemoContext, predicted: dict[str, Any]) -> dict[str, Any]:
     """Step 5's overlay clip and its still frames, when present."""
     ov = predicted.get("overlay", {})
+    span = None
+    if "start_s" in ov:
+        windows = [(f"{a:.1f}", f"{b:.1f}") for a, b in ov["stimulation_s"]]
+        span = {
+            "start": f"{ov['start_s']:.1f}",
+            "end": f"{ov['end_s']:.1f}",
+            "stimulation": windows,
+        }
     return {
+        "span": span,
         "video": _figure(ctx, ov["clip"], "") if ov.get("clip") else None,
         "frames": [
             _figure(ctx, f, f"Frame {int(Path(f).stem.rsplit('frame', 1)[-1])} of the test "

@@ -27,6 +27,7 @@ from freipose.nn.compare import PairedDifference, paired_difference
 from freipose.nn.config import InferenceOverrides, TrainConfig
 from freipose.nn.data import collate_prepared, prepare_sample
 from freipose.nn.dataset import MultiViewDataset
+from freipose.nn.failure_modes import NOT_LABELED
 from freipose.nn.inference import predict_prepared
 from freipose.nn.types import SampleSource
 from freipose.progress import progress_bar
@@ -341,7 +342,8 @@ def jpe_summary(errors: np.ndarray, keypoints: Sequence[str]) -> dict[str, Any]:
         keypoints: the K keypoint names.
 
     Returns:
-        ``overall``, ``per_keypoint`` (name -> statistics) and ``pck``.
+        ``overall``, ``per_keypoint`` (name -> statistics; a keypoint never labeled has
+        None values and ``note``: ``not labeled``) and ``pck``.
     """
 
     def stats(e: np.ndarray) -> dict[str, float]:
@@ -358,11 +360,16 @@ def jpe_summary(errors: np.ndarray, keypoints: Sequence[str]) -> dict[str, Any]:
             "missing": int(np.isinf(e).sum()),
         }
 
+    def keypoint_stats(e: np.ndarray) -> dict[str, Any]:  # never labeled: no values, why
+        st = stats(e)
+        return st if st["n"] else {**dict.fromkeys(("median", "p30", "p70")), "n": 0,
+                                   "note": NOT_LABELED}  # fmt: skip
+
     flat = errors[~np.isnan(errors)]
     pck = [float((flat <= t).mean()) if flat.size else float("nan") for t in PCK_THRESHOLDS]
     return {
         "overall": stats(errors.reshape(-1)),
-        "per_keypoint": {k: stats(errors[:, i]) for i, k in enumerate(keypoints)},
+        "per_keypoint": {k: keypoint_stats(errors[:, i]) for i, k in enumerate(keypoints)},
         "pck": {"thresholds_mm": PCK_THRESHOLDS.tolist(), "fraction": pck},
     }
 
@@ -425,7 +432,8 @@ def write_report(
 
     Writes ``metrics.json`` (summaries; with ``sanity`` also each method's
     ``failure_modes`` and a top-level ``references``), ``jpe_per_keypoint.csv``
-    (median/p30/p70 per method and keypoint), ``pck.csv`` and ``pck.png`` (PCK 0-20 mm),
+    (median/p30/p70 per method and keypoint; empty for a keypoint never labeled),
+    ``pck.csv`` and ``pck.png`` (PCK 0-20 mm),
     ``jpe_boxplot.png`` (box plots per keypoint, whiskers 1.5 IQR).
 
     Args:
@@ -454,6 +462,9 @@ def write_report(
     for name, s in summary.items():
         for k in [*keypoints, "ALL"]:
             st = s["overall"] if k == "ALL" else s["per_keypoint"][k]
+            if not st["n"]:  # never labeled: empty cells, not "nan"
+                rows.append(f"{name},{k},,,,0")
+                continue
             rows.append(f"{name},{k},{st['median']:.4f},{st['p30']:.4f},{st['p70']:.4f},{st['n']}")
     atomic_write_text(out / "jpe_per_keypoint.csv", "\n".join(rows) + "\n")
     names = list(summary)

@@ -7,7 +7,9 @@ per symmetric left/right pair of the skeleton, the median distance between the t
 keypoints in the predictions and in the truth, the share of instants whose prediction
 is closer to the truth with left and right swapped, and per bone (limb) the median
 predicted and true length, and it writes a warning for each collapsed or often swapped
-pair.
+pair. A pair or bone without any instant to measure it on has no values (None) and says
+why in ``missing``: ``not labeled`` (the truth never has both ends) or ``not predicted``
+(the predictions never have both where the truth does).
 """
 
 from __future__ import annotations
@@ -20,28 +22,47 @@ from freipose.skeleton import PointRef, Skeleton, left_right_pairs
 
 COLLAPSE_RATIO = 0.5  # a pair predicted closer than this share of its true distance
 SWAP_WARN_RATE = 0.25  # a pair swapped in at least this share of instants
+NOT_LABELED = "not labeled"
+NOT_PREDICTED = "not predicted"
 
 
-def _median(values: np.ndarray) -> float:
-    """Median of the finite values (NaN when there is none)."""
+def _median(values: np.ndarray) -> float | None:
+    """Median of the finite values (None when there is none)."""
     v = values[np.isfinite(values)]
-    return float(np.median(v)) if v.size else float("nan")
+    return float(np.median(v)) if v.size else None
+
+
+def _missing(labeled: np.ndarray, ok: np.ndarray) -> str | None:
+    """Why nothing was measured (None: something was).
+
+    Args:
+        labeled: (N,) the truth has the values.
+        ok: (N,) the truth and the prediction have them.
+    """
+    if ok.any():
+        return None
+    return NOT_PREDICTED if labeled.any() else NOT_LABELED
 
 
 def _pair(pred: np.ndarray, gt: np.ndarray, left: int, right: int) -> dict[str, Any]:
     """Distances and swap rate of one (left, right) pair over the instants with both known."""
-    ok = np.isfinite(pred[:, [left, right]]).all((1, 2)) & np.isfinite(gt[:, [left, right]]).all(
-        (1, 2)
-    )
+    labeled = np.isfinite(gt[:, [left, right]]).all((1, 2))
+    ok = np.isfinite(pred[:, [left, right]]).all((1, 2)) & labeled
     pl, pr, gl, gr = pred[ok, left], pred[ok, right], gt[ok, left], gt[ok, right]
     kept = np.linalg.norm(pl - gl, axis=-1) + np.linalg.norm(pr - gr, axis=-1)
     swapped = np.linalg.norm(pl - gr, axis=-1) + np.linalg.norm(pr - gl, axis=-1)
     return {
         "predicted_mm": _median(np.linalg.norm(pl - pr, axis=-1)),
         "true_mm": _median(np.linalg.norm(gl - gr, axis=-1)),
-        "swap_rate": float((swapped < kept).mean()) if ok.any() else float("nan"),
+        "swap_rate": float((swapped < kept).mean()) if ok.any() else None,
         "instants": int(ok.sum()),
+        "missing": _missing(labeled, ok),
     }
+
+
+def _mm(value: float | None) -> str:
+    """A length for the terminal (``-`` for None)."""
+    return "-" if value is None else f"{value:.1f}"
 
 
 def _ref_name(skeleton: Skeleton, ref: PointRef) -> str:
@@ -73,9 +94,10 @@ def failure_modes(
 
     Returns:
         ``pairs``: per pair ``left``, ``right``, ``predicted_mm``, ``true_mm``,
-        ``swap_rate``, ``instants`` and ``collapsed``; ``bones``: per limb ``bone``,
-        ``predicted_mm`` and ``true_mm`` (medians); ``warnings``: one line per collapsed or
-        often swapped pair that is not collapsed.
+        ``swap_rate``, ``instants``, ``collapsed`` and ``missing``; ``bones``: per limb
+        ``bone``, ``predicted_mm`` and ``true_mm`` (medians) and ``missing``; ``warnings``:
+        one line per collapsed or often swapped pair that is not collapsed. Values that
+        nothing measured are None, ``missing`` says why (None where measured).
 
     Raises:
         ValueError: ``pred`` and ``gt`` differ in shape or do not have K keypoints.
@@ -91,7 +113,7 @@ def failure_modes(
     pairs, warnings = [], []
     for left, right in left_right_pairs(skeleton):
         p = _pair(pred, gt, left, right)
-        p["collapsed"] = bool(p["predicted_mm"] < collapse_ratio * p["true_mm"])
+        p["collapsed"] = p["missing"] is None and p["predicted_mm"] < collapse_ratio * p["true_mm"]
         pairs.append({"left": kps[left], "right": kps[right], **p})
         if p["collapsed"]:
             warnings.append(
@@ -99,7 +121,7 @@ def failure_modes(
                 f"predicted {p['predicted_mm']:.1f} mm apart, truly {p['true_mm']:.1f} mm "
                 f"(medians over {p['instants']} instants)"
             )
-        elif p["swap_rate"] >= SWAP_WARN_RATE:  # (a collapsed pair's swaps are chance)
+        elif p["missing"] is None and p["swap_rate"] >= SWAP_WARN_RATE:  # (not collapsed)
             warnings.append(
                 f"WARNING: {who}{kps[left]} and {kps[right]} are swapped (left for right) in "
                 f"{100 * p['swap_rate']:.0f} % of {p['instants']} instants"
@@ -114,6 +136,7 @@ def failure_modes(
                     "bone": f"{_ref_name(skeleton, a)} - {_ref_name(skeleton, b)}",
                     "predicted_mm": _median(lp[ok, j]),
                     "true_mm": _median(lt[ok, j]),
+                    "missing": _missing(np.isfinite(lt[:, j]), ok),
                 }
             )
     return {"pairs": pairs, "bones": bones, "warnings": warnings}
@@ -132,17 +155,19 @@ def format_failure_modes(modes: dict[str, Any]) -> list[str]:
     if modes["pairs"]:
         lines.append("  left/right pair: distance predicted vs true (median), swap rate")
         for p in modes["pairs"]:
+            name = f"    {p['left']} / {p['right']}: "
+            if p.get("missing"):
+                lines.append(name + p["missing"])
+                continue
             swap = (
                 "COLLAPSED (its swaps are chance)"
                 if p["collapsed"]
                 else f"swapped {100 * p['swap_rate']:.0f} %"
             )
-            lines.append(
-                f"    {p['left']} / {p['right']}: {p['predicted_mm']:.1f} vs "
-                f"{p['true_mm']:.1f} mm, {swap}"
-            )
+            lines.append(f"{name}{_mm(p['predicted_mm'])} vs {_mm(p['true_mm'])} mm, {swap}")
     if modes["bones"]:
         lines.append("  bone length predicted vs true (median)")
         for b in modes["bones"]:
-            lines.append(f"    {b['bone']}: {b['predicted_mm']:.1f} vs {b['true_mm']:.1f} mm")
+            what = b.get("missing") or f"{_mm(b['predicted_mm'])} vs {_mm(b['true_mm'])} mm"
+            lines.append(f"    {b['bone']}: {what}")
     return lines + list(modes["warnings"])

@@ -89,7 +89,37 @@ def test_swap_rate_and_bone_lengths():
     missing = gt.copy()
     missing[:, 0] = np.nan  # Ear Right never predicted: its pair has no instant
     p0 = failure_modes(missing, gt, RAT)["pairs"][0]
-    assert p0["instants"] == 0 and np.isnan(p0["predicted_mm"]) and not p0["collapsed"]
+    assert p0["instants"] == 0 and p0["predicted_mm"] is None and not p0["collapsed"]
+    assert p0["missing"] == "not predicted"
+
+
+def test_pairs_bones_and_keypoints_never_labeled_say_so(tmp_path):
+    gt = _rat_poses(12, seed=4)
+    pred = gt + np.random.default_rng(5).normal(0, 1.0, gt.shape)
+    paws = [RAT.keypoints.index(k) for k in ("Paw Front Left", "Paw Front Right")]
+    gt[:, paws] = np.nan  # the front paws never labeled
+    modes = failure_modes(pred, gt, RAT, "net")
+    lines = format_failure_modes(modes)
+    assert "    Paw Front Left / Paw Front Right: not labeled" in lines
+    assert "    mean(Ear Right, Ear Left) - Paw Front Right: not labeled" in lines
+    assert "    Ear Left / Ear Right: not labeled" not in lines
+    assert not any("nan" in ln.lower() for ln in lines), lines
+    assert modes["warnings"] == []
+    from freipose.nn.evaluate import Sanity, write_report
+
+    sanity = Sanity({"net": modes}, {}, {}, [])
+    write_report(tmp_path, {"net": jpe(pred, gt)}, RAT.keypoints, sanity)
+    text = (tmp_path / "metrics.json").read_text()
+    assert "NaN" not in text
+    m = json.loads(text)["net"]
+    pair = next(p for p in m["failure_modes"]["pairs"] if p["left"] == "Paw Front Left")
+    assert pair["predicted_mm"] is None and pair["true_mm"] is None and pair["swap_rate"] is None
+    assert pair["missing"] == "not labeled"
+    assert m["per_keypoint"]["Paw Front Left"] == {
+        "median": None, "p30": None, "p70": None, "n": 0, "note": "not labeled"
+    }  # fmt: skip
+    csv = (tmp_path / "jpe_per_keypoint.csv").read_text()
+    assert "net,Paw Front Left,,,,0\n" in csv and "nan" not in csv
 
 
 def test_references_place_the_median_pose_at_the_centres():
