@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from freipose.nn.evaluate import Evaluation, Sanity
 
 
-@click.command()
+@click.command("eval")
 @click.argument("ckpt", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.argument("labels", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option(

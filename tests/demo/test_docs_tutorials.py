@@ -1,0 +1,124 @@
+"""Every command of the tutorials that build on the demo, run on the tiny demo's folder.
+
+``docs/tutorials/demo.md`` and ``docs/tutorials/analysis.md`` start from a finished
+``freipose demo`` folder; the tests copy the tiny demo that the other demo tests share
+(``tiny_demo`` in ``conftest.py``) to ``freipose_demo/`` and run the fenced ``bash`` blocks
+of each page as written (``freipose ...`` lines, backslash continuations joined, globs
+expanded), after the substitutions below, which adapt them to the tiny preset. A ``toml``
+block after ``<!-- file: NAME -->`` is written to NAME. Each substitution must match the
+page, so the test follows it when it changes. ``tests/test_own_data.py`` does the same for
+``docs/own-data.md``.
+"""
+
+from __future__ import annotations
+
+import glob
+import re
+import shlex
+import shutil
+from pathlib import Path
+
+import h5py
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+
+from freipose.cli.main import cli
+
+ROOT = Path(__file__).resolve().parents[2]
+TUTORIALS = ROOT / "docs" / "tutorials"
+
+#: the demo page runs the demo on the tiny preset (the copied folder is complete, so the
+#: run only checks its markers and rewrites the summary)
+DEMO_SUBSTITUTIONS = {"\nfreipose demo\n": "\nfreipose demo --preset tiny\n"}
+
+#: the tiny demo's protocol (one 0.8 s window in 2.4 s) and its detector (4 training
+#: steps, which the tiny demo does not use either: it predicts with background subtraction)
+ANALYSIS_SUBSTITUTIONS = {
+    "--detector freipose_demo/train/detector/detector.pt": "--method bgsub",
+    "--stft-window 32": "--stft-window 16",
+    "--onset-delay 0.6": "--onset-delay 0.2",
+    "--margin 0.5": "--margin 0.3",
+    "--pre 1 --post 1": "--pre 0.5 --post 0.5",
+}
+
+
+def _blocks(text: str) -> list[tuple[str, str, str | None]]:
+    """(language, body, file name) of every fenced block, in order."""
+    pat = re.compile(r"(?:<!-- file: (\S+) -->\n)?```(\w+)\n(.*?)```", re.S)
+    return [(m.group(2), m.group(3), m.group(1)) for m in pat.finditer(text)]
+
+
+def _commands(body: str) -> list[list[str]]:
+    """The ``freipose`` commands of a bash block as argument lists (globs expanded)."""
+    cmds = []
+    for line in body.replace("\\\n", " ").splitlines():
+        line = line.split(" #")[0].strip()
+        if not line or line.startswith("#"):
+            continue
+        args = shlex.split(line)
+        assert args[0] == "freipose", f"a tutorial command that is not freipose's: {line}"
+        expanded = []
+        for a in args[1:]:
+            hits = sorted(glob.glob(a)) if any(ch in a for ch in "*?[") else []
+            expanded += hits or [a]
+        cmds.append(expanded)
+    return cmds
+
+
+def run_page(name: str, substitutions: dict[str, str]) -> dict[str, str]:
+    """Run the page's blocks in the current folder; the output of each command by its line."""
+    text = (TUTORIALS / name).read_text(encoding="utf-8")
+    for old, new in substitutions.items():
+        assert old in text, f"docs/tutorials/{name} no longer holds {old!r}: update the test"
+        text = text.replace(old, new)
+    runner = CliRunner()
+    outputs = {}
+    for lang, body, file_name in _blocks(text):
+        if lang == "toml" and file_name:
+            Path(file_name).write_text(body, encoding="utf-8")
+        if lang != "bash":
+            continue
+        for args in _commands(body):
+            res = runner.invoke(cli, args)
+            assert res.exit_code == 0, f"freipose {' '.join(args)}\n{res.output}"
+            outputs[" ".join(args)] = res.output
+    return outputs
+
+
+@pytest.fixture
+def demo_folder(tiny_demo, tmp_path, monkeypatch):
+    """A working folder holding a copy of the tiny demo as ``freipose_demo/``."""
+    shutil.copytree(tiny_demo[0], tmp_path / "freipose_demo")
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.mark.slow
+def test_demo_tutorial_commands(demo_folder):
+    out = run_page("demo.md", DEMO_SUBSTITUTIONS)
+    assert len(out) == 4
+    # the rerun skipped the seven finished steps and wrote the report again
+    rerun = out["demo --preset tiny"]
+    assert rerun.count("done earlier") == 7 and "open freipose_demo/report.html" in rerun
+    assert "cam6" in out["calib show freipose_demo/calibration/calibration.toml"]
+    assert Path("demo_eval/metrics.json").is_file()
+    table = pd.read_csv("rat1_day2.csv")
+    assert {"frame", "time_s", "Nose_x_mm", "Nose_confidence"} <= set(table.columns)
+    assert len(table) == 60  # the tiny preset's frames
+
+
+@pytest.mark.slow
+def test_analysis_tutorial_commands(demo_folder):
+    run_page("analysis.md", ANALYSIS_SUBSTITUTIONS)
+    assert Path("rec/rat1_day4/events.csv").read_text().startswith("start_s,end_s")
+    classification = pd.read_csv("results/classification.csv")
+    assert classification["evaluated_on"].tolist() == ["rat1"]
+    # both test days are scored: day 2 and the new day 4, 60 frames each before labelling
+    assert 60 < classification["n_frames"].iloc[0] <= 120
+    attribution = pd.read_csv("results/attribution.csv")
+    assert attribution["rank"].tolist() == list(range(1, len(attribution) + 1))
+    assert Path("results/attribution_rat1_paw.png").is_file()
+    with h5py.File("rat1_day4.vars.h5", "r") as f:
+        assert f["values"].shape == (60, 336)  # 12 rat keypoints, 9 STFT frequencies
+        assert f.attrs["floor_source"] == "floor.toml"
