@@ -1,14 +1,16 @@
-"""Generate ``docs/benchmarks.md`` and the README's demo table from the recorded results.
+"""Generate ``docs/benchmarks.md``, the README's demo table and the model card's figures.
 
 Every figure is shown as the median and the range (min-max) over the recorded runs, with the
 number of runs, their seeds, CPU kinds and machines, dates and commits, and the command that
 reproduces them. Runs of one benchmark with different settings (apart from the seed) get
 separate tables. The README block between ``<!-- demo-figures:begin -->`` and
 ``<!-- demo-figures:end -->`` gets the demo's key figures as ranges per CPU kind (a README
-without these markers is left as it is).
+without these markers is left as it is). The model card ``docs/models.md`` gets, between
+``<!-- base-figures:begin -->`` and ``<!-- base-figures:end -->``, the shipped bases' data,
+steps, held-out figures and commands from their manifest ``freipose/models/bases.json``.
 
-    python benchmarks/report.py            # rewrite docs/benchmarks.md and the README block
-    python benchmarks/report.py --check    # exit 1 when either is out of date
+    python benchmarks/report.py            # rewrite the page and the two blocks
+    python benchmarks/report.py --check    # exit 1 when one of them is out of date
 """
 
 from __future__ import annotations
@@ -28,7 +30,16 @@ from freipose.io.atomic import atomic_write_text
 
 PAGE = ROOT / "docs" / "benchmarks.md"
 README = ROOT / "README.md"
+MODELS = ROOT / "docs" / "models.md"
+MANIFEST = ROOT / "freipose" / "models" / "bases.json"
 BEGIN, END = "<!-- demo-figures:begin -->", "<!-- demo-figures:end -->"
+CARD_BEGIN, CARD_END = "<!-- base-figures:begin -->", "<!-- base-figures:end -->"
+# the scripts that record results (each gets a section, recorded or not)
+BENCHMARKS = (
+    "accuracy", "analysis", "calibration", "calibration_coverage", "classifier_days", "demo",
+    "detector", "label_page", "own_rig", "predict", "real_finetune", "smooth", "synth",
+    "throughput", "train_base",
+)  # fmt: skip
 # settings that differ between runs of the same experiment (not a different experiment)
 RUN_KEYS = {"seed", "folder", "finished", "demo", "out", "workdir", "work", "export"}
 # the README's demo rows: (label, figure key, unit)
@@ -217,10 +228,13 @@ def page(records: list[dict[str, Any]]) -> str:
         "`python benchmarks/report.py` to add the run to this page.",
         "",
     ]
-    if not records:
-        lines += ["No results are recorded yet.", ""]
-    for name, by_settings in groups(records).items():
-        lines += section(name, by_settings)
+    found = groups(records)
+    for name in sorted(set(found) | set(BENCHMARKS)):
+        if name in found:
+            lines += section(name, found[name])
+        else:
+            lines += [f"## {name}", "", "No run is recorded yet: `python benchmarks/"
+                      f"{name}.py --help` tells how to run it.", ""]  # fmt: skip
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -251,13 +265,59 @@ def demo_block(records: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def readme_text(readme: str, block: str) -> str | None:
-    """``readme`` with the marked block replaced by ``block`` (None without the markers)."""
-    if BEGIN not in readme or END not in readme:
+def replace_block(text: str, block: str, begin: str = BEGIN, end: str = END) -> str | None:
+    """``text`` with the block between ``begin`` and ``end`` replaced (None without them)."""
+    if begin not in text or end not in text:
         return None
-    head, rest = readme.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    return f"{head}{BEGIN}\n{block}{END}{tail}"
+    head, rest = text.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    return f"{head}{begin}\n{block}{end}{tail}"
+
+
+def _held_out(entry: dict[str, Any]) -> str:
+    """A base's held-out figures as text."""
+    h = entry.get("held_out", {})
+    if not h.get("evaluated"):
+        return "not evaluated"
+    n = f"{h.get('samples')} held-out instants"
+    if entry["kind"] == "detector":
+        views = int(h.get("n_views", 0))
+        return (f"recall at IoU 0.5 {h['recall']:.3f}, median 3D centre error "
+                f"{h['median_center_error']:.2f} mm ({views} views, {n})")  # fmt: skip
+    p0 = f", P0 {h['jpe_p0_mm']:.2f} mm" if "jpe_p0_mm" in h else ""
+    return f"median JPE {'P1 ' if p0 else ''}{h['jpe_p1_mm']:.2f} mm{p0} ({n})"
+
+
+def card_block(manifest: Path = MANIFEST) -> str:
+    """The model card's generated part: per shipped base its data, steps, figures, commands."""
+    from freipose.models import read_manifest, total_steps
+
+    lines = [
+        "| base | file | size | optimizer steps | training sessions (seeds) | held-out figures |",
+        "|---|---|---|---|---|---|",
+    ]
+    cmds = []
+    for e in read_manifest(manifest):
+        seeds = e["data"]["train_seeds"]
+        lines.append(
+            f"| {e['name']} | `{e['file']}` | {e['size_bytes'] / 1e6:.2f} MB | "
+            f"{total_steps(e)} | {seeds[1] - seeds[0] + 1} ({seeds[0]}-{seeds[1]}) | "
+            f"{_held_out(e)} |"
+        )
+        chain = [e["started_from"]["command"]] if "started_from" in e else []
+        cmds += [f"# {e['name']} (exported {e['exported'][:10]})", *chain, e["command"]]
+    held = sorted({tuple(e["data"]["held_out_seeds"]) for e in read_manifest(manifest)})
+    lines += [
+        "",
+        "Held-out sessions: seeds " + ", ".join(f"{a}-{b}" for a, b in held) + " (never "
+        "trained on). The commands that made the shipped weights, in order (a warm start "
+        "continues from the weights of the command above it):",
+        "",
+        "```bash",
+        *cmds,
+        "```",
+    ]
+    return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -267,13 +327,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--results", type=Path, default=None, help="results folder [the repo's]")
     ap.add_argument("--page", type=Path, default=PAGE)
     ap.add_argument("--readme", type=Path, default=README)
+    ap.add_argument("--models", type=Path, default=MODELS, help="the model card")
     args = ap.parse_args(argv)
     records = load_results(folder=args.results or RESULTS)
     want = {args.page: page(records)}
     if args.readme.is_file():
-        new = readme_text(args.readme.read_text(encoding="utf-8"), demo_block(records))
+        new = replace_block(args.readme.read_text(encoding="utf-8"), demo_block(records))
         if new is not None:
             want[args.readme] = new
+    if args.models.is_file():
+        card = args.models.read_text(encoding="utf-8")
+        new = replace_block(card, card_block(), CARD_BEGIN, CARD_END)
+        if new is not None:
+            want[args.models] = new
     stale = [p for p, text in want.items()
              if not p.is_file() or p.read_text(encoding="utf-8") != text]  # fmt: skip
     if args.check:

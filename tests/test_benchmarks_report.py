@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -68,6 +69,16 @@ def test_aggregation_gives_median_range_runs_and_seeds(bench, fake_results):
     assert "### frames 100" in text and "### frames 20" in text
     assert "| render_fps | 10 |" in text and "| ok | true |" in text
     assert "```bash\npython benchmarks/x.py --seed " in text
+
+
+def test_every_benchmark_script_has_a_section(bench, tmp_path):
+    scripts = {p.stem for p in (ROOT / "benchmarks").glob("*.py")} - {"_results", "report"}
+    assert set(bench.BENCHMARKS) == scripts
+    for name in scripts:  # each records its figures
+        text = (ROOT / "benchmarks" / f"{name}.py").read_text()
+        assert re.search(rf'write_result\(\s*"{name}"', text), name
+    text = bench.page([])
+    assert all(f"## {name}\n\nNo run is recorded yet" in text for name in scripts)
 
 
 def test_readme_block_shows_ranges_per_cpu_kind(bench, fake_results, tmp_path):
