@@ -34,11 +34,15 @@ class OutputWriteError(FreiPoseError, OSError):
     Args:
         message: what cannot be written, why, and what to do.
         code: the ``errno`` of the cause (``ENOSPC``, ``EROFS``...), when known.
+        path: the output that cannot be written, when known.
     """
 
-    def __init__(self, message: str, code: int | None = None) -> None:
+    def __init__(
+        self, message: str, code: int | None = None, path: str | os.PathLike[str] | None = None
+    ) -> None:
         super().__init__(message)
         self.errno = code
+        self.path = path
 
 
 #: errno values that the user fixes outside FreiPose (free space, choose a writable folder)
@@ -46,12 +50,17 @@ DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
 NOT_WRITABLE_ERRNOS = frozenset({errno.EROFS, errno.EACCES, errno.EPERM})
 
 
-def filesystem_message(exc: OSError, path: str | os.PathLike[str] | None = None) -> str | None:
+def filesystem_message(
+    exc: OSError,
+    path: str | os.PathLike[str] | None = None,
+    then: str = "run the command again",
+) -> str | None:
     """The message for a full disk, a read-only folder or a denied access, else None.
 
     Args:
         exc: the error of a file operation.
         path: the file it was about when ``exc`` does not name one (``exc.filename`` wins).
+        then: what the user does once the cause is removed.
 
     Returns:
         One line that names the path, what is wrong and what to do, or None when ``exc`` is
@@ -68,17 +77,17 @@ def filesystem_message(exc: OSError, path: str | os.PathLike[str] | None = None)
         )
         return (
             f"cannot write {where}: {what}; free space there (or write to another folder) "
-            f"and run the command again"
+            f"and {then}"
         )
     if exc.errno == errno.EROFS:
         return (
             f"cannot write {where}: {folder} is on a read-only filesystem; choose an output "
-            f"in a folder you can write to and run the command again"
+            f"in a folder you can write to and {then}"
         )
     if exc.errno in NOT_WRITABLE_ERRNOS:
         return (
             f"{where}: permission denied; give yourself access to it (or choose another "
-            f"path) and run the command again"
+            f"path) and {then}"
         )
     return None
 

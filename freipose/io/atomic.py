@@ -78,7 +78,7 @@ def output_errors(path: str | Path, *also: str | Path) -> Iterator[None]:
         msg = filesystem_message(err)
         if msg is None:
             raise
-        raise OutputWriteError(msg, exc.errno) from exc
+        raise OutputWriteError(msg, exc.errno, path) from exc
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -270,7 +270,7 @@ class H5Output:
         if exc is not None:
             err = OSError(exc.errno, exc.strerror, os.fspath(self.name))
             msg = filesystem_message(err) or f"cannot write {self.name}: {exc}"
-            raise OutputWriteError(msg, exc.errno) from exc
+            raise OutputWriteError(msg, exc.errno, self.name) from exc
 
     def flush(self) -> None:
         """Write everything HDF5 holds to the file, then :meth:`check`."""

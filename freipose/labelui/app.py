@@ -4,7 +4,9 @@ Every request must carry the access token, as the query parameter ``token``, the
 ``X-FreiPose-Token`` or the cookie that the page sets on the first visit; requests without
 it get 403. The client names an instant by its index and a camera by its name, never a
 path; request bodies larger than :data:`~freipose.labelui.schema.MAX_BODY_BYTES` get 413,
-bodies that break the schema 422, a save of a stale version 409 (with the current state).
+bodies that break the schema 422, a save of a stale version 409 (with the current state),
+a save that cannot be written (full disk, read-only folder) 507 with a message that says
+what to do (nothing changes: the page keeps the edits, the file keeps what was saved).
 
 Routes:
 
@@ -32,6 +34,7 @@ from starlette.responses import JSONResponse, PlainTextResponse, Response
 from starlette.routing import Route
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from freipose.errors import OutputWriteError, filesystem_message
 from freipose.io.video import MediaError
 from freipose.labelui.frames import FrameCache
 from freipose.labelui.schema import MAX_BODY_BYTES, BodyError, parse_body
@@ -217,6 +220,10 @@ def create_app(store: LabelStore, frames: FrameCache, token: str) -> ASGIApp:
             state = await run_in_threadpool(store.save, i, version, points, status)
         except StaleVersionError as exc:
             return JSONResponse({"error": "stale version", "current": exc.current}, 409)
+        except OutputWriteError as exc:  # a full disk or a read-only folder: nothing changed
+            why = filesystem_message(OSError(exc.errno, "", exc.path), then="save again")
+            msg = f"{why or exc}; your edits are kept in this page until a save succeeds"
+            return JSONResponse({"error": msg, "write_error": True}, 507)
         return JSONResponse(state)
 
     routes = [

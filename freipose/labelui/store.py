@@ -24,7 +24,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from freipose.io.atomic import atomic_path
+from freipose.io.atomic import atomic_h5
 from freipose.io.labels import LabelSet, SessionInfo, fill_labels_h5
 from freipose.io.poses import PoseData
 from freipose.io.session import Session
@@ -389,7 +389,7 @@ class LabelStore:
 
     def _write(self) -> None:
         labels, status = self._label_set()
-        with atomic_path(self.output.resolve()) as tmp, h5py.File(tmp, "w") as f:
+        with atomic_h5(self.output.resolve()) as f:
             fill_labels_h5(f, labels)
             f.create_dataset(STATUS_DATASET, data=status, compression="gzip")
 

@@ -144,7 +144,8 @@ def _write_merged(files: list[h5py.File], out: h5py.File) -> None:
     chunk_rows = max(f["poses"].chunks[0] for f in files if f["poses"].chunks)
 
     def copy(name: str) -> None:
-        d0 = first[name]
+        # the layout of a non-empty shard's dataset (an empty shard's is not chunked)
+        d0 = next((f[name] for f in files if f[name].chunks is not None), first[name])
         data = np.concatenate([f[name][()] for f in files], axis=0)
         if d0.chunks is None:
             out.create_dataset(name, data=data)

@@ -221,6 +221,7 @@ def check_free_space(path: Path, needed: int) -> None:
             f"{path.parent.absolute()} has {bytes_text(free)} free; free space there (or "
             f"write to another folder) and run the command again",
             errno.ENOSPC,
+            path,
         )
 
 

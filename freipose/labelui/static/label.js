@@ -356,18 +356,19 @@ const FP = (() => {
           "that version (your last edit was not saved).");
         applyState(r.body.current, true);
       } else {
-        marker.textContent = "not saved: " + (r.body.error || r.status);
+        marker.textContent = "not saved: " + ((r.body && r.body.error) || r.status);
         marker.className = "error";
+        if (r.body && r.body.write_error) showBanner(r.body.error, true);
       }
     }
     S.saving = false;
   }
 
-  function showBanner(text) {
+  function showBanner(text, keep) {
     const b = document.getElementById("banner");
     b.textContent = text;
     b.hidden = false;
-    setTimeout(() => { b.hidden = true; }, 8000);
+    if (!keep) setTimeout(() => { b.hidden = true; }, 8000);
   }
 
   function applyState(state, replaceLabels) {
