@@ -20,102 +20,10 @@ Both also render and calibrate the normal recording of the same seed ("freipose 
 aniposelib, which reads neither, runs on that normal recording. The per-camera counts of
 front and back views are printed.
 
-Measured 2026-12-01 (``--seed 2 1 --inverted --repeat 3``; the machine under heavy load,
-load average ~8 on its 2 cores, so all times are 3-8x the unloaded ones), after a board at
-rest counts as one view (the synthetic board lies still on the floor for its first 7 frames;
-counted 7 times they had given seed 2's inverted recording its 0.378 mm / 0.115 %):
+Every seed's table is recorded as a result (``benchmarks/results/calibration/``); the
+recorded runs, as median and range, are in ``docs/benchmarks.md``.
 
-    seed 2: inverted 0.241 / 0.021 / 0.062, normal 0.148 / 0.018 / 0.022 (was 0.200 / 0.022 /
-            0.033), aniposelib 0.310 / 0.040 / 0.299; wall s per run FreiPose normal 8.92,
-            2.69, 6.77, aniposelib 58.25, 36.36, 32.75 (paired ratios 6.5, 13.5, 4.8)
-    seed 1: inverted 0.054 / 0.009 / 0.020, normal 0.094 / 0.006 / 0.025, aniposelib 0.370 /
-            0.066 / 0.136; FreiPose normal 8.67, 8.22, 3.50, aniposelib 45.27, 28.87, 25.16
-            (paired ratios 5.2, 3.5, 7.2)
-
-The median paired ratios (6.5 and 5.2) keep the 5x; single runs under this load range from
-3.5 to 13.5x. The inverted recordings' detections are as accurate as the normal ones (median
-corner error 0.05 px, the same share over 1 px); seed 2's remaining difference is cam0's
-focal length, driven by its steep views of the board near the floor (frames 11-17).
-
-    pip install -e .[bench]     # aniposelib
-    python benchmarks/calibration.py --cameras 4 --frames 150 --width 640 --seed 1 2 3
-    python benchmarks/calibration.py --seed 2 --workdir /tmp/calib-bench   # keep the videos
-
-Each tool is timed ``--repeat`` times (default 3), taking turns; the table shows the run with
-the median wall time. aniposelib runs on OpenCV's default thread pool (all CPUs), which its
-marker detection uses: before 2026-11-22 (session 4) the benchmark rendered the videos in its
-own process, which left OpenCV at one thread, so aniposelib detected ~2x slower (seed 2: 11-12
-s instead of 5-6 s) and the wall ratios printed then (5.2-7.9x) overstated FreiPose's lead.
-
-Measured 2026-11-22 (session 5) on the 2-core machine, ``--seed 1 2 3 4 6 --repeat 5``
-(.mp4), aniposelib 0.8.0; errors mm / deg / % (maximum over cameras), wall s (median of 5):
-
-    seed 1: 0.127 / 0.008 / 0.037, 1.68  vs 0.370 / 0.066 / 0.136, 10.84  (6.5x faster)
-    seed 2: 0.200 / 0.022 / 0.033, 1.38  vs 0.310 / 0.040 / 0.299, 7.75   (5.6x)
-    seed 3: 0.212 / 0.019 / 0.076, 1.34  vs 0.367 / 0.044 / 0.092, 7.84   (5.8x)
-    seed 4: 0.207 / 0.010 / 0.047, 1.58  vs 0.812 / 0.050 / 0.154, 11.33  (7.2x)
-    seed 6: 0.202 / 0.021 / 0.050, 1.49  vs 0.384 / 0.034 / 0.056, 8.48   (5.7x)
-
-and seed 5 (``--repeat 3``, an earlier run the same hour): 0.137 / 0.015 / 0.044, 1.24 s vs
-aniposelib diverged (349 mm), 45.4 s (37x). The machine was slower during this run than in
-session 4 (aniposelib 7-11 s instead of 6-8 s; the ratios are taken within each run); the
-earlier run gave 5.4, 6.6, 6.0, 7.4, 37 and 4.5x (seed 6's FreiPose runs: 2.10, 1.62 and 1.22 s),
-two later ones (``--repeat 5``) 4.9, 5.2, 5.5x on seeds 2, 3, 6 (seed 2's FreiPose runs 1.35-5.60
-s, aniposelib's 7.0-13.6 s) and 6.3, 5.2, 5.5, 8.0, 6.1x on seeds 1, 2, 3, 4, 6. FreiPose is
-~5.4-5.7x faster on the hardest rigs (2, 3, 6; the median over the four runs), a margin that the
-machine's speed swings can take away in a single run.
-FreiPose's errors are lower in all 15 comparisons with a converged aniposelib (geometric-mean
-error ratios 2.3 centre, 3.1 rotation, 2.7 focal; the closest: seed 6's focal length, 0.050 vs
-0.056 %, and seed 3's, 0.076 vs 0.092 %); the errors are those of session 4, as the detections
-did not change (identical points in all 3600 frames).
-What changed since session 4 (3.8-6.0x then): the marker detectors' dictionary holds only the
-board's markers (ids 0-9 of DICT_4X4_50). OpenCV compares a marker candidate with the
-dictionary's entries in id order and stops at the first match, so a candidate that is no
-marker, such as each of the board's 10 black squares, was compared with all 50 entries: that
-was about half of the marker search (on the tracking windows of seed 2: 1.5-1.9 ms -> 0.8 ms
-per search). Detection now takes 0.8-1.0 s for 600 frames in 2 processes
-(~2 ms of CPU per frame, of which ~0.5 ms decoding and colour conversion, ~0.5 ms OpenCV's
-thresholding and contours), the solver 0.43-0.67 s; aniposelib's detection takes 6.0-6.4 s
-(~16 ms of CPU per frame on 2 threads) and its solver 1.6-5.2 s.
-At 1280x960 (``--width 1280``; the original FreiPose's cameras were 600-1280 px wide, and
-most lab cameras record at 1280x1024 or more), median of 3; seeds 1-3 measured in session 5,
-seeds 4-6 in session 4 (before the board-only dictionary, so FreiPose's times there are
-longer than it takes now):
-
-    seed 1: 0.157 / 0.010 / 0.029, 2.85  vs 0.592 / 0.080 / 0.158, 30.2   (10.6x faster)
-    seed 2: 0.063 / 0.009 / 0.030, 2.99  vs 0.658 / 0.013 / 0.107, 30.3   (10.1x)
-    seed 3: 0.057 / 0.010 / 0.023, 2.84  vs 0.366 / 0.034 / 0.059, 24.2   (8.5x)
-    seed 4: 0.047 / 0.004 / 0.008, 2.66  vs diverged (449 mm), 103.6     (39x)
-    seed 5: 0.169 / 0.010 / 0.027, 3.26  vs 0.500 / 0.047 / 0.124, 24.2   (7.4x)
-    seed 6: 0.136 / 0.015 / 0.029, 2.74  vs 0.331 / 0.046 / 0.177, 22.5   (8.2x)
-
-FreiPose's errors are lower in all 15 comparisons (geometric-mean ratios 4.5 centre, 3.5
-rotation, 4.2 focal): aniposelib's detection (13 threshold windows of 100-700 px) grows with
-the image area (21-28 s), FreiPose's (2.3 s now, 2.2-3.0 s in session 4) less than that,
-because much of it is per marker candidate, not per pixel.
-Session 4's changes, measured on the 640x480 rigs: the one-window ChArUco search in videos (~20 %
-less detection CPU), this process detecting next to the worker (the worker's ~0.2 s start no
-longer idles both cores), and the bundle adjustment's normal equations (solver 0.5-0.8 ->
-0.42-0.52 s); the errors are unchanged within the detector's noise.
-
-What the per-view weights changed (same detections, solver only; before -> after, maximum
-over cameras): seed 5 centre 0.177 -> 0.132 mm, rotation 0.022 -> 0.015 deg, focal 0.055 ->
-0.043 %; seed 6 focal 0.063 -> 0.049 % (it was the one comparison aniposelib won: 0.056 %).
-About 10 % of the board views are 2-3x noisier than the median view (motion blur, steep
-boards); they now count less. Views are only down-weighted: up-weighting the quiet ones made
-the principal-point test free seed 5's cam0 (0.10 deg rotation error).
-
-With .mkv videos decoding bounds the speed-up (``--format .mkv``; measured in session 2,
-before the view weights, with aniposelib on one OpenCV thread):
-
-    seed 1: 0.164 / 0.012 / 0.041, 16.3  vs diverged (345 mm), 321
-    seed 2: 0.168 / 0.090 / 0.050, 17.3  vs 0.191 / 0.024 / 0.145, 31.2   (1.8x)
-    seed 3: 0.221 / 0.023 / 0.079, 15.4  vs 0.484 / 0.039 / 0.145, 31.4   (2.0x)
-
-On .mkv seed 2 the principal-point test kept cam2's offset (chi2 16 > 9.2, though the truth is
-the centre), which tilted that camera by 0.09 deg. The per-camera errors left are at the
-level of the noise floor (``--noise-floor``: 0.1-0.2 mm, 0.01-0.02 deg, 0.02-0.05 % for these
-recordings).
+    python benchmarks/calibration.py --seed 1 2 3 --repeat 3
 """
 
 from __future__ import annotations

@@ -13,20 +13,12 @@ reprojection RMS, the coverage figures and the warnings the calibration gives.
 
     python benchmarks/calibration_coverage.py --seed 0 1 2
 
-Measured 2026-12-01 (4 cameras, 120 frames; length errors of the 81 mice on the floor,
-median / worst, %; every "upper" run warns for all 4 cameras, no "covered" run warns):
-
-    seed 0: upper -0.05 / 1.9    covered -0.01 / 1.8
-    seed 1: upper -0.09 / 5.4    covered -0.00 / 1.3
-    seed 2: upper +0.12 / 89     covered -0.02 / 1.4   (upper: refused, folding distortion)
-    seed 3: upper +0.18 / 29     covered -0.01 / 1.1
-
-The board itself reprojects equally well in both (0.27 px) and mice at the board's height
-are within 0.02 % (median) in both: a board that measures right says nothing about the
-floor. Where the board never was in the image, the fitted k1 k2 model extrapolates the
-true lens (with k3) wrongly and lengths there are off by percent (the worst mice stand at
-the arena's edge, low in the images; the "covered" recording's worst are at the image
-corners that no board view reached).
+What to look for: the board reprojects equally well in both recordings and mice at the
+board's height come out right in both, so a board that measures right says nothing about
+the floor. Where the board never was in the image, the fitted k1 k2 model extrapolates the
+true lens (with k3) wrongly and lengths there are off (the worst mice stand at the arena's
+edge, low in the images). Each seed's figures are recorded as a result
+(``benchmarks/results/calibration_coverage/``, shown in ``docs/benchmarks.md``).
 """
 
 from __future__ import annotations
