@@ -8,7 +8,10 @@ training labels (:mod:`freipose.detect.label_boxes`), which need no
 motion and no training. The choice and the reason are logged, e.g. ``using fixed boxes
 from the labels: no detector given (--detector); background subtraction found the
 animal in 7 of 40 sampled frames``. When none works and there are no labels, the best
-source is used with a warning.
+source is used with a warning. Fixed boxes, and a source used although it did not find the
+animal, propose nothing on blank frames (:class:`~freipose.detect.fallback.SkipBlank`:
+black or one-coloured), so such frames are reported as not found rather than given a pose;
+sampled frames blank in every camera are said in a warning.
 """
 
 from __future__ import annotations
@@ -94,11 +97,25 @@ def choose_box_source(
     Returns:
         The choice, with the reason (also logged).
     """
-    from freipose.detect.fallback import BackgroundSubtractor, FallbackBoxesError
+    from freipose.detect.fallback import (
+        BackgroundSubtractor,
+        FallbackBoxesError,
+        FixedBoxes,
+        SkipBlank,
+        is_blank,
+    )
     from freipose.detect.label_boxes import label_boxes
 
     shots = _probe_frames(sources, frames, probe)
     n = len(shots)
+    blank = sum(all(is_blank(img) for img in shot) for shot in shots)
+    if shots and blank == n:
+        log.warning(
+            "all %d sampled frames are blank in every camera (black or one colour: no "
+            "light, lens cap, wrong videos?); frames without contrast are reported as "
+            "not found",
+            n,
+        )
     tried: list[str] = []
     best: tuple[int, Any, str] | None = None
     if detector is None:
@@ -124,7 +141,8 @@ def choose_box_source(
         except FallbackBoxesError as exc:
             tried.append(f"no fixed boxes from the labels ({exc})")
         else:
-            return _chosen(boxes.source(), "fixed", "; ".join(tried), "fixed boxes from the labels")
+            fixed = FixedBoxes(boxes.boxes, skip_blank=True)
+            return _chosen(fixed, "fixed", "; ".join(tried), "fixed boxes from the labels")
     else:
         tried.append("no training labels to derive fixed boxes from")
     log.warning(
@@ -134,7 +152,7 @@ def choose_box_source(
         "; ".join(tried),
         best[2],
     )
-    return AutoChoice(best[1], best[2], "; ".join(tried))
+    return AutoChoice(SkipBlank(best[1]), best[2], "; ".join(tried))
 
 
 def _chosen(source: Any, method: str, reason: str, name: str | None = None) -> AutoChoice:

@@ -11,6 +11,11 @@
       [boxes]
       cam0 = [100, 80, 500, 400]     # x0, y0, x1, y1 in pixels
       cam1 = [120, 60, 520, 380]
+
+* :class:`SkipBlank` wraps a box source so that it proposes nothing on a blank image (no
+  contrast: black, or one colour), where there is no animal to find (``FixedBoxes`` does
+  the same with ``skip_blank``): fixed boxes would otherwise send an empty crop on to the
+  pose network, which answers with a pose.
 """
 
 from __future__ import annotations
@@ -246,9 +251,11 @@ class FixedBoxes:
 
     Args:
         boxes: camera name -> (x0, y0, x1, y1) full-image pixels.
+        skip_blank: propose no box on a blank image (:func:`is_blank`).
     """
 
-    def __init__(self, boxes: Mapping[str, Sequence[float]]):
+    def __init__(self, boxes: Mapping[str, Sequence[float]], skip_blank: bool = False):
+        self.skip_blank = skip_blank
         self.boxes: dict[str, np.ndarray] = {}
         for name, b in boxes.items():
             arr = np.asarray(b, dtype=np.float64)
@@ -294,11 +301,17 @@ class FixedBoxes:
             raise FallbackBoxesError(f"{p}: {exc}") from exc
 
     def propose(self, images: Sequence[np.ndarray], cameras: Sequence[str]) -> list[Candidates]:
-        """The camera's fixed box with score 1 (no box for cameras not in the file)."""
+        """The camera's fixed box with score 1.
+
+        No box for cameras not in the file, nor, with ``skip_blank``, on a blank image.
+        """
         out = []
-        for cam in cameras:
+        for i, cam in enumerate(cameras):
             b = self.boxes.get(str(cam))
-            out.append(Candidates.empty() if b is None else Candidates(b[None], np.ones(1)))
+            if b is None or (self.skip_blank and is_blank(images[i])):
+                out.append(Candidates.empty())
+            else:
+                out.append(Candidates(b[None], np.ones(1)))
         return out
 
     def check_cameras(self, cameras: Sequence[str]) -> None:
@@ -308,3 +321,45 @@ class FixedBoxes:
                 f"the fixed boxes name cameras {sorted(self.boxes)}, none of the session's "
                 f"{list(cameras)}"
             )
+
+
+# Grey-level standard deviation below which an image counts as blank (black, one colour):
+# sensor noise alone gives more than this on a lit scene.
+BLANK_STD = 2.0
+
+
+def is_blank(image: np.ndarray, min_std: float = BLANK_STD) -> bool:
+    """Whether ``image`` shows nothing: its grey levels vary by less than ``min_std``.
+
+    Args:
+        image: (H, W) or (H, W, 3) image.
+        min_std: the standard deviation (grey levels) an image with content exceeds.
+
+    Returns:
+        True for a black or one-coloured image.
+    """
+    img = np.asarray(image)
+    sub = img[::4, ::4].astype(np.float32)  # every 16th pixel: enough, and fast
+    grey = sub.mean(axis=-1) if sub.ndim == 3 else sub
+    return bool(grey.size == 0 or float(grey.std()) < min_std)
+
+
+class SkipBlank:
+    """A box source that proposes nothing on blank images, else what ``source`` proposes.
+
+    Args:
+        source: the box source (``propose(images, cameras)``).
+        min_std: see :func:`is_blank`.
+    """
+
+    def __init__(self, source: Any, min_std: float = BLANK_STD):
+        self.source = source
+        self.min_std = min_std
+
+    def propose(self, images: Sequence[np.ndarray], cameras: Sequence[str]) -> list[Candidates]:
+        """The wrapped source's candidates, none for a blank image."""
+        out = self.source.propose(images, cameras)
+        return [
+            Candidates.empty() if is_blank(img, self.min_std) else c
+            for c, img in zip(out, images, strict=True)
+        ]

@@ -148,3 +148,43 @@ def test_labels_of_two_animals_per_frame_give_no_fixed_boxes():
     with pytest.raises(FallbackBoxesError, match="2 animals in one frame"):
         label_boxes(labels, rig)
     assert label_boxes(labels.select([0]), rig).instants == 1
+
+
+def _black_session(tmp_path, rig):
+    sess = tmp_path / "black"
+    for cam in rig:
+        with VideoWriter(sess / f"{cam.name}.mkv", 25, (120, 90)) as w:
+            for _ in range(N):
+                w.write(np.zeros((90, 120, 3), np.uint8))
+    return sess
+
+
+def test_black_videos_get_no_boxes_and_a_warning(tmp_path, caplog):
+    rig, _, labels, _ = _scene(tmp_path, moving=False)
+    srcs = _sources(rig, _black_session(tmp_path, rig))
+    with caplog.at_level(logging.WARNING, logger="freipose.detect.auto"):
+        got = choose_box_source(rig, srcs, range(N), labels=labels, probe=10, bg_samples=15)
+        none = choose_box_source(rig, srcs, range(N), labels=None, probe=10, bg_samples=15)
+    assert "blank in every camera" in caplog.text
+    black = [[np.zeros((90, 120, 3), np.uint8)] * 3]
+    for choice in (got, none):  # the animal is not found: no centre, nothing to crop
+        det = detect_multiview_batch(black, rig, choice.source, ConsistencyConfig())[0]
+        assert det.n_agree == 0 and not np.isfinite(det.center).any()
+    # on frames with content the fixed boxes are still proposed
+    lit = [[np.asarray(s.read(0)) for s in _sources(rig, _scene(tmp_path, False)[1]).values()]]
+    assert detect_multiview_batch(lit, rig, got.source, ConsistencyConfig())[0].n_agree == 3
+
+
+def test_blank_images_and_the_wrapper():
+    from freipose.detect.fallback import SkipBlank, is_blank
+
+    rng = np.random.default_rng(0)
+    assert is_blank(np.zeros((90, 120, 3), np.uint8))
+    assert is_blank(np.full((90, 120), 200, np.uint8))
+    assert not is_blank(np.clip(rng.normal(90, 6, (90, 120, 3)), 0, 255).astype(np.uint8))
+    fixed = FixedBoxes({"a": [10, 10, 50, 50]})
+    wrapped = SkipBlank(fixed)
+    blank, lit = np.zeros((90, 120, 3), np.uint8), rng.integers(0, 255, (90, 120, 3), np.uint8)
+    got = wrapped.propose([blank, lit], ["a", "a"])
+    assert len(got[0].boxes) == 0 and len(got[1].boxes) == 1
+    assert len(fixed.propose([blank], ["a"])[0].boxes) == 1  # without skip_blank: as given
