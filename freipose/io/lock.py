@@ -114,8 +114,12 @@ def _create(lock: Path, owner: LockOwner) -> bool:
         fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
     except FileExistsError:
         return False
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(owner.to_json())
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(owner.to_json())
+    except OSError as exc:  # e.g. a full disk: an empty lock would block the next run
+        lock.unlink(missing_ok=True)
+        raise OSError(exc.errno, exc.strerror, str(lock)) from exc
     return True
 
 

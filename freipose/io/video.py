@@ -9,8 +9,10 @@ through the ffmpeg binary of ``imageio-ffmpeg``, the other codecs through OpenCV
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
+import shutil
 import subprocess
 import tempfile
 from collections import OrderedDict
@@ -21,7 +23,8 @@ from types import TracebackType
 import cv2
 import numpy as np
 
-from freipose.errors import FreiPoseError
+from freipose.errors import FreiPoseError, OutputWriteError, filesystem_message
+from freipose.io.atomic import output_errors
 from freipose.io.natsort import natural_key
 
 log = logging.getLogger(__name__)
@@ -30,6 +33,8 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".mpg", ".mpeg", ".wmv
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 # FourCC per suffix for writing; .mkv is lossless (FFV1).
 FOURCC = {".mp4": "mp4v", ".avi": "MJPG", ".mkv": "FFV1"}
+#: free bytes below which a video that cannot be read back was cut short by a full disk
+_FULL_BYTES = 1_000_000
 
 
 class MediaError(FreiPoseError):
@@ -302,15 +307,42 @@ class VideoWriter:
         self.frames += 1
 
     def close(self) -> None:
-        """Finish the video and move it to its name."""
+        """Finish the video and move it to its name.
+
+        Raises:
+            OutputWriteError: the disk filled up (the video is not complete; nothing
+                appears under its name).
+            MediaError: the encoder failed, or the written video cannot be read back.
+        """
         if self._w is not None:
             w, self._w = self._w, None
             try:
                 w.release()
-            except MediaError:
+                if not isinstance(w, _FFmpegH264):  # OpenCV says nothing when a write fails
+                    self._check_written()
+            except MediaError as exc:
                 self._tmp.unlink(missing_ok=True)
+                if shutil.disk_usage(self.path.parent).free < _FULL_BYTES:
+                    err = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self.path))
+                    raise OutputWriteError(
+                        filesystem_message(err) or str(exc), errno.ENOSPC, self.path
+                    ) from exc
                 raise
-            os.replace(self._tmp, self.path)
+            with output_errors(self.path, self._tmp):
+                os.replace(self._tmp, self.path)
+
+    def _check_written(self) -> None:
+        """Raise unless the temporary file opens and its last frame decodes."""
+        cap = cv2.VideoCapture(str(self._tmp))
+        try:
+            ok = cap.isOpened()
+            if ok and self.frames:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, self.frames - 1)
+                ok = cap.read()[0]
+        finally:
+            cap.release()
+        if not ok:
+            raise MediaError(f"{self.path}: the written video cannot be read back")
 
     def abort(self) -> None:
         """Stop writing and remove the partial file (nothing appears under the name)."""
