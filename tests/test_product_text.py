@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 
 #: "session 12", "sessions 14 and 16-19", "session-20": a numbered work session
-HISTORY = re.compile(r"\bsessions?[ -]\d+", re.I)
+HISTORY = re.compile(r"(?<!--)\bsessions?[ -]\d+", re.I)  # not the option --sessions N
 
 
 def _history(text: str) -> list[str]:
@@ -51,6 +51,7 @@ def test_history_detector_finds_what_it_should() -> None:
     assert _history("measured in session 12 on AVX2")
     assert _history("sessions 14 and 16-19")
     assert not _history("one folder per session\nsession/cam0.mp4\nsessions of 30 s")
+    assert not _history("python benchmarks/train_base.py --sessions 96")
 
 
 def test_readme_is_a_short_product_page() -> None:
