@@ -23,6 +23,7 @@ COMMANDS = {
     "eval": "freipose.cli.evaluate:evaluate",
     "predict": "freipose.cli.predict:predict",
     "merge": "freipose.cli.merge:merge",
+    "jobs": "freipose.cli.jobs:jobs",
     "export": "freipose.cli.export:export",
     "smooth": "freipose.cli.smooth:smooth",
     "render": "freipose.cli.render:render",

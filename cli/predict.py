@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import click
 
+from freipose.cli._cluster import cluster_config, cluster_options
 from freipose.cli._common import (
     calibration_option,
     camera_map_from,
@@ -67,6 +70,7 @@ from freipose.errors import FreiPoseError
     "OUTDIR/smoothed/<session>.poses.h5.",
 )
 @click.option("--overwrite", is_flag=True, help="Redo outputs that exist and are complete.")
+@cluster_options
 @threads_option()
 @click.pass_context
 def predict(
@@ -91,6 +95,11 @@ def predict(
     skeleton: str | None,
     smooth: bool,
     overwrite: bool,
+    executor: str | None,
+    cluster_file: Path | None,
+    chunk_frames: int | None,
+    parallel: int | None,
+    max_retries: int | None,
     threads: int | None,
 ) -> None:
     """Predict 3D poses from synchronized videos of one or more sessions.
@@ -101,15 +110,21 @@ def predict(
     command continues where it stopped, and finished outputs are skipped (--overwrite
     redoes them). Frames where the animal is not found hold NaN with confidence 0.
 
+    With --executor (or --cluster FILE) every session is cut into units of --chunk-frames
+    frames that run in worker processes (local) or as a SLURM job array (slurm); a unit
+    that fails is submitted again (--max-retries), and each session's units are joined
+    into OUTDIR/<session>.poses.h5 as soon as all are complete. `freipose jobs OUTDIR`
+    shows the units; running the same command again submits only what is missing.
+
     \b
     Examples:
       freipose predict rec1/ rec2/ --model runs/small/model.pt \\
           --detector runs/det/detector.pt -o poses/
       freipose predict rec1/ --model model.pt --method bgsub --frames 0:3000 -o poses/
-      # SLURM array of 8: each task one part, then join them
-      freipose predict rec1/ --model model.pt --detector det.pt -o poses/ \\
-          --shard $SLURM_ARRAY_TASK_ID/8
-      freipose merge poses/
+      # a study on a SLURM cluster: settings in cluster.toml ([cluster] table)
+      freipose predict study/*/ --model model.pt --detector det.pt -o poses/ \\
+          --cluster cluster.toml
+      freipose jobs poses/
       freipose predict rec1/ --model model.pt --detector det.pt -o poses/ --smooth
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
@@ -129,12 +144,26 @@ def predict(
                 "and then `freipose smooth OUTDIR/<session>.poses.h5 -o OUTDIR/smoothed`"
             )
         spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
+        config = cluster_config(executor, cluster_file, chunk_frames, parallel, max_retries,
+                                cpus=threads)  # fmt: skip
+        if config is not None and shard_t is not None:
+            raise FreiPoseError(
+                "--shard is what --executor does for you (one unit per chunk of frames): "
+                "give one or the other"
+            )
         use_threads(threads)
         check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
         found = discover_sessions(sessions, calibration, camera_map=camera_map_from(camera_map))
         _say_calibrations(found, calibration is not None, quiet)
         if smooth:
             _refuse_stale_smoothed(outdir, [s.name for s in found], overwrite)
+        if config is not None:
+            paths = _predict_units(found, model, spec, outdir, frames, batch, device, refine,
+                                   inference_overrides(fusion_reject, map_window), config,
+                                   overwrite, quiet)  # fmt: skip
+            if smooth:
+                _smooth_results([_Done(p) for p in paths], outdir, overwrite)
+            return
         results = predict_sessions(
             found,
             model,
@@ -153,6 +182,35 @@ def predict(
         )
         if smooth:
             _smooth_results(results, outdir, overwrite)
+
+
+@dataclass(frozen=True)
+class _Done:
+    """A joined poses file, as ``_smooth_results`` takes it."""
+
+    path: Path
+    skipped: bool = False
+
+
+def _predict_units(
+    found: list, model: Path, spec: Any, outdir: Path, frames: str | None, batch: int,
+    device: str, refine: bool, overrides: Any, config: Any, overwrite: bool, quiet: bool,
+) -> tuple[Path, ...]:  # fmt: skip
+    """Predict through the executor ``config`` names; returns the joined poses files."""
+    from freipose.cluster.predict import PredictTask, run_predict
+
+    task = PredictTask(
+        tuple(found), model, spec, outdir, frames, batch, device, refine, overrides,
+        config.chunk_frames, config.cpus,
+    )  # fmt: skip
+    result = run_predict(task, config, progress=not quiet, overwrite=overwrite,
+                         say=(lambda m: None) if quiet else click.echo)  # fmt: skip
+    for p in result.joined:
+        click.echo(f"wrote {p}")
+    r = result.report
+    click.echo(f"{len(r.done)} units done ({r.submitted} jobs submitted in this run), "
+               f"{result.frames} frames, {r.seconds:.1f} s")  # fmt: skip
+    return result.joined
 
 
 def _say_calibrations(found: list, explicit: bool, quiet: bool) -> None:

@@ -35,6 +35,8 @@ ALLOWED = {
     "predict": {"geometry", "io", "skeleton", "workers", "nn", "detect"},
     "synth": {"geometry", "io", "skeleton", "workers", "calibration"},
     "labelui": {"geometry", "io", "skeleton", "labels"},
+    # cluster runs the work of predict (and train) as units on an executor
+    "cluster": {"geometry", "io", "skeleton", "workers", "nn", "detect", "predict"},
     "models": set(),
 }
 

@@ -24,7 +24,13 @@ from freipose.geometry.crops import cube_crop_boxes
 from freipose.io.session import Session
 from freipose.io.video import frame_range
 from freipose.predict.estimator import Estimate
-from freipose.predict.run import PredictError, PredictResult, output_path, predict_session
+from freipose.predict.run import (
+    CHUNK_FRAMES,
+    PredictError,
+    PredictResult,
+    output_path,
+    predict_session,
+)
 from freipose.predict.writer import is_complete
 from freipose.skeleton import Skeleton
 
@@ -312,6 +318,7 @@ def predict_sessions(
     refine: bool = True,
     overrides: InferenceOverrides | None = None,
     shard: tuple[int, int] | None = None,
+    chunk_frames: int = CHUNK_FRAMES,
     overwrite: bool = False,
     expected_skeleton: Skeleton | None = None,
     progress: bool = True,
@@ -335,6 +342,7 @@ def predict_sessions(
         overrides: inference-only ``[model]`` settings instead of the checkpoint's (None:
             its own); the values that shape the reported pose are in the provenance.
         shard: ``(i, n)``: predict shard i of n.
+        chunk_frames: rows per committed chunk; shard boundaries fall on whole chunks.
         overwrite: redo complete outputs.
         expected_skeleton: the keypoints the model must predict (None: any).
         progress: show progress bars.
@@ -376,7 +384,7 @@ def predict_sessions(
             est = NetworkEstimator(net, config, skel, source, refine, provenance, spec.min_views)
             res = predict_session(
                 s, est, outdir, frames=ranges[s.name], batch_size=batch_size, shard=shard,
-                overwrite=overwrite, skeleton=skel, progress=progress,
+                overwrite=overwrite, skeleton=skel, chunk_frames=chunk_frames, progress=progress,
             )  # fmt: skip
         if report is not None:
             report(res)
