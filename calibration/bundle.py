@@ -37,7 +37,12 @@ from freipose.calibration.params import (
     RVEC,
     TVEC,
 )
-from freipose.calibration.robust import irls_weights, noise_sigma, view_noise_scales
+from freipose.calibration.robust import (
+    camera_noise_sigmas,
+    irls_weights,
+    noise_sigma,
+    view_noise_scales,
+)
 from freipose.geometry.transforms import rodrigues
 
 logger = logging.getLogger(__name__)
@@ -144,12 +149,16 @@ def bundle_adjust(
             ``σ`` is the detection noise per axis estimated from the inliers' median error (for
             2D Gaussian noise the error norm's median is ``1.1774 σ``).
         max_rounds: solve / reject rounds.
-        outlier_px: see ``outlier_sigmas``.
+        outlier_px: the smallest outlier threshold (px), see ``outlier_sigmas``.
         max_iter: most solver iterations per round.
         method: ``"lm"`` (Levenberg-Marquardt with Schur complement, analytic Jacobian) or
             ``"scipy"`` (``least_squares`` with a sparse finite-difference Jacobian).
         outlier_sigmas: a detection is rejected when its error exceeds
-            ``max(outlier_px, outlier_sigmas * σ)`` after a round.
+            ``max(outlier_px, outlier_sigmas * σ_c)`` after a round, where ``σ_c`` is its
+            camera's own noise level (:func:`~freipose.calibration.robust.camera_noise_sigmas`:
+            from the camera's median error over its inliers), so that a camera whose corners
+            are honestly noisier keeps them while corners off by a marker or a square (wrong
+            ids, mirrored views) are still removed.
         start_f_scale: the loss scale (px) of the first round when ``f_scale`` is None.
         equal_focal: (C,) bool, cameras whose fy is tied to fx (square pixels; their
             ``free[:, 1]`` must be False); ``None`` = none.
@@ -278,7 +287,7 @@ class _Rejection:
     Attributes:
         err: (N,) error norms (px) of all detections.
         sigma: the inliers' per-axis noise σ (px).
-        thr: the outlier threshold (px).
+        thr: (C,) every camera's outlier threshold (px).
         keep: (N,) bool, the detections below ``thr``.
         scale: the next loss scale (px).
         vscale: (N,) the next residual scales, or None.
@@ -286,7 +295,7 @@ class _Rejection:
 
     err: np.ndarray
     sigma: float
-    thr: float
+    thr: np.ndarray
     keep: np.ndarray
     scale: float
     vscale: np.ndarray | None
@@ -309,9 +318,11 @@ def _reject(
     if opt.view_weighting and keep.any():
         # rejected detections get their view's scale too (they may come back)
         new_vscale = view_noise_scales(err, groups, sigma, use=keep)
-    thr = max(opt.outlier_px, opt.outlier_sigmas * sigma)
+    n_cams = int(sol.cam_params.shape[0])
+    sigmas = camera_noise_sigmas(err, obs.cam, n_cams, sigma, keep)
+    thr = np.maximum(opt.outlier_px, opt.outlier_sigmas * sigmas)
     new_scale = scale if opt.f_scale is not None else max(MIN_F_SCALE, 2.0 * sigma)
-    return _Rejection(err, sigma, thr, err < thr, new_scale, new_vscale)
+    return _Rejection(err, sigma, thr, err < thr[obs.cam], new_scale, new_vscale)
 
 
 def _settled(
@@ -364,14 +375,14 @@ def _bundle_adjust(
         nxt = _reject(sol, obs, keep, scale, vscale, groups, opt)
         logger.debug(
             "bundle round %d: RMS %.3f px over %d detections (noise σ %.3f px, loss scale "
-            "%.3f px), %d rejected (> %.2f px)",
+            "%.3f px), %d rejected (> %s px)",
             rounds,
             float(np.sqrt(np.mean(nxt.err[keep] ** 2))),
             int(keep.sum()),
             nxt.sigma,
             scale,
             int((~nxt.keep).sum()),
-            nxt.thr,
+            " / ".join(f"{t:.2f}" for t in nxt.thr),
         )
         if _settled(keep, scale, vscale, nxt, len(obs)):
             break  # the inliers and weights stay those the solution was fitted to

@@ -25,6 +25,7 @@ from freipose.calibration.detect import CameraDetections
 from freipose.calibration.detect_videos import detect_cameras
 from freipose.calibration.diagnose import diagnose_board
 from freipose.calibration.extrinsics import CameraGraph
+from freipose.calibration.given_intrinsics import given_intrinsics_errors
 from freipose.calibration.intrinsics import CalibrationError, IntrinsicsResult, dist_free_mask
 from freipose.calibration.model_selection import select_models
 from freipose.calibration.options import ASPECT_MODES, PRINCIPAL_POINT_MODES, CalibrationOptions
@@ -367,7 +368,7 @@ def _quality(
     dets: list[CameraDetections],
     board: Board,
     adj: Adjustment,
-    fixed: frozenset[str],
+    intr: InitialIntrinsics,
     opt: CalibrationOptions,
 ) -> _Quality:
     """Standard errors and plausibility of the final adjustment.
@@ -380,7 +381,9 @@ def _quality(
     se = intrinsic_standard_errors(cov, adj.free, adj.square, names)
     diag = float(np.hypot(*board.size_mm))
     sizes = [tuple(d.size) for d in dets]
-    findings = check_plausibility(names, sizes, adj.bundle, diag, se, fixed)
+    given = given_intrinsics_errors(names, adj.bundle, adj.free, adj.square, intr.fixed, opt)
+    own = {n: r.rms for n, r in intr.results.items()}
+    findings = check_plausibility(names, sizes, adj.bundle, diag, se, intr.fixed, given, own)
     if findings and not opt.accept_implausible:
         raise ImplausibleCalibrationError(findings)
     return _Quality(se, findings)
@@ -400,7 +403,7 @@ def _calibrate_detections(
     seen = board_observations(dets, obj, rig0.frames)
     start = initial_parameters(dets, intr, rig0, opt)
     adj = _adjust(start, seen, rig0.frames, dets, intr, obj, opt)
-    quality = _quality(dets, board, adj, intr.fixed, opt)
+    quality = _quality(dets, board, adj, intr, opt)
     names = [d.name for d in dets]
     warnings.extend(folding_warnings(names, [tuple(d.size) for d in dets], adj.bundle))
     world = world_frame(adj.bundle, dets[0].num_frames, names, opt.origin_frame, opt.up)

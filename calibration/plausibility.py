@@ -5,9 +5,18 @@ view lies outside :data:`FOV_RANGE_DEG`, its principal point lies more than
 :data:`PRINCIPAL_MARGIN` of the image size outside the image, its radial distortion folds
 where the board was (or anywhere in the image when the board reached its corners; a fold
 only beyond the board's reach is a warning, :func:`folding_warnings`), the board poses
-its own detections imply disagree with the rig's, the bundle adjustment rejected more
-than :data:`MAX_OUTLIER_SHARE` of its detections, or its focal length's standard error
-exceeds :data:`MAX_FOCAL_SE` of the focal length.
+its own detections imply disagree with the rig's, the rig explains its detections much worse
+than a calibration of the camera on its own (:data:`MAX_RIG_ERROR_RATIO`: its views do not
+belong with the other cameras', e.g. mirrored, out of sync or from another recording), its
+given intrinsics explain its
+detections much worse than intrinsics fitted to the recording
+(:mod:`freipose.calibration.given_intrinsics`), its focal length's standard error exceeds
+:data:`MAX_FOCAL_SE` of the focal length, or the bundle adjustment rejected more than
+:data:`MAX_OUTLIER_SHARE` of its detections. Its outlier threshold follows every camera's
+own noise level (:func:`~freipose.calibration.robust.camera_noise_sigmas`), so a camera
+whose corners are honestly noisier than the others' (strong distortion, blur, a board seen
+through its back) keeps them, and what it rejects are gross errors (wrong ids, mirrored or
+unsynchronized views).
 """
 
 from __future__ import annotations
@@ -32,6 +41,7 @@ __all__ = [
     "MAX_OUTLIER_SHARE",
     "MAX_POSE_ANGLE_DEG",
     "MAX_POSE_SHIFT",
+    "MAX_RIG_ERROR_RATIO",
     "PRINCIPAL_MARGIN",
     "Finding",
     "ImplausibleCalibrationError",
@@ -46,6 +56,10 @@ MAX_OUTLIER_SHARE = 0.30  # share of a camera's detections the bundle adjustment
 MAX_POSE_ANGLE_DEG = 5.0  # median board-pose rotation disagreement of a camera
 MAX_POSE_SHIFT = 0.10  # median board-centre disagreement, as a share of the board diagonal
 MAX_FOCAL_SE = 0.05  # standard error of fx as a share of fx
+# the rig's RMS error on a camera's kept detections may be this many times the RMS of the
+# camera's calibration on its own, plus RIG_ERROR_ALLOWANCE_PX
+MAX_RIG_ERROR_RATIO = 2.0
+RIG_ERROR_ALLOWANCE_PX = 0.25
 # a fold of the radial distortion is refused within this factor of the board's farthest
 # corner (normalized radius), and anywhere in the image when the board reached this share
 # of the image corner's radius; elsewhere it is a warning
@@ -73,7 +87,8 @@ class Finding:
     Attributes:
         camera: the camera's name.
         check: ``field_of_view``, ``principal_point``, ``folding_distortion``,
-            ``board_poses``, ``outliers`` or ``weak_intrinsics``.
+            ``board_poses``, ``outliers``, ``rig_misfit``, ``given_intrinsics`` or
+            ``weak_intrinsics``.
         message: the camera, the evidence (numbers) and the fix.
     """
 
@@ -368,7 +383,7 @@ def _pose_findings(
 
 
 def _outlier_findings(ba: BundleResult, camera: int, name: str, fix: str) -> list[Finding]:
-    """A finding when the bundle adjustment rejected a large share of a camera's detections."""
+    """A finding when most of a camera's detections lie far beyond its own noise level."""
     mine = ba.obs.cam == camera
     n = int(mine.sum())
     bad = int((mine & ~ba.inliers).sum())
@@ -379,9 +394,49 @@ def _outlier_findings(ba: BundleResult, camera: int, name: str, fix: str) -> lis
             name,
             "outliers",
             f"camera {name}: the bundle adjustment rejected {bad} of its {n} detections "
-            f"({100 * bad / n:.0f} %, plausible: at most {100 * MAX_OUTLIER_SHARE:.0f} %); its "
-            f"views do not fit one camera model (is its video mirrored, from another recording "
-            f"or out of sync?); {fix}",
+            f"({100 * bad / n:.0f} %, plausible: at most {100 * MAX_OUTLIER_SHARE:.0f} %) as "
+            f"further from their projection than the camera's own noise allows; its views do "
+            f"not fit one camera model (is its video mirrored, from another recording or out "
+            f"of sync?); {fix}",
+        )
+    ]
+
+
+def _misfit_findings(
+    ba: BundleResult, camera: int, name: str, own_rms: float | None, fix: str
+) -> list[Finding]:
+    """A finding when the rig explains a camera's detections much worse than it alone does."""
+    mine = ba.inliers & (ba.obs.cam == camera)
+    if own_rms is None or not np.isfinite(own_rms) or not mine.any():
+        return []
+    rig_rms = float(np.sqrt(np.mean(ba.errors[mine] ** 2)))
+    if rig_rms <= MAX_RIG_ERROR_RATIO * own_rms + RIG_ERROR_ALLOWANCE_PX:
+        return []
+    return [
+        Finding(
+            name,
+            "rig_misfit",
+            f"camera {name}: its detections fit a camera of their own at {own_rms:.2f} px RMS, "
+            f"but the rig (board poses shared with the other cameras) explains them only at "
+            f"{rig_rms:.2f} px (plausible: at most {MAX_RIG_ERROR_RATIO:.0f} times that plus "
+            f"{RIG_ERROR_ALLOWANCE_PX} px); its views do not fit the other cameras' (is its "
+            f"video mirrored, from another recording or out of sync?); {fix}",
+        )
+    ]
+
+
+def _given_findings(name: str, errors: tuple[float, float] | None) -> list[Finding]:
+    """A finding when the given intrinsics explain the camera's detections much worse."""
+    if errors is None:
+        return []
+    given, fitted = errors
+    return [
+        Finding(
+            name,
+            "given_intrinsics",
+            f"camera {name}: its given intrinsics explain its detections at a median error of "
+            f"{given:.2f} px, intrinsics fitted to this recording at {fitted:.2f} px; "
+            f"{_FIX_GIVEN}",
         )
     ]
 
@@ -409,6 +464,8 @@ def check_plausibility(
     board_diagonal: float,
     standard_errors: Mapping[str, Mapping[str, float]],
     fixed: frozenset[str] = frozenset(),
+    given_errors: Mapping[str, tuple[float, float]] | None = None,
+    own_rms: Mapping[str, float] | None = None,
 ) -> tuple[Finding, ...]:
     """Every reason the adjusted rig is not physically plausible (see the module docstring).
 
@@ -420,6 +477,11 @@ def check_plausibility(
         standard_errors: per camera, the standard errors of its free intrinsics
             (:func:`freipose.calibration.stats.intrinsic_standard_errors`).
         fixed: the cameras whose intrinsics were given (their findings point at the file).
+        given_errors: per given-intrinsics camera that a free fit explains much better, the
+            median errors (px) with the given and the fitted intrinsics
+            (:func:`~freipose.calibration.given_intrinsics.given_intrinsics_errors`).
+        own_rms: per camera, the RMS error (px) of its calibration on its own (cameras
+            without one are not compared with it).
 
     Returns:
         the findings, in camera order (empty: plausible).
@@ -431,6 +493,9 @@ def check_plausibility(
         out += _fov_findings(name, size, p, fix)
         out += _folding_findings(name, _fold(size, p, _covered_radius(ba, i)), fix)
         out += _outlier_findings(ba, i, name, fix)
+        out += _given_findings(name, (given_errors or {}).get(name))
+        if len(names) > 1:
+            out += _misfit_findings(ba, i, name, (own_rms or {}).get(name), fix)
         out += _weak_findings(name, p, standard_errors.get(name, {}), fix)
         if len(names) > 1:
             out += _pose_findings(ba, i, name, board_diagonal, fix)

@@ -16,6 +16,7 @@ __all__ = [
     "LOSSES",
     "MAX_VIEW_SCALE",
     "RAYLEIGH_MEDIAN",
+    "camera_noise_sigmas",
     "irls_weights",
     "noise_sigma",
     "robust_cost",
@@ -29,6 +30,8 @@ RAYLEIGH_MEDIAN = float(np.sqrt(2 * np.log(2)))
 # views are only down-weighted: up-weighting the quiet ones would shrink the covariance that
 # the model-selection tests use
 MAX_VIEW_SCALE = 1.0
+# a camera with fewer inlier detections than this takes the global noise level
+MIN_CAMERA_DETECTIONS = 30
 
 
 def noise_sigma(errors: np.ndarray) -> float:
@@ -48,6 +51,37 @@ def noise_sigma(errors: np.ndarray) -> float:
     if e.size == 0:
         return float("nan")
     return float(np.median(e) / RAYLEIGH_MEDIAN)
+
+
+def camera_noise_sigmas(
+    errors: np.ndarray, cameras: np.ndarray, n_cameras: int, sigma: float, use: np.ndarray
+) -> np.ndarray:
+    """Per-camera detection noise σ_c (px) from each camera's own error norms, robustly.
+
+    Cameras differ in how precisely their corners are found (lens, focus, motion blur, a
+    board seen through its back), so each camera's noise is estimated from its own median
+    error (:func:`noise_sigma`). A camera with fewer than :data:`MIN_CAMERA_DETECTIONS` used
+    detections takes the global ``sigma``.
+
+    Args:
+        errors: (N,) error norms (px).
+        cameras: (N,) camera index of each.
+        n_cameras: number of cameras C.
+        sigma: global per-axis noise σ (px), the fallback.
+        use: (N,) bool, the detections that estimate the noise (the inliers).
+
+    Returns:
+        (C,) σ per camera (px).
+    """
+    e = np.asarray(errors, np.float64)
+    cams = np.asarray(cameras)
+    use = np.asarray(use, bool)
+    out = np.full(n_cameras, float(sigma))
+    for c in range(n_cameras):
+        mine = use & (cams == c)
+        if np.count_nonzero(mine) >= MIN_CAMERA_DETECTIONS:
+            out[c] = noise_sigma(e[mine])
+    return out
 
 
 def view_noise_scales(

@@ -20,8 +20,9 @@ def calib() -> None:
     """Calibrate cameras from synchronized board videos, or convert/show calibration files.
 
     A calibration that is not physically plausible (a field of view, principal point or
-    distortion no lens has, a camera whose board poses disagree with the others', over 30 %
-    of a camera's detections rejected, a focal length the views do not pin down) is not
+    distortion no lens has, a camera whose board poses disagree with the others' or whose
+    detections the rig explains much worse than the camera alone, over 30 % of a camera's
+    detections beyond its own noise level, a focal length the views do not pin down) is not
     written: the message names the camera, the numbers and the fix; --force writes it marked
     as suspect (see freipose calib run --help). --intrinsics-from takes intrinsics from a
     separate recording.

@@ -476,8 +476,8 @@ def run(
     camera's field of view (5-170 degrees), principal point (at most 25 % of the image size
     outside it), distortion (must not fold the image where the board was, nor anywhere when
     the board reached the image corners; a fold only beyond the board's farthest corner is a
-    warning naming that radius), board poses (must agree with the other cameras'), rejected
-    detections (at most 30 %) and focal-length standard error (at most 5 %). A calibration
+    warning naming that radius), board poses and errors (as the other cameras'), detections
+    beyond 5 times the camera's own noise (at most 30 %) and focal-length SE (5 %). A calibration
     that fails is not written (nor its report): the message names the camera, the numbers and
     the fix (--fix-intrinsics or --intrinsics-from, leaving the camera out, more frames).
     --force writes it anyway, marked as suspect.
