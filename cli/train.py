@@ -71,6 +71,7 @@ def train(
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         # torchrun starts LOCAL_WORLD_SIZE processes on this machine, each with its threads
         use_threads(threads, workers=int(os.environ.get("LOCAL_WORLD_SIZE", "1") or 1))
+        init = _command_line_init(init)
         if stage == "detector":
             try:
                 from freipose.detect.train import train_detector
@@ -106,3 +107,26 @@ def train(
                 init=init,
             )
         click.echo(f"wrote {path}")
+
+
+def _command_line_init(init: str | None) -> str | None:
+    """``--init`` with a checkpoint path made absolute against the current folder.
+
+    A path inside the TOML is relative to the TOML's folder; one typed on the command line
+    is relative to where the command runs.
+
+    Raises:
+        InputFileError: the path names no file.
+    """
+    if init is None or init in ("base", "scratch"):
+        return init
+    from freipose.errors import InputFileError
+
+    path = Path(init).expanduser()
+    if not path.is_file():
+        raise InputFileError(
+            f"--init {init}: no such checkpoint file (a path on the command line is relative "
+            f"to the current folder, {Path.cwd()}); give base, scratch or the path of a "
+            "model.pt (or, with --stage detector, a detector.pt)"
+        )
+    return str(path.resolve())

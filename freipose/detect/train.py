@@ -76,11 +76,12 @@ from freipose.detect.init import initialize_detector
 from freipose.detect.loss import detection_loss
 from freipose.detect.model import DetectorConfig, DetectorNet, to_tensor
 from freipose.detect.multiview import ConsistencyConfig
+from freipose.detect.ranges import DETECTOR_RANGES
 from freipose.detect.train_log import LOG, log_row, read_log, write_log
 from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.checkpoints import DETECTOR_TRAINING_STATE
 from freipose.io.lock import output_lock
-from freipose.io.toml import did_you_mean
+from freipose.io.toml import check_numbers, did_you_mean
 from freipose.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -127,16 +128,11 @@ class DetectorTrainConfig:
     train_crop: int = 0
 
     def __post_init__(self) -> None:
+        check_numbers(self, "detector", DETECTOR_RANGES, DetectorTrainError)
         object.__setattr__(self, "scale", tuple(float(v) for v in self.scale))
         for name in ("steps", "batch_size", "max_images", "checkpoint_every", "log_every"):
             if (v := getattr(self, name)) < 1:
                 raise DetectorTrainError(f"[detector] {name} must be >= 1, got {v}")
-        if not 0 <= self.eval_fraction < 1:
-            raise DetectorTrainError(
-                f"[detector] eval_fraction must be in [0, 1), got {self.eval_fraction}"
-            )
-        if self.lr <= 0:
-            raise DetectorTrainError(f"[detector] lr must be positive, got {self.lr}")
         if self.train_crop and (
             self.train_crop % 32 or not 64 <= self.train_crop <= self.input_size
         ):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
@@ -19,6 +20,9 @@ from freipose._compat import tomllib
 from freipose.errors import FreiPoseError, InputFileError
 
 T = TypeVar("T")
+
+Bounds = tuple[float, float, str]
+"""An allowed closed range of a number and what the number measures (its unit)."""
 
 
 class TomlFileError(FreiPoseError):
@@ -125,3 +129,53 @@ def dataclass_from_table(
     names = [f.name for f in dataclasses.fields(cls) if f.init]  # type: ignore[arg-type]
     check_keys(table, [n for n in names if n not in fixed], where, error)
     return cls(**dict(table), **fixed)
+
+
+def check_number(
+    value: Any, key: str, bounds: Bounds, error: type[Exception] = TomlFileError
+) -> float:
+    """``value`` as a float when it is a finite number within ``bounds``; else raise ``error``.
+
+    Args:
+        value: the value read from a table.
+        key: its name in messages (``"schedule.lr"``).
+        bounds: ``(low, high, meaning)``: the allowed closed range and what the value
+            measures, for the message.
+        error: the exception class raised.
+
+    Returns:
+        The value as a float.
+
+    Raises:
+        error: not a number, NaN, infinite or outside the range; the message names the
+            key, the value and the allowed range.
+    """
+    low, high, meaning = bounds
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not number or not (math.isfinite(value) and low <= value <= high):
+        raise error(
+            f"{key} must be in [{low:g}, {high:g}] ({meaning}; a finite number), got {value!r}"
+        )
+    return float(value)
+
+
+def check_numbers(
+    obj: Any, table: str, ranges: Mapping[str, Bounds], error: type[Exception]
+) -> None:
+    """Check every field of the dataclass ``obj`` named in ``ranges`` with :func:`check_number`.
+
+    A field holding a tuple or a list has each of its values checked.
+
+    Args:
+        obj: a dataclass instance (a config table).
+        table: the table's name in messages (``"schedule"`` gives ``"schedule.lr"``).
+        ranges: the bounds of the fields.
+        error: the exception class raised.
+
+    Raises:
+        error: a value that is not a finite number within its field's bounds.
+    """
+    for name, bounds in ranges.items():
+        value = getattr(obj, name)
+        for v in value if isinstance(value, (tuple, list)) else (value,):
+            check_number(v, f"{table}.{name}" if table else name, bounds, error)

@@ -18,7 +18,8 @@ from types import MappingProxyType
 from typing import Any
 
 from freipose.errors import FreiPoseError
-from freipose.io.toml import did_you_mean, read_toml
+from freipose.io.toml import check_numbers, did_you_mean, read_toml
+from freipose.nn.config_ranges import AUGMENT_RANGES, MODEL_RANGES, SCHEDULE_RANGES
 
 
 class ConfigError(FreiPoseError):
@@ -109,6 +110,7 @@ class ModelConfig:
     init: str = "base"
 
     def __post_init__(self) -> None:
+        check_numbers(self, "model", MODEL_RANGES, ConfigError)
         if self.kind not in ("voxel", "baseline"):
             raise ConfigError(f"model.kind must be 'voxel' or 'baseline', got {self.kind!r}")
         if self.norm not in ("group", "batch", "none"):
@@ -138,11 +140,6 @@ class ModelConfig:
                 f"model.map_window must be >= 0 (map pixels; 0: the whole map), "
                 f"got {self.map_window}"
             )
-        if not self.fusion_reject >= 0:
-            raise ConfigError(
-                f"model.fusion_reject must be >= 0 (voxels; 0: fuse every view), "
-                f"got {self.fusion_reject}"
-            )
         if self.crop_size % self.stride:
             raise ConfigError(
                 f"model.crop_size ({self.crop_size}) must be a multiple of the feature stride "
@@ -153,18 +150,6 @@ class ModelConfig:
             raise ConfigError(
                 f"model.grid_size ({self.grid_size}) must be divisible by 2**len(unet_channels) "
                 f"= {2**levels}"
-            )
-        if self.cube_size <= 0:
-            raise ConfigError(f"model.cube_size must be positive (mm), got {self.cube_size}")
-        if not 0.1 <= self.crop_fraction <= 1.0:
-            raise ConfigError(
-                f"model.crop_fraction must be in [0.1, 1] (of the cube), got {self.crop_fraction}"
-            )
-        if self.map_sigma <= 0:
-            raise ConfigError(f"model.map_sigma must be positive (map px), got {self.map_sigma}")
-        if self.volume_sigma <= 0:
-            raise ConfigError(
-                f"model.volume_sigma must be positive (voxels), got {self.volume_sigma}"
             )
         if not self.init:
             raise ConfigError(
@@ -276,6 +261,7 @@ class ScheduleConfig:
     amp: bool = True
 
     def __post_init__(self) -> None:
+        check_numbers(self, "schedule", SCHEDULE_RANGES, ConfigError)
         for name in (
             "steps",
             "batch_size",
@@ -286,10 +272,6 @@ class ScheduleConfig:
         ):
             if getattr(self, name) < 1:
                 raise ConfigError(f"schedule.{name} must be >= 1, got {getattr(self, name)}")
-        if self.lr <= 0:
-            raise ConfigError(f"schedule.lr must be positive, got {self.lr}")
-        if not 0 <= self.refine_start <= 1:
-            raise ConfigError(f"schedule.refine_start must be in [0, 1], got {self.refine_start}")
 
     def lr_at(self, step: int) -> float:
         """Learning rate used for optimizer step ``step`` (0-based)."""
@@ -331,6 +313,11 @@ class AugmentConfig:
     max_views: int = 0
 
     def __post_init__(self) -> None:
+        check_numbers(self, "augment", AUGMENT_RANGES, ConfigError)
+        if len(self.zoom) != 2 or self.zoom[0] > self.zoom[1]:
+            raise ConfigError(
+                f"augment.zoom must be [min, max] with min <= max, got {list(self.zoom)}"
+            )
         if self.max_views < 0 or self.max_views == 1:
             raise ConfigError(
                 f"augment.max_views must be 0 (every view) or at least 2, got {self.max_views}"

@@ -280,7 +280,7 @@ def test_train_and_eval_commands(tmp_path, monkeypatch):
     m0 = json.loads((tmp_path / "ev0" / "metrics.json").read_text())
     assert m0["voxel_P0"]["overall"] == m["voxel_P0"]["overall"]
     r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev1"), "--fusion-reject", "-1"])
-    assert r.exit_code != 0 and "fusion_reject must be >= 0" in r.output
+    assert r.exit_code != 0 and "fusion_reject must be in [0, 1000]" in r.output
     # --map-window 0 decodes the whole maps: the refinement's points (P1) change, P0 does not
     r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev2"), "--map-window", "0"])
     assert r.exit_code == 0, r.output
