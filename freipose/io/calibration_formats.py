@@ -42,6 +42,7 @@ from freipose.io.atomic import atomic_write_text
 from freipose.io.calibration_toml import (
     UNIT_SCALE_TO_MM,
     CalibrationFormatError,
+    as_rotation,
     read_calibration_toml,
     rig_to_toml_dict,
     toml_value,
@@ -63,29 +64,6 @@ _YAML_SUFFIXES = (".yaml", ".yml")
 
 
 # -- helpers ---------------------------------------------------------------------------
-def _as_rotation(R: Any, source: str, name: str) -> np.ndarray:
-    """A 3x3 rotation; tiny non-orthonormality (stored with few digits) is projected away."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.size != 9:
-        raise CalibrationFormatError(
-            f"{source}: camera {name!r}: rotation must be 3x3, got {R.shape}"
-        )
-    R = R.reshape(3, 3)
-    if not np.all(np.isfinite(R)):
-        raise CalibrationFormatError(f"{source}: camera {name!r}: rotation has NaN/inf values")
-    err = np.abs(R @ R.T - np.eye(3)).max()
-    if err > 1e-6 and err < 1e-3 and np.linalg.det(R) > 0:
-        u, _, vt = np.linalg.svd(R)
-        log.warning(
-            "%s: camera %r: rotation is orthonormal only to %.1e; using the nearest rotation",
-            source,
-            name,
-            err,
-        )
-        R = u @ vt
-    return R
-
-
 def _make_camera(source: str, name: str, **kw: Any) -> Camera:
     try:
         return Camera(name=name, **kw)
@@ -222,7 +200,7 @@ def read_mjson(path: str | Path) -> CameraRig:
                 f"{path}: M of {n!r} must be a rigid 4x4 transform with last row [0, 0, 0, 1], "
                 f"got {M[3].tolist()}"
             )
-        R_cw = _as_rotation(M[:3, :3], str(path), n)
+        R_cw = as_rotation(M[:3, :3], str(path), n)
         center_mm = M[:3, 3] * 1000.0
         R = R_cw.T
         cams.append(
@@ -381,7 +359,7 @@ def read_jarvis_calibration(path: str | Path) -> CameraRig:
     sizes, estimated = _fill_sizes(path, names, Ks, stored)
     cams = []
     for (n, v), K, size in zip(entries, Ks, sizes):
-        R = _as_rotation(v["R"].reshape(3, 3).T, str(path), n)
+        R = as_rotation(v["R"].reshape(3, 3).T, str(path), n)
         cams.append(
             _make_camera(
                 str(path),
@@ -490,7 +468,7 @@ def dannce_camera_params(
     rd = np.pad(rd, (0, 3 - rd.size))
     td = np.pad(td, (0, 2 - td.size))
     dist = np.array([rd[0], rd[1], td[0], td[1], rd[2]])
-    R = _as_rotation(np.asarray(params["r"], dtype=np.float64).reshape(3, 3).T, source, name)
+    R = as_rotation(np.asarray(params["r"], dtype=np.float64).reshape(3, 3).T, source, name)
     t = np.asarray(params["t"], dtype=np.float64).ravel()
     return {"K": K, "dist": dist, "R": R, "t": t}
 

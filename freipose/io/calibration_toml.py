@@ -1,7 +1,8 @@
 """The native calibration file ``calibration.toml`` (a superset of Anipose's).
 
-One ``[cam_N]`` table per camera (name, size, matrix, distortions, Rodrigues rotation and
-translation, world -> camera) and a ``[metadata]`` table; lengths are stored in mm.
+One ``[cam_N]`` table per camera (name, size, matrix, distortions, rotation (a Rodrigues
+vector, or a 3x3 matrix when read) and translation, world -> camera) and a ``[metadata]``
+table; lengths are stored in mm.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import tomli_w
 
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import Camera, CameraRig
+from freipose.geometry.transforms import rodrigues_to_matrix
 from freipose.io.atomic import atomic_write_text
 from freipose.io.toml import check_keys, did_you_mean, parse_toml, read_toml
 
@@ -97,6 +99,70 @@ def _check_camera_keys(tab: Any, key: str, source: str) -> None:
         )
 
 
+def as_rotation(R: Any, source: str, name: str) -> np.ndarray:
+    """A 3x3 rotation matrix, checked; tiny non-orthonormality (few stored digits) is removed.
+
+    Args:
+        R: the matrix (9 values).
+        source: the file, for messages.
+        name: the camera, for messages.
+
+    Returns:
+        The rotation (3, 3): ``R`` itself, or the nearest rotation when ``R R^T`` is within
+        1e-3 of the identity.
+
+    Raises:
+        CalibrationFormatError: not 9 finite values, or not a rotation (``R R^T`` further
+            from the identity, or a determinant that is not +1: a reflection).
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.size != 9:
+        raise CalibrationFormatError(
+            f"{source}: camera {name!r}: rotation must be 3x3, got {R.shape}"
+        )
+    R = R.reshape(3, 3)
+    if not np.all(np.isfinite(R)):
+        raise CalibrationFormatError(f"{source}: camera {name!r}: rotation has NaN/inf values")
+    err, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
+    if err >= 1e-3 or det <= 0:
+        raise CalibrationFormatError(
+            f"{source}: camera {name!r}: the 3x3 rotation is not a rotation matrix (R R^T "
+            f"differs from the identity by {err:.3g}, determinant {det:.3g}; a rotation has "
+            "orthonormal rows and determinant +1): check the file's rotation of this camera"
+        )
+    if err > 1e-6:
+        u, _, vt = np.linalg.svd(R)
+        log.warning(
+            "%s: camera %r: rotation is orthonormal only to %.1e; using the nearest rotation",
+            source,
+            name,
+            err,
+        )
+        R = u @ vt
+    return R
+
+
+def _rotation(value: Any, key: str, name: str, source: str) -> np.ndarray:
+    """The world->camera rotation of table ``key``: a Rodrigues vector or a 3x3 matrix.
+
+    Raises:
+        CalibrationFormatError: another shape, or a 3x3 matrix that is not a rotation.
+    """
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is not None and arr.shape in ((3,), (3, 1), (1, 3)):
+        return rodrigues_to_matrix(arr)
+    if arr is not None and arr.shape == (3, 3):
+        return as_rotation(arr, source, name)
+    raise CalibrationFormatError(
+        f"{source}: [{key}] (camera {name!r}): rotation must be a Rodrigues vector of 3 "
+        f"values or a 3x3 rotation matrix (world->camera), got "
+        + (f"shape {arr.shape}" if arr is not None else repr(value))
+    )
+
+
 def rig_from_toml_dict(
     data: dict[str, Any], source: str = "<toml>", units: str | None = None
 ) -> CameraRig:
@@ -130,16 +196,18 @@ def rig_from_toml_dict(
         if missing:
             raise CalibrationFormatError(
                 f"{source}: [{k}] lacks {missing}; every camera needs size, matrix, "
-                f"distortions, rotation (Rodrigues, world->camera) and translation"
+                "distortions, rotation (world->camera: Rodrigues vector or 3x3 matrix) and "
+                "translation"
             )
         try:
+            name = str(tab.get("name", k))
             cams.append(
-                Camera.from_rvec(
-                    str(tab.get("name", k)),
+                Camera(
+                    name,
                     tuple(tab["size"]),
                     tab["matrix"],
                     tab.get("distortions", [0.0] * 5),
-                    tab["rotation"],
+                    _rotation(tab["rotation"], k, name, source),
                     np.asarray(tab["translation"], dtype=np.float64) * scale,
                 )
             )
