@@ -167,8 +167,7 @@ _PRESETS = {
         batch=8,
         detection="bgsub",
     ),
-    # The default: the real workflow, under 10 minutes on an idle 2-core CPU (7:04 with
-    # AVX2 only, session 20; the AVX-512 machines ran the 1000-step version in 8:18 to 10:07).
+    # The default: the real workflow, sized to run in under 10 minutes on an idle 2-core CPU.
     "small": DemoPreset(
         name="small",
         size=(320, 256),
@@ -218,7 +217,7 @@ _PRESETS = {
         ),  # fmt: skip
         analysis=dict(onset_delay_s=0.6, margin_s=0.5, pre_s=1.0, post_s=1.0, top=6),
         stft_window=32,
-        overlay_frames=50,
+        overlay_frames=200,  # 8 s: two stimulation windows and the pause between them
         batch=8,
     ),
 }

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from freipose import __version__
+from freipose.analysis.config import AttributionConfig
 from freipose.demo.context import DemoContext
 from freipose.demo.markers import STEPS, read_marker
 from freipose.demo.presets import SPLIT_ROLES, STIM_PART
@@ -409,6 +410,7 @@ def context(ctx: DemoContext) -> dict[str, Any]:
             if an.get(key) or (ctx.out / "analysis" / sub).is_dir()
         ],
         "stim_part": STIM_PART,
+        "alpha": num(AttributionConfig(**ctx.preset.analysis).alpha),
     }
 
 

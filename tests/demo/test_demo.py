@@ -130,6 +130,15 @@ def test_tiny_demo_outputs(tiny_demo):
     for ref in refs:
         assert (out / ref).is_file(), ref
     assert "Figure not written" not in html and "Video not written" not in html
+    # the raw vs smoothed figures the terminal prints are the report's table rows
+    text = re.sub(r"\s+", " ", re.sub(r"<[^>]+>", " ", html))
+    printed = output.split("raw vs smoothed:\n")[1].split("\n")[:4]
+    for line in printed:
+        name, values = line.strip().split(": ", 1)
+        raw, smoothed = values.split(" vs ")
+        assert f"{name} {raw} {smoothed}" in text, line
+    assert 'src="analysis/smoothed_vs_raw.png"' in html
+    assert "The clip runs from " in text
     for fig in ("comparison.png", "log.png", "jpe_boxplot.png", "attribution_", "classifier"):
         assert fig in html
 

@@ -81,7 +81,8 @@ def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
     (out / "overlay").mkdir()
     predicted: dict = {"overlay": {
         "clip": _clip(out / "overlay" / "rat1_day2.mp4"),
-        "frames": [_png(out / "overlay" / "rat1_day2_frame00020.png", "frame")]}}  # fmt: skip
+        "frames": [_png(out / "overlay" / "rat1_day2_frame00020.png", "frame")],
+        "start_s": 0.8, "end_s": 8.8, "stimulation_s": [[1.0, 3.0], [5.0, 7.0]]}}  # fmt: skip
     write_marker(out, p, "predict", predicted, 20.0)
     ev: dict = {
         "labels": {"voxel_P0": {"median": 21.22, "p30": 16.5, "p70": 28.7},
@@ -200,6 +201,7 @@ def test_report_names_the_significant_variables(tmp_path):
     predicted = text.split("On the predicted poses")[1].split("On the smoothed")[0]
     assert "0 significant after the adjustment)" in predicted
     assert "significant variable (rank" not in predicted
+    assert '"Significant": the adjusted p-value is below 0.001;' in predicted
 
 
 def test_report_says_when_the_predicted_lift_disagrees(tmp_path):
@@ -226,6 +228,13 @@ def test_lift_note_only_when_prediction_and_truth_disagree():
     assert note(None, 5.4) is None and lift_note("day", {}) is None
     assert "does not reproduce" in note(-1.6, 5.4) and "opposite" in note(3.0, -4.0)
     assert "only part" in note(2.0, 5.4) and "exaggerates" in note(9.0, 5.4)
+
+
+def test_report_says_which_stimulation_windows_the_clip_shows(tmp_path):
+    ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
+    text = _text(Path(report.run(ctx)["report"]).read_text())
+    assert ("The clip runs from 0.8 s to 8.8 s of the recording; the Paw Front Right is "
+            "stimulated from 1.0 to 3.0 s and from 5.0 to 7.0 s.") in text  # fmt: skip
 
 
 def test_report_without_optional_sections(tmp_path):

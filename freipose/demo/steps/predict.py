@@ -58,8 +58,23 @@ def _predict(ctx: DemoContext, trained: dict[str, Any]) -> dict[str, Any]:
     return poses
 
 
+def _stills(first: int, count: int, fps: float, windows: np.ndarray) -> list[int]:
+    """Three still frames of the clip ``first .. first + count - 1``.
+
+    The first frame (before the stimulation) and the middle of the stimulation windows the
+    clip shows in full, or, with fewer than two such windows, three evenly spread frames.
+    """
+    last = first + count - 1
+    mids = [int(round(0.5 * (a + b) * fps)) for a, b in windows
+            if first <= a * fps and b * fps <= last]  # fmt: skip
+    if len(mids) >= 2:
+        return [first, *mids[:2]]
+    return [first + int(i) for i in np.unique(np.linspace(0, count - 1, 3).round().astype(int))]
+
+
 def _overlay(ctx: DemoContext) -> dict[str, Any]:
     """The overlay clip of the held-out session (what ``freipose render`` writes), 3 stills."""
+    from freipose.analysis.study import read_events
     from freipose.io.poses import read_poses_h5
     from freipose.io.video import find_camera_videos
     from freipose.predict.render import render_overlay, render_stills
@@ -83,12 +98,17 @@ def _overlay(ctx: DemoContext) -> dict[str, Any]:
         progress=False,
     )
     count = min(first + p.overlay_frames, p.session_frames) - first
-    stills = [first + int(i) for i in np.unique(np.linspace(0, count - 1, 3).round().astype(int))]
+    windows = read_events(ctx.session_dir(test) / "events.csv")
+    stills = _stills(first, count, p.fps, windows)
     pngs = [str(f) for f in render_stills(
         [videos[n] for n in names], rig.subset(names), data, stills,
         [overlay / f"{test}_frame{f:05d}.png" for f in stills])]  # fmt: skip
-    ctx.say(f"  overlay clip {clip.relative_to(ctx.out)} and {len(pngs)} PNG frames")
-    return {"clip": str(clip), "frames": pngs}
+    start, end = first / p.fps, (first + count) / p.fps
+    shown = [[float(a), float(b)] for a, b in windows if a < end and b > start]
+    ctx.say(f"  overlay clip {clip.relative_to(ctx.out)} ({end - start:.1f} s, "
+            f"{len(shown)} stimulation windows) and {len(pngs)} PNG frames")  # fmt: skip
+    return {"clip": str(clip), "frames": pngs, "start_s": start, "end_s": end,
+            "stimulation_s": shown}  # fmt: skip
 
 
 def run(ctx: DemoContext) -> dict[str, Any]:
@@ -99,7 +119,8 @@ def run(ctx: DemoContext) -> dict[str, Any]:
 
     Returns:
         ``poses`` (per session: path and fraction of frames with a pose) and ``overlay``
-        (the clip and its PNG frames).
+        (the clip, its PNG frames, its start and end in the recording and the stimulation
+        windows it shows, in seconds).
     """
     trained = step_results(ctx.out, "train")
     return {"poses": _predict(ctx, trained), "overlay": _overlay(ctx)}
