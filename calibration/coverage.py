@@ -6,7 +6,7 @@ the board itself measures right. :func:`board_coverage` gives, per camera, the i
 with detected corners, the range of the board's distances from the camera and, when the
 floor is known (``--origin-frame``: the board on the floor), how many of the camera's board
 views came near the floor and how much of the floor's image region (the floor that two
-cameras see, within the rig's extent) holds detected corners;
+cameras see, under where the board went) holds detected corners;
 :func:`coverage_warnings` turns a floor that was not covered into a warning.
 """
 
@@ -141,8 +141,10 @@ def floor_grid(
 ) -> np.ndarray:
     """(M, 3) points of the floor that at least two cameras see: where an animal is measured.
 
-    The floor is sampled over the horizontal extent of the camera centres and the board's
-    points (a rig stands around or above its arena), and kept where two cameras see it.
+    The floor is sampled over the horizontal extent of the board's points (where the board
+    went: the arena, when it was waved all over it) and kept where two cameras see it. The
+    cameras' positions do not widen it: cameras standing around a small arena see floor
+    outside its walls, where neither the animal nor the board goes.
 
     Args:
         rig: the calibrated cameras.
@@ -152,8 +154,7 @@ def floor_grid(
         n: samples along each side.
     """
     e1, e2 = orthonormal_basis(up)
-    ref = np.vstack([rig.centers, board_points])
-    a, b = ref @ e1, ref @ e2
+    a, b = board_points @ e1, board_points @ e2
     s, t = np.meshgrid(np.linspace(a.min(), a.max(), n), np.linspace(b.min(), b.max(), n))
     X = s.reshape(-1, 1) * e1 + t.reshape(-1, 1) * e2 + floor * up
     views = sum(_in_view(cam, cam.size, X)[1].astype(int) for cam in rig)

@@ -85,6 +85,8 @@ def test_own_data_commands(tmp_path, monkeypatch):
             outputs[" ".join(args[:2])] = outputs.get(" ".join(args[:2]), "") + res.output
             ran += 1
     assert ran >= 14
+    calib = next(out for cmd, out in outputs.items() if cmd.startswith("calib rec/"))
+    assert "WARNING" not in calib, calib  # the documented recording covers the floor
     lab = read_labels_h5("labels/all.h5")
     info = lab.sessions["mouse1"]
     assert info.instances == "predicted" and info.fps == 30.0

@@ -72,6 +72,38 @@ def test_a_board_all_over_the_arena_covers_the_floor(scenario):
     assert all(c.floor_views >= 10 and c.floor_region > 0.5 for c in res.coverage)
 
 
+def _small_arena_poses(scenario, frames: int, reach: float, rng) -> np.ndarray:
+    """Frame 0 on the floor, then every other view low (20-80 mm), the centre within reach."""
+    board = scenario.BOARD
+    centroid = np.array([board.size_mm[0] / 2, board.size_mm[1] / 2, 0.0])
+    flat = np.diag([1.0, -1.0, -1.0])
+    poses = np.tile(np.eye(4), (frames, 1, 1))
+    for f in range(frames):
+        R = flat if f == 0 else scenario.rodrigues(rng.normal(0, 0.45, 3)) @ flat
+        lo, hi = (20.0, 80.0) if f % 2 else (150.0, 250.0)
+        c = (
+            np.zeros(3)
+            if f == 0
+            else np.array([*rng.uniform(-reach, reach, 2), rng.uniform(lo, hi)])
+        )
+        t = c - R @ centroid
+        t[2] += max(0.0, 2.0 - (board.object_points @ R.T + t)[:, 2].min())
+        poses[f, :3, :3], poses[f, :3, 3] = R, t
+    return poses
+
+
+def test_a_small_arena_covered_all_over_is_not_warned_about(scenario):
+    # cameras 380 mm out around an arena of +-110 mm: the floor outside it, which the
+    # cameras see but neither the board nor the animal reaches, is not asked for
+    rng = np.random.default_rng(4)
+    truth = scenario.fisheye_rig()
+    dets = scenario.detections(truth, _small_arena_poses(scenario, 60, 40.0, rng), rng)
+    opts = CalibrationOptions(origin_frame=0, jobs=1, progress=False)
+    res = calibrate_detections(dets, scenario.BOARD, opts)
+    assert not [w for w in res.warnings if "of the floor" in w], res.warnings
+    assert all(c.floor_views >= 10 and c.floor_region > 0.5 for c in res.coverage)
+
+
 def test_no_floor_no_floor_figures_and_the_region_share(scenario):
     res, _ = _calibrate(scenario, covered=True, origin=None)
     assert all(c.floor_views is None and c.floor_region is None for c in res.coverage)
