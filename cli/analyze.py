@@ -166,6 +166,12 @@ window_option = click.option(
     help="Parallel workers for the single-variable SVMs (-1 = all cores).",
 )
 @click.option("--no-figures", is_flag=True, help="Write the tables only.")
+@click.option(
+    "--overwrite",
+    is_flag=True,
+    help="Replace the analysis already in OUTDIR (its tables and figures are removed; its "
+    "cached variables are reused when still valid).",
+)
 @allow_incomplete_option()
 def run(
     study: Path,
@@ -186,6 +192,7 @@ def run(
     top: int,
     jobs: int,
     no_figures: bool,
+    overwrite: bool,
     allow_incomplete: bool,
 ) -> None:
     """Attribute a stimulation effect to body parts by classification (SVMs).
@@ -195,7 +202,8 @@ def run(
     the train recordings and scored on the test recordings of that animal and of the other
     animals; one SVM per variable gives its F-score and a Bonferroni-corrected chi-squared
     test. Writes classification.csv, attribution.csv, dynamics.csv, top_variables.csv and PNG
-    figures to OUTDIR; variables are cached in OUTDIR/variables/ (a rerun reuses them).
+    figures to OUTDIR; variables are cached in OUTDIR/variables/ (a rerun with --overwrite
+    reuses them). An OUTDIR that is not empty is refused without --overwrite.
 
     \b
     Example:
@@ -230,6 +238,7 @@ def run(
             make_figures=not no_figures,
             say=click.echo,
             allow_incomplete=allow_incomplete,
+            overwrite=overwrite,
         )
         cls = result.classification
         click.echo(

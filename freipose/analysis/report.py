@@ -3,7 +3,9 @@
 Outputs in OUTDIR: ``classification.csv``, ``attribution.csv``, ``dynamics.csv``,
 ``top_variables.csv``, ``settings.json``, the PNG figures of :mod:`freipose.analysis.figures`
 and ``variables/<recording>.vars.h5`` (reused when the poses file and the settings are
-unchanged, so an interrupted run resumes without recomputing the variables).
+unchanged, so an interrupted run resumes without recomputing the variables). A run holds
+the lock ``OUTDIR.lock`` and removes an earlier run's tables and figures before it writes
+its own, so that no figure of another analysis stays beside the new tables.
 """
 
 from __future__ import annotations
@@ -19,22 +21,66 @@ from freipose.analysis.config import AttributionConfig
 from freipose.analysis.io import cached_variables
 from freipose.analysis.study import Study, check_study_events, load_study
 from freipose.analysis.variables import VariableConfig
+from freipose.errors import FreiPoseError
 from freipose.io.atomic import atomic_path, atomic_write_text
+from freipose.io.lock import output_lock
 from freipose.io.poses import require_complete
 
 log = logging.getLogger(__name__)
+
+
+TABLES = ("classification.csv", "attribution.csv", "dynamics.csv", "top_variables.csv")
+# what a run writes into OUTDIR besides the cached variables (figures: the PNGs it names)
+_OUTPUT_PATTERNS = (
+    *TABLES,
+    "settings.json",
+    "attribution_*.png",
+    "top_variables_*.png",
+    "classifier_response.png",
+)
+
+
+class AnalysisOutputError(FreiPoseError):
+    """The output folder holds an earlier analysis (or other files) and may not be replaced."""
+
+
+def clear_outputs(outdir: Path, overwrite: bool) -> list[Path]:
+    """Make ``outdir`` ready for a new analysis: remove an earlier run's tables and figures.
+
+    Args:
+        outdir: the analysis folder.
+        overwrite: replace what an earlier analysis wrote there (else a non-empty folder is
+            refused). The cached variables are kept: they are reused only when their poses
+            file and settings are unchanged.
+
+    Returns:
+        The files removed.
+
+    Raises:
+        AnalysisOutputError: ``outdir`` is a file, or not empty and not ``overwrite``.
+    """
+    if outdir.exists() and not outdir.is_dir():
+        raise AnalysisOutputError(f"{outdir} exists and is not a folder; pass another -o")
+    if not outdir.is_dir() or not any(outdir.iterdir()):
+        return []
+    if not overwrite:
+        raise AnalysisOutputError(
+            f"the output folder {outdir} is not empty (an earlier analysis?); pass "
+            "--overwrite to replace its tables and figures (its cached variables are "
+            "reused), or choose another -o"
+        )
+    old = sorted({p for pat in _OUTPUT_PATTERNS for p in outdir.glob(pat) if p.is_file()})
+    for p in old:
+        p.unlink()
+    return old
 
 
 def write_tables(result: AttributionResult, outdir: Path) -> list[Path]:
     """Write the CSV tables and settings atomically; returns the paths."""
     outdir.mkdir(parents=True, exist_ok=True)
     paths = []
-    for name, df in (
-        ("classification.csv", result.classification),
-        ("attribution.csv", result.attribution),
-        ("dynamics.csv", result.dynamics),
-        ("top_variables.csv", result.timecourses),
-    ):
+    frames = (result.classification, result.attribution, result.dynamics, result.timecourses)
+    for name, df in zip(TABLES, frames, strict=True):
         p = outdir / name
         with atomic_path(p) as tmp:
             df.to_csv(tmp, index=False, float_format="%.6g")
@@ -109,6 +155,7 @@ def analyze_study(
     make_figures: bool = True,
     say: Callable[[str], None] | None = None,
     allow_incomplete: bool = False,
+    overwrite: bool = True,
 ) -> AttributionResult:
     """Run the whole attribution analysis of a study and write its outputs.
 
@@ -123,6 +170,8 @@ def analyze_study(
         say: progress messages (default: this module's logger).
         allow_incomplete: go on with poses files whose prediction run has not finished
             (with a warning naming the frames without a prediction).
+        overwrite: replace an earlier analysis in ``outdir`` (its tables and figures are
+            removed first); False: refuse a folder that is not empty.
 
     Returns:
         The result tables.
@@ -131,13 +180,34 @@ def analyze_study(
         IncompletePosesError: a poses file is incomplete and ``allow_incomplete`` is false.
         StudyError: an invalid study or events file (the poses and events files are checked
             before any variable is computed), or recordings without usable frames.
+        AnalysisOutputError: ``outdir`` is not empty and not ``overwrite``.
+        OutputLockedError: another analysis writes into ``outdir``.
     """
-    say = say or log.info
     study = load_study(study_path)
     check_complete_poses(study, allow_incomplete)
     check_study_events(study)
     outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
+    with output_lock(outdir, "analysis folder"):
+        clear_outputs(outdir, overwrite)
+        outdir.mkdir(parents=True, exist_ok=True)
+        return _analyze(
+            study, Path(study_path), outdir, skeleton, floor, variable_config, config,
+            make_figures, say or log.info,
+        )  # fmt: skip
+
+
+def _analyze(
+    study: Study,
+    study_path: Path,
+    outdir: Path,
+    skeleton: str | Path | None,
+    floor: str | Path,
+    variable_config: VariableConfig,
+    config: AttributionConfig,
+    make_figures: bool,
+    say: Callable[[str], None],
+) -> AttributionResult:
+    """The analysis of :func:`analyze_study` once the output folder is ready."""
     skel = skeleton if skeleton is not None else study.skeleton
     variables = {}
     for i, rec in enumerate(study.recordings, start=1):
