@@ -48,6 +48,7 @@ from freipose.analysis.config import AttributionConfig
 from freipose.analysis.dynamics import DYNAMICS_COLUMNS, TIMECOURSE_COLUMNS, timecourse_rows
 from freipose.analysis.labelled import (
     LabelledRecording,
+    check_test_classes,
     label_recordings,
     longest_window,
     stack_frames,
@@ -212,9 +213,12 @@ def run_attribution(
     Raises:
         NoUsableFramesError: a recording has no usable frame (see
             :func:`~freipose.analysis.usable.drop_undefined`).
+        StudyError: an animal's test recordings of a condition lack stimulated or
+            not-stimulated frames (see :func:`~freipose.analysis.labelled.check_test_classes`).
     """
     say = log_fn or log.info
     recs = drop_undefined(label_recordings(study, variables, config), study.path)
+    check_test_classes(recs)
     if config.standardize == "recording":
         recs = standardized(recs, config.constant_rtol)
     layout = next(iter(recs.values())).variables

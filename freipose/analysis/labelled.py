@@ -12,6 +12,8 @@ from freipose.analysis.config import AttributionConfig
 from freipose.analysis.stats import standardize_recording
 from freipose.analysis.study import (
     IGNORED,
+    NOT_STIMULATED,
+    STIMULATED,
     Recording,
     Study,
     StudyError,
@@ -89,6 +91,45 @@ def label_recordings(
         labels = label_frames(var.times, win, config.onset_delay_s, config.margin_s)
         out[rec.name] = LabelledRecording(rec, var, win, labels)
     return out
+
+
+def check_test_classes(recs: Mapping[str, LabelledRecording]) -> None:
+    """Check that every animal's test recordings of a condition hold frames of both classes.
+
+    A balanced accuracy (and the F1 of the stimulated class) is undefined on frames of one
+    class: test recordings whose events files hold no stimulation window that fits, or
+    whose windows leave no frame outside the margins, cannot be scored.
+
+    Args:
+        recs: recording name -> labelled recording.
+
+    Raises:
+        StudyError: the (animal, condition) pairs whose test frames lack a class, with their
+            recordings and counts.
+    """
+    groups: dict[tuple[str, str], list[LabelledRecording]] = {}
+    for r in recs.values():
+        if r.recording.split == "test":
+            groups.setdefault((r.recording.animal, r.recording.condition), []).append(r)
+    bad = []
+    for (animal, cond), rs in groups.items():
+        labels = np.concatenate([r.labels for r in rs])
+        n_stim, n_not = int((labels == STIMULATED).sum()), int((labels == NOT_STIMULATED).sum())
+        if n_stim == 0 or n_not == 0:
+            names = ", ".join(repr(r.recording.name) for r in rs)
+            events = ", ".join(str(r.recording.events) for r in rs)
+            bad.append(
+                f"animal {animal!r}, condition {cond!r}: the test recordings ({names}) have "
+                f"{n_stim} stimulated and {n_not} not-stimulated frames (events: {events})"
+            )
+    if bad:
+        raise StudyError(
+            "a balanced accuracy needs test frames of both classes, stimulated and not: "
+            + "; ".join(bad)
+            + "; give the test recordings events files with their stimulation windows "
+            "(and time without stimulation), check --onset-delay and --margin, or leave "
+            "those recordings out of the study"
+        )
 
 
 def standardized(

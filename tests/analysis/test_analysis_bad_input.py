@@ -206,3 +206,14 @@ def test_variables_and_floor_refuse_an_incomplete_poses_file_unless_allowed(tmp_
         res = CliRunner().invoke(cli, ["analyze", *cmd, "--allow-incomplete"])
         assert res.exit_code == 0, res.output
         assert "200 frames have no prediction" in res.output
+
+
+def test_test_recording_without_stimulation_gets_no_balanced_accuracy(tmp_path):
+    study = _study(tmp_path)
+    (tmp_path / "rat1_test_events.csv").write_text("start_s,end_s\n")  # no window
+    res = _analyze(study, tmp_path / "out")
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert "needs test frames of both classes" in res.output
+    assert "0 stimulated and" in res.output and "'rat1_test'" in res.output
+    assert "rat1_test_events.csv" in res.output
+    assert not (tmp_path / "out" / "classification.csv").exists()
