@@ -98,6 +98,12 @@ def spread(values: list[Any]) -> dict[str, Any]:
     return {"values": counts.most_common(), "n": sum(counts.values())}
 
 
+def span(lo: float, hi: float) -> str:
+    """``lo-hi``, or ``lo to hi`` where a minus sign would make the dash ambiguous."""
+    sep = " to " if lo < 0 or hi < 0 else "-"
+    return f"{fmt(lo)}{sep}{fmt(hi)}"
+
+
 def cell(s: dict[str, Any], unit: str = "") -> str:
     """A spread as table text: ``median (min-max)``, one value, or values with counts."""
     if s["n"] == 0:
@@ -107,7 +113,7 @@ def cell(s: dict[str, Any], unit: str = "") -> str:
         return ", ".join(v if c == 1 else f"{v} ({c}x)" for v, c in s["values"])
     if s["min"] == s["max"]:
         return fmt(s["median"]) + u
-    return f"{fmt(s['median'])} ({fmt(s['min'])}-{fmt(s['max'])}){u}"
+    return f"{fmt(s['median'])} ({span(s['min'], s['max'])}){u}"
 
 
 def value_range(s: dict[str, Any], unit: str = "") -> str:
@@ -117,7 +123,7 @@ def value_range(s: dict[str, Any], unit: str = "") -> str:
     u = f" {unit}" if unit else ""
     if s["min"] == s["max"]:
         return fmt(s["min"]) + u
-    return f"{fmt(s['min'])}-{fmt(s['max'])}{u}"
+    return f"{span(s['min'], s['max'])}{u}"
 
 
 def settings_key(rec: dict[str, Any]) -> str:
