@@ -204,6 +204,25 @@ def test_report_names_the_significant_variables(tmp_path):
     assert '"Significant": the adjusted p-value is below 0.001;' in predicted
 
 
+def test_report_names_significant_variables_of_an_older_marker_from_its_results(tmp_path):
+    ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
+    marker = tmp_path / "demo" / ".demo" / "analyze.done"
+    doc = json.loads(marker.read_text())
+    del doc["results"]["predicted"]["significant_variables"]  # written before the list
+    doc["results"]["predicted"]["significant"] = 1
+    marker.write_text(json.dumps(doc))
+    res = tmp_path / "demo" / "analysis" / "results"
+    res.mkdir(parents=True)
+    (res / "attribution.csv").write_text(
+        "variable,part,f1,p_value,p_adjusted,significant\n"
+        "local_z[Tail],Tail,0.61,1e-6,0.0005,True\n"
+        "local_x[Nose],Nose,0.70,0.01,1.0,False\n"
+        "local_y[Nose],Nose,0.65,0.02,1.0,False\n"
+    )
+    text = _text(Path(report.run(ctx)["report"]).read_text())
+    assert "p (Bonferroni-adjusted) local_z[Tail] 3 0.61 1e-06 0.0005" in text
+
+
 def test_report_says_when_the_predicted_lift_disagrees(tmp_path):
     ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
     page = Path(report.run(ctx)["report"]).read_text()
