@@ -105,6 +105,24 @@ def test_board_poses_disagree(result):
     assert "degrees" in found[0].message
 
 
+def test_rig_misfit(result):
+    """Detections the rig explains much worse than the camera alone: refused, not rejected."""
+    from freipose.calibration.bundle_problem import project_observations
+
+    ba = result.bundle
+    cam = ba.cam_params.copy()
+    cam[2, RVEC] += np.radians([0.0, 0.4, 0.0])  # cam2 turned by 0.4 degrees: a few px off
+    uv, _ = project_observations(cam, ba.frame_params, ba.obs)
+    off = dataclasses.replace(ba, cam_params=cam, errors=np.linalg.norm(uv - ba.obs.uv, axis=1))
+    names = [d.name for d in result.detections]
+    sizes = [d.size for d in result.detections]
+    own = {n: r.rms for n, r in result.intrinsics.items()}
+    found = check_plausibility(names, sizes, off, DIAG, result.standard_errors, own_rms=own)
+    assert [(f.camera, f.check) for f in found] == [("cam2", "rig_misfit")]
+    assert "a camera of their own at 0.2" in found[0].message
+    assert check_plausibility(names, sizes, ba, DIAG, result.standard_errors, own_rms=own) == ()
+
+
 def test_focal_principal_point_and_folding(result):
     cam = result.bundle.cam_params.copy()
     cam[0, :2] = 6.7  # the issue's focal length
