@@ -41,7 +41,8 @@ class CalibrationOptions:
         f_scale: scale (px) of the robust loss; ``None`` estimates it from the detection
             noise (see :func:`freipose.calibration.bundle.bundle_adjust`).
         outlier_px: minimum rejection threshold (px); detections further than
-            ``max(outlier_px, 5 σ)`` from their projection are rejected.
+            ``max(outlier_px, 5 σ_c)`` from their projection are rejected, ``σ_c`` being
+            their camera's own noise level.
         solver: ``lm`` (Schur-complement Levenberg-Marquardt) or ``scipy`` (least_squares).
         progress: show a progress bar while detecting.
         refine_board: after the bundle adjustment, correct every board point's position in
