@@ -117,7 +117,7 @@ def _markers(out: Path, failure_modes: bool, smooth: bool) -> DemoContext:
     analyzed: dict = {"predicted": analysis}
     if smooth:
         sig = {"variable": "floor_dist_stft_3.12Hz[Tail]", "rank": 85, "f1": 0.574,
-               "p_value": 2.1e-5, "p_adjusted": 0.011}  # fmt: skip
+               "p_value": 2.1e-7, "p_adjusted": 1.1e-4}  # fmt: skip
         analyzed["smoothed"] = {**analysis, "balanced_accuracy": 0.554, "significant": 1,
                                 "significant_variables": [sig], "stimulated_best_rank": 12,
                                 "stimulated_best_f1": 0.5449}  # fmt: skip
@@ -186,6 +186,8 @@ def test_report_shows_raw_vs_smoothed_as_the_terminal_does(tmp_path):
         raw, smoothed = values.split(" vs ")
         assert f"{name} {raw} {smoothed}" in text, (line, text)
     assert "balanced accuracy of the classifier on the test day 0.43 0.55" in text
+    sig = "significant single variables 0 1 (floor_dist_stft_3.12Hz[Tail], rank 85, F1 0.57)"
+    assert sig in text
     assert "local_z[Paw Front Right] (rank 4, F1 0.61) local_z[Paw Front Right] (rank 12" in text
     assert 'src="analysis/smoothed_vs_raw.png"' in page
 
@@ -195,7 +197,7 @@ def test_report_names_the_significant_variables(tmp_path):
     text = _text(Path(report.run(ctx)["report"]).read_text())
     smoothed = text.split("On the smoothed predicted poses")[1]
     assert "1 significant after the adjustment, listed below the table" in smoothed
-    row = "floor_dist_stft_3.12Hz[Tail] 85 0.574 2.1e-05 0.011"
+    row = "floor_dist_stft_3.12Hz[Tail] 85 0.574 2.1e-07 0.00011"
     assert "The 1 significant variable (rank: place by F1 among all 528): " in smoothed
     assert f"p (Bonferroni-adjusted) {row}" in smoothed
     predicted = text.split("On the predicted poses")[1].split("On the smoothed")[0]

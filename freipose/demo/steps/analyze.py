@@ -119,8 +119,8 @@ def analyze_poses(ctx: DemoContext, study: Path, text: str, results: Path) -> di
     ctx.say(
         f"    -> {int(round(share * 10))} of the 10 best single variables belong to the "
         f"stimulated {STIM_PART} (best: {top.iloc[0]['variable']}, F1 "
-        f"{top.iloc[0]['f1']:.2f}); {significant_text(res)} after the "
-        "autocorrelation-corrected, Bonferroni-adjusted test"
+        f"{top.iloc[0]['f1']:.2f}); significant after the autocorrelation-corrected, "
+        f"Bonferroni-adjusted test: {significant_text(res)}"
     )
     return res
 
@@ -152,12 +152,12 @@ def significant_text(res: dict[str, Any]) -> str:
         res: what :func:`analyze_poses` returned.
 
     Returns:
-        E.g. ``"1 significant (local_z[Tail], rank 85, F1 0.61)"`` or ``"0 significant"``.
+        E.g. ``"1 (local_z[Tail], rank 85, F1 0.61)"`` or ``"0"``.
     """
     named = [f"{v['variable']}, rank {v['rank']}, F1 {v['f1']:.2f}"
              for v in res.get("significant_variables", [])]  # fmt: skip
     listed = f" ({'; '.join(named)})" if named else ""
-    return f"{res['significant']} significant{listed}"
+    return f"{res['significant']}{listed}"
 
 
 def raw_vs_smoothed(raw: dict[str, Any], smoothed: dict[str, Any]) -> list[tuple[str, str, str]]:
@@ -188,7 +188,7 @@ def raw_vs_smoothed(raw: dict[str, Any], smoothed: dict[str, Any]) -> list[tuple
          f"{raw['balanced_accuracy']:.2f}", f"{smoothed['balanced_accuracy']:.2f}"),
         ("best single variable", best(raw), best(smoothed)),
         (f"best {STIM_PART} variable", stim(raw), stim(smoothed)),
-        ("significant single variables", str(raw["significant"]), str(smoothed["significant"])),
+        ("significant single variables", significant_text(raw), significant_text(smoothed)),
     ]  # fmt: skip
 
 
