@@ -227,6 +227,16 @@ def test_full_disk_then_freed(name, data, full_disk):
     _full_then_freed(name, data, full_disk)
 
 
+def test_label_command_refuses_a_read_only_or_full_folder(data, read_only, full_disk):
+    """``freipose label`` says so before it starts its server (a rerun then serves the page)."""
+    syn = data["labels"].parent
+    args = ["label", syn, "--calibration", syn / "true_calibration.toml", "--skeleton", "rat",
+            "--no-browser", "-o"]  # fmt: skip
+    _says(_freipose(*args, read_only / "labels.h5"), f"cannot write {read_only}", "read-only")
+    _says(_freipose(*args, full_disk.folder / "labels.h5"), "is full", "free space there")
+    assert full_disk.files() == []
+
+
 @pytest.mark.slow
 def test_train_full_disk_and_read_only(data, full_disk, read_only):
     res = _freipose(*_args("train", data, read_only))
