@@ -203,7 +203,7 @@ def test_report_names_the_significant_variables(tmp_path):
     predicted = text.split("On the predicted poses")[1].split("On the smoothed")[0]
     assert "0 significant after the adjustment)" in predicted
     assert "significant variable (rank" not in predicted
-    assert '"Significant": the adjusted p-value is below 0.001;' in predicted
+    assert '"Significant": the adjusted p-value is below 0.001 and the balanced accuracy above' in predicted
 
 
 def test_report_names_significant_variables_of_an_older_marker_from_its_results(tmp_path):
