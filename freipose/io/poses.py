@@ -97,14 +97,8 @@ class PoseData(PicklableFrozen):
                 f"skeleton {self.skeleton.name!r} keypoints {list(self.skeleton.keypoints)} do not "
                 f"match the poses' keypoints {list(kps)}"
             )
-        extra = {}
-        for name, arr in dict(self.extra).items():
-            a = np.asarray(arr)
-            if a.ndim == 0 or a.shape[0] != t:
-                raise PosesFormatError(
-                    f"extra dataset {name!r} must have T={t} rows, got {a.shape}"
-                )
-            extra[name] = a
+        cams = None if self.calibration is None else len(self.calibration)
+        extra = _checked_extra(self.extra, t, k, cams)
         object.__setattr__(self, "poses", poses)
         object.__setattr__(self, "confidence", conf)
         object.__setattr__(self, "keypoints", kps)
@@ -123,6 +117,57 @@ class PoseData(PicklableFrozen):
     def times(self) -> np.ndarray:
         """(T,) seconds from the first frame of the video (frame_index / fps)."""
         return self.frame_index / self.fps
+
+
+# The documented extra datasets: their shapes in T (frames), C (cameras) and K (keypoints).
+_EXTRA_SHAPES: Mapping[str, tuple[int | str, ...]] = MappingProxyType(
+    {
+        "points2d": ("T", "C", "K", 2),
+        "confidence2d": ("T", "C", "K"),
+        "boxes": ("T", "C", 4),
+        "center": ("T", 3),
+        "status": ("T",),
+        "frame_ok": ("T", "C"),
+        "smooth_std": ("T", "K", 3),
+        "filled": ("T", "K"),
+        "rejected": ("T", "K"),
+    }
+)
+
+
+def _checked_extra(
+    extra: Mapping[str, Any], t: int, k: int, cams: int | None
+) -> dict[str, np.ndarray]:
+    """The extra datasets as arrays, their shapes checked against T, K and the cameras C.
+
+    Every extra dataset has T rows; the documented ones (:data:`_EXTRA_SHAPES`) have their
+    full shape checked, with C the calibration's cameras, else the first dataset's.
+
+    Raises:
+        PosesFormatError: a dataset whose shape disagrees; the message names it, its
+            shape, the expected one and the array it disagrees with.
+    """
+    sizes: dict[str, int] = {"T": t, "K": k}
+    source = {"T": "the poses' frames", "K": "the poses' keypoints"}
+    if cams is not None:
+        sizes["C"], source["C"] = cams, "the calibration's cameras"
+    out = {}
+    for name, arr in dict(extra).items():
+        a = np.asarray(arr)
+        spec = _EXTRA_SHAPES.get(name, ("T",))
+        if "C" in spec and "C" not in sizes and a.ndim == len(spec):
+            sizes["C"], source["C"] = a.shape[spec.index("C")], f"extra dataset {name!r}"
+        expected = tuple(sizes.get(d, -1) if isinstance(d, str) else d for d in spec)
+        got = a.shape[: len(spec)] if name not in _EXTRA_SHAPES else a.shape
+        if got != expected:
+            dims = ", ".join(map(str, spec)) + (", ..." if name not in _EXTRA_SHAPES else "")
+            bad = [d for d, n, e in zip(spec, got, expected) if isinstance(d, str) and n != e]
+            why = f"; {bad[0]}={sizes[bad[0]]} from {source[bad[0]]}" if bad else ""
+            raise PosesFormatError(
+                f"extra dataset {name!r} has shape {a.shape}, expected ({dims}) = {expected}{why}"
+            )
+        out[name] = a
+    return out
 
 
 def write_poses_h5(data: PoseData, path: str | Path) -> None:
@@ -263,7 +308,7 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
                 extra=extra,
             )
         except ValueError as exc:
-            if isinstance(exc, PosesFormatError):
+            if isinstance(exc, PosesFormatError) and str(exc).startswith(str(path)):
                 raise
             raise PosesFormatError(f"{path}: {exc}") from exc
         except OSError as exc:  # a dataset whose data lies beyond a truncated end
