@@ -1,7 +1,8 @@
 """Recording sessions: discovery and validation before any work starts.
 
-A *session* is a folder with one video per camera (camera name = file stem, matching the
-calibration), or an explicit list of video files. Everything that can be checked cheaply is
+A *session* is a folder with one video per camera, ``<camera>.<ext>`` (camera name = file
+stem, matching the calibration) or ``<camera>/<any name>.<ext>`` (sleap-anipose's layout; see
+:func:`~freipose.io.video.find_camera_videos`), or an explicit list of video files. Everything that can be checked cheaply is
 checked here, so that a bad input fails in seconds rather than hours into a run: every
 video opens and decodes its first frame, the cameras are in the calibration, image sizes
 match the calibration, and (where asked) the frame rate is known. Videos of different

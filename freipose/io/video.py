@@ -440,16 +440,58 @@ class _FFmpegH264:
         self._err.close()
 
 
+def _is_camera_video(p: Path) -> bool:
+    """Whether ``p`` is a (not hidden) video file of a session."""
+    return p.suffix.lower() in VIDEO_SUFFIXES and not p.name.startswith(".") and p.is_file()
+
+
 def find_camera_videos(folder: str | Path) -> dict[str, Path]:
-    """Videos in a session folder, keyed by camera name (file stem), sorted by name."""
+    """Videos of a session folder, keyed by camera name, in the order of their names.
+
+    A camera's video is ``<camera>.<ext>`` in the folder (the camera is the file stem) or the
+    one video inside a folder named after the camera (``<camera>/<any name>.<ext>``,
+    sleap-anipose's layout, which keeps the camera's labels beside its video). Subfolders
+    without videos (labels, calibration) are not cameras.
+
+    Args:
+        folder: the session folder.
+
+    Returns:
+        Camera name -> video file.
+
+    Raises:
+        MediaError: not a folder, no video, a camera folder with several videos, or a
+            camera with both a video in the session folder and a camera folder.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise MediaError(f"{folder}: not a folder; a session is a folder with one video per camera")
-    vids = {
-        p.stem: p
-        for p in sorted(folder.iterdir())
-        if p.suffix.lower() in VIDEO_SUFFIXES and not p.name.startswith(".")
-    }
+    vids: dict[str, Path] = {}
+    for p in sorted(folder.iterdir()):
+        if p.is_dir() and not p.name.startswith("."):
+            inside = [q for q in sorted(p.iterdir()) if _is_camera_video(q)]
+            if len(inside) > 1:
+                raise MediaError(
+                    f"{p}: {len(inside)} videos ({', '.join(q.name for q in inside)}) in the "
+                    f"folder of camera {p.name!r}; a camera folder holds one video. Move the "
+                    f"others out, or put each camera's video in the session folder as "
+                    f"<camera>{inside[0].suffix}"
+                )
+            cam, video = p.name, inside[0] if inside else None
+        else:
+            cam, video = p.stem, p if _is_camera_video(p) else None
+        if video is None:
+            continue
+        if cam in vids:
+            raise MediaError(
+                f"{folder}: camera {cam!r} has two videos, {vids[cam]} and {video}; keep "
+                f"<camera>.<ext> in the session folder or <camera>/<video> in a camera folder, "
+                "not both"
+            )
+        vids[cam] = video
     if not vids:
-        raise MediaError(f"{folder}: no videos found ({', '.join(VIDEO_SUFFIXES)})")
+        raise MediaError(
+            f"{folder}: no videos found ({', '.join(VIDEO_SUFFIXES)}); a session holds one "
+            "video per camera, as <camera>.<ext> or <camera>/<video>.<ext>"
+        )
     return vids
