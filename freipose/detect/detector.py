@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -161,8 +162,10 @@ def save_checkpoint(
         "model": {k: v.detach().cpu() for k, v in net.state_dict().items()},
     }
     state.update(extra)
+    buf = io.BytesIO()  # torch.save to a path turns a full disk into a RuntimeError
+    torch.save(state, buf)
     with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+        tmp.write_bytes(buf.getvalue())
 
 
 def load_checkpoint(

@@ -35,7 +35,7 @@ from freipose import __version__
 from freipose._frozen import PicklableFrozen
 from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
-from freipose.io.atomic import atomic_path
+from freipose.io.atomic import atomic_h5
 from freipose.io.calibration_toml import rig_from_toml_text, rig_to_toml_text
 from freipose.io.hdf5 import decode_strings, open_h5, str_array
 from freipose.io.lock import OutputLockedError, lock_path, output_lock
@@ -215,7 +215,7 @@ def write_labels_h5(labels: LabelSet, path: str | Path, *, lock: bool = True) ->
         OutputLockedError: another run (a ``freipose label`` server) writes the file.
     """
     held = labels_file_lock(path) if lock else contextlib.nullcontext(Path(path).resolve())
-    with held as real, atomic_path(real) as tmp, h5py.File(tmp, "w") as f:
+    with held as real, atomic_h5(real) as f:
         fill_labels_h5(f, labels)
 
 
