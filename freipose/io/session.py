@@ -1,12 +1,13 @@
 """Recording sessions: discovery and validation before any work starts.
 
 A *session* is a folder with one video per camera, ``<camera>.<ext>`` (camera name = file
-stem, matching the calibration) or ``<camera>/<any name>.<ext>`` (sleap-anipose's layout; see
-:func:`~freipose.io.video.find_camera_videos`), or an explicit list of video files. Everything that can be checked cheaply is
-checked here, so that a bad input fails in seconds rather than hours into a run: every
-video opens and decodes its first frame, the cameras are in the calibration, image sizes
-match the calibration, and (where asked) the frame rate is known. Videos of different
-lengths are cut to the common length (with a warning).
+stem, matching the calibration) or ``<camera>/<any name>.<ext>`` (sleap-anipose's layout;
+see :func:`~freipose.io.video.find_camera_videos`), or an explicit list of video files.
+Everything that can be checked cheaply is checked here, so that a bad input fails in
+seconds rather than hours into a run: every video opens and decodes its first frame, the
+cameras are in the calibration, image sizes match the calibration, and (where asked) the
+frame rate is known. Videos of different lengths are cut to the common length (with a
+warning).
 
 Prediction (``freipose predict``) takes every video as a camera (``cameras="videos"``);
 detection (``freipose detect``) takes the calibrated cameras that have a video, in the
