@@ -135,22 +135,12 @@ def predict(
         from freipose.skeleton import load_skeleton
 
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-        if batch < 1:
-            raise FreiPoseError(f"--batch must be at least 1, got {batch}")
-        shard_t = parse_shard(shard)
-        if smooth and shard_t is not None:
-            raise FreiPoseError(
-                "--smooth needs the whole recording, not one shard: run `freipose merge` "
-                "and then `freipose smooth OUTDIR/<session>.poses.h5 -o OUTDIR/smoothed`"
-            )
-        spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
         config = cluster_config(executor, cluster_file, chunk_frames, parallel, max_retries,
                                 cpus=threads)  # fmt: skip
-        if config is not None and shard_t is not None:
-            raise FreiPoseError(
-                "--shard is what --executor does for you (one unit per chunk of frames): "
-                "give one or the other"
-            )
+        shard_t = _check_options(batch, parse_shard(shard), smooth, config is not None)
+        spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
+        overrides = inference_overrides(fusion_reject, map_window)
+        expected = load_skeleton(skeleton) if skeleton else None
         use_threads(threads)
         check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
         found = discover_sessions(sessions, calibration, camera_map=camera_map_from(camera_map))
@@ -159,8 +149,7 @@ def predict(
             _refuse_stale_smoothed(outdir, [s.name for s in found], overwrite)
         if config is not None:
             paths = _predict_units(found, model, spec, outdir, frames, batch, device, refine,
-                                   inference_overrides(fusion_reject, map_window), config,
-                                   overwrite, quiet)  # fmt: skip
+                                   overrides, expected, config, overwrite, quiet)  # fmt: skip
             if smooth:
                 _smooth_results([_Done(p) for p in paths], outdir, overwrite)
             return
@@ -173,15 +162,38 @@ def predict(
             batch_size=batch,
             device=device,
             refine=refine,
-            overrides=inference_overrides(fusion_reject, map_window),
+            overrides=overrides,
             shard=shard_t,
             overwrite=overwrite,
-            expected_skeleton=load_skeleton(skeleton) if skeleton else None,
+            expected_skeleton=expected,
             progress=not quiet,
             report=echo_result,
         )
         if smooth:
             _smooth_results(results, outdir, overwrite)
+
+
+def _check_options(
+    batch: int, shard: tuple[int, int] | None, smooth: bool, units: bool
+) -> tuple[int, int] | None:
+    """Refuse options that do not go together; returns the shard.
+
+    Raises:
+        FreiPoseError: a batch below 1, --smooth with --shard, --shard with --executor.
+    """
+    if batch < 1:
+        raise FreiPoseError(f"--batch must be at least 1, got {batch}")
+    if smooth and shard is not None:
+        raise FreiPoseError(
+            "--smooth needs the whole recording, not one shard: run `freipose merge` "
+            "and then `freipose smooth OUTDIR/<session>.poses.h5 -o OUTDIR/smoothed`"
+        )
+    if units and shard is not None:
+        raise FreiPoseError(
+            "--shard is what --executor does for you (one unit per chunk of frames): "
+            "give one or the other"
+        )
+    return shard
 
 
 @dataclass(frozen=True)
@@ -194,14 +206,15 @@ class _Done:
 
 def _predict_units(
     found: list, model: Path, spec: Any, outdir: Path, frames: str | None, batch: int,
-    device: str, refine: bool, overrides: Any, config: Any, overwrite: bool, quiet: bool,
+    device: str, refine: bool, overrides: Any, expected: Any, config: Any, overwrite: bool,
+    quiet: bool,
 ) -> tuple[Path, ...]:  # fmt: skip
     """Predict through the executor ``config`` names; returns the joined poses files."""
     from freipose.cluster.predict import PredictTask, run_predict
 
     task = PredictTask(
         tuple(found), model, spec, outdir, frames, batch, device, refine, overrides,
-        config.chunk_frames, config.cpus,
+        config.chunk_frames, config.cpus, expected,
     )  # fmt: skip
     result = run_predict(task, config, progress=not quiet, overwrite=overwrite,
                          say=(lambda m: None) if quiet else click.echo)  # fmt: skip

@@ -113,7 +113,7 @@ def read_cluster_config(path: str | Path | None, **overrides: Any) -> ClusterCon
         if "cluster" not in doc:
             raise ClusterConfigError(
                 f"{path}: no [cluster] table; write the executor's settings under [cluster] "
-                "(see `freipose predict --help`)"
+                "(see the documentation's page Run a study on a cluster)"
             )
         table = dict(doc["cluster"])
     config = dataclass_from_table(ClusterConfig, table, f"{path} [cluster]", ClusterConfigError)

@@ -61,6 +61,7 @@ class PredictTask:
         overrides: inference settings instead of the checkpoint's (None: its own).
         chunk_frames: frames per unit.
         threads: PyTorch and OpenCV threads of each unit.
+        skeleton: the keypoints the model must predict (None: any).
     """
 
     sessions: tuple[Session, ...]
@@ -74,6 +75,7 @@ class PredictTask:
     overrides: Any
     chunk_frames: int
     threads: int
+    skeleton: Any = None
 
     def session(self, name: str) -> Session:
         """The session called ``name``."""
@@ -159,7 +161,7 @@ def predict_unit(arg: UnitArg) -> int:
         [task.session(unit.session)], task.model, task.spec, task.outdir, frames=task.frames,
         batch_size=task.batch_size, device=task.device, refine=task.refine,
         overrides=task.overrides, shard=(unit.index, unit.count),
-        chunk_frames=task.chunk_frames, progress=False,
+        chunk_frames=task.chunk_frames, expected_skeleton=task.skeleton, progress=False,
     )  # fmt: skip
     seconds = time.perf_counter() - t0
     _unit_record(task, unit, state="done", finished=now_iso(), seconds=round(seconds, 3),
