@@ -42,7 +42,10 @@ class CalibrationOptions:
             noise (see :func:`freipose.calibration.bundle.bundle_adjust`).
         outlier_px: minimum rejection threshold (px); detections further than
             ``max(outlier_px, 5 σ_c)`` from their projection are rejected, ``σ_c`` being
-            their camera's own noise level.
+            their camera's own noise level. The default, 2 px, keeps the corners of blurred
+            views (motion blur in part of a camera's views) that a quiet camera's own noise
+            level would reject, while corners with a wrong id (a square or more off) are
+            still removed.
         solver: ``lm`` (Schur-complement Levenberg-Marquardt) or ``scipy`` (least_squares).
         progress: show a progress bar while detecting.
         refine_board: after the bundle adjustment, correct every board point's position in
@@ -71,7 +74,7 @@ class CalibrationOptions:
     max_views: int = 40
     loss: str = "huber"
     f_scale: float | None = None
-    outlier_px: float = 0.5
+    outlier_px: float = 2.0
     solver: str = "lm"
     progress: bool = True
     refine_board: bool = True
