@@ -476,10 +476,10 @@ def run(
     camera's field of view (5-170 degrees), principal point (at most 25 % of the image size
     outside it), distortion (must not fold the image where the board was, nor anywhere when
     the board reached the image corners; a fold only beyond the board's farthest corner is a
-    warning naming that radius), board poses and errors (as the other cameras'), detections
-    beyond 5 times the camera's own noise (at most 30 %) and focal-length SE (5 %). A calibration
-    that fails is not written (nor its report): the message names the camera, the numbers and
-    the fix (--fix-intrinsics or --intrinsics-from, leaving the camera out, more frames).
+    warning naming that radius), board poses (as the other cameras'), the rig's error (at most
+    twice the camera's own), detections beyond 5 times its own noise and 2 px (at most 30 %),
+    focal-length SE (5 %). A failed calibration is not written (nor its report): the message
+    names the camera, the numbers and the fix (--fix-intrinsics, --intrinsics-from, ...).
     --force writes it anyway, marked as suspect.
 
     Inverted boards need `inverted = true` in the board file; boards seen from behind are found
