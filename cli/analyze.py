@@ -353,3 +353,169 @@ def floor(
             f"wrote {output}: normal {np.round(plane.normal, 4).tolist()}, "
             f"offset {plane.offset:.2f} mm (tilt {tilt:.2f} deg from up)"
         )
+
+
+def _int_list(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, ...]:
+    try:
+        out = tuple(sorted({int(v) for v in value.split(",") if v.strip()}))
+    except ValueError:
+        raise click.BadParameter(
+            f"expected whole numbers separated by commas, got {value!r}"
+        ) from None
+    if not out or min(out) < 1:
+        raise click.BadParameter(f"expected numbers >= 1, got {value!r}")
+    return out
+
+
+@analyze.command("design")
+@click.argument("study", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--variable",
+    required=True,
+    help="The variable to detect (a name from "
+    "attribution.csv, e.g. 'floor_dist_stft[Paw Front Right]@5.0Hz').",
+)
+@click.option(
+    "-o",
+    "--output",
+    "outdir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder for design.csv and design.png (created; its variables/ cache is reused).",
+)
+@click.option(
+    "--effect",
+    type=float,
+    default=None,
+    help="Effect to detect in standard "
+    "deviations of the variable [default: the pilot's own mean effect].",
+)
+@click.option(
+    "--trials",
+    default="4,8,16,32,64",
+    show_default=True,
+    callback=_int_list,
+    help="Stimulation trials per animal to try (half train, half test).",
+)
+@click.option(
+    "--animals",
+    default="1,2,3",
+    show_default=True,
+    callback=_int_list,
+    help="Numbers of animals to try (the variable must be significant in each).",
+)
+@click.option(
+    "--power",
+    "target",
+    type=click.FloatRange(0, 1, min_open=True, max_open=True),
+    default=0.8,
+    show_default=True,
+    help="Power wanted.",
+)
+@click.option(
+    "--simulations",
+    type=click.IntRange(min=10),
+    default=200,
+    show_default=True,
+    help="Simulated studies per design.",
+)
+@click.option(
+    "--alpha",
+    type=click.FloatRange(0, 1, min_open=True, max_open=True),
+    default=0.001,
+    show_default=True,
+    help="Significance level of the analysis.",
+)
+@click.option(
+    "--onset-delay",
+    type=click.FloatRange(min=0),
+    default=0.4,
+    show_default=True,
+    help="As for 'freipose analyze'.",
+)
+@click.option(
+    "--margin",
+    type=click.FloatRange(min=0),
+    default=1.5,
+    show_default=True,
+    help="As for 'freipose analyze'.",
+)
+@skeleton_option
+@floor_option
+@gap_option
+@window_option
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+def design(
+    study: Path,
+    variable: str,
+    outdir: Path,
+    effect: float | None,
+    trials: tuple[int, ...],
+    animals: tuple[int, ...],
+    target: float,
+    simulations: int,
+    alpha: float,
+    onset_delay: float,
+    margin: float,
+    skeleton: str | None,
+    floor: str,
+    max_gap: float,
+    stft_window: int,
+    seed: int,
+) -> None:
+    """Estimate from pilot recordings how many trials and animals find an effect.
+
+    STUDY is a pilot study (the manifest of 'freipose analyze'). Every stimulation window
+    of its recordings, with the frames around it, is a trial of VARIABLE; simulated
+    studies resample these trials, add the effect to the stimulated frames and run the
+    analysis' single-variable test per animal (docs/explanation/statistics.md). Prints and
+    writes the power of every design (design.csv, design.png) and the fewest trials per
+    animal that reach --power.
+
+    \b
+    Example:
+      freipose analyze design pilot/study.toml -o design/ \\
+          --variable "floor_dist[Paw Front Right]" --effect 0.5
+    """  # noqa: D301 (click needs the \b escape)
+    with user_errors():
+        from freipose.analysis.config import AttributionConfig
+        from freipose.analysis.design import pilot_trials, power_table, recommended
+        from freipose.analysis.figures import power_curves, safe_name
+        from freipose.analysis.io import cached_variables
+        from freipose.analysis.study import check_study_events, load_study
+        from freipose.analysis.variables import VariableConfig
+        from freipose.io.atomic import atomic_path
+
+        if min(trials) < 2:
+            raise click.BadParameter("every animal needs at least 2 trials (train and test)",
+                                     param_hint="--trials")  # fmt: skip
+        pilot_study = load_study(study)
+        check_study_events(pilot_study)
+        vcfg = VariableConfig(max_gap_s=max_gap, stft_window=stft_window)
+        cfg = AttributionConfig(onset_delay_s=onset_delay, margin_s=margin, alpha=alpha)
+        skel = skeleton if skeleton is not None else pilot_study.skeleton
+        variables = {
+            r.name: cached_variables(r.poses, outdir / "variables" / f"{safe_name(r.name)}.vars.h5",
+                                     skel, r.floor if r.floor is not None else floor, vcfg)
+            for r in pilot_study.recordings
+        }  # fmt: skip
+        pilot = pilot_trials(pilot_study, variables, variable, cfg)
+        eff = pilot.mean_effect if effect is None else effect
+        click.echo(
+            f"pilot: {len(pilot.trials)} trials of {len(pilot.animals)} animal(s); mean effect "
+            f"on {variable}: {pilot.mean_effect:.2f} SD; simulating an effect of {eff:.2f} SD, "
+            f"Bonferroni over {pilot.n_tested} variables at alpha {alpha:g}"
+        )
+        table = power_table(pilot, trials, animals, effect, simulations, cfg, seed)
+        with atomic_path(outdir / "design.csv") as tmp:
+            table.to_csv(tmp, index=False, float_format="%.4g")
+        power_curves(table, target, outdir / "design.png", f"{variable}: effect {eff:.2f} SD")
+        for row in table.itertuples():
+            click.echo(f"  {row.trials:4d} trials x {row.animals} animal(s): power "
+                       f"{row.power:.2f} ({row.power_low:.2f}-{row.power_high:.2f}); "
+                       f"significant in {row.power_per_animal:.0%} of the animals")  # fmt: skip
+        for a, n in recommended(table, target).items():
+            click.echo(f"  {a} animal(s): " + (f"{n} trials per animal reach power {target:g}"
+                       if n else f"none of the tried trial numbers reaches power {target:g}; "
+                       "try more (--trials)"))  # fmt: skip
+        click.echo(f"wrote {outdir}/design.csv and design.png")

@@ -195,3 +195,30 @@ def top_variables(tc: pd.DataFrame, dyn: pd.DataFrame, path: str | Path, title: 
     ax.legend(fontsize=8.5, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     save_figure(fig, Path(path), dpi=110, bbox_inches="tight")
+
+
+def power_curves(table: pd.DataFrame, target: float, path: str | Path, title: str) -> None:
+    """Power against trials per animal, one line per number of animals (``design.csv``).
+
+    Args:
+        table: rows of :func:`freipose.analysis.design.power_table`.
+        target: the power wanted (a dashed line).
+        path: output PNG.
+        title: figure title.
+    """
+    fig = new_figure((5.6, 3.8))
+    ax = fig.subplots()
+    for animals, g in table.groupby("animals", sort=True):
+        line = ax.plot(g["trials"], g["power"], marker="o", lw=1.4,
+                       label=f"{animals} animal{'s' if animals != 1 else ''}")[0]  # fmt: skip
+        ax.fill_between(g["trials"], g["power_low"], g["power_high"], color=line.get_color(),
+                        alpha=0.2, lw=0)  # fmt: skip
+    ax.axhline(target, color="k", ls="--", lw=0.8, label=f"target {target:g}")
+    ax.set_xscale("log", base=2)
+    ax.set_xlabel("stimulation trials per animal (half train, half test)")
+    ax.set_ylabel("power: significant in every animal")
+    ax.set_ylim(-0.02, 1.02)
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, Path(path), dpi=110, bbox_inches="tight")
