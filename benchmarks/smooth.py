@@ -89,8 +89,8 @@ def _classes(keypoints: tuple[str, ...]) -> dict[str, list[int]]:
     return {c: i for c, i in rows.items() if i}
 
 
-def _coverage(keypoints, err, std, frames, title: str) -> None:
-    """Print the 1/2/3-sigma coverage per keypoint class over ``frames``."""
+def _coverage(keypoints, err, std, frames, title: str) -> float:
+    """Print the 1/2/3-sigma coverage per keypoint class over ``frames``; the 2-sigma of all."""
     print(title)
     print(f"  {'class':12s} {'n':>6s} {'1 sigma':>8s} {'2 sigma':>8s} {'3 sigma':>8s}  "
           "median std (mm)")  # fmt: skip
@@ -99,6 +99,7 @@ def _coverage(keypoints, err, std, frames, title: str) -> None:
         cov = [100 * float((e <= m * s).mean()) for m in (1, 2, 3)]
         print(f"  {name:12s} {e.size:6d} {cov[0]:7.1f}% {cov[1]:7.1f}% {cov[2]:7.1f}%  "
               f"{np.median(s):.2f}")  # fmt: skip
+    return 100 * float((err[frames] <= 2 * std[frames]).mean())
 
 
 def _amplitude(x: np.ndarray, fps: float, windows: np.ndarray) -> float:
@@ -117,20 +118,25 @@ def _errors(raw: PoseData, truth: np.ndarray, est: dict[str, np.ndarray]) -> dic
     """Print JPE, velocity error and lag of the raw and each smoothed estimate."""
     fps = raw.fps
     vt = np.diff(truth, axis=0) * fps
-    jr = float(np.nanmedian(np.linalg.norm(raw.poses - truth, axis=-1)))
+    er = np.linalg.norm(raw.poses - truth, axis=-1)
+    jr, mr = float(np.nanmedian(er)), float(np.nanmean(er))
     vr = float(np.nanmedian(np.linalg.norm(np.diff(raw.poses, axis=0) * fps - vt, axis=-1)))
-    print(f"{'':22s} {'median JPE':>11s} {'vel. error':>11s} {'vel/raw':>8s} {'lag':>4s}")
-    print(f"{'raw':22s} {jr:8.2f} mm {vr:6.1f} mm/s {1:8.2f} {_lag(truth, raw.poses)[0]:4d}")
-    out = {"raw": {"median_jpe_mm": jr, "velocity_error_mm_s": vr}}
+    print(f"{'':22s} {'median JPE':>11s} {'mean JPE':>9s} {'vel. error':>11s} {'vel/raw':>8s} "
+          f"{'lag':>4s}")  # fmt: skip
+    print(f"{'raw':22s} {jr:8.2f} mm {mr:6.2f} mm {vr:6.1f} mm/s {1:8.2f} "
+          f"{_lag(truth, raw.poses)[0]:4d}")  # fmt: skip
+    out = {"raw": {"median_jpe_mm": jr, "mean_jpe_mm": mr, "velocity_error_mm_s": vr}}
     for name, m in est.items():
-        j = float(np.median(np.linalg.norm(m - truth, axis=-1)))
+        e = np.linalg.norm(m - truth, axis=-1)
+        j, mj = float(np.median(e)), float(np.mean(e))
         v = float(np.median(np.linalg.norm(np.diff(m, axis=0) * fps - vt, axis=-1)))
         pooled, per = _lag(truth, m)
         vals, counts = np.unique(per, return_counts=True)
         spread = ", ".join(f"{a}: {b}" for a, b in zip(vals, counts, strict=True))
-        print(f"{name:22s} {j:8.2f} mm {v:6.1f} mm/s {v / vr:8.2f} {pooled:4d}   (per axis "
-              f"{spread})")  # fmt: skip
-        out[name] = {"median_jpe_mm": j, "velocity_error_mm_s": v, "lag_frames": pooled}
+        print(f"{name:22s} {j:8.2f} mm {mj:6.2f} mm {v:6.1f} mm/s {v / vr:8.2f} {pooled:4d}   "
+              f"(per axis {spread})")  # fmt: skip
+        out[name] = {"median_jpe_mm": j, "mean_jpe_mm": mj, "velocity_error_mm_s": v,
+                     "lag_frames": pooled}  # fmt: skip
     return out
 
 
@@ -164,6 +170,32 @@ def _analysis(demo: Path, held_out) -> dict[str, dict]:
               f"F1 {r['stimulated_best_f1']:.3f} ({r['stimulated_best_variable']})")  # fmt: skip
     keys = ("balanced_accuracy", "stimulated_best_rank", "stimulated_best_f1")
     return {label: {k: r[k] for k in keys} for label, r in [("raw", raw), *rows]}
+
+
+def _targets(figures: dict, cover: float) -> dict[str, bool]:
+    """Print and return the smoother's targets: met or not (issue figures, raw vs smoothed)."""
+    raw, sm = figures["errors"]["raw"], figures["errors"]["smoothed"]
+    amp = figures[f"paw front right {STIM_HZ:g} Hz amplitude mm"]
+    checks = {
+        "median JPE <= raw": sm["median_jpe_mm"] <= raw["median_jpe_mm"],
+        "mean JPE <= raw": sm["mean_jpe_mm"] <= raw["mean_jpe_mm"],
+        "velocity error <= 0.6 x raw": sm["velocity_error_mm_s"]
+        <= 0.6 * raw["velocity_error_mm_s"],
+        f"{STIM_HZ:g} Hz amplitude at least as close to the truth as raw": abs(
+            amp["smoothed"] - amp["truth"]
+        )
+        <= abs(amp["raw"] - amp["truth"]),
+        "2-sigma coverage with --validation in 90-98 %": 90.0 <= cover <= 98.0,
+    }
+    if "analysis" in figures:
+        a = figures["analysis"]
+        checks["balanced accuracy >= raw - 0.02"] = (
+            a["smoothed"]["balanced_accuracy"] >= a["raw"]["balanced_accuracy"] - 0.02
+        )
+    print("targets:")
+    for name, ok in checks.items():
+        print(f"  {'met ' if ok else 'MISSED'} {name}")
+    return checks
 
 
 def _smoothed(data: PoseData, adaptive: bool, held_out) -> PoseData:
@@ -207,9 +239,14 @@ def main() -> None:
     frames = np.array([int(f) not in lab_frames for f in raw.frame_index])
     _coverage(raw.keypoints, err, own.extra["smooth_std"].astype(np.float64), frames,
               "coverage of the smoother's own std (frame-to-frame noise only):")  # fmt: skip
-    _coverage(raw.keypoints, err, sm.extra["smooth_std"].astype(np.float64), frames,
-              f"coverage with the held-out error ({frames.sum()} frames not among the labeled "
-              "instants):")  # fmt: skip
+    cover = _coverage(raw.keypoints, err, sm.extra["smooth_std"].astype(np.float64), frames,
+                      f"coverage with the held-out error ({frames.sum()} frames not among the "
+                      "labeled instants):")  # fmt: skip
+    prov = sm.provenance["smoother"]
+    n_pred = int(np.isfinite(raw.poses[..., 0]).sum())
+    weight = float(sm.extra["smooth_weight"].mean())
+    print(f"left out as gross outliers: {prov['rejected']} of {n_pred} predictions; mean "
+          f"Student-t weight {weight:.2f}")  # fmt: skip
     if args.gap:
         gapped, gap = _with_gap(raw, args.gap)
         g = smooth_poses(gapped, error_floor=held_out)
@@ -234,6 +271,7 @@ def main() -> None:
     figures["bones"] = _bones_figures(raw, truth, sm)
     if args.analysis:
         figures["analysis"] = _analysis(demo, held_out)
+    figures["targets"] = _targets(figures, cover)
     extra = {"demo": str(demo), "session": args.session, "gap": args.gap}
     write_result("smooth", figures, extra=extra)
 

@@ -73,17 +73,20 @@ def smooth(
 ) -> None:
     """Smooth predicted poses over time, with a standard deviation for every point.
 
-    Each keypoint follows a constant-velocity Kalman smoother whose measurement noise
-    grows as the frame's confidence falls; its parameters are fitted on the recording,
-    and its process noise rises where the keypoint moves clearly faster than that over
-    several frames (a large fast oscillation is kept; a small one may be damped). Frames
-    without a prediction are filled (extra/filled), outliers rejected (extra/rejected; a
-    warning names the keypoints with more than 2 % of their predictions rejected: the
-    fitted model does not describe their motion, so compare the smoothed track with the
-    raw one), and extra/smooth_std holds the posterior standard deviation in mm per axis.
-    Without --validation it covers only the frame-to-frame noise; with --validation and
-    --model it also covers the network's persistent error, measured on held-out labels.
-    The output has the poses.h5 schema; analyze, export and render read it.
+    Each keypoint's true position follows a constant-velocity model; the network's
+    prediction is that position plus an error correlated over frames (an offset that
+    drifts with a correlation time of its own) plus a white error that grows as the
+    frame's confidence falls, with heavy (Student-t) tails: a prediction that deviates
+    counts less the more it deviates, and only gross outliers are left out
+    (extra/rejected; a warning names the keypoints with more than 2 % of their predictions
+    left out, far more than the model expects). The parameters are fitted per keypoint on
+    the recording, and the process noise rises where a keypoint moves clearly faster than
+    that over several frames, so fast movements are followed, not damped. Frames without
+    a prediction are filled (extra/filled); extra/smooth_std holds the posterior standard
+    deviation in mm per axis, which covers what the recording reveals of the network's
+    error; with --validation and --model it also covers the network's error measured on
+    held-out labels (an offset that persists over seconds, which one recording cannot
+    reveal). The output has the poses.h5 schema; analyze, export and render read it.
 
     \b
     Example:

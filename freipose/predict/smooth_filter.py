@@ -1,0 +1,283 @@
+"""The state-space model of :mod:`freipose.predict.smooth`: filter, smoother and fit.
+
+Every keypoint and world axis has the state ``(x, v, b)``: the true position ``x`` and
+velocity ``v`` follow a constant-velocity model (white-noise acceleration of spectral
+density ``q`` in mm^2/s^3), and ``b`` is the network's correlated error, an
+Ornstein-Uhlenbeck offset of standard deviation ``offset_sd`` (mm) and correlation time
+``offset_tau`` (s) (an AR(1) series with ``phi = exp(-dt / tau)`` from frame to frame). A
+frame's measurement is ``z = x + b + e`` with a white error ``e`` of variance
+``sigma0^2 * c^-beta`` (``c`` the frame's confidence) and Student-t tails of
+:data:`NU` degrees of freedom: a measurement whose standardised residual ``d2`` (summed
+over the three axes) is large counts with the weight ``(NU + 3) / (NU + d2)`` (its
+variance divided by it), so an improbable measurement pulls little without a hard
+threshold. Only a gross outlier (``d2`` above :data:`GROSS_D2`, about 0.1 % under the
+Student-t model) is left out.
+
+All series (keypoints x axes) and all parameter candidates of the fit run at once as
+arrays of 3 x 3 covariances; the loop runs over frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+NU = 5.0  # degrees of freedom of the Student-t measurement error
+GROSS_D2 = 100.0  # d2 of a gross outlier: P(d2 > 100) ~ 0.1 % for a 3-dim Student-t, NU=5
+MAX_REJECT_RUN = 3
+FIT_FRAMES = 4000
+MIN_CONFIDENCE = 0.02
+_P0 = 1e6  # prior variance of the first position (mm^2) and velocity ((mm/s)^2)
+_ROUNDS = 30
+MAX_TAU_S = 100.0  # longest correlation time searched (s)
+
+
+@dataclass(frozen=True)
+class SmootherParams:
+    """Fitted parameters of the smoother, one value per keypoint.
+
+    Attributes:
+        q: (K,) process noise, white-noise acceleration spectral density in mm^2/s^3.
+        sigma0: (K,) white measurement standard deviation in mm at confidence 1.
+        beta: (K,) exponent of the confidence: variance = sigma0^2 * c^-beta.
+        offset_sd: (K,) standard deviation of the correlated error in mm.
+        offset_tau: (K,) correlation time of the correlated error in s.
+    """
+
+    q: np.ndarray
+    sigma0: np.ndarray
+    beta: np.ndarray
+    offset_sd: np.ndarray
+    offset_tau: np.ndarray
+
+    def as_dict(self, keypoints: tuple[str, ...]) -> dict[str, Any]:
+        """The parameters per keypoint name, for provenance."""
+        rows = zip(keypoints, self.q, self.sigma0, self.beta, self.offset_sd, self.offset_tau,
+                   strict=True)  # fmt: skip
+        return {
+            name: {
+                "q_mm2_s3": float(q),
+                "sigma0_mm": float(s),
+                "beta": float(b),
+                "offset_sd_mm": float(o),
+                "offset_tau_s": float(tau),
+            }  # fmt: skip
+            for name, q, s, b, o, tau in rows
+        }
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """The five parameters as (1, K, 1) arrays, the layout :func:`forward` takes."""
+        return tuple(
+            np.asarray(a, np.float64)[None, :, None]
+            for a in (self.q, self.sigma0, self.beta, self.offset_sd, self.offset_tau)
+        )
+
+
+@dataclass(frozen=True)
+class Pass:
+    """Forward-filter output.
+
+    Attributes:
+        loglik: (G, K) Student-t innovation log-likelihood (up to a constant).
+        rejected: (T, K) gross outliers left out (with G = 1; else empty).
+        states: filtered means and covariances, predicted means and covariances (if kept).
+    """
+
+    loglik: np.ndarray
+    rejected: np.ndarray
+    states: tuple[np.ndarray, ...]
+
+
+def _transition(h: float, tau: np.ndarray) -> np.ndarray:
+    """(K, 1, 3, 3) transition matrices of a step of ``h`` s, from (K, 1) correlation times."""
+    phi = np.exp(-h / tau)
+    f = np.zeros((*phi.shape, 3, 3))
+    f[..., 0, 0] = f[..., 1, 1] = 1.0
+    f[..., 0, 1] = h
+    f[..., 2, 2] = phi
+    return f
+
+
+def _cov(c: tuple[np.ndarray, ...]) -> np.ndarray:
+    """(..., 3, 3) symmetric matrices from their six entries (xx, xv, xb, vv, vb, bb)."""
+    xx, xv, xb, vv, vb, bb = c
+    return np.stack([np.stack([xx, xv, xb], -1), np.stack([xv, vv, vb], -1),
+                     np.stack([xb, vb, bb], -1)], -2)  # fmt: skip
+
+
+def _prior(z0: np.ndarray, osd: np.ndarray, shape: tuple[int, ...]):
+    """Diffuse state prior at the (K, 3) first measurements: three means, six covariances."""
+    zero = np.zeros(shape)
+    m = [np.broadcast_to(z0[None], shape).copy(), zero.copy(), zero.copy()]
+    big = np.full(shape, _P0)
+    return m, [big.copy(), zero.copy(), zero.copy(), big.copy(), zero.copy(),
+               np.broadcast_to(osd**2, shape).copy()]  # fmt: skip
+
+
+def forward(
+    z: np.ndarray,
+    conf: np.ndarray,
+    dt: np.ndarray,
+    params: tuple[np.ndarray, ...],
+    keep: bool,
+    q_scale: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
+) -> Pass:
+    """Kalman filter of every series and parameter candidate at once.
+
+    The covariance is kept as its six entries (position, velocity, offset), each a
+    (G, K, 3) array, so that a step is a few array operations.
+
+    Args:
+        z: (T, K, 3) measurements in mm, NaN where missing.
+        conf: (T, K) confidences (floored) or confidences over a reference.
+        dt: (T,) seconds from the previous frame (dt[0] unused).
+        params: q, sigma0, beta, offset_sd, offset_tau, each (G, K, 1).
+        keep: keep the filtered and predicted states for the smoother.
+        q_scale: (T, K, 3) factor on ``q`` in the step into each frame (None: 1).
+        weights: (T, K) fixed Student-t weights of the measurements (0: left out); None:
+            weighted on line from each innovation, gross outliers left out.
+    """
+    q, sigma0, beta, osd, tau = params
+    t_n, k_n, _ = z.shape
+    shape = np.broadcast_shapes(q.shape, (1, k_n, 3))
+    valid = np.isfinite(z).all(axis=-1)
+    first = np.where(valid.any(axis=0), valid.argmax(axis=0), 0)
+    (x, v, b), (xx, xv, xb, vv, vb, bb) = _prior(np.nan_to_num(z[first, np.arange(k_n)]), osd,
+                                                 shape)  # fmt: skip
+    loglik = np.zeros(shape[:2])
+    streak = np.zeros(shape[:2], np.int64)
+    rejected = np.zeros((t_n, k_n), bool)
+    out: list[list[np.ndarray]] = [[], [], [], []]
+    for t in range(t_n):
+        if t > 0:
+            h = dt[t]
+            qa = q if q_scale is None else q * q_scale[t][None]
+            phi = np.exp(-h / tau)
+            x, b = x + h * v, phi * b
+            xx = xx + 2 * h * xv + h * h * vv + qa * h**3 / 3
+            xv = xv + h * vv + qa * h * h / 2
+            xb = phi * (xb + h * vb)
+            vv = vv + qa * h
+            vb = phi * vb
+            bb = phi * phi * bb + osd**2 * (1 - phi * phi)
+        if keep:
+            out[2].append(np.stack([x[0], v[0], b[0]], -1))
+            out[3].append(_cov((xx[0], xv[0], xb[0], vv[0], vb[0], bb[0])))
+        ok = valid[t][None]
+        if ok.any():
+            r = sigma0**2 * conf[t][None, :, None] ** (-beta)  # (G, K, 1)
+            s = xx + 2 * xb + bb + r
+            e = np.where(ok[..., None], np.nan_to_num(z[t])[None] - x - b, 0.0)
+            d2 = (e * e / s).sum(axis=-1)
+            counts = ok & (t > first)[None]
+            ll = -0.5 * np.log(s).sum(axis=-1) - 0.5 * (NU + 3) * np.log1p(d2 / NU)
+            loglik += np.where(counts, ll, 0.0)
+            if weights is None:
+                w = np.where(d2 > GROSS_D2, 0.0, (NU + 3) / (NU + d2))
+                gross = ok & (w == 0)
+                restart = gross & (streak >= MAX_REJECT_RUN)
+                streak = np.where(ok, np.where(gross & ~restart, streak + 1, 0), streak)
+                if restart.any():
+                    m0, p0 = _prior(np.nan_to_num(z[t]), osd, shape)
+                    rs = restart[..., None]
+                    x, v, b = (np.where(rs, n, o) for n, o in zip(m0, (x, v, b), strict=True))
+                    xx, xv, xb, vv, vb, bb = (
+                        np.where(rs, n, o)
+                        for n, o in zip(p0, (xx, xv, xb, vv, vb, bb), strict=True)
+                    )
+                    w = np.where(restart, 1.0, w)
+                    e = np.where(rs, 0.0, e)
+                rejected[t] = (ok & (w == 0))[0]
+            else:
+                w = np.broadcast_to(weights[t][None], shape[:2])
+            use = (ok & (w > 0))[..., None]
+            # after any restart: the covariances of the state with the measurement
+            s_eff = xx + 2 * xb + bb + r / np.maximum(w, 1e-12)[..., None]
+            hx, hv, hb = xx + xb, xv + vb, xb + bb
+            gx, gv, gb = (np.where(use, g / s_eff, 0.0) for g in (hx, hv, hb))
+            x, v, b = x + gx * e, v + gv * e, b + gb * e
+            xx, xv, xb = xx - gx * hx, xv - gx * hv, xb - gx * hb
+            vv, vb, bb = vv - gv * hv, vb - gv * hb, bb - gb * hb
+        if keep:
+            out[0].append(np.stack([x[0], v[0], b[0]], -1))
+            out[1].append(_cov((xx[0], xv[0], xb[0], vv[0], vb[0], bb[0])))
+    return Pass(loglik, rejected, tuple(np.stack(o) for o in out) if keep else ())
+
+
+def rts(states: tuple[np.ndarray, ...], dt: np.ndarray, params: tuple[np.ndarray, ...]):
+    """Rauch-Tung-Striebel pass: (T, K, 3, 3) smoothed means and (T, K, 3, 3, 3) covariances."""
+    fm, fp, pm, pp = states
+    mean, cov = fm.copy(), fp.copy()
+    tau = params[4][0]
+    for t in range(len(fm) - 2, -1, -1):
+        f = _transition(dt[t + 1], tau)
+        # C = P_f F^T P_p^-1, with P_p symmetric: C^T = P_p^-1 F P_f
+        c = np.swapaxes(np.linalg.solve(pp[t + 1], f @ fp[t]), -1, -2)
+        mean[t] = fm[t] + (c @ (mean[t + 1] - pm[t + 1])[..., None])[..., 0]
+        cov[t] = fp[t] + c @ (cov[t + 1] - pp[t + 1]) @ np.swapaxes(c, -1, -2)
+    return mean, cov
+
+
+def _candidates(center: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """(5, 11, K): the centre and its two neighbours along each of the 5 coordinates."""
+    d = np.vstack([np.zeros(5), np.eye(5), -np.eye(5)])  # (11, 5)
+    return center[:, None, :] + d.T[:, :, None] * step[:, None, :]
+
+
+def _as_params(pts: np.ndarray, h: float) -> tuple[np.ndarray, ...]:
+    """(5, G, K) search coordinates -> the five (G, K, 1) parameters."""
+    q, s, b, o, tau = pts
+    return (np.exp(q)[..., None], np.exp(s)[..., None], np.maximum(b, 0.0)[..., None],
+            np.exp(o)[..., None], np.clip(np.exp(tau), h, MAX_TAU_S)[..., None])  # fmt: skip
+
+
+def fit_params(
+    z: np.ndarray, conf: np.ndarray, dt: np.ndarray
+) -> tuple[SmootherParams, np.ndarray]:
+    """Maximum-likelihood parameters per keypoint, by a compass search.
+
+    The search starts at ``q = 1e5 mm^2/s^3, sigma0 = 2 mm, beta = 1, offset_sd = 2 mm,
+    offset_tau = 0.3 s``; every round evaluates the centre and its two neighbours along
+    each coordinate (log q, log sigma0, beta, log offset_sd, log offset_tau), moves to the
+    best of them, and halves the step of every coordinate whose two neighbours were both
+    worse than the centre. The likelihood is the Student-t one of the on-line weighted filter
+    (:func:`forward`), so gross outliers hardly move the fit.
+
+    Args:
+        z: (T, K, 3) measurements in mm, NaN where missing.
+        conf: (T, K) confidences in [0, 1], floored at :data:`MIN_CONFIDENCE`.
+        dt: (T,) seconds from the previous frame.
+
+    Returns:
+        The parameters and the (K,) log-likelihood they reach.
+    """
+    t_n, k_n, _ = z.shape
+    lo = max(0, (t_n - FIT_FRAMES) // 2)
+    z, conf, dt = z[lo : lo + FIT_FRAMES], conf[lo : lo + FIT_FRAMES], dt[lo : lo + FIT_FRAMES]
+    h = float(np.median(dt[1:])) if len(dt) > 1 else 1.0
+    # searched as sigma at the median confidence, so that sigma and beta hardly correlate
+    c = conf.copy()
+    ref = np.array([np.median(c[np.isfinite(z[:, j, 0]), j]) for j in range(k_n)])
+    c = c / ref
+    start = [np.log(1e5), np.log(2.0), 1.0, np.log(2.0), np.log(0.3)]
+    center = np.array(start)[:, None] * np.ones((1, k_n))
+    step = np.array([np.log(10.0), np.log(10) / 2, 0.5, np.log(10) / 2, np.log(10) / 2])
+    step = step[:, None] * np.ones((1, k_n))
+    best_ll = np.full(k_n, -np.inf)
+    k = np.arange(k_n)
+    for _ in range(_ROUNDS):
+        pts = _candidates(center, step)
+        ll = forward(z, c, dt, _as_params(pts, h), keep=False).loglik  # (11, K)
+        ll = np.where(np.isfinite(ll), ll, -np.inf)
+        # a coordinate whose two neighbours are both worse than the centre gets a finer step
+        step = np.where(np.maximum(ll[1:6], ll[6:11]) <= ll[0], step / 2, step)
+        i = ll.argmax(axis=0)
+        center, best_ll = pts[:, i, k], ll[i, k]
+    best = center
+    p = _as_params(best[:, None, :], h)
+    sigma0 = p[1][0, :, 0] * ref ** (p[2][0, :, 0] / 2)
+    params = SmootherParams(p[0][0, :, 0], sigma0, p[2][0, :, 0], p[3][0, :, 0], p[4][0, :, 0])
+    return params, best_ll
