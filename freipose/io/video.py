@@ -451,7 +451,8 @@ def find_camera_videos(folder: str | Path) -> dict[str, Path]:
     A camera's video is ``<camera>.<ext>`` in the folder (the camera is the file stem) or the
     one video inside a folder named after the camera (``<camera>/<any name>.<ext>``,
     sleap-anipose's layout, which keeps the camera's labels beside its video). Subfolders
-    without videos (labels, calibration) are not cameras.
+    without videos (labels) are not cameras, nor, in a folder with videos of its own,
+    subfolders with several videos (the board videos of a ``calibration`` folder).
 
     Args:
         folder: the session folder.
@@ -467,9 +468,12 @@ def find_camera_videos(folder: str | Path) -> dict[str, Path]:
     if not folder.is_dir():
         raise MediaError(f"{folder}: not a folder; a session is a folder with one video per camera")
     vids: dict[str, Path] = {}
+    flat = any(_is_camera_video(p) for p in folder.iterdir())
     for p in sorted(folder.iterdir()):
         if p.is_dir() and not p.name.startswith("."):
             inside = [q for q in sorted(p.iterdir()) if _is_camera_video(q)]
+            if len(inside) > 1 and flat:  # e.g. the board videos of a calibration folder
+                continue
             if len(inside) > 1:
                 raise MediaError(
                     f"{p}: {len(inside)} videos ({', '.join(q.name for q in inside)}) in the "

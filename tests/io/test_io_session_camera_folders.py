@@ -38,6 +38,8 @@ def test_find_camera_videos_both_layouts(tmp_path):
     assert find_camera_videos(tmp_path / "nested") == nested
     mixed = tmp_path / "mixed"
     both = {"a": _touch(mixed / "a.mkv"), "b": _touch(mixed / "b" / "rec.mp4")}
+    _touch(mixed / "calibration" / "a.mp4")  # board videos beside the session's own videos
+    _touch(mixed / "calibration" / "b.mp4")
     assert find_camera_videos(mixed) == both
 
 
