@@ -353,7 +353,7 @@ def _analysis_one(ctx: DemoContext, a: dict[str, Any] | None, sub: str) -> dict[
     """The classifier scores, the best single variables and the figures of one analysis."""
     splits = {s.split: s.name for s in ctx.preset.sessions}
     res_dir = ctx.out / "analysis" / sub
-    out: dict[str, Any] = {"classification": [], "top": [], "figures": []}
+    out: dict[str, Any] = {"classification": [], "top": [], "figures": [], "truth_notes": []}
     if a:
         for c in a["classification"]:
             out["classification"].append([
@@ -376,6 +376,7 @@ def _analysis_one(ctx: DemoContext, a: dict[str, Any] | None, sub: str) -> dict[
              num(float(v["p_adjusted"]))] for v in _significant(a, res_dir)
         ]  # fmt: skip
         out["n_variables"] = a["classification"][0].get("n_variables_used", "all")
+        out["truth_notes"] = list(a.get("truth_notes", []))
     heat = (
         "F-score of each single variable by body part (rows) and variable (columns); white: "
         "not tested (the variable is constant over the training frames or undefined)."

@@ -12,6 +12,7 @@ import numpy as np
 from freipose.demo.context import DemoContext, session_labels, truth_to_calibrated
 from freipose.demo.markers import step_results
 from freipose.demo.presets import STIM_PART
+from freipose.demo.truth_effect import demo_truth_notes
 from freipose.io.atomic import atomic_write_text
 
 if TYPE_CHECKING:
@@ -134,14 +135,16 @@ def significant_variables(att: pd.DataFrame) -> list[dict[str, Any]]:
     """The significant single variables of :func:`ranked` rows, best first.
 
     Returns:
-        Per variable: ``variable``, ``rank`` (1 = best F1), ``f1``, ``p_value`` and
-        ``p_adjusted`` (Bonferroni).
+        Per variable: ``variable``, ``rank`` (1 = best F1), ``f1``, ``p_value``,
+        ``p_adjusted`` (Bonferroni) and ``keypoints`` (joined by ``;``).
     """
     rows = np.flatnonzero(att["significant"].to_numpy(dtype=bool))
     return [
         {"variable": str(att["variable"].iloc[i]), "rank": int(i) + 1,
          "f1": float(att["f1"].iloc[i]), "p_value": float(att["p_value"].iloc[i]),
-         "p_adjusted": float(att["p_adjusted"].iloc[i])} for i in rows
+         "p_adjusted": float(att["p_adjusted"].iloc[i]),
+         "keypoints": str(att["keypoints"].iloc[i]) if "keypoints" in att else ""}
+        for i in rows
     ]  # fmt: skip
 
 
@@ -233,6 +236,9 @@ def run(ctx: DemoContext) -> dict[str, Any]:
         out / "results_smoothed",
     )
     ctx.say(_side_by_side(pred, res["smoothed"]))
+    # what the truth says about significant variables of parts the stimulation leaves alone
+    dirs = {"predicted": ctx.poses_dir, "truth": truth_dir, "smoothed": smoothed_dir}
+    demo_truth_notes(ctx, res, dirs)
     test = p.with_split("test")[0].name
     res["smooth"] = {
         **smooth_info,
