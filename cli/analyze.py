@@ -519,3 +519,45 @@ def design(
                        if n else f"none of the tried trial numbers reaches power {target:g}; "
                        "try more (--trials)"))  # fmt: skip
         click.echo(f"wrote {outdir}/design.csv and design.png")
+
+
+@analyze.command("simulate")
+@click.argument("outdir", type=click.Path(file_okay=False, path_type=Path))
+@click.option(
+    "--preset",
+    type=click.Choice(["pilot", "study"]),
+    default="study",
+    show_default=True,
+    help="pilot: the demo's design (1 animal, a train and a test "
+    "day of 30 s); study: 3 animals, 4 train and 4 test days of 30 s each.",
+)
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option(
+    "--true-poses",
+    is_flag=True,
+    help="Write the true keypoints (default: with "
+    "the error model of the demo's pose network, 5 mm median, persisting ~0.2 s).",
+)
+def simulate(outdir: Path, preset: str, seed: int, true_poses: bool) -> None:
+    """Write a synthetic stimulation study as poses files (no videos) to OUTDIR.
+
+    The synthetic rat of 'freipose synth' behaves freely while its right front paw is
+    lifted and oscillates at 5 Hz during 2 s windows (2 s apart); OUTDIR/study.toml is
+    ready for 'freipose analyze' and 'freipose analyze design'.
+
+    \b
+    Example:
+      freipose analyze simulate study/ --preset study
+      freipose analyze study/study.toml -o results/ --stft-window 32 --onset-delay 0.6 \\
+          --margin 0.5
+    """  # noqa: D301 (click needs the \b escape)
+    with user_errors():
+        from freipose.synth.study import STUDY_PRESETS, write_study
+
+        p = STUDY_PRESETS[preset]
+        path = write_study(outdir, p, seed, with_error=not true_poses)
+        click.echo(
+            f"wrote {path}: {p.animals} animal(s) x {p.days} recordings of "
+            f"{p.frames / p.fps:.0f} s ({p.train_days} train, {p.days - p.train_days} test "
+            f"per animal), {'true poses' if true_poses else 'poses with the error model'}"
+        )

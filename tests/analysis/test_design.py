@@ -135,3 +135,16 @@ def test_null_benchmark_runs_and_records(tmp_path):
     bad = subprocess.run([sys.executable, str(script), "--pool", "3"], cwd=ROOT / "benchmarks",
                          env=env, capture_output=True, text=True)  # fmt: skip
     assert bad.returncode != 0 and "--pool must be 0 or at least 2 x --animals" in bad.stderr
+
+
+def test_simulate_command_writes_a_study_preset(tmp_path):
+    res = CliRunner().invoke(cli, ["analyze", "simulate", str(tmp_path / "s"), "--preset",
+                                   "pilot", "--true-poses", "--seed", "2"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "1 animal(s) x 2 recordings of 30 s (1 train, 1 test per animal), true poses" in (
+        res.output
+    )
+    study = load_study(tmp_path / "s" / "study.toml")
+    assert [r.split for r in study.recordings] == ["train", "test"]
+    res = CliRunner().invoke(cli, ["analyze", "simulate", str(tmp_path / "t"), "--preset", "x"])
+    assert res.exit_code != 0 and "'x' is not one of 'pilot', 'study'" in res.output
