@@ -11,10 +11,11 @@ its stimulated frames; the residual keeps the variable's own noise and autocorre
 A simulated study of ``n`` trials per animal draws, for every animal, a pilot animal and
 ``n`` of its trials with replacement, adds the chosen effect (the pilot's mean effect or
 a given size, plus each drawn trial's deviation from the pilot's mean) to their
-stimulated frames, and splits them into a train recording (the first half) and a test
-recording (the rest), as the study's recordings are split. Each animal then gets the
-test of ``freipose analyze``: the single-variable SVM trained on the train recording and
-scored on the test recording (:func:`freipose.analysis.single.fit_block`), its p-value
+stimulated frames, and cuts them into recordings of as many trials as a pilot recording
+holds (the first half of the trials train, the rest test), each z-scored on its own. Each
+animal then gets the test of ``freipose analyze``: the single-variable SVM trained on the
+train recordings and scored on the test recordings
+(:func:`freipose.analysis.single.fit_block`, effective frames per recording), its p-value
 Bonferroni-adjusted over the pilot's number of tested variables, significant below
 ``alpha`` with a balanced accuracy above 0.5. The power is the share of simulated studies
 in which the variable is significant in every animal.
