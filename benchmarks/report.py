@@ -37,8 +37,8 @@ CARD_BEGIN, CARD_END = "<!-- base-figures:begin -->", "<!-- base-figures:end -->
 # the scripts that record results (each gets a section, recorded or not)
 BENCHMARKS = (
     "accuracy", "analysis", "calibration", "calibration_coverage", "classifier_days", "demo",
-    "detector", "label_page", "own_rig", "predict", "real_finetune", "smooth", "synth",
-    "throughput", "train_base",
+    "detector", "label_page", "null_studies", "own_rig", "predict", "real_finetune", "smooth",
+    "synth", "throughput", "train_base",
 )  # fmt: skip
 # settings that differ between runs of the same experiment (not a different experiment)
 RUN_KEYS = {"seed", "folder", "finished", "demo", "out", "workdir", "work", "export"}

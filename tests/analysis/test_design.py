@@ -131,7 +131,11 @@ def test_null_benchmark_runs_and_records(tmp_path):
     assert "family-wise false-positive rate at level 0.001: " in out.stdout
     (record,) = (tmp_path / "null_studies").glob("*.json")
     figures = json.loads(record.read_text())["figures"]
-    assert figures["studies"] == 2 and 0.0 <= figures["fwer_at_alpha"] <= 1.0
+    assert (
+        figures["studies"] == 2
+        and json.loads(record.read_text())["extra"]["pool"] == 4
+        and 0.0 <= figures["fwer_at_alpha"] <= 1.0
+    )
     bad = subprocess.run([sys.executable, str(script), "--pool", "3"], cwd=ROOT / "benchmarks",
                          env=env, capture_output=True, text=True)  # fmt: skip
     assert bad.returncode != 0 and "--pool must be 0 or at least 2 x --animals" in bad.stderr
