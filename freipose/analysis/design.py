@@ -255,9 +255,18 @@ def power_table(
     Returns:
         Columns :data:`DESIGN_COLUMNS`: the power (the variable significant in every animal)
         with its 95 % Clopper-Pearson interval, and the share of significant animals.
+
+    Raises:
+        StudyError: fewer than 2 trials, no animal or no simulation.
     """
     from scipy.stats import beta
 
+    if min(trials, default=0) < 2 or min(animals, default=0) < 1 or simulations < 1:
+        raise StudyError(
+            f"a design needs at least 2 trials per animal (train and test), 1 animal and 1 "
+            f"simulation; got trials {list(trials)}, animals {list(animals)}, "
+            f"{simulations} simulations"
+        )
     eff = pilot.mean_effect if effect is None else float(effect)
     rng = np.random.default_rng(seed)
     rows = []

@@ -77,6 +77,8 @@ def test_power_grows_with_trials_and_vanishes_without_an_effect(pilot):
     assert recommended(table, 0.7)[1] == 56
     none = power_table(paw, (56,), (1,), effect=0.0, simulations=20, config=CFG, seed=1)
     assert none["power"].iloc[0] <= 0.1
+    with pytest.raises(StudyError, match="at least 2 trials per animal"):
+        power_table(paw, (1, 8), (1,), simulations=5, config=CFG)
 
 
 def test_design_command_writes_the_table_and_refuses_unknown_variables(pilot, tmp_path):
