@@ -19,6 +19,8 @@ def analyze() -> None:
       freipose analyze study.toml -o results/
       freipose analyze variables rat1.poses.h5 -o rat1.vars.h5
       freipose analyze floor rat1.poses.h5 rat2.poses.h5 -o floor.toml
+      freipose analyze design pilot.toml -o design/ --variable "local_z[Paw Front Right]"
+      freipose analyze simulate study/ --preset study
     """  # noqa: D301 (click needs the \b escape)
 
 
@@ -373,7 +375,7 @@ def _int_list(ctx: click.Context, param: click.Parameter, value: str) -> tuple[i
     "--variable",
     required=True,
     help="The variable to detect (a name from "
-    "attribution.csv, e.g. 'floor_dist_stft[Paw Front Right]@5.0Hz').",
+    "attribution.csv, e.g. 'floor_dist_stft_4.69Hz[Paw Front Right]').",
 )
 @click.option(
     "-o",
