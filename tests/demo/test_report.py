@@ -203,7 +203,10 @@ def test_report_names_the_significant_variables(tmp_path):
     predicted = text.split("On the predicted poses")[1].split("On the smoothed")[0]
     assert "0 significant after the adjustment)" in predicted
     assert "significant variable (rank" not in predicted
-    assert '"Significant": the adjusted p-value is below 0.001 and the balanced accuracy above' in predicted
+    assert (
+        '"Significant": the adjusted p-value is below 0.001 and the balanced accuracy above'
+        in predicted
+    )
 
 
 def test_report_names_significant_variables_of_an_older_marker_from_its_results(tmp_path):
@@ -229,10 +232,11 @@ def test_report_says_when_the_predicted_lift_disagrees(tmp_path):
     ctx = _markers(tmp_path / "demo", failure_modes=False, smooth=False)
     page = Path(report.run(ctx)["report"]).read_text()
     text = _text(page)
-    flip = ("The network does not reproduce the lift on rat1_day3 (train): predicted -1.6 mm, "
-            "true +5.4 mm (the opposite direction).")  # fmt: skip
+    flip = ("The network does not reproduce the height change on rat1_day3 (train): predicted "
+            "-1.6 mm, true +5.4 mm (the opposite direction).")  # fmt: skip
     assert flip in text
-    part = "reproduces only part of the lift on rat1_day2 (test): predicted +5.1 mm, true +12.3 mm"
+    part = ("reproduces only part of the height change on rat1_day2 (test): predicted +5.1 mm, "
+            "true +12.3 mm")  # fmt: skip
     assert part in text
     # next to the table: after it, before the next section's figures
     table_end = text.index("+5.1 +12.3")

@@ -176,18 +176,19 @@ def _stimulated_part(
 
 
 def lift_note(name: str, r: dict[str, Any]) -> str | None:
-    """A plain sentence when the predicted lift of the stimulated part disagrees with the truth.
+    """A plain sentence when the stimulated part's predicted height change disagrees with the truth.
 
-    They disagree when they differ by more than half the true lift and by at least 1 mm
-    (an opposite sign always differs by more than the true lift itself).
+    They disagree when they differ by more than half the true change and by at least 1 mm
+    (an opposite sign always differs by more than the true change itself).
 
     Args:
         name: the recording.
         r: what :func:`stimulated_part_errors` returned for it.
 
     Returns:
-        E.g. ``"The network does not reproduce the lift on rat1_day3: predicted -1.6 mm,
-        true +5.4 mm (the opposite direction)."``; None when they agree or one is missing.
+        E.g. ``"The network does not reproduce the height change on rat1_day3: predicted
+        -1.6 mm, true +5.4 mm (the opposite direction)."``; None when they agree or one is
+        missing.
     """
     pred, true = r.get("lift_pred_mm"), r.get("lift_true_mm")
     if pred is None or true is None or not np.isfinite([pred, true]).all():
@@ -196,11 +197,11 @@ def lift_note(name: str, r: dict[str, Any]) -> str | None:
         return None
     figures = f"predicted {pred:+.1f} mm, true {true:+.1f} mm"
     if pred * true < 0:
-        return (f"The network does not reproduce the lift on {name}: {figures} "
+        return (f"The network does not reproduce the height change on {name}: {figures} "
                 "(the opposite direction).")  # fmt: skip
     if abs(pred) < abs(true):
-        return f"The network reproduces only part of the lift on {name}: {figures}."
-    return f"The network exaggerates the lift on {name}: {figures}."
+        return f"The network reproduces only part of the height change on {name}: {figures}."
+    return f"The network exaggerates the height change on {name}: {figures}."
 
 
 def _say_stimulated(ctx: DemoContext, name: str, r: dict[str, Any]) -> None:
