@@ -77,16 +77,18 @@ def smooth(
     prediction is that position plus an error correlated over frames (an offset that
     drifts with a correlation time of its own) plus a white error that grows as the
     frame's confidence falls, with heavy (Student-t) tails: a prediction that deviates
-    counts less the more it deviates, and only gross outliers are left out
+    counts less the more it deviates, and only gross outliers (spikes) are left out
     (extra/rejected; a warning names the keypoints with more than 2 % of their predictions
     left out, far more than the model expects). The parameters are fitted per keypoint on
     the recording, and the process noise rises where a keypoint moves clearly faster than
-    that over several frames, so fast movements are followed, not damped. Frames without
-    a prediction are filled (extra/filled); extra/smooth_std holds the posterior standard
-    deviation in mm per axis, which covers what the recording reveals of the network's
-    error; with --validation and --model it also covers the network's error measured on
-    held-out labels (an offset that persists over seconds, which one recording cannot
-    reveal). The output has the poses.h5 schema; analyze, export and render read it.
+    that over several frames or jumps in a step, so fast movements are followed rather
+    than damped. The smoothed position keeps the correlated error, which one recording
+    cannot tell from movement reliably. Frames without a prediction are filled
+    (extra/filled); extra/smooth_std holds the standard deviation in mm per axis, which
+    covers what the recording reveals of the network's error; with --validation and
+    --model it also covers the network's error measured on held-out labels (an offset
+    that persists over seconds, which one recording cannot reveal). The output has the
+    poses.h5 schema; analyze, export and render read it.
 
     \b
     Example:

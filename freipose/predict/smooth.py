@@ -8,14 +8,19 @@ variance grows as the frame's confidence falls, with Student-t tails. Its parame
 fitted per keypoint on the recording itself (maximum likelihood, on at most
 :data:`~freipose.predict.smooth_filter.FIT_FRAMES` frames from the middle), so the
 smoother follows the recording's own noise; a Rauch-Tung-Striebel pass gives the
-posterior mean and covariance of every frame without lag.
+posterior mean and covariance of every frame without lag. The position reported is the
+smoothed track (position plus correlated error): one recording cannot tell the
+correlated error from movement reliably, and subtracting its estimate moves the track
+off the truth; the standard deviation covers the difference.
 
 Heavy tails instead of a gate: after a first pass weighted on line, every measurement
 is weighted by ``(NU + 3) / (NU + d2)`` from its residual against the smoothed track
 (:data:`IRLS_PASSES` iteratively reweighted passes, as for a Student-t error), so a
 measurement that deviates within the correlated error keeps nearly its full weight, and
-only gross outliers (``d2`` above :data:`~freipose.predict.smooth_filter.GROSS_D2`, about
-0.1 % under the model) are left out (``rejected``). After
+only gross outliers are left out (``rejected``): spikes that leave their neighbours'
+level and return, far beyond the keypoint's typical residual (:func:`_residual_weights`).
+A large residual that is no spike is a sudden step: the process noise of its frame is
+raised and the next pass follows it (:func:`_lagging_scale`). After
 :data:`~freipose.predict.smooth_filter.MAX_REJECT_RUN` gross outliers in a row the
 keypoint is taken as lost and the filter restarts from the next measurement; where many
 more predictions of a keypoint are gross outliers than the model expects
@@ -64,11 +69,13 @@ from freipose.predict.smooth_filter import (
 )
 
 CHI2_1_MEDIAN = 0.4549  # median of chi-square with 1 degree of freedom
+CHI2_3_MEDIAN = 2.366  # median of chi-square with 3 degrees of freedom
 ADAPT_WINDOW = 9
 ADAPT_THRESHOLD = 4.0
 ADAPT_BOOST = 4.0
 MAX_Q_SCALE = 1e5
 IRLS_PASSES = 2
+LAG_D2 = 16.0
 MISFIT_REJECTED = 0.02
 
 log = logging.getLogger(__name__)
@@ -85,9 +92,13 @@ class SmoothResult:
     """Posterior of the smoother.
 
     Attributes:
-        mean: (T, K, 3) posterior mean of the true position in mm.
-        std: (T, K, 3) its posterior standard deviation in mm, per axis (it includes what
-            the recording reveals of the correlated error).
+        mean: (T, K, 3) the smoothed track in mm: the posterior mean of position plus
+            correlated error, i.e. the predictions without their white error and gross
+            outliers (the correlated error cannot be told from movement reliably in one
+            recording, and subtracting its estimate moves the track off the truth).
+        std: (T, K, 3) standard deviation of the true position about ``mean`` in mm, per
+            axis: the position's posterior variance plus the estimated correlated error
+            squared (the mean squared error of ``mean`` under the model).
         track_std: (T, K, 3) posterior standard deviation of the predicted track (position
             plus correlated error) in mm: the white noise the smoother removes.
         offset: (T, K, 3) posterior mean of the correlated error in mm.
@@ -171,15 +182,65 @@ def adaptive_q_scale(
     return np.lib.stride_tricks.sliding_window_view(wide, ADAPT_WINDOW, axis=0).max(axis=-1)
 
 
+def _spikes(z: np.ndarray) -> np.ndarray:
+    """(T, K) predictions that leave their neighbours' level and return: a spike, not a step.
+
+    The deviation from the neighbours' mean is more than twice the neighbours' own
+    difference; without both neighbours a prediction counts as a spike.
+    """
+    pad = np.pad(z, ((1, 1), (0, 0), (0, 0)), constant_values=np.nan)
+    dev = np.linalg.norm(pad[1:-1] - (pad[:-2] + pad[2:]) / 2, axis=-1)
+    gap = np.linalg.norm(pad[2:] - pad[:-2], axis=-1)
+    return np.where(np.isfinite(gap), dev > 2 * gap, True)
+
+
+def _residual_scale(z: np.ndarray, r: np.ndarray, e2: np.ndarray) -> np.ndarray:
+    """(T, K) scale of a squared residual.
+
+    The largest of the white variance, the keypoint's robust residual variance and its
+    robust frame-to-frame change (median squared second difference).
+    """
+    typical = np.nanmedian(e2, axis=0, keepdims=True) / CHI2_3_MEDIAN
+    step = (np.diff(z, 2, axis=0) ** 2).sum(axis=-1)
+    jitter = np.nanmedian(step, axis=0, keepdims=True) / CHI2_3_MEDIAN
+    return np.maximum(np.maximum(r, typical), jitter)
+
+
 def _residual_weights(z: np.ndarray, r: np.ndarray, track: np.ndarray) -> np.ndarray:
     """(T, K) Student-t weights of the measurements from their residuals to the track.
 
-    ``d2`` sums the three axes' squared residuals over the white variance ``r``; a gross
-    outlier (``d2`` above ``GROSS_D2``) and a missing measurement get weight 0.
+    ``d2`` sums the three axes' squared residuals over the white variance ``r``. A gross
+    outlier is a spike (:func:`_spikes`) whose squared residual exceeds ``GROSS_D2`` times
+    the residual scale (:func:`_residual_scale`), so that neither a white scale fitted
+    small nor a fast step turns real movement into outliers. Gross outliers and missing
+    measurements get weight 0.
     """
-    d2 = ((z - track) ** 2).sum(axis=-1) / r
-    w = np.where(d2 > GROSS_D2, 0.0, (NU + 3) / (NU + d2))
+    e2 = ((z - track) ** 2).sum(axis=-1)
+    gross = (e2 > GROSS_D2 * _residual_scale(z, r, e2)) & _spikes(z)
+    w = np.where(gross, 0.0, (NU + 3) / (NU + e2 / r))
     return np.nan_to_num(w, nan=0.0)
+
+
+def _lagging_scale(
+    z: np.ndarray, r: np.ndarray, track: np.ndarray, dt: np.ndarray, params: SmootherParams
+) -> np.ndarray:
+    """(T, K, 3) factor on the process noise where the smoothed track lags the predictions.
+
+    A residual beyond :data:`LAG_D2` times the residual scale (:func:`_residual_scale`)
+    that is no spike (:func:`_spikes`) is a movement faster than the model (a paw's
+    sudden step), not an outlier: the process noise of that frame and its neighbours is
+    raised to :data:`ADAPT_BOOST` times what lets the track move by the residual within a
+    frame, and the next pass follows the step.
+    """
+    e = z - track
+    e2 = (e**2).sum(axis=-1)
+    with np.errstate(invalid="ignore"):
+        lag = (e2 > LAG_D2 * _residual_scale(z, r, e2)) & ~_spikes(z)
+    h = np.concatenate([dt[1:], dt[-1:]])[:, None, None]
+    need = ADAPT_BOOST * 3 * np.nan_to_num(e) ** 2 / h**3 / params.q[None, :, None]
+    scale = np.clip(np.where(lag[..., None], need, 1.0), 1.0, MAX_Q_SCALE)
+    wide = np.pad(scale, ((1, 1), (0, 0), (0, 0)), constant_values=1.0)
+    return np.lib.stride_tricks.sliding_window_view(wide, 3, axis=0).max(axis=-1)
 
 
 def smooth_arrays(
@@ -226,12 +287,18 @@ def smooth_arrays(
     mean, cov = rts(run.states, dt, p)
     r = _meas_var_frames(conf, params)
     for _ in range(IRLS_PASSES):
-        w = _residual_weights(z, r, mean[..., 0] + mean[..., 2])
+        track = mean[..., 0] + mean[..., 2]
+        if qs is not None:
+            qs = np.maximum(qs, _lagging_scale(z, r, track, dt, params))
+        w = _residual_weights(z, r, track)
         mean, cov = rts(forward(z, conf, dt, p, True, q_scale=qs, weights=w).states, dt, p)
+    scale = scale if qs is None else qs
     track = cov[..., 0, 0] + 2 * cov[..., 0, 2] + cov[..., 2, 2]
+    # the position reported is the smoothed track: the correlated error that the
+    # recording cannot tell from movement stays in it, and its band covers the estimate
     return SmoothResult(
-        mean=mean[..., 0],
-        std=np.sqrt(np.maximum(cov[..., 0, 0], 0.0)),
+        mean=mean[..., 0] + mean[..., 2],
+        std=np.sqrt(np.maximum(cov[..., 0, 0], 0.0) + mean[..., 2] ** 2),
         track_std=np.sqrt(np.maximum(track, 0.0)),
         offset=mean[..., 2],
         filled=~valid,
@@ -246,7 +313,7 @@ def smooth_arrays(
 def misfit_warning(res: SmoothResult, keypoints: tuple[str, ...]) -> str | None:
     """The keypoints with more than :data:`MISFIT_REJECTED` of their predictions rejected.
 
-    The model leaves out about 0.1 % of what it describes as gross outliers; far more
+    The model leaves out at most about 0.1 % of what it describes as gross outliers; far more
     means that it does not describe the keypoint's predictions (a network that loses the
     keypoint often, or motion the model cannot follow). Returns the warning, or None.
     """
@@ -256,7 +323,7 @@ def misfit_warning(res: SmoothResult, keypoints: tuple[str, ...]) -> str | None:
     return None if not bad else (
         f"the smoother left out more than {100 * MISFIT_REJECTED:.0f} % of the predictions "
         f"of {len(bad)} keypoints as gross outliers ({', '.join(bad)}; its model expects "
-        "about 0.1 %): the model fitted on the recording does not describe them, and the "
+        "at most about 0.1 %): the model fitted on the recording does not describe them, and the "
         "smoothed track may have dropped real movements; compare it with the raw poses "
         "before analysing it"
     )  # fmt: skip

@@ -30,7 +30,7 @@ MAX_REJECT_RUN = 3
 FIT_FRAMES = 4000
 MIN_CONFIDENCE = 0.02
 _P0 = 1e6  # prior variance of the first position (mm^2) and velocity ((mm/s)^2)
-_ROUNDS = 30
+_ROUNDS = 40
 MAX_TAU_S = 100.0  # longest correlation time searched (s)
 
 
@@ -235,16 +235,18 @@ def _as_params(pts: np.ndarray, h: float) -> tuple[np.ndarray, ...]:
 
 
 def fit_params(
-    z: np.ndarray, conf: np.ndarray, dt: np.ndarray
+    z: np.ndarray,
+    conf: np.ndarray,
+    dt: np.ndarray,
 ) -> tuple[SmootherParams, np.ndarray]:
     """Maximum-likelihood parameters per keypoint, by a compass search.
 
     The search starts at ``q = 1e5 mm^2/s^3, sigma0 = 2 mm, beta = 1, offset_sd = 2 mm,
     offset_tau = 0.3 s``; every round evaluates the centre and its two neighbours along
-    each coordinate (log q, log sigma0, beta, log offset_sd, log offset_tau), moves to the
-    best of them, and halves the step of every coordinate whose two neighbours were both
-    worse than the centre. The likelihood is the Student-t one of the on-line weighted filter
-    (:func:`forward`), so gross outliers hardly move the fit.
+    each coordinate (log q, log sigma0, beta, log offset_sd, log offset_tau) and moves to
+    the best of them; where the centre is the best, the steps are halved. The likelihood
+    is the Student-t one of the on-line weighted filter (:func:`forward`), so gross
+    outliers hardly move the fit.
 
     Args:
         z: (T, K, 3) measurements in mm, NaN where missing.
@@ -272,9 +274,8 @@ def fit_params(
         pts = _candidates(center, step)
         ll = forward(z, c, dt, _as_params(pts, h), keep=False).loglik  # (11, K)
         ll = np.where(np.isfinite(ll), ll, -np.inf)
-        # a coordinate whose two neighbours are both worse than the centre gets a finer step
-        step = np.where(np.maximum(ll[1:6], ll[6:11]) <= ll[0], step / 2, step)
         i = ll.argmax(axis=0)
+        step = np.where((i == 0)[None], step / 2, step)  # no better neighbour: finer steps
         center, best_ll = pts[:, i, k], ll[i, k]
     best = center
     p = _as_params(best[:, None, :], h)
