@@ -78,3 +78,17 @@ def test_misfit_warning_names_the_keypoints_the_model_leaves_out(bursts):
     assert rejected[1] > MISFIT_REJECTED > rejected[[0, 2]].max()
     warning = misfit_warning(out, names)
     assert warning is not None and "slow a" in warning and "burst" not in warning
+
+
+def test_sudden_step_followed_not_left_out():
+    """A paw's step (40 mm within 2 frames, then still) is movement, not an outlier."""
+    t, _, truth, z, conf = _bursts(2)
+    truth = truth.copy()
+    truth[:, 2, 0] += np.clip((np.arange(T) - 400) / 2, 0, 1) * 40.0
+    rng = np.random.default_rng(3)
+    z = z.copy()
+    z[:, 2] = truth[:, 2] + rng.normal(size=(T, 3)) * 0.3  # a precise keypoint
+    res = smooth_arrays(z, conf, np.full(T, 1 / FPS))
+    assert not res.rejected[395:410, 2].any()
+    err = np.linalg.norm(res.mean[398:408, 2] - truth[398:408, 2], axis=-1)
+    assert err.max() < 5.0  # the step is followed, not smoothed away
