@@ -156,7 +156,7 @@ def _analysis(demo: Path, held_out) -> dict[str, dict]:
         for label, adaptive in (("smoothed", True), ("smoothed, fixed q", False)):
             sub = base / label.replace(", ", "_").replace(" ", "_")
             (sub / "poses").mkdir(parents=True)
-            for s in preset.sessions:
+            for s in preset.analysed:
                 d = read_poses_h5(demo / "poses" / f"{s.name}.poses.h5")
                 write_poses_h5(
                     _smoothed(d, adaptive, held_out), sub / "poses" / f"{s.name}.poses.h5"
