@@ -8,6 +8,8 @@ import click
 
 from freipose.cli._common import user_errors
 
+STATES = ("done", "running", "queued", "failed", "waiting")
+
 
 @click.command()
 @click.argument("outdir", type=click.Path(exists=True, file_okay=False, path_type=Path))
@@ -57,10 +59,8 @@ def _show(status, show_all: bool) -> None:  # noqa: ANN001 - a JobsStatus
         by_session.setdefault(u.session, []).append(u)
     click.echo(f"{status.outdir}: {len(status.units)} units on the {status.executor} executor")
     for session, units in by_session.items():
-        counts: dict[str, int] = {}
-        for u in units:
-            counts[u.state] = counts.get(u.state, 0) + 1
-        summary = ", ".join(f"{n} {state}" for state, n in sorted(counts.items()))
+        counts = {state: sum(u.state == state for u in units) for state in STATES}
+        summary = ", ".join(f"{n} {state}" for state, n in counts.items() if n)
         click.echo(f"  {session}: {summary}")
         for u in units:
             if u.state == "done" and not show_all:

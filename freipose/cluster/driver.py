@@ -94,7 +94,7 @@ def journal(outdir: Path, event: str, **fields: Any) -> None:
     """Append one event to ``OUTDIR/.jobs/journal.jsonl`` (a line each, flushed at once)."""
     path = outdir / JOBS_DIR / JOURNAL
     path.parent.mkdir(parents=True, exist_ok=True)
-    line = json.dumps({"time": now_iso(), "event": event, **fields}, default=str)
+    line = json.dumps({"time": now_iso(), "t": time.time(), "event": event, **fields}, default=str)
     with open(path, "a", encoding="utf-8") as f:
         f.write(line + "\n")
         f.flush()

@@ -243,16 +243,18 @@ class SlurmExecutor:
         return out
 
     def _why(self, job_id: str) -> str:
-        """The unit's own error where it raised one, else the scheduler's reason."""
+        """The scheduler's state and reason, and the error the unit raised where it did."""
+        scheduler = ended_reason(job_id)
         job = self._jobs.get(job_id)
+        error = ""
         if job is not None and Path(job.paths.result_pickle).exists():
             try:
                 outcome, value = self._submitit.core.utils.pickle_load(job.paths.result_pickle)
             except Exception:  # a half-written result: the scheduler knows more
                 outcome, value = "", None
             if outcome == "error":
-                return str(value).strip().splitlines()[-1] if str(value).strip() else "error"
-        return ended_reason(job_id)
+                error = str(value).strip().splitlines()[-1] if str(value).strip() else "error"
+        return "; ".join(r for r in (scheduler, error) if r)
 
     def wait(self, tickets: Sequence[Ticket], timeout: float) -> None:
         """Sleep ``timeout`` seconds (the scheduler is asked again after it)."""

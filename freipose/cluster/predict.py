@@ -19,6 +19,7 @@ import logging
 import math
 import os
 import pickle
+import signal
 import socket
 import time
 from collections.abc import Callable, Sequence
@@ -39,6 +40,25 @@ log = logging.getLogger(__name__)
 
 TASK_FILE = "task.pkl"
 PLAN_FILE = "plan.json"
+
+
+class UnitStopped(Exception):
+    """SLURM ended the unit's job (cancelled, preempted, out of time): its part stays resumable."""
+
+
+def _stop_on_sigterm() -> None:
+    """In a SLURM job, stop the unit at once on SIGTERM instead of running on to SIGKILL.
+
+    SLURM sends SIGTERM when a job is cancelled, requeued, preempted or out of time, and
+    SIGKILL a little later; submitit lets SIGTERM pass. Stopping at once closes the part
+    after its last whole chunk, so the next job continues from there.
+    """
+
+    def stop(signum: int, frame: Any) -> None:
+        raise UnitStopped(f"stopped by SLURM (signal {signum}); the part is kept for the next job")
+
+    if "SLURM_JOB_ID" in os.environ:
+        signal.signal(signal.SIGTERM, stop)
 
 
 class UnitsFailedError(FreiPoseError):
@@ -149,23 +169,28 @@ def predict_unit(arg: UnitArg) -> int:
     from freipose.predict.network import predict_sessions
 
     task, unit = arg.task, arg.unit
+    _stop_on_sigterm()
     torch.set_num_threads(task.threads)
     cv2.setNumThreads(task.threads)
     job = os.environ.get("SLURM_ARRAY_JOB_ID", os.environ.get("SLURM_JOB_ID", ""))
     if job and "SLURM_ARRAY_TASK_ID" in os.environ:
         job = f"{job}_{os.environ['SLURM_ARRAY_TASK_ID']}"
-    where = {"host": socket.gethostname(), "pid": os.getpid(), "job_id": job}
+    where: dict[str, Any] = {"host": socket.gethostname(), "pid": os.getpid(), "job_id": job}
     t0 = time.perf_counter()
+    first: list[float] = []
+    where["started_at"] = time.time()
     _unit_record(task, unit, state="running", started=now_iso(), **where)
     predict_sessions(
         [task.session(unit.session)], task.model, task.spec, task.outdir, frames=task.frames,
         batch_size=task.batch_size, device=task.device, refine=task.refine,
         overrides=task.overrides, shard=(unit.index, unit.count),
         chunk_frames=task.chunk_frames, expected_skeleton=task.skeleton, progress=False,
+        on_batch=lambda n: first.append(time.time()) if not first else None,
     )  # fmt: skip
     seconds = time.perf_counter() - t0
     _unit_record(task, unit, state="done", finished=now_iso(), seconds=round(seconds, 3),
-                 frames=unit.frames, **where)  # fmt: skip
+                 first_frame_at=first[0] if first else None, frames=unit.frames,
+                 **where)  # fmt: skip
     return unit.frames
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -323,6 +323,7 @@ def predict_sessions(
     expected_skeleton: Skeleton | None = None,
     progress: bool = True,
     report: Any = None,
+    on_batch: Callable[[int], None] | None = None,
 ) -> list[Any]:
     """Predict validated sessions with a checkpoint (what ``freipose predict`` runs).
 
@@ -347,6 +348,7 @@ def predict_sessions(
         expected_skeleton: the keypoints the model must predict (None: any).
         progress: show progress bars.
         report: called with each session's result.
+        on_batch: called after each batch with the rows written so far (of the session).
 
     Returns:
         One :class:`~freipose.predict.run.PredictResult` per session.
@@ -385,6 +387,7 @@ def predict_sessions(
             res = predict_session(
                 s, est, outdir, frames=ranges[s.name], batch_size=batch_size, shard=shard,
                 overwrite=overwrite, skeleton=skel, chunk_frames=chunk_frames, progress=progress,
+                on_batch=on_batch,
             )  # fmt: skip
         if report is not None:
             report(res)

@@ -1,6 +1,6 @@
 """Every command of the tutorials that build on the demo, run on the tiny demo's folder.
 
-``docs/tutorials/demo.md`` and ``docs/tutorials/analysis.md`` start from a finished
+``docs/tutorials/demo.md``, ``analysis.md`` and ``cluster.md`` start from a finished
 ``freipose demo`` folder; the tests copy the tiny demo that the other demo tests share
 (``tiny_demo`` in ``conftest.py``) to ``freipose_demo/`` and run the fenced ``bash`` blocks
 of each page as written (``freipose ...`` lines, backslash continuations joined, globs
@@ -40,6 +40,19 @@ ANALYSIS_SUBSTITUTIONS = {
     "--onset-delay 0.6": "--onset-delay 0.2",
     "--margin 0.5": "--margin 0.3",
     "--pre 1 --post 1": "--pre 0.5 --post 0.5",
+}
+
+
+#: the tiny demo's sessions (60 frames: 3 units of 24) on the local executor, without a GPU
+CLUSTER_SUBSTITUTIONS = {
+    "--detector freipose_demo/train/detector/detector.pt": "--method bgsub",
+    "--chunk-frames 250": "--chunk-frames 24",
+    'executor = "slurm"': 'executor = "local"',
+    "gpus = 1 ": "gpus = 0 ",
+    "cpus = 4 ": "cpus = 1 ",
+    "array_parallelism = 32": "array_parallelism = 2",
+    "chunk_frames = 6000": "chunk_frames = 24",
+    "--device cuda": "--device cpu",
 }
 
 
@@ -122,3 +135,15 @@ def test_analysis_tutorial_commands(demo_folder):
     with h5py.File("rat1_day4.vars.h5", "r") as f:
         assert f["values"].shape == (60, 336)  # 12 rat keypoints, 9 STFT frequencies
         assert f.attrs["floor_source"] == "floor.toml"
+
+
+@pytest.mark.slow
+def test_cluster_tutorial_commands(demo_folder):
+    out = run_page("cluster.md", CLUSTER_SUBSTITUTIONS)
+    for folder in ("poses_units", "poses_cluster"):
+        for day in ("rat1_day2", "rat1_day3"):
+            with h5py.File(f"{folder}/{day}.poses.h5", "r") as f:
+                assert f["poses"].shape[0] == 60 and bool(f.attrs["complete"])
+        assert not list(Path(folder).glob("*.shard-*"))
+    status = out["jobs poses_units"]
+    assert "rat1_day2: 3 done" in status and "rat1_day3: 3 done" in status
