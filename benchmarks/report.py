@@ -36,7 +36,8 @@ BEGIN, END = "<!-- demo-figures:begin -->", "<!-- demo-figures:end -->"
 CARD_BEGIN, CARD_END = "<!-- base-figures:begin -->", "<!-- base-figures:end -->"
 # the scripts that record results (each gets a section, recorded or not)
 BENCHMARKS = (
-    "accuracy", "analysis", "calibration", "calibration_coverage", "classifier_days", "demo",
+    "accuracy", "analysis", "calibration", "calibration_coverage", "classifier_days", "cluster",
+    "demo",
     "detector", "label_page", "null_studies", "own_rig", "predict", "real_finetune", "smooth",
     "synth", "throughput", "train_base",
 )  # fmt: skip
