@@ -31,7 +31,7 @@ from freipose.cluster.config import ClusterConfig
 from freipose.cluster.driver import JOBS_DIR, DriverReport, Unit, journal, now_iso, run_units
 from freipose.cluster.executors import Executor, LocalExecutor, SlurmExecutor
 from freipose.errors import FreiPoseError
-from freipose.io.atomic import atomic_write_text
+from freipose.io.atomic import atomic_path, atomic_write_text
 from freipose.io.lock import output_lock
 from freipose.io.session import Session
 from freipose.io.video import frame_range
@@ -223,14 +223,13 @@ def _save_plan(task: PredictTask, config: ClusterConfig, units: Sequence[Unit]) 
     doc = {
         "command": "predict",
         "created": now_iso(),
-        "cluster": {k: v for k, v in dataclasses.asdict(config).items()},
+        "cluster": dataclasses.asdict(config),
         "sessions": [s.name for s in task.sessions],
         "units": [dataclasses.asdict(u) for u in units],
     }
     atomic_write_text(folder / PLAN_FILE, json.dumps(doc, indent=1, default=str))
-    tmp = folder / (TASK_FILE + ".tmp")
-    tmp.write_bytes(pickle.dumps(task))
-    os.replace(tmp, folder / TASK_FILE)
+    with atomic_path(folder / TASK_FILE) as tmp:
+        tmp.write_bytes(pickle.dumps(task))
 
 
 def load_task(outdir: Path) -> tuple[PredictTask, ClusterConfig]:
