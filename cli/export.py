@@ -62,6 +62,14 @@ def _parse_time(value: str | None) -> datetime.datetime | None:
     help="NWB only: recording start as an ISO time with time zone (default 1970-01-01 UTC).",
 )
 @click.option("--description", default=None, help="NWB only: session description.")
+@click.option(
+    "--animal",
+    default=None,
+    help="Poses of several animals: export only this one (its name in the poses' "
+    "individuals). Default: every animal (csv: one row per frame and animal; dlc3d: the "
+    "individuals header row; nwb: one PoseEstimation per animal; movement: its individuals "
+    "dimension; anipose holds one animal and needs --animal).",
+)
 @allow_incomplete_option()
 @overwrite_option("existing exports")
 def export(
@@ -70,6 +78,7 @@ def export(
     output: Path | None,
     start_time: str | None,
     description: str | None,
+    animal: str | None,
     allow_incomplete: bool,
     overwrite: bool,
 ) -> None:
@@ -84,6 +93,8 @@ def export(
       freipose export poses/rec1.poses.h5 --format csv
       freipose export poses/*.poses.h5 --format nwb -o nwb/ --start-time 2024-05-01T10:00:00+02:00
       freipose export poses/rec1.poses.h5 --format anipose -o rec1_3d.csv
+      freipose export poses/pair.poses.h5 --format movement
+      freipose export poses/pair.poses.h5 --format anipose --animal mouse1
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.atomic import refuse_existing
@@ -102,7 +113,7 @@ def export(
         for _, out in jobs:
             refuse_existing(out, overwrite)
         for p, out in jobs:
-            written = export_poses(p, fmt, out, **kwargs)
+            written = export_poses(p, fmt, out, animal=animal, **kwargs)
             click.echo(f"wrote {written}")
 
 

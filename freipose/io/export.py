@@ -17,6 +17,13 @@
   keypoints, individuals), ``confidence``), read by ``xarray.open_dataset`` and by FreiPose
   (see ``freipose.io.movement``). Needs the optional extra ``movement``.
 
+Poses of several animals (an animal axis, ``individuals``): the CSV has one row per frame
+and animal with the columns ``individual`` and ``identity_confidence`` after ``time_s``;
+the DLC-3D CSV has DeepLabCut's multi-animal header ``scorer / individuals / bodyparts /
+coords``; NWB holds one ``PoseEstimation_<individual>`` per animal, each with its own
+``Skeleton`` (``<skeleton>_<individual>``); movement uses its ``individuals`` dimension.
+Anipose's format has no animals: export one with ``animal=`` (``freipose export --animal``).
+
 Every writer writes atomically. ``read_*`` functions read the files back (used by the
 round-trip tests and handy for users).
 """
@@ -69,6 +76,7 @@ def default_output(poses_path: str | Path, fmt: str) -> Path:
 # -- wide CSV ------------------------------------------------------------------------------
 
 WIDE_LAYOUT = "wide: one row per frame"
+WIDE_LAYOUT_ANIMALS = "wide: one row per frame and individual"
 
 
 def column_name(keypoint: str) -> str:
@@ -76,12 +84,19 @@ def column_name(keypoint: str) -> str:
     return re.sub(r"[\s,]+", "_", keypoint.strip())
 
 
-def _wide_columns(keypoints: tuple[str, ...]) -> dict[str, dict[str, str]]:
-    """Column name -> ``keypoint``, ``quantity``, ``unit`` for every column of the wide CSV."""
+def _wide_columns(keypoints: tuple[str, ...], animals: bool = False) -> dict[str, dict[str, str]]:
+    """Column name -> ``keypoint``, ``quantity``, ``unit`` for every column of the wide CSV.
+
+    ``animals``: the columns ``individual`` and ``identity_confidence`` follow ``time_s``.
+    """
     cols = {
         "frame": {"quantity": "video frame index", "unit": ""},
         "time_s": {"quantity": "time (frame / fps)", "unit": "s"},
     }
+    if animals:
+        cols["individual"] = {"quantity": "animal name", "unit": ""}
+        cols["identity_confidence"] = {"quantity": "identity confidence (empty: unknown)",
+                                       "unit": "0-1"}  # fmt: skip
     prefixes = [column_name(k) for k in keypoints]
     dupes = sorted({p for p in prefixes if prefixes.count(p) > 1})
     if dupes:
@@ -97,12 +112,20 @@ def _wide_columns(keypoints: tuple[str, ...]) -> dict[str, dict[str, str]]:
 
 
 def wide_frame(data: PoseData) -> pd.DataFrame:
-    """The wide table: one row per frame (see the module docstring)."""
-    names = list(_wide_columns(tuple(data.keypoints)))
-    values: list[Any] = [data.frame_index, data.times]
+    """The wide table: one row per frame, or per frame and animal (see the module docstring)."""
+    multi = data.individuals is not None
+    names = list(_wide_columns(tuple(data.keypoints), multi))
+    poses, conf = data.animal_poses()  # (T, A, K, 3), (T, A, K)
+    T, A = poses.shape[:2]
+    poses, conf = poses.reshape(T * A, *poses.shape[2:]), conf.reshape(T * A, -1)
+    values: list[Any] = [np.repeat(data.frame_index, A), np.repeat(data.times, A)]
+    if multi:
+        ident = data.identity_confidence
+        values.append(np.tile(np.asarray(data.animal_names, dtype=object), T))
+        values.append(np.full(T * A, np.nan) if ident is None else ident.reshape(-1))
     for k in range(len(data.keypoints)):
-        values += [data.poses[:, k, a].astype(np.float64) for a in range(3)]
-        values.append(data.confidence[:, k].astype(np.float64))
+        values += [poses[:, k, a].astype(np.float64) for a in range(3)]
+        values.append(conf[:, k].astype(np.float64))
     return pd.DataFrame(dict(zip(names, values)))
 
 
@@ -110,10 +133,12 @@ def write_wide_csv(data: PoseData, path: str | Path) -> Path:
     """Write the wide CSV (mm, seconds) and its sidecar ``<path>.json``; returns ``path``."""
     path = Path(path)
     table = wide_frame(data)
+    multi = data.individuals is not None
     sidecar = {
-        "layout": WIDE_LAYOUT,
+        "layout": WIDE_LAYOUT_ANIMALS if multi else WIDE_LAYOUT,
         "keypoints": list(data.keypoints),
-        "columns": _wide_columns(tuple(data.keypoints)),
+        **({"individuals": list(data.animal_names)} if multi else {}),
+        "columns": _wide_columns(tuple(data.keypoints), multi),
         "world_frame": "the calibration's world frame (mm)",
         "up": [float(u) for u in data.up],
         "fps": float(data.fps),
@@ -128,12 +153,17 @@ def read_wide_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     """Read a wide CSV back: (frame_index (T,), poses (T, K, 3), confidence (T, K), keypoints).
 
     The keypoint names come from the sidecar ``<path>.json`` where it exists, else from
-    the column names (spaces then read as ``_``).
+    the column names (spaces then read as ``_``). A CSV of several animals gives one row
+    per frame and animal (the ``individual`` column tells them apart).
     """
-    df = pd.read_csv(path)
+    df = pd.read_csv(path, dtype={"individual": str})
     if "frame" not in df.columns:
         raise ExportError(f"{path}: no 'frame' column; not a FreiPose wide CSV")
-    pres = [c[: -len("_confidence")] for c in df.columns if c.endswith("_confidence")]
+    pres = [
+        c[: -len("_confidence")]
+        for c in df.columns
+        if c.endswith("_confidence") and c != "identity_confidence"
+    ]
     side = Path(f"{path}.json")
     kps = tuple(pres)
     if side.is_file():
@@ -180,7 +210,17 @@ def _reprojection_stats(data: PoseData) -> tuple[np.ndarray, np.ndarray]:
 
 
 def anipose_frame(data: PoseData) -> pd.DataFrame:
-    """Anipose's ``pose-3d`` table (see the module docstring)."""
+    """Anipose's ``pose-3d`` table (see the module docstring).
+
+    Raises:
+        ExportError: the poses have an animal axis (Anipose's table holds one animal).
+    """
+    if data.individuals is not None:
+        raise ExportError(
+            f"Anipose's pose-3d table holds one animal; these poses hold "
+            f"{list(data.individuals)}: export one with --animal NAME, or use --format csv, "
+            f"dlc3d, nwb or movement"
+        )
     err, ncams = _reprojection_stats(data)
     found = np.isfinite(data.poses).all(-1)
     cols: dict[str, Any] = {}
@@ -222,10 +262,17 @@ def read_anipose_csv(
 
 
 def dlc3d_frame(data: PoseData, scorer: str = "FreiPose") -> pd.DataFrame:
-    """DLC-3D style table: MultiIndex columns (scorer, bodyparts, coords), index = frame."""
-    cols = pd.MultiIndex.from_product(
-        [[scorer], list(data.keypoints), ["x", "y", "z"]], names=["scorer", "bodyparts", "coords"]
-    )
+    """DLC-3D style table: MultiIndex columns (scorer, [individuals,] bodyparts, coords).
+
+    The index is the frame; poses of several animals have DeepLabCut's multi-animal
+    ``individuals`` level.
+    """
+    levels = [[scorer], list(data.keypoints), ["x", "y", "z"]]
+    names = ["scorer", "bodyparts", "coords"]
+    if data.individuals is not None:
+        levels.insert(1, list(data.individuals))
+        names.insert(1, "individuals")
+    cols = pd.MultiIndex.from_product(levels, names=names)
     values = data.poses.reshape(data.num_frames, -1).astype(np.float64)
     return pd.DataFrame(values, columns=cols, index=pd.Index(data.frame_index, name="frame"))
 
@@ -238,10 +285,17 @@ def write_dlc3d_csv(data: PoseData, path: str | Path) -> Path:
 
 
 def read_dlc3d_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
-    """(frame (T,), poses (T, K, 3), keypoints) from a DLC-3D style CSV."""
-    df = pd.read_csv(path, header=[0, 1, 2], index_col=0)
-    kps = tuple(dict.fromkeys(df.columns.get_level_values(1)))
-    poses = df.to_numpy(np.float64).reshape(len(df), len(kps), 3)
+    """(frame (T,), poses (T, [A,] K, 3), keypoints) from a DLC-3D style CSV.
+
+    A multi-animal header (4 rows) gives poses (T, A, K, 3).
+    """
+    with open(path, encoding="utf-8") as fh:
+        head = [fh.readline().split(",")[0] for _ in range(4)]
+    multi = head[1] == "individuals"
+    df = pd.read_csv(path, header=[0, 1, 2, 3] if multi else [0, 1, 2], index_col=0)
+    kps = tuple(dict.fromkeys(df.columns.get_level_values(2 if multi else 1)))
+    shape = (len(df), -1, len(kps), 3) if multi else (len(df), len(kps), 3)
+    poses = df.to_numpy(np.float64).reshape(shape)
     return df.index.to_numpy(np.int64), poses, kps
 
 
@@ -305,51 +359,70 @@ def write_nwb(
                 pairs.append([int(a[0]), int(b[0])])
         edges = np.asarray(pairs, dtype=np.uint8 if len(names) < 256 else np.uint16).reshape(-1, 2)
     skel_name = data.skeleton.name if data.skeleton is not None else "skeleton"
-    skeleton = ndx_pose.Skeleton(name=skel_name, nodes=names, edges=edges)
     times = data.times.astype(np.float64)
     frame_desc = "world frame of the FreiPose calibration, millimetres, up = " + ", ".join(
         f"{u:g}" for u in data.up
     )
-    series: list[Any] = []
-    for k, name in enumerate(names):
-        series.append(
-            ndx_pose.PoseEstimationSeries(
-                name=name,
-                description=f"3D position of {name}",
-                data=data.poses[:, k, :].astype(np.float64),
-                unit="mm",
-                reference_frame=frame_desc,
-                timestamps=times if not series else series[0],
-                confidence=data.confidence[:, k].astype(np.float64),
-                confidence_definition="FreiPose confidence in [0, 1]; 0 where not found",
+    multi = data.individuals is not None
+    skeletons, estimations = [], []
+    for i, animal in enumerate(data.animal_names):
+        one = data.animal(i)
+        skeleton = ndx_pose.Skeleton(
+            name=f"{skel_name}_{animal}" if multi else skel_name, nodes=names, edges=edges
+        )
+        series: list[Any] = []
+        for k, name in enumerate(names):
+            series.append(
+                ndx_pose.PoseEstimationSeries(
+                    name=name,
+                    description=f"3D position of {name}" + (f" of {animal}" if multi else ""),
+                    data=one.poses[:, k, :].astype(np.float64),
+                    unit="mm",
+                    reference_frame=frame_desc,
+                    timestamps=times if not series else series[0],
+                    confidence=one.confidence[:, k].astype(np.float64),
+                    confidence_definition="FreiPose confidence in [0, 1]; 0 where not found",
+                )
+            )
+        who = animal if multi else subject
+        skeletons.append(skeleton)
+        estimations.append(
+            ndx_pose.PoseEstimation(
+                name=f"PoseEstimation_{animal}" if multi else "PoseEstimation",
+                pose_estimation_series=series,
+                description=(
+                    f"3D poses of {who} estimated by FreiPose from the synchronized videos "
+                    + ", ".join(str(v) for v in dict(prov.get("videos", {})).values())
+                ),
+                scorer=str(prov.get("model_sha256", "FreiPose")),
+                source_software="FreiPose",
+                source_software_version=str(prov.get("freipose_version", "")),
+                skeleton=skeleton,
             )
         )
-    pe = ndx_pose.PoseEstimation(
-        name="PoseEstimation",
-        pose_estimation_series=series,
-        description=(
-            f"3D poses of {subject} estimated by FreiPose from the synchronized videos "
-            + ", ".join(str(v) for v in dict(prov.get("videos", {})).values())
-        ),
-        scorer=str(prov.get("model_sha256", "FreiPose")),
-        source_software="FreiPose",
-        source_software_version=str(prov.get("freipose_version", "")),
-        skeleton=skeleton,
-    )
     module = nwb.create_processing_module(name="behavior", description="processed behavioral data")
-    module.add(ndx_pose.Skeletons(skeletons=[skeleton]))
-    module.add(pe)
+    module.add(ndx_pose.Skeletons(skeletons=skeletons))
+    for pe in estimations:
+        module.add(pe)
     with atomic_h5(path) as f, pynwb.NWBHDF5IO(file=f, mode="w") as io:
         io.write(nwb)
     return Path(path)
 
 
-def read_nwb(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
-    """(timestamps (T,), poses (T, K, 3), confidence (T, K), keypoints) from our NWB export."""
+def read_nwb(
+    path: str | Path, individual: str | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """(timestamps (T,), poses (T, K, 3), confidence (T, K), keypoints) from our NWB export.
+
+    Args:
+        path: the file.
+        individual: the animal of a file of several (``PoseEstimation_<individual>``).
+    """
     pynwb, _ = _require_nwb()
     with pynwb.NWBHDF5IO(str(path), mode="r") as io:
         nwb = io.read()
-        pe = nwb.processing["behavior"]["PoseEstimation"]
+        name = "PoseEstimation" if individual is None else f"PoseEstimation_{individual}"
+        pe = nwb.processing["behavior"][name]
         kps = tuple(pe.skeleton.nodes[:])
         ser = pe.pose_estimation_series
         poses = np.stack([np.asarray(ser[k].data[:]) for k in kps], 1)
@@ -362,14 +435,37 @@ def read_nwb(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tupl
 
 
 def export_poses(
-    poses_path: str | Path, fmt: str, output: str | Path | None = None, **kwargs: Any
+    poses_path: str | Path,
+    fmt: str,
+    output: str | Path | None = None,
+    animal: str | None = None,
+    **kwargs: Any,
 ) -> Path:
-    """Export a ``poses.h5`` file to ``fmt`` (one of :data:`FORMATS`); returns the output path."""
+    """Export a ``poses.h5`` file to ``fmt`` (one of :data:`FORMATS`); returns the output path.
+
+    Args:
+        poses_path: the poses file.
+        fmt: the format.
+        output: the output file (default: :func:`default_output`).
+        animal: export only this animal of poses with an animal axis (without an axis).
+        kwargs: passed to :func:`write_nwb`.
+
+    Raises:
+        ExportError: an unknown format or animal, or a missing optional dependency.
+    """
     if fmt not in FORMATS:
         raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
     if fmt == "nwb":
         _require_nwb()  # fail before reading a large file
     data = read_poses_h5(poses_path)
+    if animal is not None:
+        if data.individuals is None or animal not in data.individuals:
+            held = "one animal without names" if data.individuals is None else data.individuals
+            raise ExportError(
+                f"{poses_path}: no animal {animal!r} (the poses hold {held}); pass one of "
+                f"those names to --animal, or leave it out to export every animal"
+            )
+        data = data.animal(animal)
     out = Path(output) if output is not None else default_output(poses_path, fmt)
     if fmt == "csv":
         return write_wide_csv(data, out)

@@ -2,13 +2,15 @@
 
 The file is what ``movement`` (``pip install 'freipose[movement]'``) saves with
 ``ds.to_netcdf``: ``position`` float32 (time, space, keypoints, individuals) with
-``space = x, y, z`` in world mm and one individual, ``confidence`` float32 (time,
+``space = x, y, z`` in world mm and one individual per animal, ``confidence`` float32 (time,
 keypoints, individuals), coordinates ``time`` (seconds, ``frame_index / fps``),
 ``space``, ``keypoints``, ``individuals``, and the attributes ``ds_type = "poses"``,
 ``source_software = "FreiPose"``, ``fps``, ``time_unit = "seconds"``. FreiPose adds the
 data variable ``frame_index`` (time) int64 and the attributes ``units = "mm"``, ``up``
 (3,) and, where known, ``calibration``, ``skeleton`` (TOML text) and ``provenance`` (JSON),
-so that a file it wrote reads back exactly. A file of another tool without them gets
+and for several animals ``identity_confidence`` float32 (time, individuals) and the
+attribute ``animal_axis = 1`` (the poses had an animal axis), so that a file it wrote reads
+back exactly. A file of another tool without them gets
 ``frame_index = round(time * fps)`` (or ``time`` itself when ``time_unit`` is frames) and
 up ``+z``.
 
@@ -40,13 +42,15 @@ class MovementPoses:
     """The contents of a movement poses file, as plain arrays.
 
     Attributes:
-        poses: (T, K, 3) float32 mm, NaN where missing.
-        confidence: (T, K) float32.
+        poses: (T, K, 3) float32 mm, NaN where missing; (T, A, K, 3) with ``individuals``.
+        confidence: (T, K) float32; (T, A, K) with ``individuals``.
         keypoints: (K,) names.
         frame_index: (T,) int64.
         fps: frames per second.
         attrs: the FreiPose attributes found (``up``, ``calibration``, ``skeleton``,
             ``provenance``).
+        individuals: (A,) names of an animal axis, or None (one animal, no axis).
+        identity_confidence: (T, A) float32, or None.
     """
 
     poses: np.ndarray
@@ -55,6 +59,8 @@ class MovementPoses:
     frame_index: np.ndarray
     fps: float
     attrs: dict[str, Any]
+    individuals: tuple[str, ...] | None = None
+    identity_confidence: np.ndarray | None = None
 
 
 def _xarray() -> Any:
@@ -73,27 +79,38 @@ def write_movement(path: str | Path, data: MovementPoses, individual: str = "ind
     Args:
         path: the output ``.nc`` file.
         data: the poses; ``attrs`` values must be strings or numeric arrays.
-        individual: the name of the one individual.
+        individual: the name of the one individual (poses without an animal axis).
 
     Raises:
         MovementFormatError: xarray or a netCDF engine is not installed.
     """
     xr = _xarray()
-    position = np.transpose(data.poses.astype(np.float32), (0, 2, 1))[..., None]
+    multi = data.individuals is not None
+    poses = data.poses if multi else data.poses[:, None]  # (T, A, K, 3)
+    conf = data.confidence if multi else data.confidence[:, None]  # (T, A, K)
+    names = list(data.individuals) if data.individuals is not None else [individual]
+    position = np.transpose(poses.astype(np.float32), (0, 3, 2, 1))
+    data_vars: dict[str, Any] = {
+        "position": (("time", "space", "keypoints", "individuals"), position),
+        "confidence": (
+            ("time", "keypoints", "individuals"),
+            np.transpose(conf.astype(np.float32), (0, 2, 1)),
+        ),
+        "frame_index": (("time",), data.frame_index.astype(np.int64)),
+    }
+    extra_attrs: dict[str, Any] = {"animal_axis": 1} if multi else {}
+    if data.identity_confidence is not None:
+        data_vars["identity_confidence"] = (
+            ("time", "individuals"),
+            np.asarray(data.identity_confidence, np.float32),
+        )
     ds = xr.Dataset(
-        data_vars={
-            "position": (("time", "space", "keypoints", "individuals"), position),
-            "confidence": (
-                ("time", "keypoints", "individuals"),
-                data.confidence.astype(np.float32)[..., None],
-            ),
-            "frame_index": (("time",), data.frame_index.astype(np.int64)),
-        },
+        data_vars=data_vars,
         coords={
             "time": data.frame_index / float(data.fps),
             "space": ["x", "y", "z"],
             "keypoints": list(data.keypoints),
-            "individuals": [individual],
+            "individuals": names,
         },
         attrs={
             "source_software": "FreiPose",
@@ -101,6 +118,7 @@ def write_movement(path: str | Path, data: MovementPoses, individual: str = "ind
             "fps": float(data.fps),
             "time_unit": "seconds",
             "units": "mm",
+            **extra_attrs,
             **data.attrs,
         },
     )
@@ -113,11 +131,14 @@ def write_movement(path: str | Path, data: MovementPoses, individual: str = "ind
 
 
 def read_movement(path: str | Path) -> MovementPoses:
-    """Read a movement poses dataset (one individual).
+    """Read a movement poses dataset.
+
+    One individual gives poses without an animal axis (unless FreiPose wrote the file with
+    one, ``animal_axis = 1``); several give (T, A, K, 3) with their names.
 
     Raises:
         MovementFormatError: xarray is missing, or the file is not a movement poses dataset
-            of one individual with x, y, z in mm.
+            with x, y, z in mm.
     """
     xr = _xarray()
     try:
@@ -138,11 +159,10 @@ def _from_dataset(ds: Any, path: Path) -> MovementPoses:
             f"individuals), found variables {sorted(ds.data_vars)}"
         )
     pos = ds["position"]
-    if pos.sizes["individuals"] != 1 or pos.sizes["space"] != 3:
+    if pos.sizes["space"] != 3:
         raise MovementFormatError(
-            f"{path}: FreiPose reads one individual in 3D, found {pos.sizes['individuals']} "
-            f"individuals and {pos.sizes['space']} space axes; select one with "
-            "ds.sel(individuals=[NAME]) and save that"
+            f"{path}: FreiPose reads poses in 3D, found {pos.sizes['space']} space axes "
+            f"({list(map(str, ds['space'].values))}); 2D poses are not 3D poses"
         )
     units = str(ds.attrs.get("units", "mm"))
     if units != "mm":
@@ -152,12 +172,22 @@ def _from_dataset(ds: Any, path: Path) -> MovementPoses:
         raise MovementFormatError(
             f"{path}: no fps attribute; load it with movement's fps= and save it again"
         )
-    poses = np.transpose(pos.transpose("time", "space", "keypoints", "individuals").values[..., 0],
-                         (0, 2, 1))  # fmt: skip
+    names = tuple(str(n) for n in ds["individuals"].values)
+    multi = len(names) > 1 or int(ds.attrs.get("animal_axis", 0)) == 1
+    poses = np.transpose(pos.transpose("time", "space", "keypoints", "individuals").values,
+                         (0, 3, 2, 1))  # (T, A, K, 3)  # fmt: skip
     if "confidence" in ds:
-        conf = ds["confidence"].transpose("time", "keypoints", "individuals").values[..., 0]
+        conf = np.transpose(
+            ds["confidence"].transpose("time", "keypoints", "individuals").values, (0, 2, 1)
+        )
     else:
         conf = np.isfinite(poses).all(axis=-1).astype(np.float32)
+    ident = None
+    if multi and "identity_confidence" in ds:
+        ident = ds["identity_confidence"].transpose("time", "individuals").values
+        ident = ident.astype(np.float32)
+    if not multi:
+        poses, conf = poses[:, 0], conf[:, 0]
     if "frame_index" in ds:
         frames = ds["frame_index"].values.astype(np.int64)
     else:
@@ -173,4 +203,6 @@ def _from_dataset(ds: Any, path: Path) -> MovementPoses:
         frame_index=frames,
         fps=fps,
         attrs=attrs,
+        individuals=names if multi else None,
+        identity_confidence=ident,
     )

@@ -7,6 +7,12 @@ Required: ``poses`` float32 (T, K, 3) world mm (NaN = missing), ``confidence`` f
 skeleton TOML text), provenance attributes (``provenance/...``) and extra per-frame
 datasets under ``extra/`` (e.g. ``points2d`` (T, C, K, 2), ``boxes`` (T, C, 4),
 ``center`` (T, 3)).
+
+Several animals: a file with the dataset ``individuals`` (A,) UTF-8 has an animal axis
+after time: ``poses`` (T, A, K, 3), ``confidence`` (T, A, K), the per-animal extras
+(``points2d`` (T, A, C, K, 2), ``center`` (T, A, 3), ...) and optionally
+``identity_confidence`` (T, A) float32 in [0, 1] (how sure the identity of each animal's
+row is in each frame). A file without ``individuals`` holds one animal.
 """
 
 from __future__ import annotations
@@ -57,6 +63,14 @@ class PoseData(PicklableFrozen):
         skeleton: the skeleton, if known.
         provenance: free-form facts (versions, model hash, source videos).
         extra: further per-frame arrays with time as the first axis.
+        individuals: (A,) animal names: the poses have an animal axis (T, A, K, 3); None:
+            one animal without an axis (T, K, 3).
+        identity_confidence: (T, A) float32 in [0, 1]: how sure each row's identity is
+            (only with ``individuals``; None: not known).
+
+    With ``individuals`` the confidences are (T, A, K) and the per-animal extras
+    (:data:`ANIMAL_EXTRAS`) have the animal axis after time; :meth:`animal` gives one
+    animal as a single-animal :class:`PoseData`, :func:`stack_animals` joins them.
     """
 
     poses: np.ndarray
@@ -69,15 +83,19 @@ class PoseData(PicklableFrozen):
     skeleton: Skeleton | None = None
     provenance: Mapping[str, Any] = field(default_factory=dict)
     extra: Mapping[str, np.ndarray] = field(default_factory=dict)
+    individuals: tuple[str, ...] | None = None
+    identity_confidence: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         poses = np.asarray(self.poses, dtype=np.float32)
-        if poses.ndim != 3 or poses.shape[-1] != 3:
+        animals = self._checked_individuals(poses)
+        if animals is None and (poses.ndim != 3 or poses.shape[-1] != 3):
             raise PosesFormatError(f"poses must have shape (T, K, 3), got {poses.shape}")
-        t, k = poses.shape[:2]
+        t, k = poses.shape[0], poses.shape[-2]
+        lead = (t,) if animals is None else (t, len(animals))
         conf = np.asarray(self.confidence, dtype=np.float32)
-        if conf.shape != (t, k):
-            raise PosesFormatError(f"confidence must have shape {(t, k)}, got {conf.shape}")
+        if conf.shape != (*lead, k):
+            raise PosesFormatError(f"confidence must have shape {(*lead, k)}, got {conf.shape}")
         if np.any(conf[np.isfinite(conf)] < 0) or np.any(conf[np.isfinite(conf)] > 1):
             raise PosesFormatError("confidence values must lie in [0, 1]")
         kps = tuple(str(s) for s in self.keypoints)
@@ -98,7 +116,21 @@ class PoseData(PicklableFrozen):
                 f"match the poses' keypoints {list(kps)}"
             )
         cams = None if self.calibration is None else len(self.calibration)
-        extra = _checked_extra(self.extra, t, k, cams)
+        extra = _checked_extra(self.extra, t, k, cams, None if animals is None else len(animals))
+        ident = self.identity_confidence
+        if ident is not None:
+            if animals is None:
+                raise PosesFormatError("identity_confidence needs individuals (an animal axis)")
+            ident = np.asarray(ident, dtype=np.float32)
+            if ident.shape != lead:
+                raise PosesFormatError(
+                    f"identity_confidence must have shape {lead} (T, A), got {ident.shape}"
+                )
+            fin = ident[np.isfinite(ident)]
+            if np.any(fin < 0) or np.any(fin > 1):
+                raise PosesFormatError("identity_confidence values must lie in [0, 1]")
+        object.__setattr__(self, "individuals", animals)
+        object.__setattr__(self, "identity_confidence", ident)
         object.__setattr__(self, "poses", poses)
         object.__setattr__(self, "confidence", conf)
         object.__setattr__(self, "keypoints", kps)
@@ -108,16 +140,85 @@ class PoseData(PicklableFrozen):
         object.__setattr__(self, "provenance", MappingProxyType(dict(self.provenance)))
         object.__setattr__(self, "extra", MappingProxyType(extra))
 
+    def _checked_individuals(self, poses: np.ndarray) -> tuple[str, ...] | None:
+        """The animal names, checked against ``poses`` (None: no animal axis)."""
+        if self.individuals is None:
+            return None
+        names = tuple(str(n) for n in self.individuals)
+        if poses.ndim != 4 or poses.shape[-1] != 3 or poses.shape[1] != len(names):
+            raise PosesFormatError(
+                f"poses of {len(names)} individuals must have shape (T, {len(names)}, K, 3), "
+                f"got {poses.shape}"
+            )
+        if len(set(names)) != len(names) or not all(names):
+            raise PosesFormatError(f"individuals must be unique, non-empty names, got {names}")
+        return names
+
     @property
     def num_frames(self) -> int:
         """The number of frames T."""
         return self.poses.shape[0]
 
     @property
+    def num_animals(self) -> int:
+        """The number of animals A (1 without an animal axis)."""
+        return 1 if self.individuals is None else len(self.individuals)
+
+    @property
+    def animal_names(self) -> tuple[str, ...]:
+        """(A,) the animals' names (``("animal",)`` without an animal axis)."""
+        return ("animal",) if self.individuals is None else self.individuals
+
+    def animal_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(poses (T, A, K, 3), confidence (T, A, K))``, with A = 1 for one animal."""
+        if self.individuals is None:
+            return self.poses[:, None], self.confidence[:, None]
+        return self.poses, self.confidence
+
+    def animal(self, which: int | str) -> PoseData:
+        """One animal as a single-animal :class:`PoseData` (no animal axis).
+
+        Args:
+            which: the animal's index or name.
+
+        Returns:
+            Its poses, confidences and per-animal extras; the per-frame extras, the
+            calibration, skeleton and provenance (plus ``individual``: its name) as they are.
+
+        Raises:
+            PosesFormatError: no such animal.
+        """
+        names = self.animal_names
+        if isinstance(which, str):
+            if which not in names:
+                raise PosesFormatError(f"no animal {which!r}; the poses hold {list(names)}")
+            i = names.index(which)
+        else:
+            i = int(which)
+            if not 0 <= i < len(names):
+                raise PosesFormatError(f"no animal {i}; the poses hold {len(names)}")
+        if self.individuals is None:
+            return self
+        extra = {
+            k: (v[:, i] if k in ANIMAL_EXTRAS else v) for k, v in self.extra.items()
+        }  # fmt: skip
+        return PoseData(
+            self.poses[:, i], self.confidence[:, i], self.keypoints, self.frame_index,
+            self.fps, self.up, self.calibration, self.skeleton,
+            {**dict(self.provenance), "individual": names[i]}, extra,
+        )  # fmt: skip
+
+    @property
     def times(self) -> np.ndarray:
         """(T,) seconds from the first frame of the video (frame_index / fps)."""
         return self.frame_index / self.fps
 
+
+#: the documented extra datasets that hold one value per animal: with an animal axis their
+#: shape has A after T (``points2d`` (T, A, C, K, 2)); the others are per frame
+ANIMAL_EXTRAS = frozenset(
+    ("points2d", "confidence2d", "boxes", "center", "smooth_std", "filled", "rejected")
+)
 
 # The documented extra datasets: their shapes in T (frames), C (cameras) and K (keypoints).
 _EXTRA_SHAPES: Mapping[str, tuple[int | str, ...]] = MappingProxyType(
@@ -136,12 +237,13 @@ _EXTRA_SHAPES: Mapping[str, tuple[int | str, ...]] = MappingProxyType(
 
 
 def _checked_extra(
-    extra: Mapping[str, Any], t: int, k: int, cams: int | None
+    extra: Mapping[str, Any], t: int, k: int, cams: int | None, animals: int | None = None
 ) -> dict[str, np.ndarray]:
     """The extra datasets as arrays, their shapes checked against T, K and the cameras C.
 
     Every extra dataset has T rows; the documented ones (:data:`_EXTRA_SHAPES`) have their
-    full shape checked, with C the calibration's cameras, else the first dataset's.
+    full shape checked, with C the calibration's cameras, else the first dataset's; with
+    ``animals`` A, those of :data:`ANIMAL_EXTRAS` have the animal axis after T.
 
     Raises:
         PosesFormatError: a dataset whose shape disagrees; the message names it, its
@@ -149,12 +251,16 @@ def _checked_extra(
     """
     sizes: dict[str, int] = {"T": t, "K": k}
     source = {"T": "the poses' frames", "K": "the poses' keypoints"}
+    if animals is not None:
+        sizes["A"], source["A"] = animals, "the individuals"
     if cams is not None:
         sizes["C"], source["C"] = cams, "the calibration's cameras"
     out = {}
     for name, arr in dict(extra).items():
         a = np.asarray(arr)
         spec = _EXTRA_SHAPES.get(name, ("T",))
+        if animals is not None and name in ANIMAL_EXTRAS:
+            spec = ("T", "A", *spec[1:])
         if "C" in spec and "C" not in sizes and a.ndim == len(spec):
             sizes["C"], source["C"] = a.shape[spec.index("C")], f"extra dataset {name!r}"
         expected = tuple(sizes.get(d, -1) if isinstance(d, str) else d for d in spec)
@@ -168,6 +274,48 @@ def _checked_extra(
             )
         out[name] = a
     return out
+
+
+def stack_animals(
+    animals: Mapping[str, PoseData], identity_confidence: np.ndarray | None = None
+) -> PoseData:
+    """Join single-animal poses of one recording into poses with an animal axis.
+
+    Args:
+        animals: name -> that animal's poses (same frames, keypoints and fps); the first
+            one gives the calibration, skeleton, up and provenance.
+        identity_confidence: (T, A) in [0, 1], or None.
+
+    Returns:
+        Poses (T, A, K, 3) with ``individuals`` the names in order; extras that every
+        animal has are stacked (per-animal ones) or taken from the first (per-frame ones).
+
+    Raises:
+        PosesFormatError: no animal, an animal with an axis of its own, or animals whose
+            frames or keypoints differ.
+    """
+    items = list(animals.items())
+    if not items:
+        raise PosesFormatError("stack_animals needs at least one animal")
+    first = items[0][1]
+    for name, d in items:
+        if d.individuals is not None:
+            raise PosesFormatError(f"animal {name!r} has an animal axis of its own")
+        if d.keypoints != first.keypoints or not np.array_equal(d.frame_index, first.frame_index):
+            raise PosesFormatError(
+                f"animal {name!r} has other keypoints or frames than {items[0][0]!r}"
+            )
+    shared = [k for k in first.extra if all(k in d.extra for _, d in items)]
+    extra = {
+        k: (np.stack([d.extra[k] for _, d in items], 1) if k in ANIMAL_EXTRAS else first.extra[k])
+        for k in shared
+    }  # fmt: skip
+    prov = {k: v for k, v in first.provenance.items() if k != "individual"}
+    return PoseData(
+        np.stack([d.poses for _, d in items], 1), np.stack([d.confidence for _, d in items], 1),
+        first.keypoints, first.frame_index, first.fps, first.up, first.calibration,
+        first.skeleton, prov, extra, tuple(n for n, _ in items), identity_confidence,
+    )  # fmt: skip
 
 
 def write_poses_h5(data: PoseData, path: str | Path) -> None:
@@ -184,6 +332,10 @@ def write_poses_group(f: h5py.Group, data: PoseData) -> None:
     f.create_dataset("confidence", data=data.confidence, compression="gzip", compression_opts=4)
     f.create_dataset("keypoints", data=str_array(data.keypoints))
     f.create_dataset("frame_index", data=data.frame_index)
+    if data.individuals is not None:
+        f.create_dataset("individuals", data=str_array(data.individuals))
+    if data.identity_confidence is not None:
+        f.create_dataset("identity_confidence", data=data.identity_confidence)
     f.attrs["fps"] = data.fps
     f.attrs["units"] = "mm"
     f.attrs["up"] = data.up
@@ -214,8 +366,9 @@ def write_movement_poses(data: PoseData, path: str | Path) -> Path:
     if data.provenance:
         attrs["provenance"] = json.dumps(dict(data.provenance), default=str)
     arrays = MovementPoses(
-        data.poses, data.confidence, data.keypoints, data.frame_index, data.fps, attrs
-    )
+        data.poses, data.confidence, data.keypoints, data.frame_index, data.fps, attrs,
+        data.individuals, data.identity_confidence,
+    )  # fmt: skip
     return write_movement(path, arrays)
 
 
@@ -244,6 +397,8 @@ def _read_movement_poses(path: Path) -> PoseData:
             calibration=calib,
             skeleton=skel,
             provenance=prov,
+            individuals=m.individuals,
+            identity_confidence=m.identity_confidence,
         )
     except ValueError as exc:
         if isinstance(exc, PosesFormatError):
@@ -295,6 +450,8 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
                 )
             prov = json.loads(f.attrs["provenance"]) if "provenance" in f.attrs else {}
             extra = {k: f["extra"][k][()] for k in f["extra"]} if "extra" in f else {}
+            animals = tuple(decode_strings(f["individuals"][()])) if "individuals" in f else None
+            ident = f["identity_confidence"][()] if "identity_confidence" in f else None
             return PoseData(
                 poses=f["poses"][()],
                 confidence=f["confidence"][()],
@@ -306,6 +463,8 @@ def read_poses_h5(path: str | Path, require_up: bool = True) -> PoseData:
                 skeleton=skel,
                 provenance=prov,
                 extra=extra,
+                individuals=animals,
+                identity_confidence=ident,
             )
         except ValueError as exc:
             if isinstance(exc, PosesFormatError) and str(exc).startswith(str(path)):

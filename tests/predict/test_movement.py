@@ -82,10 +82,22 @@ def test_a_dataset_made_by_movement_reads_as_poses(tmp_path):
     assert back.keypoints == ("a", "b") and back.fps == 25.0
 
 
-def test_two_individuals_refused(tmp_path):
+def test_two_individuals_read_with_an_animal_axis(tmp_path):
     from movement.io import load_poses
 
-    ds = load_poses.from_numpy(np.zeros((4, 3, 2, 2), np.float32), fps=10.0, source_software="test")
+    pos = np.random.default_rng(1).normal(size=(4, 3, 2, 2)).astype(np.float32)
+    ds = load_poses.from_numpy(pos, individual_names=["a", "b"], fps=10.0, source_software="t")
     ds.to_netcdf(tmp_path / "two.nc")
-    with pytest.raises(MovementFormatError, match="one individual"):
-        read_poses_h5(tmp_path / "two.nc")
+    back = read_poses_h5(tmp_path / "two.nc")
+    assert back.individuals == ("a", "b") and back.poses.shape == (4, 2, 2, 3)
+    np.testing.assert_array_equal(back.poses[:, 1], pos[..., 1].transpose(0, 2, 1))
+    np.testing.assert_array_equal(back.animal("b").poses, pos[..., 1].transpose(0, 2, 1))
+
+
+def test_2d_dataset_refused(tmp_path):
+    from movement.io import load_poses
+
+    ds = load_poses.from_numpy(np.zeros((4, 2, 2, 1), np.float32), fps=10.0, source_software="t")
+    ds.to_netcdf(tmp_path / "flat.nc")
+    with pytest.raises(MovementFormatError, match="3D"):
+        read_poses_h5(tmp_path / "flat.nc")
