@@ -7,6 +7,9 @@ N labeled time instants over V cameras and K keypoints:
 * ``points3d`` (N, K, 3) float64 world mm, NaN = unknown;
 * ``visible2d`` (N, V, K) bool, optional: the keypoint is visible (not occluded, inside the
   image) in that view; absent means "labeled implies visible";
+* ``individual`` (N,) UTF-8, optional: the animal of each row; the rows of one session and
+  frame with different individuals are the animals of that instant, and one name is one
+  animal across the frames of its session; absent means one animal per row;
 * ``cameras`` (V,) and ``keypoints`` (K,) UTF-8 names;
 * group ``sessions/<name>`` per session: attribute ``calibration`` (calibration.toml
   text, may be absent for 2D-only data), attribute ``videos`` (JSON: camera name -> video
@@ -77,6 +80,7 @@ class LabelSet(PicklableFrozen):
     keypoints: tuple[str, ...]
     sessions: Mapping[str, SessionInfo] = field(default_factory=dict)
     visible2d: np.ndarray | None = None
+    individual: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         sess = np.asarray([str(s) for s in np.asarray(self.session).reshape(-1)], dtype=object)
@@ -100,6 +104,11 @@ class LabelSet(PicklableFrozen):
             vis = np.asarray(self.visible2d, dtype=bool)
             if vis.shape != (n, v, k):
                 raise LabelsFormatError(f"visible2d must have shape {(n, v, k)}, got {vis.shape}")
+        ind = None
+        if self.individual is not None:
+            ind = np.asarray([str(a) for a in np.asarray(self.individual).reshape(-1)], object)
+            if ind.shape != (n,):
+                raise LabelsFormatError(f"individual must have shape ({n},), got {ind.shape}")
         infos = dict(self.sessions)
         for s in sorted(set(sess)):
             infos.setdefault(s, SessionInfo())
@@ -117,6 +126,7 @@ class LabelSet(PicklableFrozen):
         object.__setattr__(self, "cameras", cams)
         object.__setattr__(self, "keypoints", kps)
         object.__setattr__(self, "visible2d", vis)
+        object.__setattr__(self, "individual", ind)
         object.__setattr__(self, "sessions", MappingProxyType(infos))
 
     def __len__(self) -> int:
@@ -137,7 +147,15 @@ class LabelSet(PicklableFrozen):
             self.keypoints,
             {s: i for s, i in self.sessions.items() if s in keep},
             None if self.visible2d is None else self.visible2d[idx],
+            None if self.individual is None else self.individual[idx],
         )
+
+    @property
+    def individuals(self) -> tuple[str, ...]:
+        """The animals' names in order of appearance (``()`` without ``individual``)."""
+        if self.individual is None:
+            return ()
+        return tuple(dict.fromkeys(str(a) for a in self.individual))
 
     def rig_for(self, session: str) -> CameraRig | None:
         """The calibration of ``session`` (None for 2D-only data)."""
@@ -235,6 +253,8 @@ def fill_labels_h5(f: h5py.File, labels: LabelSet) -> None:
     f.create_dataset("points3d", data=labels.points3d, compression="gzip")
     if labels.visible2d is not None:
         f.create_dataset("visible2d", data=labels.visible2d, compression="gzip")
+    if labels.individual is not None:
+        f.create_dataset("individual", data=str_array(labels.individual))
     f.create_dataset("cameras", data=str_array(labels.cameras))
     f.create_dataset("keypoints", data=str_array(labels.keypoints))
     g = f.create_group("sessions")
@@ -286,6 +306,9 @@ def read_labels_h5(path: str | Path) -> LabelSet:
                 tuple(decode_strings(f["keypoints"][()])),
                 sessions,
                 f["visible2d"][()] if "visible2d" in f else None,
+                np.array(decode_strings(f["individual"][()]), dtype=object)
+                if "individual" in f
+                else None,
             )
         except (ValueError, KeyError) as exc:
             if isinstance(exc, LabelsFormatError):

@@ -353,7 +353,37 @@ def source_arrays(
             log.info(
                 "%s: triangulated %d of %d keypoints labeled in >= 2 views", src.source, got, n2
             )
+            _log_reprojection(src, p3, p2[:, cols], p.rig)
     return SourceArrays(p2, vis, p3)
+
+
+def _log_reprojection(
+    src: SourceLabels, points3d: np.ndarray, points2d: np.ndarray, rig: CameraRig
+) -> None:
+    """Log the reprojection errors of the 2D labels, per animal for multi-animal sources.
+
+    Args:
+        src: the source (its name and ``individual``).
+        points3d: (N, K, 3) mm.
+        points2d: (N, V, K, 2) pixels in ``rig`` order.
+        rig: the V cameras.
+    """
+    from freipose.geometry import reprojection_errors
+
+    err = reprojection_errors(points3d, np.moveaxis(points2d, 1, 2), rig)  # (N, K, V)
+    groups = [("", np.ones(len(err), bool))]
+    if src.individual is not None:
+        names = np.asarray(src.individual, dtype=object)
+        groups += [(f" {a}", names == a) for a in dict.fromkeys(src.individual)]
+    for name, rows in groups:
+        e = err[rows]
+        e = e[np.isfinite(e)]
+        if len(e):
+            log.info(
+                "%s%s: reprojection error mean %.2f px, median %.2f px over %d point-views "
+                "(%d instants)",
+                src.source, name, float(e.mean()), float(np.median(e)), len(e), int(rows.sum()),
+            )  # fmt: skip
 
 
 def _session_info(info: SessionInfo | None, p: PreparedSource, out_dir: Path) -> SessionInfo:
@@ -430,6 +460,13 @@ def build_labelset(
         arrays.append(source_arrays(p, all_cams, options))
         sessions[p.src.session] = _session_info(sessions.get(p.src.session), p, out_dir)
     any_vis = any(p.src.visible2d is not None for p in prepared)
+    any_ind = any(p.src.individual is not None for p in prepared)
+    individual = None
+    if any_ind:
+        individual = np.concatenate(
+            [np.asarray(p.src.individual if p.src.individual is not None
+                        else [""] * len(p.src.frame_index), dtype=object) for p in prepared]
+        )  # fmt: skip
     return LabelSet(
         np.concatenate(
             [np.array([p.src.session] * len(p.src.frame_index), dtype=object) for p in prepared]
@@ -441,4 +478,5 @@ def build_labelset(
         prepared[0].keypoints,
         sessions,
         np.concatenate([a.visible2d for a in arrays]) if any_vis else None,
+        individual,
     )

@@ -53,6 +53,7 @@ def _replace(labels: LabelSet, **kw: object) -> LabelSet:
         keypoints=labels.keypoints,
         sessions=dict(labels.sessions),
         visible2d=labels.visible2d,
+        individual=labels.individual,
     )
     fields.update(kw)
     return LabelSet(**fields)  # type: ignore[arg-type]
@@ -73,7 +74,8 @@ def merge_labels(parts: Sequence[LabelSet], names: Sequence[str] | None = None) 
     """Concatenate labels sets: union of cameras and keypoints (first-seen order).
 
     A session present in several inputs must have the same cameras in each; a (session,
-    frame) labeled in two inputs is an error (it would count twice in training).
+    frame, individual) labeled in two inputs is an error (it would count twice in training).
+    The result has ``individual`` when an input has (rows of the others: ``""``).
 
     Raises:
         LabelsOpError: conflicting sessions or duplicate labels (names the inputs).
@@ -105,12 +107,14 @@ def merge_labels(parts: Sequence[LabelSet], names: Sequence[str] | None = None) 
             else:
                 sessions[s], owner[s] = info, nm
         keys = set()
-        for s, f in zip(p.session, p.frame_index):
-            key = (str(s), int(f))
+        inds = p.individual if p.individual is not None else [""] * len(p)
+        for s, f, a in zip(p.session, p.frame_index, inds):
+            key = (str(s), int(f), str(a))
             if key in seen:
+                who = f" animal {key[2]!r}" if key[2] else ""
                 raise LabelsOpError(
-                    f"session {key[0]!r} frame {key[1]} is labeled in both {seen[key]} and {nm}; "
-                    f"remove the duplicate from one input"
+                    f"session {key[0]!r} frame {key[1]}{who} is labeled in both {seen[key]} "
+                    f"and {nm}; remove the duplicate from one input"
                 )
             keys.add(key)
         for key in keys:
@@ -138,6 +142,16 @@ def merge_labels(parts: Sequence[LabelSet], names: Sequence[str] | None = None) 
         tuple(kps),
         sessions,
         vis if any_vis else None,
+        _merged_individuals(parts),
+    )
+
+
+def _merged_individuals(parts: Sequence[LabelSet]) -> np.ndarray | None:
+    """The ``individual`` of merged parts (``""`` for parts without), or None if none has."""
+    if all(p.individual is None for p in parts):
+        return None
+    return np.concatenate(
+        [p.individual if p.individual is not None else np.full(len(p), "", object) for p in parts]
     )
 
 

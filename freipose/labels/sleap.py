@@ -1,11 +1,14 @@
 """SLEAP ``.slp`` label files, read with sleap-io (``pip install 'freipose[sleap]'``).
 
 A multi-camera file (with a recording session) gives one session: cameras from the
-session's video-to-camera map, cross-view identity from its instance groups when present,
-else from tracks. Otherwise each ``.slp`` is one camera: its name from ``--camera-map``, a
-calibration camera in the file name, or the file stem; a folder ``session/<camera>/*.slp``
-(sleap-anipose's layout) gives one session named after the folder, a camera per
-subfolder, and the folder's ``calibration.toml`` when no calibration is given.
+session's video-to-camera map, cross-view identity from its instance groups when present
+(each group one animal at one instant, named by the group's identity, else by the track its
+instances share; :func:`group_identity`), else from tracks. The animal's name becomes the
+row's ``individual`` in ``labels.h5``. Otherwise each ``.slp`` is one camera: its name from
+``--camera-map``, a calibration camera in the file name, or the file stem; a folder
+``session/<camera>/*.slp`` (sleap-anipose's layout) gives one session named after the
+folder, a camera per subfolder, and the folder's ``calibration.toml`` when no calibration
+is given.
 
 Which instances are imported is a choice (``instances``): ``user`` (hand-labeled, the
 default), ``predicted`` (SLEAP's predictions, e.g. proofread ones as sleap-anipose's
@@ -175,6 +178,44 @@ def load_slp_file(sio: Any, src: Path, kind: str = "user") -> SlpFile:
     return SlpFile(path, labels, kps, chosen, kind)
 
 
+def group_identity(group: Any, index: int, path: Path, frame: int) -> str:
+    """The animal of a SLEAP instance group: its identity, else its instances' track.
+
+    Args:
+        group: a sleap-io ``InstanceGroup``.
+        index: its position in its frame group.
+        path: the file (for messages).
+        frame: its frame (for messages).
+
+    Returns:
+        The identity's name, else the one track all its instances share, else the group's
+        name (``instance_group_<index>``; such names do not link the animal across frames,
+        which is logged).
+
+    Raises:
+        LabelImportError: the group's instances belong to different tracks.
+    """
+    ident = getattr(group, "identity", None)
+    if ident is not None and getattr(ident, "name", ""):
+        return str(ident.name)
+    tracks = {_track(i) for i in group.instance_by_camera.values()}
+    tracks.discard("")
+    if len(tracks) > 1:
+        raise LabelImportError(
+            f"{path}: instance group {index} of frame {frame} joins instances of the tracks "
+            f"{sorted(tracks)}; one group is one animal: fix the tracks or the group in SLEAP"
+        )
+    if tracks:
+        return tracks.pop()
+    name = dict(getattr(group, "metadata", {}) or {}).get("name") or f"instance_group_{index}"
+    log.warning(
+        "%s: instance group %s of frame %d has neither an identity nor a track; its animal "
+        "is named after the group, which does not link it across frames",
+        path, name, frame,
+    )  # fmt: skip
+    return str(name)
+
+
 def _session_cameras(slp: SlpFile, rs: Any) -> dict[int, str]:
     """Camera name of every video of the session (keyed by ``id(video)``)."""
     cam_of = {}
@@ -214,9 +255,19 @@ def _session_groups(slp: SlpFile, rs: Any, cam_of: dict[int, str]) -> list[Group
             }
             if not by_cam:
                 continue
-            groups.append((int(fidx), f"group{g}", by_cam))
+            groups.append((int(fidx), group_identity(ig, g, slp.path, int(fidx)), by_cam))
     if groups:
-        return groups
+        seen: dict[tuple[int, str], int] = {}
+        for f, ind, _ in groups:
+            seen[(f, ind)] = seen.get((f, ind), 0) + 1
+        twice = sorted(k for k, n in seen.items() if n > 1)
+        if twice:
+            f, ind = twice[0]
+            raise LabelImportError(
+                f"{slp.path}: frame {f} has {seen[twice[0]]} instance groups of the animal "
+                f"{ind!r}; give each group its own identity or track in SLEAP"
+            )
+        return sorted(groups, key=lambda r: (r[0], r[1]))
     tmp: dict[tuple[int, str], dict[str, object]] = {}
     for lf, inst in slp.chosen:
         cam = cam_of.get(id(lf.video))

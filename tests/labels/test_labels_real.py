@@ -173,3 +173,33 @@ def test_jarvis_coco_with_yaml_calibration(tmp_path, rng):
     expect[1, 2, 0] = np.nan
     np.testing.assert_allclose(lab.points2d, expect, atol=1e-9)
     np.testing.assert_allclose(lab.points3d, X, atol=1e-6)
+
+
+def test_sleap_multiview_session_keeps_the_animals(shared_data, tmp_path):
+    """Both mice triangulated, each row's animal the one of its SLEAP instance group."""
+    sio = pytest.importorskip("sleap_io")
+    slp = shared_data / "sleap-8cam-2mice" / "min_session_frame_groups.slp"
+    out = tmp_path / "labels.h5"
+    r = CliRunner().invoke(cli, ["labels", "import", "--format", "sleap", str(slp), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    lab = read_labels_h5(out)
+    assert lab.individuals == ("track_0", "track_1")
+    assert list(lab.individual) == ["track_0", "track_1"] * 3
+    assert list(lab.frame_index) == [0, 0, 1, 1, 2, 2]
+    rs = sio.load_slp(str(slp)).sessions[0]
+    for i in range(len(lab)):
+        group = rs.frame_groups[int(lab.frame_index[i])].instance_groups
+        mine = [g for g in group if {x.track.name for x in g.instance_by_camera.values()}
+                == {lab.individual[i]}]  # fmt: skip
+        assert len(mine) == 1
+        for cam, inst in mine[0].instance_by_camera.items():
+            c = lab.cameras.index(cam.name)
+            np.testing.assert_array_equal(lab.points2d[i, c], inst.numpy())
+        # both animals triangulated: most keypoints of every row have a 3D point
+        assert np.isfinite(lab.points3d[i]).all(-1).sum() >= 12
+    # the two animals are apart in 3D (not one animal twice)
+    gap = np.nanmedian(np.linalg.norm(lab.points3d[0::2] - lab.points3d[1::2], axis=-1))
+    assert gap > 20
+    logged = [m for m in r.output.splitlines() if "reprojection error" in m]
+    assert any("track_0" in m for m in logged) and any("track_1" in m for m in logged)
+    print("\n".join(logged))
