@@ -26,6 +26,7 @@ def jobs(ctx: click.Context, outdir: Path, resume: bool, show_all: bool) -> None
 
     For `freipose predict --executor ... -o OUTDIR`: per session, the units that are done,
     running, queued, failed (with the reason and the log) or waiting, and the throughput.
+    For `freipose train --executor ... --out RUN`: the training job's state and step.
 
     \b
     Examples:
@@ -34,6 +35,13 @@ def jobs(ctx: click.Context, outdir: Path, resume: bool, show_all: bool) -> None
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.cluster.status import jobs_status
+        from freipose.cluster.train import is_train_job
+
+        if is_train_job(outdir):  # a run folder of `freipose train --executor`
+            from freipose.cli.train import show_train_job
+
+            show_train_job(ctx, outdir, resume)
+            return
 
         if resume:
             _resume(ctx, outdir)

@@ -184,7 +184,15 @@ class SlurmExecutor:
 
     name = "slurm"
 
-    def __init__(self, config: ClusterConfig, folder: Path):
+    def __init__(self, config: ClusterConfig, folder: Path, **parameters: Any):
+        """Jobs with ``config``'s settings, their logs under ``folder``.
+
+        Args:
+            config: the cluster settings.
+            folder: where submitit keeps the jobs' scripts, pickles and logs.
+            parameters: further submitit parameters, over ``config``'s (``nodes``,
+                ``ntasks_per_node``, ``srun_args``, ``job_name``).
+        """
         try:
             import submitit
         except ImportError:
@@ -212,7 +220,7 @@ class SlurmExecutor:
         for key in ("partition", "account", "qos"):
             if getattr(config, key):
                 params[key] = getattr(config, key)
-        self._ex.update_parameters(**params)
+        self._ex.update_parameters(**{**params, **parameters})
         self._jobs: dict[str, Any] = {}
 
     def submit(self, fn: Fn, args: Sequence[Any], units: Sequence[str]) -> list[Ticket]:
