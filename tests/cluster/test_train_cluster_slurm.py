@@ -1,0 +1,106 @@
+"""A training job of 2 gloo processes on a real SLURM (the single-node SLURM of ``.ci/run``).
+
+One run is submitted with ``--no-wait`` and then waited for by the same command (which
+must not submit it twice); another is requeued midway (``scontrol requeue``: SIGTERM,
+then the same job again) and must continue from its checkpoint to the same weights, bit
+for bit. SLURM holds a requeued job back for about two minutes (its BeginTime); the test
+releases it with ``scontrol update starttime=now``, as an administrator may.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import cluster_file, slurm_reason
+from test_train_cluster import logged_steps, same_weights, train_config
+
+from freipose.cluster.driver import read_journal
+
+pytestmark = pytest.mark.slurm
+
+STEPS, EVERY = 30, 4
+
+
+@pytest.fixture(scope="module")
+def slurm() -> None:
+    reason = slurm_reason()
+    if reason is not None:
+        pytest.skip(reason)
+
+
+def _cli(*args: object, timeout: float = 300) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "freipose.cli.main", "-q", *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=False)
+
+
+def _squeue_state(job: str) -> str:
+    out = subprocess.run(["squeue", "-h", "-j", job, "-o", "%T"], capture_output=True,
+                         text=True, check=False).stdout.split()  # fmt: skip
+    return out[0] if out else ""
+
+
+def _until(what: str, ok, deadline: float) -> None:  # noqa: ANN001 - a callable
+    while not ok():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.1)
+
+
+def _job_id(run: Path) -> str:
+    found = [e["job_id"] for e in read_journal(run) if e["event"] == "submitted"]
+    return found[-1] if found else ""
+
+
+def _last_step(run: Path) -> int:
+    try:
+        steps = logged_steps(run)
+    except (OSError, ValueError):
+        return 0
+    return steps[-1] if steps else 0
+
+
+def test_slurm_training_requeued_midway_equals_an_uninterrupted_run(slurm, tmp_path):
+    cfg = train_config(tmp_path, steps=STEPS, checkpoint_every=EVERY)
+    cl = cluster_file(tmp_path, poll_s=0.5, cpus=1, mem_gb=2, time_min=10)
+    job = ["--executor", "slurm", "--cluster", cl, "--tasks-per-node", "2"]
+    ref, run = tmp_path / "ref", tmp_path / "run"
+    # submitted without waiting; the same command then waits for that job
+    res = _cli("train", cfg, "--out", ref, *job, "--no-wait")
+    assert res.returncode == 0 and "follow it with: freipose jobs" in res.stdout, res
+    res = _cli("jobs", ref)
+    assert f"job {_job_id(ref)} (attempt 1)" in res.stdout, res
+    assert ": queued" in res.stdout or ": running" in res.stdout, res.stdout
+    res = _cli("train", cfg, "--out", ref, *job)
+    assert res.returncode == 0 and f"wrote {ref / 'model.pt'}" in res.stdout, res
+    assert [e["event"] for e in read_journal(ref)] == ["submitted", "done"]
+    # requeued after a checkpoint: SLURM stops it and starts the same job again
+    deadline = time.monotonic() + 300
+    cmd = [sys.executable, "-m", "freipose.cli.main", "-q", "train", str(cfg), "--out",
+           str(run), *map(str, job)]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        _until(
+            "the job's step 6", lambda: _last_step(run) >= 6 or proc.poll() is not None, deadline
+        )
+        step, job_id = _last_step(run), _job_id(run)
+        assert step < STEPS, f"the run ended (step {step}) before the test could requeue it"
+        subprocess.run(["scontrol", "requeue", job_id], check=True)
+        _until("the requeued job", lambda: _squeue_state(job_id) == "PENDING", deadline)
+        subprocess.run(["scontrol", "update", f"jobid={job_id}", "starttime=now"], check=True)
+        output, _ = proc.communicate(timeout=max(deadline - time.monotonic(), 1))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, output
+    assert same_weights(ref / "model.pt", run / "model.pt")
+    assert logged_steps(run) == list(range(1, STEPS + 1))
+    seconds = [float(r.split(",")[-1]) for r in (run / "log.csv").read_text().split()[1:]]
+    resumed = [i for i in range(1, STEPS) if seconds[i] < seconds[i - 1]]  # after step i
+    assert len(resumed) == 1 and resumed[0] % EVERY == 0 and resumed[0] <= step, seconds
+    assert [e["event"] for e in read_journal(run)] == ["submitted", "done"]
+    log = next((run / ".jobs" / "slurm").glob(f"{job_id}/*_0_log.err")).read_text()
+    assert "DUE TO JOB REQUEUE" in log, log
