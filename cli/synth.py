@@ -17,6 +17,15 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _scales(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise click.BadParameter(
+            f"expected size factors such as 1.0,0.6, got {text!r}", param_hint="--animal-scales"
+        ) from None
+
+
 def _formats(text: str) -> tuple[str, ...]:
     return tuple(v.strip() for v in text.split(",") if v.strip())
 
@@ -63,6 +72,26 @@ def _formats(text: str) -> tuple[str, ...]:
 )
 @click.option(
     "--animal-scale", type=float, default=None, help="Body size factor, rat = 1 [the animal's]."
+)
+@click.option(
+    "--animals",
+    type=click.IntRange(1, 4),
+    default=None,
+    help="Number of animals, 1..4 [1]; 2..4: a social scene (they meet, cross, climb over and "
+    "hide each other); labels.h5 then has a row per frame and animal, and true_poses.h5 the "
+    "truth (time, animal, keypoint, xyz) with per-view visibility.",
+)
+@click.option(
+    "--coat-mix",
+    type=click.Choice(["random", "same", "different"]),
+    default=None,
+    help="Coats of several animals with a random --appearance [random: each drawn].",
+)
+@click.option(
+    "--animal-scales",
+    type=str,
+    default=None,
+    help="Body size factor of each animal, comma-separated, e.g. 1.0,0.6 [each the animal's].",
 )
 @click.option(
     "--arena-size", type=str, default=None, help="Inner arena size WIDTHxDEPTH in mm [600x600]."
@@ -172,6 +201,9 @@ def synth(
     appearance: str | None,
     animal: str | None,
     animal_scale: float | None,
+    animals: int | None,
+    coat_mix: str | None,
+    animal_scales: str | None,
     arena_size: str | None,
     wall_height: float | None,
     grayscale: bool | None,
@@ -193,7 +225,7 @@ def synth(
     workers: int | None,
     overwrite: bool,
 ) -> None:
-    """Render a synthetic multi-camera session of a moving rat or mouse with exact ground truth.
+    """Render a synthetic multi-camera session of moving rats or mice with exact ground truth.
 
     Writes one video per camera, true_calibration.toml (the true cameras), labels.h5 (exact 3D
     keypoints, their 2D projections and per-view visibility for every frame), events.csv
@@ -208,6 +240,7 @@ def synth(
           --lens fisheye --walls acrylic --reflections 0.3 --rest-fraction 0.6 --floor bedding
           --label-files sleap
       freipose synth base/s1000 --seed 1000 --randomize
+      freipose synth social/pair --animals 2 --coat-mix different --label-files sleap,dlc
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.synth import SceneConfig, StimulationConfig, generate_session
@@ -228,6 +261,9 @@ def synth(
             "video_format": ".mkv" if lossless else None,
             "animal": animal,
             "animal_scale": animal_scale,
+            "animals": animals,
+            "coat_mix": coat_mix,
+            "animal_scales": _scales(animal_scales) if animal_scales is not None else None,
             "arena_size": _parse_size(arena_size) if arena_size is not None else None,
             "wall_height": wall_height,
             "grayscale": True if grayscale else None,

@@ -40,6 +40,17 @@ PART_NAMES: tuple[str, ...] = (
 ) + tuple(f"tail_{i}" for i in range(N_TAIL))  # fmt: skip
 PART: Mapping[str, int] = MappingProxyType({n: i for i, n in enumerate(PART_NAMES)})
 
+
+def per_animal_parts(parts: tuple[int, ...], n_parts: int) -> np.ndarray:
+    """The ids of ``parts`` of one animal in every animal of a geometry of ``n_parts`` parts.
+
+    A geometry of several animals (``freipose.synth.social.combine_geometries``) holds
+    their parts one animal after the other: animal ``a``'s part ``i`` is ``i + a * N``.
+    """
+    one = np.asarray(parts, dtype=np.int64)
+    return np.concatenate([one + a * len(PART_NAMES) for a in range(n_parts // len(PART_NAMES))])
+
+
 # Material of each part (index into the coat's palette, freipose.synth.coats.MATERIALS).
 PART_MATERIAL = np.array(
     [MAT[m] for m in (

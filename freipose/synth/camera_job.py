@@ -8,18 +8,22 @@ from pathlib import Path
 import numpy as np
 
 from freipose.geometry import Camera, project
-from freipose.synth.body import PART, BodyGeometry
+from freipose.synth.body import PART, BodyGeometry, per_animal_parts
 from freipose.synth.look import SceneStyle
 from freipose.synth.rig import ArenaConfig
 
 
 def _blur_vectors(geom: BodyGeometry, cam: Camera, fps: float, shutter: float = 0.5) -> np.ndarray:
-    """(T, 2) image motion of the torso during the exposure (``shutter`` of a frame)."""
-    uv = project(geom.centers[:, PART["chest"]], cam)
+    """(T, 2) image motion of the torso during the exposure (``shutter`` of a frame).
+
+    Several animals (their parts one after the other): the mean of their torsos' motions.
+    """
+    chests = per_animal_parts((PART["chest"],), geom.centers.shape[1])
+    uv = project(geom.centers[:, chests], cam)  # (T, A, 2)
     if len(uv) < 2:
         return np.zeros((len(uv), 2))
-    v = np.gradient(uv, axis=0)
-    return np.nan_to_num(v) * shutter
+    v = np.nan_to_num(np.gradient(uv, axis=0))
+    return (v[:, 0] if len(chests) == 1 else v.mean(axis=1)) * shutter
 
 
 @dataclass(frozen=True, eq=False)

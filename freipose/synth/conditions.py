@@ -43,6 +43,8 @@ LENSES = ("standard", "fisheye", "pinhole")
 FLOORS = ("mat", "bedding")
 WALLS = ("opaque", "acrylic")
 LABEL_FORMATS = ("sleap", "dlc")
+COAT_MIXES = ("random", "same", "different")  # how the coats of several animals are drawn
+MAX_ANIMALS = 4
 
 # The extra settings and their defaults (the classic scene); left out of scene.toml there.
 CONDITION_DEFAULTS: dict[str, Any] = {
@@ -65,6 +67,9 @@ CONDITION_DEFAULTS: dict[str, Any] = {
     "label_files": (),
     "label_noise_px": 1.0,
     "randomize": False,
+    "animals": 1,
+    "coat_mix": "random",
+    "animal_scales": None,
 }
 
 _RANGES = {  # (low, high) of the numeric settings
@@ -110,7 +115,26 @@ def check_conditions(cfg: SceneConfig) -> dict[str, Any]:
     _choice(cfg, "layout", LAYOUTS)
     _choice(cfg, "floor", FLOORS)
     _choice(cfg, "walls", WALLS)
+    _choice(cfg, "coat_mix", COAT_MIXES)
     out: dict[str, Any] = {}
+    try:
+        n = int(cfg.animals)
+    except (TypeError, ValueError):
+        n = 0
+    if not 1 <= n <= MAX_ANIMALS or n != cfg.animals:
+        raise SynthError(f"animals must be an integer in 1..{MAX_ANIMALS}, got {cfg.animals!r}")
+    out["animals"] = n
+    if cfg.animal_scales is not None:
+        try:
+            scales = tuple(float(v) for v in cfg.animal_scales)
+        except (TypeError, ValueError):
+            scales = ()
+        if len(scales) != n or not all(0.3 <= v <= 1.5 for v in scales):
+            raise SynthError(
+                f"animal_scales must give one size factor in [0.3, 1.5] per animal ({n}), "
+                f"got {cfg.animal_scales!r}"
+            )
+        out["animal_scales"] = scales
     for key, (lo, hi) in _RANGES.items():
         value = getattr(cfg, key)
         if value is None and key == "animal_scale":

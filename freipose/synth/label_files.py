@@ -6,6 +6,11 @@ per point; ``"dlc"`` writes ``OUTDIR/labeled-data/<session>_<camera>/CollectedDa
 (a DeepLabCut project's labeled-data table, the folder named after the session and camera:
 scorer / bodyparts / coords header rows, one row per frame ``img<frame>.png``, x and y per
 keypoint).
+Several animals (``individuals``): a SLEAP file holds one track per animal (named after it)
+and one predicted instance per animal and frame; the DeepLabCut tables have the
+multi-animal header ``scorer / individuals / bodyparts / coords`` and the session folder a
+multi-animal project's ``config.yaml`` (``multianimalproject: true``, ``individuals``,
+``multianimalbodyparts``).
 Only the points visible in that camera are given (the others are missing: NaN, or empty
 cells); each is the exact projection plus Gaussian noise of ``label_noise_px``. The point
 score falls with the point's noise: ``exp(-e² / (2 (2 s)²))`` times a factor in 0.85..1
@@ -16,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -92,16 +98,22 @@ def check_label_formats(formats: Sequence[str]) -> None:
 
 
 def write_sleap(
-    path: Path, video: Path, keypoints: Sequence[str], points: np.ndarray, scores: np.ndarray
+    path: Path,
+    video: Path,
+    keypoints: Sequence[str],
+    points: np.ndarray,
+    scores: np.ndarray,
+    individuals: Sequence[str] | None = None,
 ) -> Path:
-    """Write one camera's predictions as a SLEAP ``.slp`` file (one instance per frame).
+    """Write one camera's predictions as a SLEAP ``.slp`` file.
 
     Args:
         path: the ``.slp`` file.
         video: the camera's video (stored as the labels' video, relative to the file).
         keypoints: (K,) node names.
-        points: (T, K, 2) points, NaN where missing.
-        scores: (T, K) point scores, NaN where missing.
+        points: (T, K, 2) points, NaN where missing; (T, A, K, 2) with ``individuals``.
+        scores: (T, K) point scores, NaN where missing; (T, A, K) with ``individuals``.
+        individuals: (A,) the animals: one track each (None: one animal, no track).
 
     Returns:
         ``path``.
@@ -113,17 +125,25 @@ def write_sleap(
     skeleton = sio.Skeleton([sio.Node(k) for k in keypoints], name="rat")
     rel = os.path.relpath(video.resolve(), path.parent.resolve())  # portable with the folder
     vid = sio.Video(filename=Path(rel).as_posix(), open_backend=False)
+    tracks = [sio.Track(name=str(n)) for n in individuals] if individuals is not None else []
+    if individuals is None:
+        points, scores = points[:, None], scores[:, None]
     frames = []
     for t in range(len(points)):
-        seen = np.isfinite(points[t, :, 0])
-        if not seen.any():
-            continue
-        sc = np.where(seen, scores[t], 0.0)
-        inst = sio.PredictedInstance.from_numpy(
-            points[t], skeleton, point_scores=sc, score=float(np.mean(sc[seen]))
-        )
-        frames.append(sio.LabeledFrame(video=vid, frame_idx=t, instances=[inst]))
-    labels = sio.Labels(labeled_frames=frames, videos=[vid], skeletons=[skeleton])
+        instances = []
+        for a in range(points.shape[1]):
+            seen = np.isfinite(points[t, a, :, 0])
+            if not seen.any():
+                continue
+            sc = np.where(seen, scores[t, a], 0.0)
+            inst = sio.PredictedInstance.from_numpy(
+                points[t, a], skeleton, point_scores=sc, score=float(np.mean(sc[seen])),
+                track=tracks[a] if tracks else None,
+            )  # fmt: skip
+            instances.append(inst)
+        if instances:
+            frames.append(sio.LabeledFrame(video=vid, frame_idx=t, instances=instances))
+    labels = sio.Labels(labeled_frames=frames, videos=[vid], skeletons=[skeleton], tracks=tracks)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".part")
     sio.save_slp(labels, str(tmp), verbose=False)
@@ -131,29 +151,83 @@ def write_sleap(
     return path
 
 
-def write_dlc(path: Path, keypoints: Sequence[str], points: np.ndarray) -> Path:
+def write_dlc(
+    path: Path,
+    keypoints: Sequence[str],
+    points: np.ndarray,
+    individuals: Sequence[str] | None = None,
+) -> Path:
     """Write one camera's points as a DeepLabCut ``CollectedData_<scorer>.csv`` table.
 
     Args:
         path: the ``.csv`` file in its labeled-data folder (which names the row index).
         keypoints: (K,) body part names.
-        points: (T, K, 2) points, NaN where missing (empty cells).
+        points: (T, K, 2) points, NaN where missing (empty cells); (T, A, K, 2) with
+            ``individuals``.
+        individuals: (A,) the animals: the multi-animal header's ``individuals`` row.
 
     Returns:
         ``path``.
     """
+    if individuals is None:
+        points, names = points[:, None], [""]
+    else:
+        names = [str(n) for n in individuals]
+    cols = [(n, k) for n in names for k in keypoints]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["scorer"] + ["synthetic"] * (2 * len(keypoints)))
-    w.writerow(["bodyparts"] + [k for k in keypoints for _ in (0, 1)])
-    w.writerow(["coords"] + ["x", "y"] * len(keypoints))
+    w.writerow(["scorer"] + ["synthetic"] * (2 * len(cols)))
+    if individuals is not None:
+        w.writerow(["individuals"] + [n for n, _ in cols for _ in (0, 1)])
+    w.writerow(["bodyparts"] + [k for _, k in cols for _ in (0, 1)])
+    w.writerow(["coords"] + ["x", "y"] * len(cols))
     for t in range(len(points)):
-        if not np.isfinite(points[t, :, 0]).any():
+        if not np.isfinite(points[t, ..., 0]).any():
             continue
         cells = ["" if not np.isfinite(v) else f"{v:.3f}" for v in points[t].ravel()]
         w.writerow([f"labeled-data/{path.parent.name}/img{t:05d}.png"] + cells)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, buf.getvalue())
+    return path
+
+
+def write_dlc_config(
+    folder: Path, keypoints: Sequence[str], individuals: Sequence[str], videos: dict[str, Path]
+) -> Path:
+    """Write a multi-animal DeepLabCut project's ``config.yaml`` into ``folder``.
+
+    Args:
+        folder: the project (session) folder.
+        keypoints: (K,) the body parts (every animal has them all).
+        individuals: (A,) the animals.
+        videos: camera -> video, listed as the project's ``video_sets``.
+
+    Returns:
+        The file.
+    """
+
+    def q(v: object) -> str:  # a quoted YAML scalar (JSON strings are YAML)
+        return json.dumps(str(v))
+
+    lines = [
+        "Task: synthetic",
+        "scorer: synthetic",
+        "date: synthetic",
+        "multianimalproject: true",
+        "identity: true",
+        f"project_path: {q(folder.resolve())}",
+        "video_sets:",
+        *[f"  {q(v.resolve())}:\n    crop: 0, 0, 0, 0" for v in videos.values()],
+        "individuals:",
+        *[f"- {q(n)}" for n in individuals],
+        "uniquebodyparts: []",
+        "multianimalbodyparts:",
+        *[f"- {q(k)}" for k in keypoints],
+        "bodyparts: MULTI!",
+        "skeleton: []",
+    ]
+    path = folder / "config.yaml"
+    atomic_write_text(path, "\n".join(lines) + "\n")
     return path
 
 
@@ -164,6 +238,7 @@ def write_label_files(
     videos: dict[str, Path],
     keypoints: Sequence[str],
     labels: NoisyLabels,
+    individuals: Sequence[str] | None = None,
 ) -> list[Path]:
     """Write the per-camera label files of ``formats`` (see the module docstring).
 
@@ -173,19 +248,28 @@ def write_label_files(
         formats: ``"sleap"`` and/or ``"dlc"``.
         videos: camera name -> its video, in the labels' camera order.
         keypoints: (K,) keypoint names.
-        labels: the noisy points and scores, (T, C, K, ...).
+        labels: the noisy points and scores, (T, C, K, ...); with ``individuals`` the
+            keypoint axis holds A * K points, one animal after the other.
+        individuals: (A,) the animals, or None for one.
 
     Returns:
         The files written.
     """
     out = []
+    K = len(keypoints)
     for ci, (cam, video) in enumerate(videos.items()):
         pts, sc = labels.points[:, ci], labels.scores[:, ci]
+        if individuals is not None:
+            pts = pts.reshape(len(pts), len(individuals), K, 2)
+            sc = sc.reshape(len(sc), len(individuals), K)
         if "sleap" in formats:
-            out.append(write_sleap(folder / cam / f"{cam}.slp", video, keypoints, pts, sc))
+            slp = folder / cam / f"{cam}.slp"
+            out.append(write_sleap(slp, video, keypoints, pts, sc, individuals))
         if "dlc" in formats:
             csv_path = folder / "labeled-data" / f"{session}_{cam}" / "CollectedData_synthetic.csv"
-            out.append(write_dlc(csv_path, keypoints, pts))
+            out.append(write_dlc(csv_path, keypoints, pts, individuals))
+    if "dlc" in formats and individuals is not None:
+        out.append(write_dlc_config(folder, keypoints, individuals, videos))
     return out
 
 
@@ -194,6 +278,7 @@ __all__ = [
     "check_label_formats",
     "noisy_labels",
     "write_dlc",
+    "write_dlc_config",
     "write_label_files",
     "write_sleap",
 ]

@@ -491,6 +491,21 @@ def simulate_motion(
         raise SynthError(f"rest_fraction must be in [0, 1), got {rest_fraction}")
     space, p_rest = _Space(s, half, margin), rest_probability(rest_fraction)
     tr = _simulate(n_frames, clock, space, _gait(body), rng, start, p_rest)
+    return motion_state(tr, clock, stimulation, s, half)
+
+
+def motion_state(
+    tr: _Track, clock: _Clock, stimulation: StimulationConfig | None, s: float, half: np.ndarray
+) -> MotionState:
+    """The :class:`MotionState` of a recorded simulation (stimulation effects added).
+
+    Args:
+        tr: the per-frame records.
+        clock: the simulation's timing and stimulation strength.
+        stimulation: the protocol, or None.
+        s: the animal's size factor.
+        half: (2,) half inner size of the arena, mm.
+    """
     effect = stimulation_effects(stimulation, clock.strength, clock.since, s, tr.yaw, tr.hp)
     return MotionState(
         root_xy=np.stack([tr.x, tr.y], -1),

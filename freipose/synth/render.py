@@ -28,8 +28,8 @@ from freipose.geometry import (
     remove_intrinsics,
     undistort_normalized,
 )
-from freipose.synth.body import PART, BodyGeometry
-from freipose.synth.coats import FURRY, MAT, fur_pattern
+from freipose.synth.body import PART, BodyGeometry, per_animal_parts
+from freipose.synth.coats import FURRY, MAT, MATERIALS, fur_pattern
 from freipose.synth.look import (
     CameraLook,
     SceneStyle,
@@ -312,7 +312,7 @@ class CameraRenderer:
             C: (N, 3) part centres, mm.
             rmax: (N,) bounding radii of the parts, mm.
         """
-        sh_idx = np.array(_SHADOW_PARTS + _CONTACT_PARTS)
+        sh_idx = per_animal_parts(_SHADOW_PARTS + _CONTACT_PARTS, len(C))
         shift = -LIGHT[:2] / LIGHT[2]
         sh_c = np.concatenate(
             [C[sh_idx, :2] + shift * C[sh_idx, 2:3], np.zeros((len(sh_idx), 1))], 1
@@ -404,7 +404,8 @@ class CameraRenderer:
             return rgb
         ids = pid[m]
         p = loc[:, m].T.astype(np.float64)  # (m, 3) unit-sphere coordinates
-        mats = materials[ids]
+        mats = materials[ids]  # several animals: animal a's materials are offset by a * M
+        kind = mats % len(MATERIALS)
         u = p / Rr[ids]
         Ag = A[ids]
         n = (Ag * u[:, None, :]).sum(-1)
@@ -412,15 +413,15 @@ class CameraRenderer:
         d = self.rays_soa[:, y0:y1, x0:x1][:, m].T.astype(np.float64)
         q = (p * Rr[ids]).astype(np.float32)  # local mm: texture moves with the part
         fur = value_noise3(self.fur_noise, q / 1.7)
-        second = fur_pattern(mats, ids, p, q, self.fur_noise)
+        second = fur_pattern(kind, ids, p, q, self.fur_noise)
         alb = palette[mats, second.astype(np.int64)]
-        furry = np.isin(mats, FURRY)
+        furry = np.isin(kind, FURRY)
         alb = alb * (1.0 + np.where(furry, 0.13, 0.05) * fur)[:, None]
         ndl = np.clip(n @ LIGHT, 0, 1)
         ndv = np.clip(-(n * d).sum(1), 0, 1)
         lum = 0.32 + 0.68 * ndl + 0.12 * ndv
         col = alb * lum[:, None]
-        shiny = np.isin(mats, (MAT["eye"], MAT["nose"]))
+        shiny = np.isin(kind, (MAT["eye"], MAT["nose"]))
         if shiny.any():
             hv = LIGHT - d[shiny]
             hv /= np.linalg.norm(hv, axis=1, keepdims=True)
@@ -436,7 +437,8 @@ class CameraRenderer:
         fading with their height.
         """
         x0, y0, x1, y1 = ab.box
-        sh_idx = np.array(_SHADOW_PARTS + _CONTACT_PARTS)
+        sh_idx = per_animal_parts(_SHADOW_PARTS + _CONTACT_PARTS, len(C))
+        n_big = len(_SHADOW_PARTS)
         fxy = self.floor_xy[y0:y1, x0:x1]
         shadow = np.ones((y1 - y0, x1 - x0), np.float32)
         if not np.isfinite(fxy[..., 0]).any():
@@ -455,7 +457,8 @@ class CameraRenderer:
             dx = gx - np.float32(ab.shadow_centres[k, 0])
             dy = gy - np.float32(ab.shadow_centres[k, 1])
             qf = np.float32(ia) * dx * dx + np.float32(2 * ib) * dx * dy + np.float32(ic) * dy * dy
-            strength = (0.5 if k < len(_SHADOW_PARTS) else 0.4) * math.exp(-C[i, 2] / 150.0)
+            big = k % (n_big + len(_CONTACT_PARTS)) < n_big
+            strength = (0.5 if big else 0.4) * math.exp(-C[i, 2] / 150.0)
             blob = 1.0 - np.float32(strength) * np.exp(np.float32(-2.0) * qf)
             shadow[sub] *= np.where(np.isfinite(blob), blob, np.float32(1.0))
         return shadow

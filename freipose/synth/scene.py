@@ -5,6 +5,8 @@ Session folder written by :func:`generate_session` (formats in ``docs/formats.md
     OUTDIR/<camera>.mp4        one video per camera (``.mkv``: lossless FFV1)
     OUTDIR/true_calibration.toml  the true cameras (the synthetic truth, not a calibration)
     OUTDIR/labels.h5           exact 3D keypoints, projections and visibility, every frame
+                               (several animals: one row per frame and animal, ``individual``)
+    OUTDIR/true_poses.h5       several animals: the truth as a poses file (T, A, K, 3)
     OUTDIR/events.csv          stimulation windows ``start_s,end_s`` (only when stimulated)
     OUTDIR/scene.toml          every parameter and the seed (reproduces the scene bit for bit)
     OUTDIR/<camera>/           with ``label_files`` sleap: <camera>.slp
@@ -21,7 +23,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +35,9 @@ from freipose.geometry import CameraRig
 from freipose.io.atomic import atomic_write_text
 from freipose.io.calibration import save_calibration
 from freipose.io.session import TRUE_CALIBRATION_NAME
-from freipose.io.toml import check_keys, read_toml
 from freipose.synth.board import default_board, write_board_videos
 from freipose.synth.body import (
     APPEARANCES,
-    COATS,
     MOUSE_COATS,
     RAT_KEYPOINTS,
     BodyGeometry,
@@ -46,249 +46,42 @@ from freipose.synth.body import (
 )
 from freipose.synth.camera_job import CameraJob, render_camera
 from freipose.synth.conditions import (
-    CONDITION_DEFAULTS,
     body_scale,
-    check_conditions,
-    randomized,
     scene_style,
 )
+from freipose.synth.config import VIDEO_FORMATS, SceneConfig, derived_seed
 from freipose.synth.errors import SynthError
 from freipose.synth.label_files import check_label_formats
 from freipose.synth.look import SceneStyle
 from freipose.synth.motion import simulate_motion
 from freipose.synth.rig import ArenaConfig, default_rig, grayscale_cameras, load_rig_file
-from freipose.synth.stimulation import StimulationConfig
+from freipose.synth.social import (
+    SocialMotion,
+    combine_geometries,
+    combined_palette,
+    simulate_social,
+)
+from freipose.synth.social_scene import (
+    TRUE_POSES_NAME,
+    animal_names,
+    social_bodies,
+    write_social_labels,
+)
 from freipose.workers import run_jobs
 
 log = logging.getLogger(__name__)
+_seed = derived_seed
 
-VIDEO_FORMATS = (".mp4", ".mkv", ".avi")
 # files of a session that --overwrite replaces (calibration.toml: older sessions' true rig)
 _SESSION_FILES = (
     "labels.h5",
+    TRUE_POSES_NAME,
+    "config.yaml",
     "events.csv",
     "scene.toml",
     TRUE_CALIBRATION_NAME,
     "calibration.toml",
 )
-
-
-def _seed(seed: int, *key: int) -> int:
-    """A derived 63-bit seed for one random stream of the scene."""
-    return int(np.random.SeedSequence([int(seed), *key]).generate_state(2, np.uint64)[0] >> 1)
-
-
-@dataclass(frozen=True)
-class SceneConfig:
-    """Everything that defines a synthetic session (see ``generate_session``).
-
-    Attributes:
-        n_cameras: cameras of the default rig (ignored with ``rig_file``).
-        rig_file: TOML rig file (see ``freipose.synth.rig``), or None for ``default_rig``.
-        frames: number of frames.
-        fps: frame rate.
-        size: image size (width, height) of the default rig (and of rig-file cameras that
-            give none).
-        seed: the one seed everything random derives from.
-        animal_seed: the seed the individual (body proportions, size within the animal's
-            range, and the coat when ``appearance = "random"``) is drawn from; sessions with
-            the same ``animal_seed`` film the same animal (another day of one rat). None: the
-            session's ``seed``. With ``randomize`` the coat and the size class are drawn from
-            ``seed`` with the other settings.
-        appearance: ``"hooded"``, ``"albino"``, ``"dark"``, ``"piebald"`` (never drawn at
-            random: a coat outside the shipped base models' training data) or ``"random"``
-            (drawn from the seed).
-        stimulation: stimulation protocol or None.
-        calibration_video: also render the rig filming a calibration board.
-        calibration_frames: frames of the calibration video.
-        board: board description (``freipose.calibration.boards`` dict, with ``type``) or
-            None for the default ChArUco board.
-        video_format: ``".mp4"`` (small) or ``".mkv"`` (lossless FFV1, exact pixels).
-        arena_size: inner arena (x, y) mm (ignored when the rig file has ``[arena]``).
-        wall_height: arena wall height, mm.
-        jitter_rig: jitter the default rig (positions, focal lengths, distortion) from the seed.
-        motion_blur: directional motion blur of the animal.
-        noise: sensor noise.
-        animal: ``"rat"`` or ``"mouse"`` (a mouse is 0.42 times a rat's size; give it a
-            smaller ``arena_size``, e.g. 250 x 250 mm).
-        animal_scale: body size factor (rat = 1), None: the animal's.
-        grayscale: every camera records grayscale (R = G = B; exact in lossless ``.mkv``,
-            within a few grey levels after ``.mp4`` compression), or a tuple of the camera
-            names that do (or ``grayscale = true`` per camera in a rig file).
-        lens: ``"standard"`` (mild barrel distortion), ``"fisheye"`` (strong radial
-            distortion, still monotonic in the image) or ``"pinhole"`` (none); default rig.
-        layout: default rig layout: ``"ring"`` (around and above), ``"above"`` (all high
-            up), ``"side"`` (low, over the walls), ``"below"`` (the last camera under a
-            transparent floor, seeing the animal from below), ``"arc"`` (all on one side;
-            never drawn by ``randomize``).
-        reflections: reflectivity (0..0.9) of the walls: mirror images of the animal in
-            them (the labels are of the real animal only).
-        walls: ``"opaque"`` or ``"acrylic"``: transparent walls (an acrylic box) through
-            which the cameras see the animal (keypoints behind them count as visible).
-        rest_fraction: share of the time the animal rests (almost still for seconds).
-        floor: ``"mat"`` or ``"bedding"`` (coarse grain texture).
-        floor_color: floor colour, RGB 0..1 (None: the mat's grey, the bedding's beige).
-        wall_color: wall colour, RGB 0..1 (None: light grey).
-        brightness: exposure factor.
-        contrast: contrast factor about mid grey.
-        light_gradient: strength (0..0.9) of an illumination gradient across the image.
-        blur: defocus blur of the whole image, Gaussian sigma in px.
-        noise_level: factor on the sensor noise.
-        label_files: also write per-camera label files of predicted instances as other
-            tools do: ``"sleap"`` (``<camera>/<camera>.slp``), ``"dlc"``
-            (``labeled-data/<session>_<camera>/CollectedData_synthetic.csv``); visible points
-            only, with noise and a score.
-        label_noise_px: standard deviation of the label files' 2D noise, px.
-        randomize: domain randomisation: draw the coat, size, arena, cameras, image size,
-            layout, lens, grayscale, floor, colours, lighting, blur, noise, reflections and
-            resting from the seed (``freipose.synth.conditions.randomized``); the settings
-            given other than at their defaults are kept.
-
-    Call it as ``generate_session(OUT, SceneConfig(seed=S, randomize=True, frames=...))`` or
-    ``freipose synth OUT --seed S --randomize``; ``SceneConfig(...).resolved()`` shows the
-    drawn settings.
-    """
-
-    n_cameras: int = 7
-    rig_file: str | None = None
-    frames: int = 200
-    fps: float = 50.0
-    size: tuple[int, int] = (320, 256)
-    seed: int = 0
-    animal_seed: int | None = None
-    appearance: str = "random"
-    stimulation: StimulationConfig | None = None
-    calibration_video: bool = False
-    calibration_frames: int = 120
-    board: Mapping[str, Any] | None = None
-    video_format: str = ".mp4"
-    arena_size: tuple[float, float] = (600.0, 600.0)
-    wall_height: float = 100.0
-    jitter_rig: bool = True
-    motion_blur: bool = True
-    noise: bool = True
-    animal: str = "rat"
-    animal_scale: float | None = None
-    grayscale: bool | tuple[str, ...] = False
-    lens: str = "standard"
-    layout: str = "ring"
-    reflections: float = 0.0
-    walls: str = "opaque"
-    rest_fraction: float = 0.0
-    floor: str = "mat"
-    floor_color: tuple[float, float, float] | None = None
-    wall_color: tuple[float, float, float] | None = None
-    brightness: float = 1.0
-    contrast: float = 1.0
-    light_gradient: float = 0.0
-    blur: float = 0.0
-    noise_level: float = 1.0
-    label_files: tuple[str, ...] = ()
-    label_noise_px: float = 1.0
-    randomize: bool = False
-
-    def __post_init__(self) -> None:
-        if not 1 <= int(self.n_cameras) <= 32:
-            raise SynthError(f"n_cameras must be in 1..32, got {self.n_cameras}")
-        if int(self.frames) < 1:
-            raise SynthError(f"frames must be >= 1, got {self.frames}")
-        if not (0 < float(self.fps) <= 1000):
-            raise SynthError(f"fps must be in (0, 1000], got {self.fps}")
-        w, h = (int(v) for v in self.size)
-        if w < 16 or h < 16 or w > 8192 or h > 8192:
-            raise SynthError(f"size must be between 16x16 and 8192x8192 px, got {w}x{h}")
-        if self.appearance not in (*COATS, "random"):
-            raise SynthError(
-                f"appearance must be hooded, albino, dark, piebald or random, "
-                f"got {self.appearance!r}"
-            )
-        if self.video_format not in VIDEO_FORMATS:
-            raise SynthError(
-                f"video_format must be one of {VIDEO_FORMATS}, got {self.video_format!r}"
-            )
-        if int(self.calibration_frames) < 2:
-            raise SynthError(f"calibration_frames must be >= 2, got {self.calibration_frames}")
-        for name in ("seed", "animal_seed"):  # animal_seed may be unset (None)
-            v = getattr(self, name)
-            if (v is None and name == "seed") or (v is not None and not 0 <= int(v) < 2**63):
-                raise SynthError(f"{name} must be a non-negative integer, got {v}")
-            object.__setattr__(self, name, None if v is None else int(v))
-        object.__setattr__(self, "size", (w, h))
-        object.__setattr__(self, "n_cameras", int(self.n_cameras))
-        object.__setattr__(self, "frames", int(self.frames))
-        object.__setattr__(self, "fps", float(self.fps))
-        object.__setattr__(self, "arena_size", tuple(float(v) for v in self.arena_size))
-        if self.board is not None:
-            object.__setattr__(self, "board", dict(self.board))
-        for key, value in check_conditions(self).items():
-            object.__setattr__(self, key, value)
-
-    def resolved(self) -> SceneConfig:
-        """The config with every setting explicit: with ``randomize``, the drawn settings."""
-        return randomized(self, _seed(self.seed, 5)) if self.randomize else self
-
-    # -- scene.toml ----------------------------------------------------------------------------
-    def to_dict(self) -> dict[str, Any]:
-        """Plain dict (TOML-serializable); ``from_dict`` inverts it."""
-        d: dict[str, Any] = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if v is None or (f.name in CONDITION_DEFAULTS and v == CONDITION_DEFAULTS[f.name]):
-                continue
-            if f.name == "stimulation":
-                v = v.to_dict()
-            elif isinstance(v, tuple):
-                v = list(v)
-            d[f.name] = v
-        return d
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any], source: str = "<dict>") -> SceneConfig:
-        """The config of the plain dict ``d`` (as written by :meth:`to_dict`).
-
-        Args:
-            d: the settings (a ``[scene]`` table).
-            source: where ``d`` comes from, for messages.
-
-        Returns:
-            The config.
-
-        Raises:
-            SynthError: an unknown or invalid setting.
-        """
-        check_keys(
-            d, [f.name for f in fields(cls)], f"{source}: unknown scene settings", SynthError
-        )
-        kw = dict(d)
-        if isinstance(kw.get("stimulation"), Mapping):
-            kw["stimulation"] = StimulationConfig.from_dict(dict(kw["stimulation"]))
-        for k in ("size", "arena_size", "floor_color", "wall_color", "label_files"):
-            if k in kw and not isinstance(kw[k], str):
-                kw[k] = tuple(kw[k])
-        if isinstance(kw.get("grayscale"), list):
-            kw["grayscale"] = tuple(kw["grayscale"])
-        return cls(**kw)
-
-    @classmethod
-    def from_toml(cls, path: str | Path) -> SceneConfig:
-        """Read the ``[scene]`` table of a ``scene.toml`` written by ``generate_session``.
-
-        Args:
-            path: the ``scene.toml``.
-
-        Returns:
-            The config.
-
-        Raises:
-            InputFileError: no such file.
-            SynthError: not TOML, no ``[scene]`` table or an invalid setting.
-        """
-        data = read_toml(path, "scene file", SynthError)
-        if "scene" not in data:
-            raise SynthError(
-                f"{path}: no [scene] table; is this a scene.toml written by freipose synth?"
-            )
-        return cls.from_dict(data["scene"], str(path))
 
 
 @dataclass(frozen=True)
@@ -316,6 +109,23 @@ class Scene:
     body: RatBody
     geometry: BodyGeometry
     events: list[tuple[float, float]]
+    bodies: tuple[RatBody, ...] = ()
+    social: SocialMotion | None = None
+
+    @property
+    def n_animals(self) -> int:
+        """The number of animals A."""
+        return max(1, len(self.bodies))
+
+    @property
+    def individuals(self) -> tuple[str, ...]:
+        """(A,) the animals' names, ``animal0``, ``animal1``, ..."""
+        return animal_names(self.n_animals)
+
+    @property
+    def palette(self) -> np.ndarray:
+        """(A * M, 2, 3) the colours of the geometry's materials (every animal's coat)."""
+        return combined_palette(self.bodies) if self.social is not None else self.body.palette
 
 
 def resolve_rig(config: SceneConfig) -> tuple[CameraRig, ArenaConfig]:
@@ -339,6 +149,8 @@ def build_scene(config: SceneConfig) -> Scene:
         gray = grayscale_cameras(config.rig_file)  # the rig file's monochrome cameras
         config = replace(config, grayscale=gray) if gray else config
     rig, arena = resolve_rig(config)
+    if config.animals > 1:
+        return _social_scene(config, rig, arena)
     coats = MOUSE_COATS if config.animal == "mouse" else APPEARANCES
     individual = config.seed if config.animal_seed is None else config.animal_seed
     body = RatBody.random(
@@ -351,6 +163,25 @@ def build_scene(config: SceneConfig) -> Scene:
     geom = build_body(body, state)
     events = config.stimulation.windows(config.frames / config.fps) if config.stimulation else []
     return Scene(config, rig, arena, body, geom, events)
+
+
+def _social_scene(config: SceneConfig, rig: CameraRig, arena: ArenaConfig) -> Scene:
+    """The scene of several animals (``freipose.synth.social``)."""
+    individual = config.seed if config.animal_seed is None else config.animal_seed
+    seeds = [
+        _seed(individual, 2) if a == 0 else _seed(individual, 2, a) for a in range(config.animals)
+    ]
+    scales = config.animal_scales or (body_scale(config),) * config.animals
+    bodies = social_bodies(config.animal, config.appearance, config.coat_mix, scales, seeds)
+    rngs = [np.random.default_rng(_seed(config.seed, 3, a)) for a in range(len(bodies))]
+    motion = simulate_social(
+        config.frames, config.fps, rngs, np.random.default_rng(_seed(config.seed, 7)), bodies,
+        arena.size, config.stimulation, config.rest_fraction,
+    )  # fmt: skip
+    geoms = [build_body(b, st) for b, st in zip(bodies, motion.states)]
+    geom = combine_geometries(geoms, motion.lift)
+    events = config.stimulation.windows(config.frames / config.fps) if config.stimulation else []
+    return Scene(config, rig, arena, bodies[0], geom, events, bodies, motion)
 
 
 def _scene_toml(config: SceneConfig, scene: Scene) -> str:
@@ -372,6 +203,12 @@ def _scene_toml(config: SceneConfig, scene: Scene) -> str:
             "arena": {"size": list(scene.arena.size), "wall_height": scene.arena.wall_height},
         },
     }
+    if scene.social is not None:
+        doc["derived"]["animals"] = [
+            {"name": name, "appearance": a.appearance, "scale": a.scale, "length": a.length,
+             "girth": a.girth, "tail_length": a.tail_length, "tint": list(a.tint)}
+            for name, a in zip(scene.individuals, scene.bodies)
+        ]  # fmt: skip
     if config.rig_file is not None:
         doc["derived"]["rig_file_text"] = Path(config.rig_file).read_text(encoding="utf-8")
     return tomli_w.dumps(doc)
@@ -390,6 +227,12 @@ def write_labels(scene: Scene, folder: Path, session: str) -> Path:
     from freipose.synth.visibility import keypoint_visibility
 
     cfg = scene.config
+    if scene.social is not None:
+        labels_path = folder / "labels.h5"
+        write_social_labels(labels_path, folder / TRUE_POSES_NAME, session, scene.rig,
+                            scene.geometry, scene.social, _occluding_walls(scene),
+                            cfg.fps, cfg.video_format)  # fmt: skip
+        return labels_path
     pts2d, vis = keypoint_visibility(scene.geometry, scene.rig, _occluding_walls(scene))
     T = len(scene.geometry)
     videos = {c: f"{c}{cfg.video_format}" for c in scene.rig.names}
@@ -450,7 +293,10 @@ def _write_label_files(scene: Scene, out: Path, videos: Mapping[str, Path]) -> t
     rng = np.random.default_rng(_seed(cfg.seed, 6))
     noisy = noisy_labels(pts2d, vis, cfg.label_noise_px, rng)
     session = out.resolve().name
-    files = write_label_files(out, session, cfg.label_files, dict(videos), RAT_KEYPOINTS, noisy)
+    individuals = scene.individuals if scene.social is not None else None
+    files = write_label_files(
+        out, session, cfg.label_files, dict(videos), RAT_KEYPOINTS, noisy, individuals
+    )
     return tuple(files)
 
 
@@ -475,7 +321,7 @@ def _render_videos(
 ) -> int:
     """Render the cameras' videos not yet in place; returns the number of workers used."""
     config = scene.config
-    palette = scene.body.palette
+    palette = scene.palette
     jobs = []
     for i, cam in enumerate(scene.rig):
         if videos[cam.name].is_file():
@@ -593,6 +439,7 @@ __all__ = [
     "SceneConfig",
     "SessionPaths",
     "Scene",
+    "TRUE_POSES_NAME",
     "build_scene",
     "generate_session",
     "resolve_rig",

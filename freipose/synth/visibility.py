@@ -5,15 +5,31 @@ from __future__ import annotations
 import numpy as np
 
 from freipose.geometry import CameraRig, project
-from freipose.synth.body import KEYPOINT_OWNERS, BodyGeometry
+from freipose.synth.body import KEYPOINT_OWNERS, PART_NAMES, BodyGeometry
 from freipose.synth.rig import ArenaConfig
 
 
 def _owner_mask(n_kp: int, n_parts: int) -> np.ndarray:
+    """(K, N) the parts each keypoint belongs to.
+
+    Several animals (``freipose.synth.social``): keypoint ``k`` belongs to animal
+    ``k // 12``, whose parts are ``a * len(PART_NAMES) ...``.
+    """
     own = np.zeros((n_kp, n_parts), bool)
-    for k, parts in enumerate(KEYPOINT_OWNERS[:n_kp]):
-        own[k, list(parts)] = True
+    per = len(KEYPOINT_OWNERS)
+    for k in range(n_kp):
+        a, j = divmod(k, per) if n_parts > len(PART_NAMES) else (0, k)
+        if j < per:
+            own[k, [i + a * len(PART_NAMES) for i in KEYPOINT_OWNERS[j]]] = True
     return own
+
+
+def _other_animal_mask(n_kp: int, n_parts: int) -> np.ndarray:
+    """(K, N) the parts of the animals other than each keypoint's (all False for one)."""
+    per, n = len(KEYPOINT_OWNERS), len(PART_NAMES)
+    if n_parts <= n:
+        return np.zeros((n_kp, n_parts), bool)
+    return (np.arange(n_kp)[:, None] // per) != (np.arange(n_parts)[None, :] // n)
 
 
 def keypoint_visibility(
@@ -22,6 +38,7 @@ def keypoint_visibility(
     arena: ArenaConfig | None,
     tolerance_mm: float = 1.5,
     chunk: int = 256,
+    hidden_by_other: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Project the keypoints and decide their visibility in every view.
 
@@ -31,6 +48,18 @@ def keypoint_visibility(
     before the keypoint. This is the analytic form of a z-buffer test along the keypoint's
     own viewing ray.
 
+    A geometry of several animals (``freipose.synth.social``: parts and keypoints one
+    animal after the other) tests every keypoint against every animal's parts.
+
+    Args:
+        geom: the body (or bodies) over T frames.
+        rig: the C cameras.
+        arena: the walls (None: no walls).
+        tolerance_mm: how far before the keypoint a hit must be to hide it.
+        chunk: frames per vectorized batch.
+        hidden_by_other: (T, C, K) bool, filled when given: the keypoint is hidden by
+            another animal's body.
+
     Returns:
         ``(points2d (T, C, K, 2), visible (T, C, K) bool)``; points2d are the exact
         (distorted) projections of every keypoint, whether visible or not.
@@ -39,6 +68,7 @@ def keypoint_visibility(
     T, K, _ = kp.shape
     N = geom.centers.shape[1]
     own = _owner_mask(K, N)
+    other = _other_animal_mask(K, N)
     pts2d = np.stack([project(kp, cam) for cam in rig], axis=1)
     vis = np.zeros((T, len(rig), K), bool)
     for ci, cam in enumerate(rig):
@@ -65,6 +95,8 @@ def keypoint_visibility(
             s2 = (-b + sq) / a
             blocked = (disc > 0) & (s2 > 0) & (s1 < dist[..., None] - tolerance_mm) & ~own[None]
             occluded = blocked.any(-1) | (X[..., 2] < 0)
+            if hidden_by_other is not None:
+                hidden_by_other[sl, ci] = inside[sl] & (blocked & other[None]).any(-1)
             if arena is not None and arena.wall_height > 0:
                 occluded |= _wall_hits(o, u, dist - tolerance_mm, arena)
             vis[sl, ci] = inside[sl] & ~occluded

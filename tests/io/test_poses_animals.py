@@ -9,14 +9,9 @@ import pytest
 from click.testing import CliRunner
 
 from freipose.cli.main import cli
+from freipose.io.animals import stack_animals
 from freipose.io.export import read_dlc3d_csv, read_wide_csv
-from freipose.io.poses import (
-    PoseData,
-    PosesFormatError,
-    read_poses_h5,
-    stack_animals,
-    write_poses_h5,
-)
+from freipose.io.poses import PoseData, PosesFormatError, read_poses_h5, write_poses_h5
 
 KPS = ("nose", "tail base", "paw")
 
