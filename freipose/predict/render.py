@@ -3,7 +3,10 @@
 Every camera view shows the projected skeleton; a 3D skeleton panel shows the pose.
 
 Keypoints and limbs are coloured by confidence (red = 0, yellow = 0.5, green = 1); a time
-step without a pose says "not found"; a frame that could not be decoded is a grey tile. The
+step without a pose says "not found"; a frame that could not be decoded is a grey tile.
+Poses of several animals (an animal axis): each animal has its own colour
+(:data:`ANIMAL_COLOURS`): its limbs and the rings around its keypoints, with its name next
+to it; the keypoints' fill stays the confidence colour. The
 3D panel looks at the poses from a fixed virtual camera (above and to the side of their
 median position) over a floor grid in the plane through the lowest keypoints.
 """
@@ -34,6 +37,16 @@ class RenderError(FreiPoseError):
 
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
+#: BGR colours of the animals of poses with an animal axis, in order (blue, magenta, orange,
+#: cyan, then again)
+ANIMAL_COLOURS: tuple[tuple[int, int, int], ...] = (
+    (255, 120, 40), (200, 60, 230), (20, 140, 255), (230, 230, 40),
+)  # fmt: skip
+
+
+def animal_colour(a: int) -> tuple[int, int, int]:
+    """The BGR colour of animal ``a`` (:data:`ANIMAL_COLOURS`, repeating)."""
+    return ANIMAL_COLOURS[a % len(ANIMAL_COLOURS)]
 
 
 def confidence_color(conf: float) -> tuple[int, int, int]:
@@ -71,8 +84,13 @@ def draw_skeleton_2d(
     limbs: Sequence[tuple[tuple[int, ...], tuple[int, ...]]],
     radius: int = 3,
     thickness: int = 2,
+    colour: tuple[int, int, int] | None = None,
 ) -> None:
-    """Draw keypoints (K, 2) pixels with confidences (K,) and limbs onto ``img`` in place."""
+    """Draw keypoints (K, 2) pixels with confidences (K,) and limbs onto ``img`` in place.
+
+    ``colour``: the animal's colour (limbs and keypoint rings; None: limbs by confidence,
+    black rings).
+    """
     h, w = img.shape[:2]
     lim = 4 * max(h, w)
 
@@ -86,12 +104,41 @@ def draw_skeleton_2d(
         if pa is None or pb is None:
             continue
         c = min(conf[list(a)].min(), conf[list(b)].min())
-        cv2.line(img, pa, pb, confidence_color(c), thickness, cv2.LINE_AA)
+        cv2.line(img, pa, pb, colour or confidence_color(c), thickness, cv2.LINE_AA)
     for k in range(len(uv)):
         p = pt(uv[k])
         if p is not None:
             cv2.circle(img, p, radius, confidence_color(conf[k]), -1, cv2.LINE_AA)
-            cv2.circle(img, p, radius, (0, 0, 0), 1, cv2.LINE_AA)
+            ring = (colour, 2) if colour is not None else ((0, 0, 0), 1)
+            cv2.circle(img, p, radius + ring[1] - 1, ring[0], ring[1], cv2.LINE_AA)
+
+
+def draw_animals_2d(
+    img: np.ndarray,
+    uv: np.ndarray,
+    conf: np.ndarray,
+    limbs: Sequence[tuple[tuple[int, ...], tuple[int, ...]]],
+    names: Sequence[str] | None,
+    radius: int = 3,
+    thickness: int = 2,
+) -> None:
+    """Draw the skeletons of A animals, (A, K, 2) pixels and (A, K) confidences, in place.
+
+    ``names``: the animals (each in its colour, named next to its keypoints); None: one
+    animal drawn as :func:`draw_skeleton_2d` draws it.
+    """
+    if names is None:
+        draw_skeleton_2d(img, uv[0], conf[0], limbs, radius, thickness)
+        return
+    h, w = img.shape[:2]
+    for a, name in enumerate(names):
+        col = animal_colour(a)
+        draw_skeleton_2d(img, uv[a], conf[a], limbs, radius, thickness, col)
+        ok = np.isfinite(uv[a]).all(-1) & (np.abs(uv[a]) < 4 * max(h, w)).all(-1)
+        if ok.any():
+            x, y = uv[a][ok].min(0)
+            org = (int(np.clip(x, 0, w - 40)), int(np.clip(y - 6, 12, h - 4)))
+            cv2.putText(img, name, org, FONT, 0.45, col, 1, cv2.LINE_AA)
 
 
 class Panel3D:
@@ -145,8 +192,12 @@ class Panel3D:
         conf: np.ndarray,
         limbs: Sequence[tuple[tuple[int, ...], tuple[int, ...]]],
         label: str = "3D",
+        names: Sequence[str] | None = None,
     ) -> np.ndarray:
-        """The 3D panel image (H, W, 3) BGR of ``pose`` (K, 3) with confidences (K,)."""
+        """The 3D panel image (H, W, 3) BGR of ``pose`` (K, 3) with confidences (K,).
+
+        With ``names``, the poses of those animals: (A, K, 3) and (A, K), each in its colour.
+        """
         w, h = self.size
         img = np.full((h, w, 3), 30, np.uint8)
         # floor grid in the plane through the lowest keypoints
@@ -165,7 +216,10 @@ class Panel3D:
                     cv2.line(img, q0, q1, (70, 70, 70), 1, cv2.LINE_AA)
         if np.isfinite(pose).any():
             uv = project(pose.astype(np.float64), self.camera)
-            draw_skeleton_2d(img, uv, conf, limbs, radius=4, thickness=2)
+            if names is None:
+                draw_skeleton_2d(img, uv, conf, limbs, radius=4, thickness=2)
+            else:
+                draw_animals_2d(img, uv, conf, limbs, names, radius=4, thickness=2)
         cv2.putText(img, label, (8, 22), FONT, 0.6, (230, 230, 230), 1, cv2.LINE_AA)
         return img
 
@@ -212,7 +266,9 @@ def render_overlay(
         )
     a, b = int(fi[rows].min()), int(fi[rows].max()) + 1
     row_of = {int(fi[r]): int(r) for r in rows}
-    K = len(data.keypoints)
+    K, A = len(data.keypoints), data.num_animals
+    poses, confs = data.animal_poses()  # (T, A, K, 3), (T, A, K)
+    names = data.individuals
     limbs = _limbs(data.skeleton, K)
     C = len(rig)
     tiles_h = [int(round(cam.height * tile_width / cam.width)) for cam in rig]
@@ -234,15 +290,15 @@ def render_overlay(
         for fb in reader:
             i = int(fb.frame_index[0])
             r = row_of.get(i)
-            pose = data.poses[r] if r is not None else np.full((K, 3), np.nan)
-            conf = data.confidence[r] if r is not None else np.zeros(K)
+            pose = poses[r] if r is not None else np.full((A, K, 3), np.nan)
+            conf = confs[r] if r is not None else np.zeros((A, K))
             canvas = np.zeros((H, W, 3), np.uint8)
-            uv_all = rig.project(pose.astype(np.float64))  # (C, K, 2)
+            uv_all = np.moveaxis(rig.project(pose.astype(np.float64)), 1, 0)  # (C, A, K, 2)
             for c, cam in enumerate(rig):
                 if fb.valid[0, c]:
                     img = fb.images[c][0].copy()
                     tile, s = _fit(img, tile_width)
-                    draw_skeleton_2d(tile, uv_all[c] * s + (s - 1) / 2, conf, limbs)
+                    draw_animals_2d(tile, uv_all[c] * s + (s - 1) / 2, conf, limbs, names)
                 else:
                     tile = np.full((tiles_h[c], tile_width, 3), 90, np.uint8)
                     msg_at = (8, tiles_h[c] // 2)
@@ -257,7 +313,12 @@ def render_overlay(
             if panel is not None:
                 y, x = divmod(C, cols)
                 mean_c = float(np.mean(conf)) if K else 0.0
-                view = panel.draw(pose, conf, limbs, f"3D  mean confidence {mean_c:.2f}")
+                label = f"3D  mean confidence {mean_c:.2f}"
+                view = (
+                    panel.draw(pose[0], conf[0], limbs, label)
+                    if names is None
+                    else panel.draw(pose, conf, limbs, label, names)
+                )
                 if tile_h >= 150:
                     view[-34:] = confidence_legend(tile_width)
                 canvas[y * tile_h : (y + 1) * tile_h, x * tile_width : (x + 1) * tile_width] = view
@@ -301,24 +362,28 @@ def still_tile(
     label: str,
     tile: int = 360,
     margin: float = 0.35,
+    names: Sequence[str] | None = None,
 ) -> np.ndarray:
     """One camera's still (tile, tile, 3) BGR: the view cropped to the animal, full view inset.
 
     Args:
         img: the camera image (H, W, 3) BGR.
-        uv: (K, 2) projected keypoints, pixels of ``img``.
-        conf: (K,) confidences (the colours).
+        uv: (K, 2) projected keypoints, pixels of ``img``; (A, K, 2) with ``names``.
+        conf: (K,) confidences (the colours); (A, K) with ``names``.
         limbs: the skeleton's limbs.
         label: text in the top-left corner (the camera name).
         tile: output side in pixels; the crop is scaled to it and the skeleton drawn after.
         margin: crop margin around the keypoints, as a share of their extent.
+        names: the animals of poses with an animal axis (cropped to them all), or None.
     """
     h, w = img.shape[:2]
-    x0, y0, side = _crop_box(uv, (w, h), margin)
+    if names is None:
+        uv, conf = uv[None], conf[None]
+    x0, y0, side = _crop_box(uv.reshape(-1, 2), (w, h), margin)
     s = tile / side
     out = cv2.resize(img[y0 : y0 + side, x0 : x0 + side], (tile, tile),
                      interpolation=cv2.INTER_CUBIC)  # fmt: skip
-    draw_skeleton_2d(out, (uv - (x0, y0)) * s + (s - 1) / 2, conf, limbs, radius=5, thickness=2)
+    draw_animals_2d(out, (uv - (x0, y0)) * s + (s - 1) / 2, conf, limbs, names, 5, 2)
     iw = tile // 3
     ih = int(round(h * iw / w))
     inset = cv2.resize(img, (iw, ih), interpolation=cv2.INTER_AREA)
@@ -370,11 +435,14 @@ def render_stills(
             if int(frame) not in row_of:
                 raise RenderError(f"frame {frame} has no prediction in the poses")
             r = row_of[int(frame)]
-            uv_all = rig.project(data.poses[r].astype(np.float64))
+            uv_all = rig.project(data.poses[r].astype(np.float64))  # (C, K, 2) / (A, C, K, 2)
+            if data.individuals is not None:
+                uv_all = np.moveaxis(uv_all, 1, 0)
             canvas = np.full((rows * tile, cols * tile, 3), 30, np.uint8)
             for c, (cam, src) in enumerate(zip(rig, sources)):
+                label = f"{cam.name}  frame {frame}"
                 t = still_tile(src.read(int(frame)), uv_all[c], data.confidence[r], limbs,
-                               f"{cam.name}  frame {frame}", tile)  # fmt: skip
+                               label, tile, names=data.individuals)  # fmt: skip
                 y, x = divmod(c, cols)
                 canvas[y * tile : (y + 1) * tile, x * tile : (x + 1) * tile] = t
             img = np.vstack([canvas, confidence_legend(canvas.shape[1])])
