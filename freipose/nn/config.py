@@ -20,6 +20,7 @@ from typing import Any
 from freipose.errors import FreiPoseError
 from freipose.io.toml import check_numbers, did_you_mean, read_toml
 from freipose.nn.config_ranges import AUGMENT_RANGES, MODEL_RANGES, SCHEDULE_RANGES
+from freipose.nn.config_unlabeled import UnlabeledConfig
 
 
 class ConfigError(FreiPoseError):
@@ -341,7 +342,7 @@ class TrainConfig:
 
     ``cube_auto``: ``model.cube_size`` was ``"auto"`` or absent; training sizes the cube
     from its labels (:func:`freipose.nn.sizing.resolve_cube`), until then it holds the
-    preset's value.
+    preset's value. ``unlabeled``: :mod:`freipose.nn.config_unlabeled`.
     """
 
     data: DataConfig = field(default_factory=DataConfig)
@@ -351,6 +352,7 @@ class TrainConfig:
     preset: str = "paper"
     extra: Mapping[str, Any] = field(default_factory=dict)
     cube_auto: bool = False
+    unlabeled: UnlabeledConfig = field(default_factory=UnlabeledConfig)
 
 
 # Presets: (model overrides, schedule overrides).
@@ -475,6 +477,9 @@ def _stretched_decay(preset: Mapping[str, Any], table: dict[str, Any]) -> dict[s
     return {**table, "lr_decay_steps": max(1, round(table["steps"] * decay / steps))}
 
 
+_TABLES = ("data", "model", "schedule", "augment", "unlabeled")
+
+
 def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
     """Build a :class:`TrainConfig` from the TOML structure (presets applied, validated).
 
@@ -488,7 +493,7 @@ def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
     Raises:
         ConfigError: an unknown table, key or preset, or an invalid value.
     """
-    known_tables = {"data", "model", "schedule", "augment", "detector", "predict"}
+    known_tables = {"data", "model", "schedule", "augment", "unlabeled", "detector", "predict"}
     unknown = sorted(set(data) - known_tables)
     if unknown:
         hint = did_you_mean(unknown[0], known_tables) or ";"
@@ -509,8 +514,14 @@ def config_from_dict(data: Mapping[str, Any]) -> TrainConfig:
     sched = ScheduleConfig(**{**p_sched, **_stretched_decay(p_sched, sched_tbl)})
     aug = AugmentConfig(**_coerce(AugmentConfig, dict(data.get("augment", {})), "augment"))
     dat = DataConfig(**_coerce(DataConfig, dict(data.get("data", {})), "data"))
-    extra = {k: v for k, v in data.items() if k not in ("data", "model", "schedule", "augment")}
-    return TrainConfig(dat, model, sched, aug, preset, extra, cube_auto)
+    try:
+        unl = UnlabeledConfig(
+            **_coerce(UnlabeledConfig, dict(data.get("unlabeled", {})), "unlabeled")
+        )
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    extra = {k: v for k, v in data.items() if k not in _TABLES}
+    return TrainConfig(dat, model, sched, aug, preset, extra, cube_auto, unl)
 
 
 def config_to_dict(config: TrainConfig) -> dict[str, Any]:
@@ -533,6 +544,7 @@ def config_to_dict(config: TrainConfig) -> dict[str, Any]:
         "model": {"preset": config.preset, **plain(config.model)},
         "schedule": plain(config.schedule),
         "augment": plain(config.augment),
+        "unlabeled": plain(config.unlabeled),
     }
     for k, v in config.extra.items():
         out[k] = dict(v) if isinstance(v, Mapping) else v

@@ -1,4 +1,6 @@
-"""The allowed range of every number of the ``[model]``, ``[schedule]`` and ``[augment]`` tables.
+"""The allowed range of every number of the training config's tables.
+
+The tables: ``[model]``, ``[schedule]``, ``[augment]`` and ``[unlabeled]``.
 
 A value outside its range (or NaN, or infinite) is refused when the config is read, before
 a run folder is created, with a message that names the key, the value and the range. The
@@ -51,5 +53,19 @@ AUGMENT_RANGES: Mapping[str, Bounds] = MappingProxyType(
         "blur_sigma": (0.0, 20.0, "pixels"),
         "noise": (0.0, 1.0, "std, fraction of the grey range"),
         "salt_pepper": (0.0, 1.0, "fraction of the pixels"),
+    }
+)
+
+UNLABELED_RANGES: Mapping[str, Bounds] = MappingProxyType(
+    {
+        "share": (0.0, 0.95, "share of the instants of each step that are unlabeled"),
+        "start": (0.0, 1.0, "fraction of the steps before the unlabeled losses act"),
+        "robust_scale": (1e-3, 100.0, "voxels (3D) and feature pixels (2D)"),
+        "teacher_decay": (0.0, 0.99999, "EMA factor per step"),
+        "teacher_agreement": (1e-3, 100.0, "feature pixels"),
+        **{
+            f"weight_{k}": _WEIGHT
+            for k in ("multiview", "p0p1", "temporal", "equivariance", "bones", "teacher")
+        },
     }
 )

@@ -49,6 +49,7 @@ from freipose.nn.model import build_model, optimizer_groups
 from freipose.nn.sizing import resolve_cube
 from freipose.nn.train_log import append_log, plot_log, read_log, write_log
 from freipose.nn.types import Batch, SampleSource
+from freipose.nn.unlabeled_losses import UnlabeledTraining, unlabeled_training
 from freipose.skeleton import Skeleton, load_skeleton
 
 log = logging.getLogger(__name__)
@@ -302,6 +303,7 @@ class TrainRun:
         files: the run folder.
         eval_source: the validation samples (or None).
         eval_indices: the validation samples used.
+        unlabeled: the unlabeled part of each step (:mod:`freipose.nn.unlabeled_losses`).
     """
 
     config: TrainConfig
@@ -313,6 +315,7 @@ class TrainRun:
     files: RunFiles
     eval_source: SampleSource | None
     eval_indices: np.ndarray
+    unlabeled: UnlabeledTraining | None = None
 
 
 def _optimizer_step(run: TrainRun, batch: Batch, step: int) -> dict[str, float]:
@@ -337,6 +340,9 @@ def _optimizer_step(run: TrainRun, batch: Batch, step: int) -> dict[str, float]:
         loss, parts = voxel_losses(out, b, mcfg, sched, sched.refine_active(step))
     else:
         loss, parts = baseline_losses(out, b, mcfg, sched)
+    if run.unlabeled is not None and run.unlabeled.active(step):
+        u_loss, u_parts = run.unlabeled.loss(run.net, step, dev, amp)
+        loss, parts = loss + u_loss, {**parts, **u_parts}
     if not torch.isfinite(loss):
         raise DivergedError(
             f"training diverged at step {step} (loss {float(loss)}); lower schedule.lr"
@@ -344,6 +350,8 @@ def _optimizer_step(run: TrainRun, batch: Batch, step: int) -> dict[str, float]:
     run.opt.zero_grad(set_to_none=True)
     loss.backward()
     run.opt.step()
+    if run.unlabeled is not None:
+        run.unlabeled.after_step(run.model)
     parts["loss"] = float(loss.detach())
     return parts
 
@@ -453,6 +461,7 @@ def train_pose(
     device: str = "cpu",
     progress: bool = True,
     stop_after: int | None = None,
+    unlabeled: UnlabeledTraining | None = None,
 ) -> Path:
     """Train the network of ``config.model.kind`` on multi-view samples.
 
@@ -468,6 +477,7 @@ def train_pose(
         device: ``cpu``, ``cuda`` or ``cuda:N``.
         progress: show a progress bar with ETA.
         stop_after: stop (with a checkpoint) after this many steps, leaving the run resumable.
+        unlabeled: train on unlabeled clips too (:mod:`freipose.nn.unlabeled_losses`).
 
     Returns:
         The path of the newest checkpoint (``model.pt`` once the run is complete).
@@ -500,7 +510,9 @@ def train_pose(
             net = torch.nn.parallel.DistributedDataParallel(
                 model, device_ids=[dev.index] if dev.type == "cuda" else None
             )
-        run = TrainRun(config, skeleton, model, net, opt, procs, files, eval_source, samples.eval)
+        run = TrainRun(
+            config, skeleton, model, net, opt, procs, files, eval_source, samples.eval, unlabeled
+        )
         loader = _loader(train_source, config, samples.train, start, procs)
         done = _train_steps(run, loader, start, stop_after, progress)
         if procs.world > 1:
@@ -582,5 +594,6 @@ def train_from_config(
         skeleton = Skeleton(name="labels", keypoints=tuple(labels.keypoints))
     out = Path(out_dir) if out_dir is not None else config_path.with_suffix("")
     return train_pose(
-        config, out, train_ds, skeleton, eval_ds, resume=resume, device=device, progress=progress
-    )
+        config, out, train_ds, skeleton, eval_ds, resume=resume, device=device, progress=progress,
+        unlabeled=unlabeled_training(config, base, labels, cams),  # None without [unlabeled]
+    )  # fmt: skip

@@ -1,7 +1,8 @@
 """The pose trainer's loss history: ``log.csv`` and its plot ``log.png``.
 
 Columns (:data:`LOG_COLUMNS`): ``step`` (optimizer steps done), ``lr``, the total ``loss``
-and its terms (averaged over the steps since the previous row), the validation median JPE
+and its terms (averaged over the steps since the previous row; ``u_*`` the terms of the
+``[unlabeled]`` losses), the validation median JPE
 of P0 and P1 in mm when computed, and ``seconds`` since the training started or resumed.
 """
 
@@ -18,6 +19,9 @@ import numpy as np
 from freipose.io.atomic import atomic_write_text
 from freipose.io.figures import new_figure, save_figure
 
+# the terms of the [unlabeled] losses (freipose.nn.unlabeled_losses), empty without them
+UNLABELED_TERMS = ("u_multiview", "u_p0p1", "u_temporal", "u_equivariance", "u_bones", "u_teacher")
+
 LOG_COLUMNS = [
     "step",
     "lr",
@@ -28,6 +32,7 @@ LOG_COLUMNS = [
     "2d",
     "conf",
     "p1",
+    *UNLABELED_TERMS,
     "val_jpe_p0",
     "val_jpe_p1",
     "seconds",
