@@ -7,6 +7,11 @@ leading rows are final. A killed run restarted with the same settings reopens th
 file and continues after ``completed_frames``; when all rows are written the attribute
 ``complete`` is set to true and the file is renamed to ``<name>.poses.h5``.
 
+Several animals: a header with ``individuals`` gives the file an animal axis (the layout of
+``freipose.io.poses``: ``poses`` (T, A, K, 3), the per-animal extras (T, A, ...), the
+``individuals`` and ``identity_confidence`` (T, A) datasets); rows are added with
+:meth:`IncrementalPosesWriter.add_animals`, one :class:`Estimate` per animal.
+
 A partial file written with different settings (another model, calibration, frame range
 or shard) is discarded with a warning, as is one that is damaged (killed while HDF5 was
 writing its metadata, or written until the disk was full): before resuming, the chunk index
@@ -28,7 +33,7 @@ import json
 import logging
 import os
 import shutil
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -75,6 +80,7 @@ class OutputHeader:
         up: world up vector.
         run_start, run_stop: frame range of the whole (unsharded) run.
         shard: (index, count) when this file is one shard of a run.
+        individuals: (A,) the animals of an output with an animal axis; None: one animal.
     """
 
     keypoints: tuple[str, ...]
@@ -88,6 +94,7 @@ class OutputHeader:
     run_start: int | None = None
     run_stop: int | None = None
     shard: tuple[int, int] | None = None
+    individuals: tuple[str, ...] | None = None
 
     @property
     def num_frames(self) -> int:
@@ -124,6 +131,8 @@ class OutputHeader:
             "fps": float(self.fps),
             "up": [float(u) for u in self.up],
         }
+        if self.individuals is not None:  # one animal: the key it always had
+            doc["individuals"] = list(self.individuals)
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
     def shard_text(self) -> str:
@@ -181,15 +190,19 @@ def create_layout(f: h5py.File, header: OutputHeader, chunk_rows: int) -> None:
             name, shape=shape, dtype=dtype, chunks=(ch, *shape[1:]), fillvalue=fill, **_COMPRESSION
         )
 
-    ds(f, "poses", (T, K, 3), np.float32, nan)
-    ds(f, "confidence", (T, K), np.float32, np.float32(0))
+    a = () if header.individuals is None else (len(header.individuals),)  # the animal axis
+    ds(f, "poses", (T, *a, K, 3), np.float32, nan)
+    ds(f, "confidence", (T, *a, K), np.float32, np.float32(0))
     f.create_dataset("keypoints", data=str_array(header.keypoints))
     f.create_dataset("frame_index", data=np.arange(header.start, header.stop, dtype=np.int64))
+    if header.individuals is not None:
+        f.create_dataset("individuals", data=str_array(header.individuals))
+        ds(f, "identity_confidence", (T, *a), np.float32, nan)
     g = f.create_group("extra")
-    ds(g, "points2d", (T, C, K, 2), np.float32, nan)
-    ds(g, "confidence2d", (T, C, K), np.float32, np.float32(0))
-    ds(g, "boxes", (T, C, 4), np.float32, nan)
-    ds(g, "center", (T, 3), np.float32, nan)
+    ds(g, "points2d", (T, *a, C, K, 2), np.float32, nan)
+    ds(g, "confidence2d", (T, *a, C, K), np.float32, np.float32(0))
+    ds(g, "boxes", (T, *a, C, 4), np.float32, nan)
+    ds(g, "center", (T, *a, 3), np.float32, nan)
     ds(g, "status", (T,), np.int8, np.int8(STATUS_PENDING))
     ds(g, "frame_ok", (T, C), bool, False)
     g.attrs["cameras"] = json.dumps(header.rig.names)
@@ -202,7 +215,8 @@ _OVERHEAD_BYTES = 64 * 1024
 def output_bytes(header: OutputHeader) -> int:
     """At most how many bytes the output file of ``header`` takes (its data uncompressed)."""
     T, K, C = header.num_frames, len(header.keypoints), len(header.rig)
-    floats = 3 * K + K + C * K * 2 + C * K + C * 4 + 3
+    A = 1 if header.individuals is None else len(header.individuals)
+    floats = A * (3 * K + K + C * K * 2 + C * K + C * 4 + 3 + 1)
     row = 4 * floats + 1 + C + 8  # + status, frame_ok, frame_index
     text = len(header.calibration_text()) + len(header.provenance_text())
     return T * row + text + len(header.skeleton_text() or "") + _OVERHEAD_BYTES
@@ -236,6 +250,8 @@ def verify_partial(f: h5py.File, size: int) -> None:
     """
     done = int(f.attrs["completed_frames"])
     for name in _PATHS.values():
+        if name not in f and name == "identity_confidence":  # one animal: no such dataset
+            continue
         d = f[name]
         if d.chunks is not None:
             for i in range(d.id.get_num_chunks()):
@@ -258,14 +274,28 @@ ROW_FIELDS = (
     "status",
     "frame_ok",
 )
+ANIMAL_ROW_FIELDS = (*ROW_FIELDS, "identity_confidence")  # an output with an animal axis
 _PATHS = {
     "poses": "poses",
     "confidence": "confidence",
+    "identity_confidence": "identity_confidence",
     **{
         n: f"extra/{n}"
         for n in ("points2d", "confidence2d", "boxes", "center", "status", "frame_ok")
     },
 }
+
+
+def _rows(est: Estimate) -> dict[str, np.ndarray]:
+    """The per-row arrays of one animal's estimate, by field name."""
+    return {
+        "poses": est.poses,
+        "confidence": est.confidence,
+        "points2d": est.points2d,
+        "confidence2d": est.confidence2d,
+        "boxes": est.boxes,
+        "center": est.center,
+    }
 
 
 class IncrementalPosesWriter:
@@ -292,7 +322,8 @@ class IncrementalPosesWriter:
         self.header = header
         self.chunk_rows = int(chunk_rows)
         self._out: H5Output | None = None
-        self._buf: dict[str, list[np.ndarray]] = {k: [] for k in ROW_FIELDS}
+        self._fields = ROW_FIELDS if header.individuals is None else ANIMAL_ROW_FIELDS
+        self._buf: dict[str, list[np.ndarray]] = {k: [] for k in self._fields}
         self._buffered = 0
         self.completed = 0
 
@@ -389,22 +420,59 @@ class IncrementalPosesWriter:
 
     # -- writing --------------------------------------------------------------------------
     def add(self, est: Estimate, status: np.ndarray, frame_ok: np.ndarray) -> None:
-        """Append the next ``B`` rows (B = ``est.batch_size``)."""
+        """Append the next ``B`` rows (B = ``est.batch_size``) of a one-animal output."""
+        if self.header.individuals is not None:
+            raise ValueError("an output with an animal axis takes add_animals(), not add()")
+        self._add(est.batch_size, _rows(est), status, frame_ok)
+
+    def add_animals(
+        self,
+        ests: Sequence[Estimate],
+        status: np.ndarray,
+        frame_ok: np.ndarray,
+        identity_confidence: np.ndarray | None = None,
+    ) -> None:
+        """Append the next ``B`` rows of an output with an animal axis.
+
+        Args:
+            ests: (A,) one estimate per animal of the header's ``individuals``, in order,
+                each of B rows (an animal not found: NaN poses, confidence 0).
+            status: (B,) status per frame.
+            frame_ok: (B, C) the frames that were decoded.
+            identity_confidence: (B, A) in [0, 1], or None (NaN: unknown).
+
+        Raises:
+            ValueError: not one estimate per animal, or estimates of different lengths.
+        """
+        names = self.header.individuals
+        if names is None or len(ests) != len(names):
+            raise ValueError(
+                f"add_animals takes one estimate per animal of {names}, got {len(ests)}"
+            )
+        B = ests[0].batch_size
+        if any(e.batch_size != B for e in ests):
+            raise ValueError("the animals' estimates must have the same number of rows")
+        per = [_rows(e) for e in ests]
+        vals = {k: np.stack([r[k] for r in per], axis=1) for k in per[0]}
+        ident = np.full((B, len(names)), np.nan, np.float32)
+        if identity_confidence is not None:
+            ident = np.asarray(identity_confidence, np.float32).reshape(B, len(names))
+        vals["identity_confidence"] = ident
+        self._add(B, vals, status, frame_ok)
+
+    def _add(
+        self, B: int, vals: dict[str, np.ndarray], status: np.ndarray, frame_ok: np.ndarray
+    ) -> None:
+        """Buffer ``B`` rows of ``vals`` and commit the whole chunks."""
         if self._f is None:
             raise RuntimeError("IncrementalPosesWriter.add before open()")
-        B = est.batch_size
         if self.completed + self._buffered + B > self.header.num_frames:
             raise ValueError(
                 f"writing {B} rows after {self.completed + self._buffered} overflows the "
                 f"{self.header.num_frames}-frame output"
             )
         vals = {
-            "poses": est.poses,
-            "confidence": est.confidence,
-            "points2d": est.points2d,
-            "confidence2d": est.confidence2d,
-            "boxes": est.boxes,
-            "center": est.center,
+            **vals,
             "status": np.asarray(status, np.int8).reshape(B),
             "frame_ok": np.asarray(frame_ok, bool).reshape(B, -1),
         }
@@ -431,7 +499,7 @@ class IncrementalPosesWriter:
     def _write_rows(self, out: H5Output, n: int) -> None:
         a = self.completed
         rest: dict[str, list[np.ndarray]] = {}
-        for k in ROW_FIELDS:
+        for k in self._fields:
             arr = np.concatenate(self._buf[k], axis=0)
             out.file[_PATHS[k]][a : a + n] = arr[:n]
             rest[k] = [arr[n:]] if len(arr) > n else []
@@ -443,7 +511,7 @@ class IncrementalPosesWriter:
         out.flush()
 
     def poses(self) -> np.ndarray:
-        """(T, K, 3) the poses committed so far (NaN in rows not yet written)."""
+        """(T, K, 3) the poses committed so far (NaN in rows not yet written); (T, A, K, 3)."""
         if self._f is None:
             raise RuntimeError("IncrementalPosesWriter.poses before open()")
         return self._f["poses"][()]
