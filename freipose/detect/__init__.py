@@ -7,6 +7,10 @@
 * :mod:`.multiview`: robust 3D centre from candidate boxes of all views, consistent boxes
   and cube crops (:func:`detect_multiview`, :func:`detect_multiview_batch`,
   :func:`consistent_detection` -> :class:`MultiViewDetection`);
+* :mod:`.multi`: several animals: one box per animal per view (:class:`~.multi.SplitForeground`
+  splits touching animals in the foreground, :class:`~.multi.PeakBoxes` keeps several
+  detector peaks) and 3D animal hypotheses with a box in every view
+  (:func:`~.multi.detect_animals` -> :class:`~.multi.AnimalDetections`);
 * :mod:`.train`: ``train_detector`` for ``freipose train CONFIG --stage detector``;
 * :mod:`.evaluate`: ground-truth boxes and metrics (recall, 3D centre error, fps);
 * :mod:`.pipeline`: a box source over a whole session (``freipose detect``; the session

@@ -199,8 +199,13 @@ def _proposals(
         err = np.linalg.norm(uv[n, v] - P.uv[v, idx], axis=-1)
         keep &= (depth[n, v] > 0) & (err < P.tol[v, idx])
     if bounds is not None:
-        keep &= ((bounds[:, 0] <= X) & (bounds[:, 1] >= X)).all(-1)
+        keep &= _inside(X, bounds)
     return X[keep], S[keep]
+
+
+def _inside(X: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """Whether points X (N, 3) lie in the box ``bounds`` (3, 2)."""
+    return np.asarray(((bounds[:, 0] <= X) & (bounds[:, 1] >= X)).all(-1))
 
 
 def _verify(
@@ -314,6 +319,9 @@ def associate(
         if count[h] < cfg.min_views:
             break
         Xh, mh, eh, sh = _refit(X[h], members[h], P, free, rig, f, cfg)
+        if bnd is not None and not _inside(Xh[None], bnd)[0]:  # the refit left the bounds
+            X, seeds = np.delete(X, h, axis=0), np.delete(seeds, h, axis=0)
+            continue
         out_x.append(Xh)
         out_m.append(mh)
         out_e.append(eh)
