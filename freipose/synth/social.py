@@ -4,7 +4,8 @@
 animals in one loop of sub-steps, with social rules on top:
 
 * **meeting**: a new walk heads for another animal (chosen at random) with probability
-  ``approach``, steering towards it while the walk lasts;
+  ``approach``: for its head, its tail base or its flank (social investigation), steering
+  there until it is reached or the walk ends;
 * **contact**: each animal's floor print is three discs (haunch, chest, head) in its torso
   frame; two animals whose discs overlap are pushed apart (at most 2 mm per sub-step each,
   so they slide past each other: crossing), unless
@@ -112,6 +113,7 @@ class _Animal:
     feet: object
     sway: float
     target: int = -1
+    aim: float = 0.0  # where on the target: mm ahead of its torso centre along its heading
     climb: int = -1
     climb_t: float = 0.0
 
@@ -204,9 +206,7 @@ def simulate_social(
             if an.climb >= 0:  # walk on over the other animal
                 b = _Behaviour("walk", max(b.timer, 0.5), 90.0 * sizes[a], 0.0)
             elif an.target >= 0 and b.name == "walk":
-                o = animals[an.target].pose
-                steer = 3.0 * _wrap(math.atan2(o.y - an.pose.y, o.x - an.pose.x) - an.pose.yaw)
-                b = replace(b, w_noise=float(np.clip(steer, -3.0, 3.0)))
+                b = _steer(an, animals[an.target].pose, b, sizes[a])
             c = clocks[a]
             an.pose = _locomote(an.pose, b, c.step_strength[step], c.freeze, dt, spaces[a])
         touching = _contacts(animals, prints, spaces, touching, social_rng, climb, dt)
@@ -248,6 +248,24 @@ def _behave(
         others = [i for i in range(len(animals)) if i != a]
         pick = social_rng.random() < approach
         an.target = others[int(social_rng.integers(len(others)))] if pick else -1
+        an.aim = float(social_rng.choice([90.0, -110.0, 0.0])) * space.s if pick else 0.0
+
+
+def _steer(an: _Animal, o: _Pose, b: _Behaviour, s: float) -> _Behaviour:
+    """The walk ``b`` turned towards the aimed point of the target at ``o``.
+
+    The target is dropped once the animal's head (about 90 mm ahead of its torso centre
+    for a rat) is within 40 mm of that point.
+    """
+    gx = o.x + an.aim * math.cos(o.yaw)
+    gy = o.y + an.aim * math.sin(o.yaw)
+    hx = an.pose.x + 90.0 * s * math.cos(an.pose.yaw)
+    hy = an.pose.y + 90.0 * s * math.sin(an.pose.yaw)
+    if math.hypot(gx - hx, gy - hy) < 40.0 * s:
+        an.target = -1
+        return b
+    steer = 3.0 * _wrap(math.atan2(gy - an.pose.y, gx - an.pose.x) - an.pose.yaw)
+    return replace(b, w_noise=float(np.clip(steer, -3.0, 3.0)))
 
 
 def _contacts(
