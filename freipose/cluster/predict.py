@@ -262,22 +262,58 @@ def _remove_outputs(task: PredictTask, units: Sequence[Unit]) -> None:
             f.unlink()
 
 
-def join_sessions(task: PredictTask, units: Sequence[Unit]) -> list[Path]:
-    """Join the sessions whose units are all complete; returns every complete joined file."""
+def join_sessions(task: PredictTask, units: Sequence[Unit]) -> tuple[list[Path], dict[str, str]]:
+    """Join the sessions whose units are all complete.
+
+    A session that cannot be joined because its disk is full or read-only keeps its
+    parts (a rerun joins it); the others are joined all the same.
+
+    Returns:
+        Every complete joined file, and session -> why it could not be joined.
+    """
+    from freipose.errors import OutputWriteError, filesystem_message
     from freipose.predict.merge import merge_outputs
     from freipose.predict.writer import is_complete
 
-    out = []
+    out, unjoined = [], {}
     for s in task.sessions:
         target = session_output(task, s.name)
         mine = [u for u in units if u.session == s.name]
         if not (target.exists() and is_complete(target)):
             if not all(unit_is_done(task, u) for u in mine):
                 continue
-            merge_outputs([unit_output(task, u) for u in mine], task.outdir, remove=True)
+            try:
+                merge_outputs([unit_output(task, u) for u in mine], task.outdir, remove=True)
+            except OSError as exc:  # a full disk, a read-only folder (the lock, the file)
+                why = str(exc) if isinstance(exc, OutputWriteError) else filesystem_message(exc)
+                if why is None:
+                    raise
+                unjoined[s.name] = why
+                continue
             journal(task.outdir, "joined", session=s.name, file=target, units=len(mine))
         out.append(target)
-    return out
+    return out, unjoined
+
+
+def _failure_message(
+    task: PredictTask, n_units: int, report: DriverReport, unjoined: dict[str, str]
+) -> str:
+    """The units that failed, the sessions not joined, and the command that finishes."""
+    lines = [f"  {f.unit}: {f.reason} (after {f.attempts} jobs; log: {f.log or '-'})"
+             for f in report.failed]  # fmt: skip
+    lines += [f"  {s}: its units are done, its parts kept, but it was not joined: {why}"
+              for s, why in unjoined.items()]  # fmt: skip
+    heads = []
+    if report.failed:
+        heads.append(f"{len(report.failed)} of {n_units} units failed")
+    if unjoined:
+        heads.append(f"{len(unjoined)} of {len(task.sessions)} sessions could not be joined")
+    return (
+        "; ".join(heads)
+        + "; the other units' outputs are kept:\n"
+        + "\n".join(lines)
+        + f"\nfix the cause and finish with `freipose jobs {task.outdir} --resume`"
+    )
 
 
 def run_predict(
@@ -297,7 +333,8 @@ def run_predict(
         say: where the plan's summary goes.
 
     Raises:
-        UnitsFailedError: units failed after their retries (the others' work is kept).
+        UnitsFailedError: units failed after their retries, or sessions could not be
+            joined (the others' work is kept).
         OutputLockedError: another driver runs on the same output folder.
         ExecutorError: the engine cannot be used.
     """
@@ -318,13 +355,7 @@ def run_predict(
             )  # fmt: skip
         finally:
             executor.close()
-        joined = join_sessions(task, units)
-    if report.failed:
-        lines = [f"  {f.unit}: {f.reason} (after {f.attempts} jobs; log: {f.log or '-'})"
-                 for f in report.failed]  # fmt: skip
-        raise UnitsFailedError(
-            f"{len(report.failed)} of {len(units)} units failed; the other units' outputs "
-            "are kept:\n" + "\n".join(lines) + "\nfix the cause and finish with "
-            f"`freipose jobs {task.outdir} --resume`"
-        )
+        joined, unjoined = join_sessions(task, units)
+    if report.failed or unjoined:
+        raise UnitsFailedError(_failure_message(task, len(units), report, unjoined))
     return ClusterPredictResult(report, tuple(joined), sum(u.frames for u in units))
