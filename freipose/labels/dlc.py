@@ -379,19 +379,31 @@ def dlc_table_text(
     index: Sequence[str],
     points: np.ndarray,
     likelihood: np.ndarray | None = None,
+    individuals: Sequence[str] | None = None,
 ) -> str:
-    """A single-animal DLC CSV: rows ``index`` (N,), points (N, K, 2) NaN = missing."""
+    """A DLC CSV: rows ``index`` (N,), points (N, K, 2) NaN = missing.
+
+    With ``individuals`` (A,), a multi-animal table (header ``scorer / individuals /
+    bodyparts / coords``) of points (N, A, K, 2) and likelihoods (N, A, K).
+    """
     coords = ["x", "y"] + (["likelihood"] if likelihood is not None else [])
+    if individuals is None:
+        points = points[:, None]
+        likelihood = None if likelihood is None else likelihood[:, None]
+    names = [""] if individuals is None else [str(a) for a in individuals]
+    cols = [(a, k) for a in range(len(names)) for k in range(len(keypoints))]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["scorer"] + [scorer] * (len(keypoints) * len(coords)))
-    w.writerow(["bodyparts"] + [k for k in keypoints for _ in coords])
-    w.writerow(["coords"] + coords * len(keypoints))
+    w.writerow(["scorer"] + [scorer] * (len(cols) * len(coords)))
+    if individuals is not None:
+        w.writerow(["individuals"] + [names[a] for a, _ in cols for _ in coords])
+    w.writerow(["bodyparts"] + [keypoints[k] for _, k in cols for _ in coords])
+    w.writerow(["coords"] + coords * len(cols))
     for r, name in enumerate(index):
         vals = []
-        for k in range(len(keypoints)):
+        for a, k in cols:
             for c in coords:
-                x = likelihood[r, k] if c == "likelihood" else points[r, k, "xy".index(c)]
+                x = likelihood[r, a, k] if c == "likelihood" else points[r, a, k, "xy".index(c)]
                 vals.append("" if not np.isfinite(x) else repr(float(x)))
         w.writerow([name] + vals)
     return buf.getvalue()
@@ -404,9 +416,13 @@ def write_dlc_table(
     index: Sequence[str],
     points: np.ndarray,
     likelihood: np.ndarray | None = None,
+    individuals: Sequence[str] | None = None,
 ) -> list[Path]:
-    """Write ``path`` (.csv) and, when PyTables is installed, the matching ``.h5``."""
-    text = dlc_table_text(scorer, keypoints, index, points, likelihood)
+    """Write ``path`` (.csv) and, when PyTables is installed, the matching ``.h5``.
+
+    ``individuals``: a multi-animal table (see :func:`dlc_table_text`).
+    """
+    text = dlc_table_text(scorer, keypoints, index, points, likelihood, individuals)
     atomic_write_text(path, text)
     written = [path]
     try:
@@ -416,7 +432,8 @@ def write_dlc_table(
         return written
     import pandas as pd
 
-    df = pd.read_csv(io.StringIO(text), header=[0, 1, 2], index_col=0)
+    header = [0, 1, 2] if individuals is None else [0, 1, 2, 3]
+    df = pd.read_csv(io.StringIO(text), header=header, index_col=0)
     h5 = path.with_suffix(".h5")
     with atomic_path(h5) as tmp:
         df.to_hdf(tmp, key="df_with_missing", format="table", mode="w")

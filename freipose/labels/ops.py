@@ -307,7 +307,8 @@ def export_labels(
     * ``dlc``: ``labeled-data/<session>_<camera>/CollectedData_<scorer>.csv`` (+ ``.h5``
       with PyTables), rows ``labeled-data/<folder>/img<frame:05d>.png``; the frames (all
       labeled frames of the session, in every camera folder) are extracted from the session
-      videos when they are available.
+      videos when they are available. Labels with ``individual``: multi-animal tables
+      (``scorer / individuals / bodyparts / coords``).
     * ``anipose``: ``<session>/pose-2d/<session>_<camera>.csv`` (one row per video frame up
       to the last labeled one, likelihood 1 for labels) + ``<session>/calibration.toml``.
     * ``freipose``: ``<session>/anno.json`` (the original format, xyz in metres) +
@@ -334,13 +335,17 @@ def export_labels(
             cols = [labels.cameras.index(c) for c in cams]
             fi = labels.frame_index[sel]
             p2 = labels.points2d[sel][:, cols]
+            animals = None
+            if fmt == "dlc" and labels.individual is not None:
+                animals, fi, p2 = _by_animal(labels.individual[sel], fi, p2, sess)
             if len(set(fi.tolist())) != len(fi):
                 raise LabelsOpError(
                     f"session {sess!r} has several labels per frame (several animals); "
-                    f"{fmt} export supports one animal per frame"
+                    f"{fmt} export supports one animal per frame (dlc: several with names)"
                 )
             if fmt == "dlc":
-                written += _export_dlc(tmp, sess, cams, fi, p2, labels, info, labels_dir, scorer)
+                written += _export_dlc(tmp, sess, cams, fi, p2, labels, info, labels_dir,
+                                       scorer, animals)  # fmt: skip
             elif fmt == "anipose":
                 written += _export_anipose(tmp, sess, cams, fi, p2, labels.keypoints, scorer)
                 if rig is not None:
@@ -389,7 +394,9 @@ def _export_dlc(
     info: SessionInfo,
     labels_dir: str | Path,
     scorer: str,
+    animals: Sequence[str] | None = None,
 ) -> list[Path]:
+    """One camera folder per camera; ``animals``: p2 is (F, C, A, K, 2), a multi-animal table."""
     import cv2
 
     from freipose.io.video import FrameSource
@@ -400,11 +407,12 @@ def _export_dlc(
         folder = re.sub(r"[^\w.\-]+", "_", f"{sess}_{cam}")
         d = tmp / "labeled-data" / folder
         d.mkdir(parents=True, exist_ok=True)
-        keep = np.isfinite(p2[:, j]).all(-1).any(-1)
+        keep = np.isfinite(p2[:, j]).all(-1).reshape(len(fi), -1).any(-1)
         index = [f"labeled-data/{folder}/img{int(f):05d}.png" for f in fi[keep]]
         written += write_dlc_table(
-            d / f"CollectedData_{scorer}.csv", scorer, labels.keypoints, index, p2[keep, j]
-        )
+            d / f"CollectedData_{scorer}.csv", scorer, labels.keypoints, index, p2[keep, j],
+            individuals=animals,
+        )  # fmt: skip
         video = info.videos.get(cam)
         if video is not None:
             vp = Path(video) if Path(video).is_absolute() else Path(labels_dir) / video
@@ -418,6 +426,41 @@ def _export_dlc(
                         cv2.imwrite(str(img_path), src.read(int(f)))
                         written.append(img_path)
     return written
+
+
+def _by_animal(
+    individual: np.ndarray, fi: np.ndarray, p2: np.ndarray, sess: str
+) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Rows of (frame, animal) as frames with an animal axis.
+
+    Args:
+        individual: (N,) each row's animal.
+        fi: (N,) each row's frame.
+        p2: (N, C, K, 2) points.
+        sess: the session (for messages).
+
+    Returns:
+        ``(animals (A,), frames (F,), points (F, C, A, K, 2))``.
+
+    Raises:
+        LabelsOpError: a row without an animal's name, or an animal twice in a frame.
+    """
+    names = list(dict.fromkeys(str(a) for a in individual))
+    if "" in names:
+        raise LabelsOpError(
+            f"session {sess!r} mixes rows with and without an animal's name (individual); "
+            f"name every row's animal to export several animals"
+        )
+    frames = np.unique(fi)
+    out = np.full((len(frames), p2.shape[1], len(names), *p2.shape[2:]), np.nan)
+    seen = set()
+    for r, (f, a) in enumerate(zip(fi, individual)):
+        key = (int(f), str(a))
+        if key in seen:
+            raise LabelsOpError(f"session {sess!r} frame {key[0]}: animal {key[1]!r} twice")
+        seen.add(key)
+        out[np.searchsorted(frames, f), :, names.index(str(a))] = p2[r]
+    return names, frames, out
 
 
 def _export_anipose(

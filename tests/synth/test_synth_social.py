@@ -128,3 +128,35 @@ def test_social_session_truth_labels_and_label_files(tmp_path):
     assert r.exit_code == 0, r.output
     again = read_poses_h5(tmp_path / "again" / "true_poses.h5")
     np.testing.assert_array_equal(again.poses, truth.poses)
+
+
+def test_labels_of_two_animals_export_to_dlc_and_back(tmp_path):
+    sess = tmp_path / "duo"
+    r = CliRunner().invoke(
+        cli,
+        ["synth", str(sess), "--animals", "2", "--frames", "5", "--cameras", "2", "--size",
+         "96x80", "--seed", "3"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    lab = read_labels_h5(sess / "labels.h5")
+    out = tmp_path / "dlc"
+    r = CliRunner().invoke(
+        cli, ["labels", "export", str(sess / "labels.h5"), "--format", "dlc", "-o", str(out)]
+    )
+    assert r.exit_code == 0, r.output
+    head = next(out.glob("labeled-data/*/CollectedData_*.csv")).read_text().splitlines()[1]
+    assert head.startswith("individuals,animal0")
+    back = tmp_path / "back.h5"
+    r = CliRunner().invoke(
+        cli, ["labels", "import", "--format", "dlc", str(out), "--calibration",
+              str(sess / "true_calibration.toml"), "-o", str(back)],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    got = read_labels_h5(back)
+    assert len(got) == len(lab) and got.individuals == lab.individuals
+    for i in range(len(got)):
+        j = np.flatnonzero((lab.frame_index == got.frame_index[i])
+                           & (lab.individual == got.individual[i]))  # fmt: skip
+        assert len(j) == 1
+        cams = [lab.cameras.index(c) for c in got.cameras]
+        np.testing.assert_array_equal(got.points2d[i], lab.points2d[j[0]][cams])
