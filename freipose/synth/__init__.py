@@ -14,7 +14,12 @@ Public API:
 * :class:`RatBody`, :func:`build_body`: the articulated ellipsoid animal (rat or mouse);
 * :mod:`freipose.synth.conditions`: the conditions of real rigs (grayscale, fisheye lenses,
   reflective walls, resting, bedding, a mouse, label files of other tools) and domain
-  randomisation (``SceneConfig(seed=S, randomize=True)``), all plain ``SceneConfig`` keys.
+  randomisation (``SceneConfig(seed=S, randomize=True)``), all plain ``SceneConfig`` keys;
+* several animals (``SceneConfig(animals=2..4)``): :mod:`freipose.synth.social`
+  (:func:`simulate_social` -> :class:`SocialMotion`: meeting, crossing, climbing over;
+  ``combine_geometries``) and :mod:`freipose.synth.social_scene` (``true_poses.h5``, the
+  labels with ``individual``, :func:`animal_views`: per-animal visibility and occlusion by
+  the other animals).
 """
 
 from freipose.synth.board import board_poses, default_board, render_board_frames, write_board_videos
@@ -23,12 +28,15 @@ from freipose.synth.errors import RigFileError, SynthError
 from freipose.synth.motion import simulate_motion, simulate_trajectory
 from freipose.synth.rig import ArenaConfig, default_rig, load_rig_file, rig_from_dict
 from freipose.synth.scene import SceneConfig, SessionPaths, build_scene, generate_session
+from freipose.synth.social import SocialMotion, simulate_social
+from freipose.synth.social_scene import TRUE_POSES_NAME, animal_views
 from freipose.synth.state import MotionState
 from freipose.synth.stimulation import StimulationConfig
 from freipose.synth.visibility import keypoint_visibility
 
 __all__ = [
     "RAT_KEYPOINTS",
+    "TRUE_POSES_NAME",
     "ArenaConfig",
     "BodyGeometry",
     "MotionState",
@@ -36,7 +44,9 @@ __all__ = [
     "RigFileError",
     "SceneConfig",
     "SessionPaths",
+    "SocialMotion",
     "StimulationConfig",
+    "animal_views",
     "SynthError",
     "board_poses",
     "build_body",
@@ -49,6 +59,7 @@ __all__ = [
     "render_board_frames",
     "rig_from_dict",
     "simulate_motion",
+    "simulate_social",
     "simulate_trajectory",
     "write_board_videos",
 ]
