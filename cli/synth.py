@@ -284,11 +284,18 @@ def synth(
             changes["board"] = load_board(board_file).to_dict()
         cfg = SceneConfig.from_dict({**base.to_dict(), **changes})
         paths = generate_session(outdir, cfg, workers=workers, overwrite=overwrite)
-        click.echo(
-            f"wrote {len(paths.videos)} videos, {paths.calibration.name}, {paths.labels.name}"
-            + (f", {paths.events.name}" if paths.events else "")
-            + (f", {len(paths.label_files)} label files" if paths.label_files else "")
-            + (f", calibration/ ({len(paths.calibration_videos)} board videos)"
-               if paths.calibration_videos else "")
-            + f" to {paths.folder}"
-        )  # fmt: skip
+        click.echo(_summary(paths))
+
+
+def _summary(paths: Any) -> str:
+    """What ``generate_session`` wrote (its ``SessionPaths``), in one line."""
+    truth = paths.folder / "true_poses.h5"
+    return (
+        f"wrote {len(paths.videos)} videos, {paths.calibration.name}, {paths.labels.name}"
+        + (f", {truth.name}" if truth.is_file() else "")
+        + (f", {paths.events.name}" if paths.events else "")
+        + (f", {len(paths.label_files)} label files" if paths.label_files else "")
+        + (f", calibration/ ({len(paths.calibration_videos)} board videos)"
+           if paths.calibration_videos else "")
+        + f" to {paths.folder}"
+    )  # fmt: skip
