@@ -1,4 +1,4 @@
-"""``freipose jobs``: the units of a prediction run through an executor, and ``--resume``."""
+"""``freipose jobs``: the units of a command run through an executor, and ``--resume``."""
 
 from __future__ import annotations
 
@@ -12,50 +12,58 @@ STATES = ("done", "running", "queued", "failed", "waiting")
 
 
 @click.command()
-@click.argument("outdir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("outdir", metavar="OUTPUT", type=click.Path(path_type=Path))
 @click.option(
     "--resume",
     is_flag=True,
     help="Submit the units that are not done (failed, cancelled, never run) with the "
-    "settings of the first run, wait for them and join the sessions.",
+    "settings of the first run, wait for them and join the outputs.",
 )
 @click.option("--all", "show_all", is_flag=True, help="List every unit, also the done ones.")
 @click.pass_context
 def jobs(ctx: click.Context, outdir: Path, resume: bool, show_all: bool) -> None:
-    """Show the units of a prediction run through an executor, and finish it.
+    """Show the units of a command run through an executor, and finish it.
 
-    For `freipose predict --executor ... -o OUTDIR`: per session, the units that are done,
-    running, queued, failed (with the reason and the log) or waiting, and the throughput.
-    For `freipose train --executor ... --out RUN`: the training job's state and step.
+    OUTPUT is what the command wrote with --executor: the output folder of `freipose
+    predict` or `freipose smooth` (-o OUTDIR; also lists the jobs of single files written
+    into it), or the output file of `freipose detect`, `render` or `analyze variables`.
+    Per session or file: the units that are done, running, queued, failed (with the reason
+    and the log) or waiting, and the throughput. For `freipose train --executor ... --out
+    RUN`: the training job's state and step.
 
     \b
     Examples:
       freipose jobs poses/              # what is done, what runs, what failed
       freipose jobs poses/ --resume     # submit what is missing and join the sessions
+      freipose jobs rec1/boxes.h5       # the units of `freipose detect ... -o rec1/boxes.h5`
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
+        from freipose.cluster.stages import find_job_roots, load_task
         from freipose.cluster.status import jobs_status
         from freipose.cluster.train import is_train_job
 
-        if is_train_job(outdir):  # a run folder of `freipose train --executor`
+        if outdir.is_dir() and is_train_job(outdir):  # a run of `freipose train --executor`
             from freipose.cli.train import show_train_job
 
             show_train_job(ctx, outdir, resume)
             return
 
-        if resume:
-            _resume(ctx, outdir)
-        status = jobs_status(outdir)
-        _show(status, show_all)
+        roots = find_job_roots(outdir)
+        if not roots:
+            load_task(outdir)  # raises the message that says which commands write a job
+        for root in roots:
+            if resume:
+                _resume(ctx, root)
+            _show(jobs_status(root), show_all)
 
 
-def _resume(ctx: click.Context, outdir: Path) -> None:
+def _resume(ctx: click.Context, root: Path) -> None:
     """Run the saved task again: only the missing units are submitted."""
-    from freipose.cluster.predict import load_task, run_predict
+    from freipose.cluster.stages import load_task, run_stage
 
     quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-    task, config = load_task(outdir)
-    result = run_predict(task, config, progress=not quiet, say=click.echo)
+    task, config = load_task(root)
+    result = run_stage(task, config, progress=not quiet, say=click.echo)
     for p in result.joined:
         click.echo(f"wrote {p}")
 
@@ -65,7 +73,9 @@ def _show(status, show_all: bool) -> None:  # noqa: ANN001 - a JobsStatus
     by_session: dict[str, list] = {}
     for u in status.units:
         by_session.setdefault(u.session, []).append(u)
-    click.echo(f"{status.outdir}: {len(status.units)} units on the {status.executor} executor")
+    target = status.target or status.outdir
+    click.echo(f"{target}: {len(status.units)} units of `freipose {status.command}` on the "
+               f"{status.executor} executor")  # fmt: skip
     for session, units in by_session.items():
         counts = {state: sum(u.state == state for u in units) for state in STATES}
         summary = ", ".join(f"{n} {state}" for state, n in counts.items() if n)
@@ -85,4 +95,4 @@ def _show(status, show_all: bool) -> None:  # noqa: ANN001 - a JobsStatus
         click.echo(f"throughput so far: {status.frames_per_s:.1f} frames/s")
     missing = status.missing()
     if missing and any(u.state in ("failed", "waiting") for u in missing):
-        click.echo(f"finish with: freipose jobs {status.outdir} --resume")
+        click.echo(f"finish with: freipose jobs {target} --resume")

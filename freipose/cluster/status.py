@@ -1,6 +1,6 @@
-"""The state of every unit of a job, from its files, its journal and the scheduler.
+"""The state of every unit of a job of any stage, from its files, its journal and the scheduler.
 
-A unit is ``done`` when its part (or its session's joined file) is complete on disk;
+A unit is ``done`` when its part (or the output it belongs to) is complete on disk;
 ``running`` or ``queued`` while the executor lists its last job so (SLURM: ``squeue``;
 the local executor's jobs are running while their driver runs); ``failed`` when its last
 job ended without the part; ``waiting`` when it never had a job.
@@ -18,7 +18,7 @@ from typing import Any
 
 from freipose.cluster.driver import JOBS_DIR, read_journal
 from freipose.cluster.executors import squeue_states
-from freipose.cluster.predict import load_task, plan_units, unit_is_done
+from freipose.cluster.stages import load_task
 
 DONE, RUNNING, QUEUED, FAILED, WAITING = "done", "running", "queued", "failed", "waiting"
 
@@ -55,7 +55,7 @@ class JobsStatus:
     """Every unit of the job in ``outdir`` and the throughput so far.
 
     Attributes:
-        outdir: the output folder.
+        outdir: the job's root (the folder whose ``.jobs`` holds it).
         executor: the executor the job ran on.
         units: the units' states.
         frames_per_s: done frames per second of wall time since the first submission
@@ -66,6 +66,8 @@ class JobsStatus:
     executor: str
     units: tuple[UnitStatus, ...]
     frames_per_s: float | None
+    command: str = "predict"
+    target: Path | None = None
 
     def counts(self) -> dict[str, int]:
         """State -> number of units."""
@@ -113,14 +115,14 @@ def _throughput(events: Sequence[dict[str, Any]], frames_done: int) -> float | N
 
 
 def jobs_status(outdir: str | Path) -> JobsStatus:
-    """The state of every unit of the job in ``outdir``.
+    """The state of every unit of the job whose root is ``outdir``.
 
     Raises:
         FreiPoseError: ``outdir`` holds no job.
     """
     outdir = Path(outdir)
     task, config = load_task(outdir)
-    units = plan_units(task)
+    units = task.plan_units()
     events = read_journal(outdir)
     last = _last_jobs(events)
     open_ids = [v["job_id"] for v in last.values() if not v["ended"]]
@@ -130,7 +132,7 @@ def jobs_status(outdir: str | Path) -> JobsStatus:
         job = last.get(u.name, {})
         common = {"job_id": job.get("job_id", ""), "attempts": job.get("attempts", 0),
                   "log": str(job.get("log") or "")}  # fmt: skip
-        if unit_is_done(task, u):
+        if task.unit_is_done(u):
             state, reason = DONE, ""
         elif not job:
             state, reason = WAITING, ""
@@ -144,4 +146,5 @@ def jobs_status(outdir: str | Path) -> JobsStatus:
         out.append(UnitStatus(u.name, u.session, u.frames, state, reason=reason,
                               seconds=_unit_seconds(outdir, u.name), **common))  # fmt: skip
     done_frames = sum(u.frames for u in out if u.state == DONE)
-    return JobsStatus(outdir, config.executor, tuple(out), _throughput(events, done_frames))
+    return JobsStatus(outdir, config.executor, tuple(out), _throughput(events, done_frames),
+                      task.command, task.target)  # fmt: skip
