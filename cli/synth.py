@@ -289,10 +289,9 @@ def synth(
 
 def _summary(paths: Any) -> str:
     """What ``generate_session`` wrote (its ``SessionPaths``), in one line."""
-    truth = paths.folder / "true_poses.h5"
     return (
         f"wrote {len(paths.videos)} videos, {paths.calibration.name}, {paths.labels.name}"
-        + (f", {truth.name}" if truth.is_file() else "")
+        + (f", {paths.truth.name}" if paths.truth is not None else "")
         + (f", {paths.events.name}" if paths.events else "")
         + (f", {len(paths.label_files)} label files" if paths.label_files else "")
         + (f", calibration/ ({len(paths.calibration_videos)} board videos)"

@@ -97,6 +97,7 @@ class SessionPaths:
     calibration_videos: Mapping[str, Path] = field(default_factory=dict)
     board: Path | None = None
     label_files: tuple[Path, ...] = ()
+    truth: Path | None = None  # several animals: true_poses.h5
 
 
 @dataclass(frozen=True, eq=False)
@@ -424,8 +425,9 @@ def generate_session(
     board_path = None
     if config.calibration_video:
         cal_videos, board_path = _write_calibration_video(scene, out, n_workers or 1, progress)
+    truth = out / TRUE_POSES_NAME if scene.social is not None else None
     return SessionPaths(out, videos, out / TRUE_CALIBRATION_NAME, labels_path, scene_path,
-                        events_path, cal_videos, board_path, label_files)  # fmt: skip
+                        events_path, cal_videos, board_path, label_files, truth)  # fmt: skip
 
 
 def _board_from(d: Mapping[str, Any]) -> Any:
