@@ -169,7 +169,7 @@ def _write_merged(files: list[h5py.File], out: h5py.File) -> None:
             g = out.require_group(name)
             for k, v in obj.attrs.items():
                 g.attrs[k] = v
-        elif name == "keypoints":
+        elif name in ("keypoints", "individuals"):  # per run, not per frame
             out.create_dataset(name, data=obj[()], dtype=obj.dtype)
         else:
             copy(name)

@@ -62,3 +62,23 @@ def test_writer_with_animal_axis_writes_and_resumes(tmp_path):
     w = IncrementalPosesWriter(tmp_path / "b.poses.h5", _header(rig, ("x", "y")), chunk_rows=4)
     assert w.open() == 0
     w.close()
+
+
+def test_shards_with_animal_axis_merge(tmp_path):
+    from freipose.predict.merge import merge_shards
+
+    rig = make_circle_rig(2)
+    rng = np.random.default_rng(1)
+    ests = [_est(rng, 5, 2) for _ in range(2)]
+    paths = []
+    for i, (a, b) in enumerate(((100, 105), (105, 110))):
+        h = OutputHeader(KPS, rig, a, b, 30.0, run_start=100, run_stop=110, shard=(i, 2),
+                         up=(0.0, 0.0, 1.0), individuals=("m1", "m2"))  # fmt: skip
+        w = IncrementalPosesWriter(tmp_path / f"s.shard-{i}-of-2.poses.h5", h, chunk_rows=5)
+        w.open()
+        w.add_animals(ests, np.zeros(5), np.ones((5, 2), bool), np.full((5, 2), 0.5 + i / 4))
+        paths.append(w.finish())
+    d = read_poses_h5(merge_shards(paths, tmp_path / "s.poses.h5"))
+    assert d.individuals == ("m1", "m2") and d.poses.shape == (10, 2, 2, 3)
+    np.testing.assert_allclose(d.poses[5:, 0], ests[0].poses)
+    np.testing.assert_allclose(d.identity_confidence[:, 1], [0.5] * 5 + [0.75] * 5)
