@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from freipose.cli._cluster import cluster_config, cluster_options
 from freipose.cli._common import (
     calibration_option,
     camera_map_from,
@@ -68,7 +69,10 @@ from freipose.errors import FreiPoseError
     help="Frames per camera for the median background (bgsub).",
 )
 @overwrite_option("OUTPUT if it exists")
+@cluster_options
+@click.pass_context
 def detect(
+    ctx: click.Context,
     session: Path,
     output: Path,
     calibration: Path | None,
@@ -83,6 +87,11 @@ def detect(
     batch_size: int,
     bg_samples: int,
     overwrite: bool,
+    executor: str | None,
+    cluster_file: Path | None,
+    chunk_frames: int | None,
+    parallel: int | None,
+    max_retries: int | None,
 ) -> None:
     """Find the animal in every view and frame, consistently across views.
 
@@ -94,11 +103,17 @@ def detect(
     command again continues from there. An existing OUTPUT is kept unless --overwrite;
     a second run on the same OUTPUT is refused while the first one works.
 
+    With --executor (or --cluster FILE) the frames are cut into units of --chunk-frames
+    frames (whole batches) that run in worker processes (local) or as a SLURM job array;
+    their boxes are joined into OUTPUT, equal to a single run's. `freipose jobs OUTPUT`
+    shows the units; the same command again submits only what is missing.
+
     \b
     Example:
       freipose detect session1/ --model runs/detector/detector.pt -o session1/boxes.h5
       freipose detect session1/ --method bgsub --frames 0:500 -o boxes.h5
       freipose detect session1/ --fixed-boxes boxes.toml -o boxes.h5
+      freipose detect session1/ --model detector.pt -o boxes.h5 --cluster cluster.toml
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.detect.multiview import ConsistencyConfig
@@ -111,6 +126,7 @@ def detect(
 
         if batch_size < 1:
             raise FreiPoseError(f"--batch-size must be >= 1, got {batch_size}")
+        config = cluster_config(executor, cluster_file, chunk_frames, parallel, max_retries)
         cfg = ConsistencyConfig(cube_size=cube_size, min_views=min_views)
         opened = discover_sessions(
             [session],
@@ -124,6 +140,15 @@ def detect(
         source, method_name, desc = make_source(
             rig, sources, rng, model, method, fixed_boxes, device, bg_samples
         )
+        if config is not None:
+            from freipose.cluster.detect import DetectTask
+
+            task = DetectTask(opened[0], output, frames, model, method, fixed_boxes, device,
+                              bg_samples, cube_size, min_views, batch_size,
+                              config.chunk_frames, config.cpus)  # fmt: skip
+            data = _detect_units(ctx, task, config, overwrite)
+            _say_result(output, data)
+            return
         refuse_existing(output, overwrite)  # before the work; again under the lock
         # Partial results survive an interruption; rerunning the command continues.
         progress = output.with_name(f".{output.name}.progress.npz")
@@ -144,9 +169,30 @@ def detect(
             )
             write_boxes_h5(data, output)
             progress.unlink(missing_ok=True)
-        n = len(data)
-        found = int((data.n_agree > 0).sum())
-        click.echo(
-            f"{output}: {n} frames x {len(data.cameras)} cameras ({method_name}); 3D centre in "
-            f"{found}/{n} frames, {float(data.n_agree.mean()):.2f} agreeing views on average"
-        )
+        _say_result(output, data)
+
+
+def _say_result(output: Path, data) -> None:  # noqa: ANN001 - a BoxesData
+    """One line: frames, cameras, method, how often a 3D centre was found."""
+    n = len(data)
+    found = int((data.n_agree > 0).sum())
+    click.echo(
+        f"{output}: {n} frames x {len(data.cameras)} cameras ({data.method}); 3D centre in "
+        f"{found}/{n} frames, {float(data.n_agree.mean()):.2f} agreeing views on average"
+    )
+
+
+def _detect_units(ctx: click.Context, task, config, overwrite: bool):  # noqa: ANN001, ANN202
+    """Detect through the executor ``config`` names; returns the joined boxes."""
+    from freipose.cluster.stages import run_stage
+    from freipose.io.boxes import read_boxes_h5
+
+    quiet = bool(ctx.obj and ctx.obj.get("quiet"))
+    if task.out_path.exists() and not overwrite:
+        click.echo(f"kept {task.out_path} (--overwrite redoes it)")
+    result = run_stage(task, config, progress=not quiet, overwrite=overwrite,
+                       say=(lambda m: None) if quiet else click.echo)  # fmt: skip
+    r = result.report
+    click.echo(f"{len(r.done)} units done ({r.submitted} jobs submitted in this run), "
+               f"{result.frames} frames, {r.seconds:.1f} s")  # fmt: skip
+    return read_boxes_h5(task.out_path)

@@ -66,13 +66,16 @@ class StageTask(Protocol):
     uses_torch: ClassVar[bool]
 
     @property
-    def root(self) -> Path: ...
+    def root(self) -> Path:
+        """The folder whose ``.jobs`` holds the job."""
 
     @property
-    def target(self) -> Path: ...
+    def target(self) -> Path:
+        """The path to give ``freipose jobs``."""
 
     @property
-    def threads(self) -> int: ...
+    def threads(self) -> int:
+        """Threads of each unit."""
 
     def plan_units(self) -> list[Unit]:
         """Every unit of the job; ``unit.session`` names the output the unit belongs to."""
