@@ -251,6 +251,7 @@ class AnimalDetections:
         boxes: (H, C, 4) per animal and view: its own box, a shared box or a replacement.
         scores: (H, C) the box's score; 0 for replacement boxes.
         own: (H, C) the view's box belongs to this animal alone (the view agreed).
+        members: (H, C) int64 index of the own box in the view's candidates, -1 none.
         shared: (H, C) the view's box was taken by another animal and lies on this one
             (two animals seen as one blob).
         n_views: (H,) views that agreed.
@@ -263,6 +264,7 @@ class AnimalDetections:
     boxes: np.ndarray
     scores: np.ndarray
     own: np.ndarray
+    members: np.ndarray
     shared: np.ndarray
     n_views: np.ndarray
     sizes_mm: np.ndarray
@@ -274,18 +276,20 @@ class AnimalDetections:
 
 
 def _views(cands: Sequence[Candidates], cfg: AnimalsConfig) -> tuple[list[np.ndarray], ...]:
-    """Per view the boxes, scores, centres, tolerances and sizes used."""
-    boxes, scores, centres, tols, sizes = [], [], [], [], []
+    """Per view the boxes, scores, centres, tolerances, sizes and candidate indices used."""
+    boxes, scores, centres, tols, sizes, index = [], [], [], [], [], []
     for cd in cands:
         ok = (cd.scores >= cfg.min_score) & np.isfinite(cd.boxes).all(-1)
-        b, s = cd.boxes[ok][: cfg.max_boxes], cd.scores[ok][: cfg.max_boxes]
+        idx = np.flatnonzero(ok)[: cfg.max_boxes]
+        index.append(idx)
+        b, s = cd.boxes[idx], cd.scores[idx]
         sz = np.sqrt(np.abs(np.prod(box_sizes(b), -1)))
         boxes.append(b)
         scores.append(s)
         centres.append(box_centers(b))
         tols.append(np.maximum(cfg.min_tolerance_px, cfg.rel_tolerance * sz))
         sizes.append(sz)
-    return boxes, scores, centres, tols, sizes
+    return boxes, scores, centres, tols, sizes, index
 
 
 def _fill_views(
@@ -344,7 +348,7 @@ def detect_animals(
         raise ValueError(
             f"expected candidates for {len(rig)} cameras ({rig.names}), got {len(candidates)}"
         )
-    boxes, scores, centres, tols, sizes = _views(candidates, cfg)
+    boxes, scores, centres, tols, sizes, index = _views(candidates, cfg)
     acfg = AssociationConfig(
         min_views=cfg.min_views, max_size_ratio=cfg.max_size_ratio,
         max_hypotheses=cfg.max_animals,
@@ -357,6 +361,15 @@ def detect_animals(
         boxes=out,
         scores=sc,
         own=a.members >= 0,
+        members=np.stack(
+            [
+                np.where(a.members[:, v] >= 0, index[v][np.maximum(a.members[:, v], 0)], -1)
+                if len(index[v])
+                else np.full(len(a), -1)
+                for v in range(len(rig))
+            ],
+            axis=1,
+        ).reshape(len(a), len(rig)),  # fmt: skip
         shared=shared,
         n_views=a.n_views,
         sizes_mm=a.sizes_mm,
