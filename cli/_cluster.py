@@ -1,4 +1,7 @@
-"""The executor options of the commands whose work runs as units (``predict``, ``train``)."""
+"""The executor options of the commands whose work runs as units.
+
+``predict``, ``detect``, ``smooth``, ``analyze variables``, ``render`` and ``train``.
+"""
 
 from __future__ import annotations
 
@@ -15,8 +18,18 @@ EXECUTOR_HELP = (
 )
 
 
-def cluster_options(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """``--executor``, ``--cluster FILE``, ``--chunk-frames``, ``--parallel``, ``--max-retries``."""
+def cluster_options(
+    fn: Callable[..., Any] | None = None, *, chunks: bool = True
+) -> Callable[..., Any]:
+    """``--executor``, ``--cluster FILE``, ``--chunk-frames``, ``--parallel``, ``--max-retries``.
+
+    Args:
+        fn: the command (``@cluster_options``), or None (``@cluster_options(chunks=False)``).
+        chunks: whether the command splits its work in chunks of frames (``--chunk-frames``);
+            without, each output is one unit and the command has no ``chunk_frames``.
+    """
+    if fn is None:
+        return lambda f: cluster_options(f, chunks=chunks)
     options = [
         click.option("--executor", type=click.Choice(["local", "slurm"]), help=EXECUTOR_HELP),
         click.option(
@@ -40,9 +53,36 @@ def cluster_options(fn: Callable[..., Any]) -> Callable[..., Any]:
             help="Further jobs for a unit that ended without its output [default: 2].",
         ),
     ]
+    if not chunks:
+        del options[2]
     for option in reversed(options):
         fn = option(fn)
     return fn
+
+
+def run_through_executor(ctx: click.Context, task: Any, config: Any, overwrite: bool) -> Any:
+    """Run a stage's ``task`` on the executor ``config`` names, saying what it does.
+
+    Says which outputs are kept (complete already; ``--overwrite`` redoes them), the plan,
+    the outputs written and how many units are done. Returns the ``StageResult``.
+    """
+    from freipose.cluster.stages import groups, run_stage
+
+    quiet = bool(ctx.obj and ctx.obj.get("quiet"))
+    kept = set()
+    if not overwrite:
+        kept = {task.output(g) for g in groups(task.plan_units()) if task.output_done(g)}
+        for path in sorted(kept):
+            click.echo(f"kept {path} (--overwrite redoes it)")
+    result = run_stage(task, config, progress=not quiet, overwrite=overwrite,
+                       say=(lambda m: None) if quiet else click.echo)  # fmt: skip
+    for path in result.joined:
+        if path not in kept:
+            click.echo(f"wrote {path}")
+    r = result.report
+    click.echo(f"{len(r.done)} units done ({r.submitted} jobs submitted in this run), "
+               f"{result.frames} frames, {r.seconds:.1f} s")  # fmt: skip
+    return result
 
 
 def cluster_config(

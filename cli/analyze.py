@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from freipose.cli._cluster import cluster_config, cluster_options, run_through_executor
 from freipose.cli._common import allow_incomplete_option, check_complete, user_errors
 from freipose.cli._lazy import DefaultLazyGroup
 
@@ -263,7 +264,10 @@ def run(
 @gap_option
 @window_option
 @allow_incomplete_option()
+@cluster_options(chunks=False)
+@click.pass_context
 def variables(
+    ctx: click.Context,
     poses: Path,
     output: Path,
     skeleton: str | None,
@@ -271,6 +275,10 @@ def variables(
     max_gap: float,
     stft_window: int,
     allow_incomplete: bool,
+    executor: str | None,
+    cluster_file: Path | None,
+    parallel: int | None,
+    max_retries: int | None,
 ) -> None:
     """Compute the behavioral variables of a poses file.
 
@@ -280,9 +288,13 @@ def variables(
     frequencies. The 12-keypoint rat with 6 angles has 912 at the default 64-frame
     window and 528 at 32 frames (freipose demo).
 
+    With --executor (or --cluster FILE) the file is one unit, run in a worker process
+    (local) or as a SLURM job; an existing OUTPUT is kept. `freipose jobs OUTPUT` shows it.
+
     \b
     Example:
       freipose analyze variables rat1.poses.h5 -o rat1.vars.h5 --floor auto
+      freipose analyze variables rat1.poses.h5 -o rat1.vars.h5 --cluster cluster.toml
     """  # noqa: D301 (click needs the \b escape)
     with user_errors():
         from freipose.analysis.io import (
@@ -294,7 +306,15 @@ def variables(
         from freipose.io.poses import read_poses_h5
 
         cfg = VariableConfig(max_gap_s=max_gap, stft_window=stft_window)
+        config = cluster_config(executor, cluster_file, None, parallel, max_retries)
         check_complete(poses, allow_incomplete)
+        if config is not None:
+            from freipose.cluster.variables import VariablesTask
+
+            task = VariablesTask.of(poses, output, skeleton=skeleton, floor=floor, config=cfg,
+                                    threads=config.cpus)  # fmt: skip
+            run_through_executor(ctx, task, config, overwrite=False)
+            return
         data = read_poses_h5(poses, require_up=True)
         var = variables_from_poses(data, skeleton, floor, cfg, source=str(poses))
         write_variables_h5(var, output, variables_settings(skeleton, floor, cfg), source=poses)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from freipose.cli._cluster import cluster_config, cluster_options
+from freipose.cli._cluster import cluster_config, cluster_options, run_through_executor
 from freipose.cli._common import (
     calibration_option,
     camera_map_from,
@@ -119,7 +119,7 @@ def detect(
         from freipose.detect.multiview import ConsistencyConfig
         from freipose.detect.pipeline import detect_session, make_source, open_sources
         from freipose.io.atomic import refuse_existing, remove_leftover_partials
-        from freipose.io.boxes import write_boxes_h5
+        from freipose.io.boxes import read_boxes_h5, write_boxes_h5
         from freipose.io.lock import output_lock
         from freipose.io.session import discover_sessions
         from freipose.io.video import frame_range
@@ -146,8 +146,8 @@ def detect(
             task = DetectTask(opened[0], output, frames, model, method, fixed_boxes, device,
                               bg_samples, cube_size, min_views, batch_size,
                               config.chunk_frames, config.cpus)  # fmt: skip
-            data = _detect_units(ctx, task, config, overwrite)
-            _say_result(output, data)
+            run_through_executor(ctx, task, config, overwrite)
+            _say_result(output, read_boxes_h5(output))
             return
         refuse_existing(output, overwrite)  # before the work; again under the lock
         # Partial results survive an interruption; rerunning the command continues.
@@ -180,19 +180,3 @@ def _say_result(output: Path, data) -> None:  # noqa: ANN001 - a BoxesData
         f"{output}: {n} frames x {len(data.cameras)} cameras ({data.method}); 3D centre in "
         f"{found}/{n} frames, {float(data.n_agree.mean()):.2f} agreeing views on average"
     )
-
-
-def _detect_units(ctx: click.Context, task, config, overwrite: bool):  # noqa: ANN001, ANN202
-    """Detect through the executor ``config`` names; returns the joined boxes."""
-    from freipose.cluster.stages import run_stage
-    from freipose.io.boxes import read_boxes_h5
-
-    quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-    if task.out_path.exists() and not overwrite:
-        click.echo(f"kept {task.out_path} (--overwrite redoes it)")
-    result = run_stage(task, config, progress=not quiet, overwrite=overwrite,
-                       say=(lambda m: None) if quiet else click.echo)  # fmt: skip
-    r = result.report
-    click.echo(f"{len(r.done)} units done ({r.submitted} jobs submitted in this run), "
-               f"{result.frames} frames, {r.seconds:.1f} s")  # fmt: skip
-    return read_boxes_h5(task.out_path)

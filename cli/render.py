@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from freipose.cli._cluster import cluster_config, cluster_options, run_through_executor
 from freipose.cli._common import (
     allow_incomplete_option,
     check_complete,
@@ -42,6 +43,7 @@ from freipose.errors import FreiPoseError
 )
 @allow_incomplete_option()
 @overwrite_option("the overlay video")
+@cluster_options(chunks=False)
 @click.pass_context
 def render(
     ctx: click.Context,
@@ -55,6 +57,10 @@ def render(
     force: bool,
     allow_incomplete: bool,
     overwrite: bool,
+    executor: str | None,
+    cluster_file: Path | None,
+    parallel: int | None,
+    max_retries: int | None,
 ) -> None:
     """Draw predicted poses onto the videos: one tile per camera plus a 3D panel.
 
@@ -64,10 +70,15 @@ def render(
     count are checked; --force draws them anyway), and an existing OUTPUT is kept unless
     --overwrite.
 
+    With --executor (or --cluster FILE) the video is rendered by one unit (one encoded
+    stream) in a worker process (local) or as a SLURM job; an existing OUTPUT is kept
+    unless --overwrite. `freipose jobs OUTPUT` shows it.
+
     \b
     Examples:
       freipose render rec1/ poses/rec1.poses.h5 -o rec1_overlay.mp4 --frames 0:300
       freipose render rec1/ poses/rec1.poses.h5 -o clip.mkv --cameras cam0,cam3 --no-3d
+      freipose render rec1/ poses/rec1.poses.h5 -o rec1.mp4 --cluster cluster.toml
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.atomic import refuse_existing, remove_leftover_partials
@@ -81,6 +92,7 @@ def render(
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
         if tile_width < 32:
             raise FreiPoseError(f"--tile-width must be at least 32 pixels, got {tile_width}")
+        config = cluster_config(executor, cluster_file, None, parallel, max_retries)
         check_complete(poses, allow_incomplete)
         data = read_poses_h5(poses)
         rig = data.calibration
@@ -93,21 +105,7 @@ def render(
                 )
             rig = load_calibration(calib)
         videos = find_camera_videos(session)
-        names = (
-            [c.strip() for c in cameras.split(",")]
-            if cameras
-            else [n for n in rig.names if n in videos]
-        )
-        bad = [n for n in names if n not in rig.names or n not in videos]
-        if bad:
-            raise FreiPoseError(
-                f"cameras {bad} are not both in the calibration {rig.names} and among the "
-                f"videos {sorted(videos)}"
-            )
-        if not names:
-            raise FreiPoseError(
-                f"no video in {session} matches the calibration's cameras {rig.names}"
-            )
+        names = _camera_names(cameras, rig, videos, session)
         for problem in check_session(data, poses, session, videos, force):
             click.echo(f"warning: {problem} (--force)", err=True)
         rng = None
@@ -115,6 +113,15 @@ def render(
             stop = int(data.frame_index.max()) + 1
             r = frame_range(frames, stop)
             rng = (r.start, r.stop)
+        if config is not None:
+            from freipose.cluster.render import RenderTask
+
+            n = len(data.frame_index) if rng is None else rng[1] - rng[0]
+            task = RenderTask(poses, tuple(videos[c] for c in names), rig.subset(names),
+                              output, rng, n, tile_width, not no_3d,
+                              threads=config.cpus)  # fmt: skip
+            run_through_executor(ctx, task, config, overwrite)
+            return
         with output_lock(output, "overlay video"):
             refuse_existing(output, overwrite)
             remove_leftover_partials(output, output.suffix.lower())
@@ -130,3 +137,25 @@ def render(
                 progress=not quiet,
             )
         click.echo(f"wrote {out}")
+
+
+def _camera_names(cameras: str | None, rig, videos: dict, session: Path) -> list[str]:  # noqa: ANN001
+    """The cameras to show: ``--cameras`` in its order, else every calibrated one with a video.
+
+    Raises:
+        FreiPoseError: a camera is not both in the calibration and among the videos, or none is.
+    """
+    names = (
+        [c.strip() for c in cameras.split(",")]
+        if cameras
+        else [n for n in rig.names if n in videos]
+    )
+    bad = [n for n in names if n not in rig.names or n not in videos]
+    if bad:
+        raise FreiPoseError(
+            f"cameras {bad} are not both in the calibration {rig.names} and among the "
+            f"videos {sorted(videos)}"
+        )
+    if not names:
+        raise FreiPoseError(f"no video in {session} matches the calibration's cameras {rig.names}")
+    return names

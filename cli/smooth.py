@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import click
 
+from freipose.cli._cluster import cluster_config, cluster_options, run_through_executor
 from freipose.cli._common import (
     allow_incomplete_option,
     check_complete,
@@ -61,7 +62,10 @@ def smoothed_name(path: Path) -> str:
 @device_option("cpu")
 @allow_incomplete_option()
 @overwrite_option("smoothed files that exist")
+@cluster_options(chunks=False)
+@click.pass_context
 def smooth(
+    ctx: click.Context,
     poses: tuple[Path, ...],
     outdir: Path,
     validation: Path | None,
@@ -70,6 +74,10 @@ def smooth(
     device: str,
     allow_incomplete: bool,
     overwrite: bool,
+    executor: str | None,
+    cluster_file: Path | None,
+    parallel: int | None,
+    max_retries: int | None,
 ) -> None:
     """Smooth predicted poses over time, with a standard deviation for every point.
 
@@ -90,22 +98,36 @@ def smooth(
     that persists over seconds, which one recording cannot reveal). The output has the
     poses.h5 schema; analyze, export and render read it.
 
+    With --executor (or --cluster FILE) every file is one unit (a recording is smoothed
+    whole) run in worker processes (local) or as a SLURM job array; existing smoothed
+    files are kept. `freipose jobs OUTDIR` shows the units.
+
     \b
     Example:
       freipose smooth poses/*.poses.h5 -o poses_smooth/ \\
           --validation labels/eval.h5 --model train/pose/model.pt
+      freipose smooth poses/*.poses.h5 -o poses_smooth/ --executor local --parallel 4
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.atomic import refuse_existing
         from freipose.predict.smooth import refuse_same, smooth_file
 
+        config = cluster_config(executor, cluster_file, None, parallel, max_retries)
         jobs = [(p, outdir / smoothed_name(p)) for p in dict.fromkeys(poses)]
         for p, _ in jobs:
             check_complete(p, allow_incomplete)
         for p, out in jobs:
             refuse_same(p, out)
-            refuse_existing(out, overwrite)
+            if config is None:
+                refuse_existing(out, overwrite)
         held_out = _held_out_error(validation, model, [p for p, _ in jobs], device)
+        if config is not None:
+            from freipose.cluster.smooth import SmoothTask
+
+            task = SmoothTask.of(jobs, outdir, error_floor=held_out, bones=bones,
+                                 threads=config.cpus)  # fmt: skip
+            run_through_executor(ctx, task, config, overwrite)
+            return
         for p, out in jobs:
             path = smooth_file(p, out, overwrite=overwrite, error_floor=held_out, bones=bones)
             click.echo(f"wrote {path}")

@@ -36,7 +36,7 @@ ALLOWED = {
     "synth": {"geometry", "io", "skeleton", "workers", "calibration"},
     "labelui": {"geometry", "io", "skeleton", "labels"},
     # cluster runs the work of predict (and train) as units on an executor
-    "cluster": {"geometry", "io", "skeleton", "workers", "nn", "detect", "predict"},
+    "cluster": {"geometry", "io", "skeleton", "workers", "nn", "detect", "predict", "analysis"},
     "models": set(),
 }
 

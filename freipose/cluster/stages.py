@@ -364,3 +364,52 @@ def run_stage(
     if report.failed or unjoined:
         raise UnitsFailedError(failure_message(task, len(units), report, unjoined))
     return StageResult(report, tuple(joined), sum(u.frames for u in units))
+
+
+class WholeOutputs:
+    """The units of a stage that writes each output whole, one unit per output.
+
+    Smoothing runs forward and backward over a whole recording, the variables' filters and
+    STFTs over a whole poses file, and an overlay video is one encoded stream: a unit
+    writes its output in one go (under its lock, under a temporary name), so there are no
+    parts to join. A subclass lists its outputs in :meth:`outputs` and does the work in
+    ``run_unit``.
+    """
+
+    def outputs(self) -> dict[str, tuple[Path, int]]:
+        """Output name -> (the file a unit writes, its frames)."""
+        raise NotImplementedError
+
+    def plan_units(self) -> list[Unit]:
+        """One unit per output."""
+        return [Unit(name, name, 0, 1, frames) for name, (_, frames) in self.outputs().items()]
+
+    def output(self, group: str) -> Path:
+        """The file of output ``group``."""
+        return self.outputs()[group][0]
+
+    def output_done(self, group: str) -> bool:
+        """Whether the file exists (it is only ever written whole)."""
+        return self.output(group).is_file()
+
+    def unit_is_done(self, unit: Unit) -> bool:
+        """Whether the unit's output exists."""
+        return self.output_done(unit.session)
+
+    def join(self, group: str, units: Sequence[Unit]) -> None:
+        """Nothing to join: the unit wrote the output whole."""
+
+    def remove_outputs(self, units: Sequence[Unit]) -> None:
+        """Delete the units' outputs."""
+        for u in units:
+            self.output(u.session).unlink(missing_ok=True)
+
+
+def poses_frames(path: Path) -> int:
+    """The frames of a poses file (0 where its header cannot tell: the unit will say why)."""
+    from freipose.io.poses import run_state
+
+    try:
+        return run_state(path).total
+    except (OSError, FreiPoseError):
+        return 0
