@@ -1,0 +1,154 @@
+"""Several animals: identity swaps and detection recall on held-out synthetic social sessions.
+
+Renders ``--sessions`` synthetic social scenes per animal count (``freipose synth`` with
+``--animals``; seeds 1000 + i, never used in the tests), fits a background per camera,
+and runs :func:`freipose.predict.animals.track_recording` with
+:class:`freipose.detect.multi.SplitForeground` (background subtraction that splits
+touching animals), then :func:`freipose.predict.animals.score_tracks` against the truth:
+
+* identity switches per minute (and per 10 minutes, the issue's unit);
+* detection recall per animal over the views where it is visible (at least half its
+  keypoints visible and half its box inside the image), of the candidate boxes and of
+  the tracked animal's own box (IoU >= 0.5);
+* frames followed per animal, median 3D centre error, share of flagged frames.
+
+Sanity references in the same run: the tracker without the coat colours (motion alone),
+and the tracker fed the true centres (an ideal detector; it must not switch). The
+2-animal figures are the target's; the 3-animal figures are printed and recorded.
+
+Example (about 2 minutes per 2-minute session on 2 cores)::
+
+    flock /work/notes/heavy.lock python benchmarks/social.py --sessions 3 --seconds 120
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from _results import write_result
+
+from freipose.detect import BackgroundSubtractor
+from freipose.detect.multi import SplitForeground
+from freipose.io.calibration import load_calibration
+from freipose.io.poses import read_poses_h5
+from freipose.io.video import FrameSource
+from freipose.predict.animals import score_tracks, track_recording, true_animal_boxes
+from freipose.predict.tracking import identity_switches, track_animals
+from freipose.synth import SceneConfig, generate_session
+
+ARENA = np.array([[-300.0, 300], [-300, 300], [-20, 250]])
+
+
+def run_session(folder: Path, animals: int, seed: int, args: argparse.Namespace) -> dict:
+    """Render one session, track it three ways and return its figures."""
+    frames_n = int(round(args.seconds * args.fps))
+    cfg = SceneConfig(frames=frames_n, fps=args.fps, seed=seed, n_cameras=args.cameras,
+                      size=(args.width, args.height), animals=animals,
+                      coat_mix=args.coat_mix)  # fmt: skip
+    t0 = time.perf_counter()
+    paths = generate_session(folder / f"a{animals}_s{seed}", cfg, workers=1, progress=False)
+    t_render = time.perf_counter() - t0
+    rig = load_calibration(paths.calibration)
+    truth = read_poses_h5(paths.truth)
+    src = [FrameSource(paths.videos[n]) for n in rig.names]
+    frames = [[s.read(t) for s in src] for t in range(frames_n)]
+    bg = BackgroundSubtractor.fit({n: [f[i] for f in frames] for i, n in enumerate(rig.names)})
+    t0 = time.perf_counter()
+    res = track_recording(frames, rig, SplitForeground(bg, animals), animals, truth.fps,
+                          bounds=ARENA)  # fmt: skip
+    t_track = time.perf_counter() - t0
+    p2, v2 = truth.extra["points2d"], truth.extra["visible2d"]
+    full = score_tracks(res, p2, v2, rig)
+    blind = track_animals([d.centers for d in res.detections], animals, truth.fps)
+    blind_sw, _ = identity_switches(blind.centers, true_animal_boxes(p2, rig)[1])
+    _, centres = true_animal_boxes(p2, rig)
+    ideal = track_animals(list(centres), animals, truth.fps)
+    ideal_sw, _ = identity_switches(ideal.centers, centres)
+    contact = truth.extra["contact"]
+    return {
+        "seed": seed,
+        "minutes": full.minutes,
+        "switches": full.switches,
+        "switches_motion_only": int(blind_sw),
+        "switches_true_centres": int(ideal_sw),
+        "recall_boxes": list(full.recall_boxes),
+        "recall_tracked": list(full.recall_tracked),
+        "followed": list(full.followed),
+        "center_error_mm": full.center_error_mm,
+        "flagged_fraction": full.flagged_fraction,
+        "contact_fraction": float(np.asarray(contact).any((1, 2)).mean()),
+        "render_s": t_render,
+        "track_ms_per_frame": 1000 * t_track / frames_n,
+    }
+
+
+def summarize(runs: list[dict]) -> dict:
+    """Totals over the sessions of one animal count."""
+    minutes = sum(r["minutes"] for r in runs)
+    sw = sum(r["switches"] for r in runs)
+    return {
+        "sessions": len(runs),
+        "minutes": minutes,
+        "switches": sw,
+        "switches_per_10min": 10 * sw / minutes,
+        "switches_per_10min_motion_only": 10
+        * sum(r["switches_motion_only"] for r in runs)
+        / minutes,
+        "switches_true_centres": sum(r["switches_true_centres"] for r in runs),
+        "min_recall_boxes": min(min(r["recall_boxes"]) for r in runs),
+        "min_recall_tracked": min(min(r["recall_tracked"]) for r in runs),
+        "median_recall_boxes": float(np.median([x for r in runs for x in r["recall_boxes"]])),
+        "min_followed": min(min(r["followed"]) for r in runs),
+        "median_center_error_mm": float(np.median([r["center_error_mm"] for r in runs])),
+        "flagged_fraction": float(np.mean([r["flagged_fraction"] for r in runs])),
+        "contact_fraction": float(np.mean([r["contact_fraction"] for r in runs])),
+        "track_ms_per_frame": float(np.median([r["track_ms_per_frame"] for r in runs])),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sessions", type=int, default=2, help="sessions per animal count [2]")
+    ap.add_argument("--seconds", type=float, default=60.0, help="length of a session [60]")
+    ap.add_argument("--fps", type=float, default=10.0, help="frame rate [10]")
+    ap.add_argument("--cameras", type=int, default=4)
+    ap.add_argument("--width", type=int, default=256)
+    ap.add_argument("--height", type=int, default=208)
+    ap.add_argument("--coat-mix", default="different", choices=("random", "same", "different"))
+    ap.add_argument("--animals", default="2,3", help="animal counts [2,3]")
+    ap.add_argument("--workdir", type=Path, default=None, help="keep the sessions here")
+    args = ap.parse_args()
+    figures: dict = {"settings": {k: (str(v) if isinstance(v, Path) else v)
+                                  for k, v in vars(args).items()}}  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = args.workdir or Path(tmp)
+        for n in (int(a) for a in args.animals.split(",")):
+            runs = []
+            for i in range(args.sessions):
+                r = run_session(folder, n, 1000 + i, args)
+                runs.append(r)
+                print(f"{n} animals, seed {r['seed']}: {r['switches']} switches "
+                      f"(motion only {r['switches_motion_only']}, true centres "
+                      f"{r['switches_true_centres']}) in {r['minutes']:.1f} min; recall boxes "
+                      f"{np.round(r['recall_boxes'], 3)}, tracked "
+                      f"{np.round(r['recall_tracked'], 3)}, "
+                      f"followed {np.round(r['followed'], 3)}; centre error "
+                      f"{r['center_error_mm']:.1f} mm; contact {100 * r['contact_fraction']:.0f} %",
+                      flush=True)  # fmt: skip
+            s = summarize(runs)
+            figures[f"animals{n}"] = {"summary": s, "runs": runs}
+            print(f"== {n} animals: {s['switches_per_10min']:.2f} switches per 10 min "
+                  f"(motion only {s['switches_per_10min_motion_only']:.2f}; true centres "
+                  f"{s['switches_true_centres']} switches), recall per animal and view "
+                  f">= {s['min_recall_boxes']:.3f} (tracked {s['min_recall_tracked']:.3f}), "
+                  f"median centre error {s['median_center_error_mm']:.1f} mm",
+                  flush=True)  # fmt: skip
+    write_result("social", figures)
+
+
+if __name__ == "__main__":
+    main()
