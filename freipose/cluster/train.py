@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 import signal
 import socket
@@ -158,6 +159,8 @@ class TrainJob:
         if task.executor == "slurm":
             from submitit.helpers import TorchDistributedEnvironment
 
+            # the job's log says what it does ("resuming RUN at step S of N")
+            logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
             _stop_on_sigterm()
             TorchDistributedEnvironment().export(set_cuda_visible_devices=False, overwrite=True)
             return _train_process(task)
