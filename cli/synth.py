@@ -140,7 +140,8 @@ def _formats(text: str) -> tuple[str, ...]:
     default=None,
     help="Also write per-camera label files of predicted instances, comma-separated formats: "
     "sleap (<camera>/<camera>.slp), dlc (labeled-data/<session>_<camera>/CollectedData_synthetic"
-    ".csv); visible points only.",
+    ".csv), sleap-session (<session>.slp: one SLEAP multi-camera file with the cameras and an "
+    "instance group per animal and frame); visible points only.",
 )
 @click.option(
     "--label-noise", type=float, default=None, help="Noise of the label files' points, px [1]."

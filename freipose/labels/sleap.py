@@ -189,8 +189,7 @@ def group_identity(group: Any, index: int, path: Path, frame: int) -> str:
 
     Returns:
         The identity's name, else the one track all its instances share, else the group's
-        name (``instance_group_<index>``; such names do not link the animal across frames,
-        which is logged).
+        name (``instance_group_<index>``; such names do not link the animal across frames).
 
     Raises:
         LabelImportError: the group's instances belong to different tracks.
@@ -208,12 +207,15 @@ def group_identity(group: Any, index: int, path: Path, frame: int) -> str:
     if tracks:
         return tracks.pop()
     name = dict(getattr(group, "metadata", {}) or {}).get("name") or f"instance_group_{index}"
-    log.warning(
-        "%s: instance group %s of frame %d has neither an identity nor a track; its animal "
-        "is named after the group, which does not link it across frames",
-        path, name, frame,
-    )  # fmt: skip
     return str(name)
+
+
+def _named(group: Any) -> bool:
+    """Whether an instance group names its animal (an identity, or a track of an instance)."""
+    ident = getattr(group, "identity", None)
+    if ident is not None and getattr(ident, "name", ""):
+        return True
+    return any(_track(i) for i in group.instance_by_camera.values())
 
 
 def _session_cameras(slp: SlpFile, rs: Any) -> dict[int, str]:
@@ -245,6 +247,7 @@ def _session_groups(slp: SlpFile, rs: Any, cam_of: dict[int, str]) -> list[Group
         LabelImportError: a camera has several instances of one track in a frame.
     """
     groups: list[Group] = []
+    unnamed: list[int] = []  # frames with a group that names no animal
     fgs = getattr(rs, "frame_groups", {}) or {}
     for fidx, fg in sorted(fgs.items()):
         for g, ig in enumerate(fg.instance_groups):
@@ -256,6 +259,16 @@ def _session_groups(slp: SlpFile, rs: Any, cam_of: dict[int, str]) -> list[Group
             if not by_cam:
                 continue
             groups.append((int(fidx), group_identity(ig, g, slp.path, int(fidx)), by_cam))
+            if not _named(ig):
+                unnamed.append(int(fidx))
+    if unnamed and len(unnamed) == len(groups) == len({f for f, _, _ in groups}):
+        return [(f, "", d) for f, _, d in groups]  # one unnamed animal per frame: one animal
+    if unnamed:
+        log.warning(
+            "%s: %d instance groups (first in frame %d) have neither an identity nor a track; "
+            "their animals are named after the groups, which does not link them across frames",
+            slp.path, len(unnamed), unnamed[0],
+        )  # fmt: skip
     if groups:
         seen: dict[tuple[int, str], int] = {}
         for f, ind, _ in groups:
@@ -319,8 +332,8 @@ def read_session_file(
                 np.array([np.asarray(r[2].numpy(), dtype=np.float64) for r in rows]).reshape(
                     len(rows), len(kps), 2
                 ),
-                [f"frame {r[0]} {r[1]}" for r in rows],
-                [r[1] for r in rows],
+                [f"frame {r[0]} {r[1]}".strip() for r in rows],
+                [r[1] for r in rows] if any(r[1] for r in rows) else None,
             )
         )
     videos = {}

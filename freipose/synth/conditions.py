@@ -42,7 +42,7 @@ ANIMAL_SCALE = {"rat": 1.0, "mouse": 0.42}  # body size factor (rat: ~23 cm nose
 LENSES = ("standard", "fisheye", "pinhole")
 FLOORS = ("mat", "bedding")
 WALLS = ("opaque", "acrylic")
-LABEL_FORMATS = ("sleap", "dlc")
+LABEL_FORMATS = ("sleap", "dlc", "sleap-session")
 COAT_MIXES = ("random", "same", "different")  # how the coats of several animals are drawn
 MAX_ANIMALS = 4
 

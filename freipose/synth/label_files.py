@@ -6,6 +6,9 @@ per point; ``"dlc"`` writes ``OUTDIR/labeled-data/<session>_<camera>/CollectedDa
 (a DeepLabCut project's labeled-data table, the folder named after the session and camera:
 scorer / bodyparts / coords header rows, one row per frame ``img<frame>.png``, x and y per
 keypoint).
+``"sleap-session"`` writes ``OUTDIR/<session>.slp``: one SLEAP multi-camera file as SLEAP's
+multi-view labeling writes it, with a recording session (the true cameras, a video per
+camera) and per frame an instance group per animal joining its instances across the views.
 Several animals (``individuals``): a SLEAP file holds one track per animal (named after it)
 and one predicted instance per animal and frame; the DeepLabCut tables have the
 multi-animal header ``scorer / individuals / bodyparts / coords`` and the session folder a
@@ -93,7 +96,7 @@ def check_label_formats(formats: Sequence[str]) -> None:
     Raises:
         SynthError: a format needs a package that is not installed.
     """
-    if "sleap" in formats:
+    if "sleap" in formats or "sleap-session" in formats:
         _sleap_io()
 
 
@@ -145,6 +148,88 @@ def write_sleap(
             frames.append(sio.LabeledFrame(video=vid, frame_idx=t, instances=instances))
     labels = sio.Labels(labeled_frames=frames, videos=[vid], skeletons=[skeleton], tracks=tracks)
     path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    sio.save_slp(labels, str(tmp), verbose=False)
+    tmp.replace(path)
+    return path
+
+
+def write_sleap_session(
+    path: Path,
+    rig: Any,
+    videos: dict[str, Path],
+    keypoints: Sequence[str],
+    points: np.ndarray,
+    scores: np.ndarray,
+    individuals: Sequence[str] | None = None,
+) -> Path:
+    """Write every camera's predictions as one SLEAP multi-camera ``.slp`` file.
+
+    Args:
+        path: the ``.slp`` file.
+        rig: the cameras (``freipose.geometry.CameraRig``), stored as the session's.
+        videos: camera name -> its video (stored relative to the file), in ``rig`` order.
+        keypoints: (K,) node names.
+        points: (T, C, A, K, 2) points, NaN where missing.
+        scores: (T, C, A, K) point scores.
+        individuals: (A,) the animals (a track each); None: one animal without a track.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        SynthError: sleap-io is not installed.
+    """
+    sio = _sleap_io()
+    from sleap_io.model.camera import (
+        Camera,
+        CameraGroup,
+        FrameGroup,
+        InstanceGroup,
+        RecordingSession,
+    )
+
+    skeleton = sio.Skeleton([sio.Node(k) for k in keypoints], name="rat")
+    tracks = [sio.Track(name=str(n)) for n in individuals] if individuals is not None else []
+    vids, cams = {}, {}
+    for c in rig:
+        rel = os.path.relpath(videos[c.name].resolve(), path.parent.resolve())
+        vids[c.name] = sio.Video(filename=Path(rel).as_posix(), open_backend=False)
+        cams[c.name] = Camera(matrix=c.K, dist=c.dist, size=tuple(c.size), rvec=c.rvec,
+                              tvec=c.t, name=c.name)  # fmt: skip
+    frames, groups = [], {}
+    for t in range(len(points)):
+        by_animal: list[dict[Any, Any]] = [{} for _ in range(points.shape[2])]
+        by_camera = {}
+        for ci, name in enumerate(cams):
+            instances = []
+            for a in range(points.shape[2]):
+                seen = np.isfinite(points[t, ci, a, :, 0])
+                if not seen.any():
+                    continue
+                sc = np.where(seen, scores[t, ci, a], 0.0)
+                inst = sio.PredictedInstance.from_numpy(
+                    points[t, ci, a], skeleton, point_scores=sc, score=float(np.mean(sc[seen])),
+                    track=tracks[a] if tracks else None,
+                )  # fmt: skip
+                instances.append(inst)
+                by_animal[a][cams[name]] = inst
+            if instances:
+                lf = sio.LabeledFrame(video=vids[name], frame_idx=t, instances=instances)
+                frames.append(lf)
+                by_camera[cams[name]] = lf
+        igs = [InstanceGroup(instance_by_camera=d) for d in by_animal if d]
+        if igs:
+            groups[t] = FrameGroup(frame_idx=t, instance_groups=igs,
+                                   labeled_frame_by_camera=by_camera)  # fmt: skip
+    session = RecordingSession(
+        camera_group=CameraGroup(cameras=list(cams.values())),
+        video_by_camera={cams[c]: vids[c] for c in cams},
+        camera_by_video={vids[c]: cams[c] for c in cams},
+        frame_group_by_frame_idx=groups,
+    )
+    labels = sio.Labels(labeled_frames=frames, videos=list(vids.values()), skeletons=[skeleton],
+                        tracks=tracks, sessions=[session])  # fmt: skip
     tmp = path.with_name(path.name + ".part")
     sio.save_slp(labels, str(tmp), verbose=False)
     tmp.replace(path)
@@ -239,18 +324,20 @@ def write_label_files(
     keypoints: Sequence[str],
     labels: NoisyLabels,
     individuals: Sequence[str] | None = None,
+    rig: Any = None,
 ) -> list[Path]:
     """Write the per-camera label files of ``formats`` (see the module docstring).
 
     Args:
         folder: the session folder.
         session: the session's name (names the DeepLabCut folders).
-        formats: ``"sleap"`` and/or ``"dlc"``.
+        formats: ``"sleap"``, ``"sleap-session"`` and/or ``"dlc"``.
         videos: camera name -> its video, in the labels' camera order.
         keypoints: (K,) keypoint names.
         labels: the noisy points and scores, (T, C, K, ...); with ``individuals`` the
             keypoint axis holds A * K points, one animal after the other.
         individuals: (A,) the animals, or None for one.
+        rig: the cameras (needed by ``"sleap-session"``).
 
     Returns:
         The files written.
@@ -270,6 +357,12 @@ def write_label_files(
             out.append(write_dlc(csv_path, keypoints, pts, individuals))
     if "dlc" in formats and individuals is not None:
         out.append(write_dlc_config(folder, keypoints, individuals, videos))
+    if "sleap-session" in formats:
+        T, C = labels.points.shape[:2]
+        pts = labels.points.reshape(T, C, -1, K, 2)
+        sc = labels.scores.reshape(T, C, -1, K)
+        out.append(write_sleap_session(folder / f"{session}.slp", rig, videos, keypoints,
+                                       pts, sc, individuals))  # fmt: skip
     return out
 
 
@@ -281,4 +374,5 @@ __all__ = [
     "write_dlc_config",
     "write_label_files",
     "write_sleap",
+    "write_sleap_session",
 ]

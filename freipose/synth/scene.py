@@ -274,7 +274,8 @@ def _prepare_folder(out: Path, scene_text: str, overwrite: bool) -> None:
                 "or choose an empty folder"
             )
         if not same:
-            for p in [*out.glob("*/*.slp"), *out.glob("labeled-data/*/CollectedData_*.csv")]:
+            old = [*out.glob("*.slp"), *out.glob("*/*.slp")]
+            for p in [*old, *out.glob("labeled-data/*/CollectedData_*.csv")]:
                 p.unlink()
             for p in out.glob("*"):
                 if p.is_file() and (p.suffix in VIDEO_FORMATS or p.name in _SESSION_FILES):
@@ -296,7 +297,7 @@ def _write_label_files(scene: Scene, out: Path, videos: Mapping[str, Path]) -> t
     session = out.resolve().name
     individuals = scene.individuals if scene.social is not None else None
     files = write_label_files(
-        out, session, cfg.label_files, dict(videos), RAT_KEYPOINTS, noisy, individuals
+        out, session, cfg.label_files, dict(videos), RAT_KEYPOINTS, noisy, individuals, scene.rig
     )
     return tuple(files)
 

@@ -90,7 +90,8 @@ def test_social_session_truth_labels_and_label_files(tmp_path):
     r = CliRunner().invoke(
         cli,
         ["synth", str(out), "--animals", "2", "--frames", "12", "--cameras", "3", "--size",
-         "160x128", "--seed", "2", "--label-files", "sleap,dlc", "--label-noise", "0.5"],
+         "160x128", "--seed", "2", "--label-files", "sleap,dlc,sleap-session",
+         "--label-noise", "0.5"],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
     truth = read_poses_h5(out / "true_poses.h5")
@@ -104,14 +105,19 @@ def test_social_session_truth_labels_and_label_files(tmp_path):
     )
     # the label files import back with each animal's identity
     cal = str(out / "true_calibration.toml")
-    for fmt, extra in (("sleap", ["--instances", "predicted"]), ("dlc", [])):
-        dst = tmp_path / f"{fmt}.h5"
+    pred = ["--instances", "predicted"]
+    for fmt, src, extra in (
+        ("sleap", [out / c / f"{c}.slp" for c in ("cam0", "cam1", "cam2")],
+         ["--calibration", cal, *pred]),
+        ("dlc", [out], ["--calibration", cal]),
+        ("sleap", [out / "pair.slp"], pred),  # the multi-camera file: its cameras and groups
+    ):  # fmt: skip
+        dst = tmp_path / f"{fmt}_{src[0].name}.h5"
         r = CliRunner().invoke(
-            cli, ["labels", "import", "--format", fmt, str(out), "--calibration", cal,
-                  "-o", str(dst), *extra],
-        )  # fmt: skip
+            cli, ["labels", "import", "--format", fmt, *map(str, src), "-o", str(dst), *extra]
+        )
         assert r.exit_code == 0, r.output
-        assert "animal1: reprojection error" in r.output
+        assert "animal1: reprojection error" in r.output, (fmt, src)
         got = read_labels_h5(dst)
         assert set(got.individuals) == {"animal0", "animal1"}
         for i in range(len(got)):
@@ -160,3 +166,24 @@ def test_labels_of_two_animals_export_to_dlc_and_back(tmp_path):
         assert len(j) == 1
         cams = [lab.cameras.index(c) for c in got.cameras]
         np.testing.assert_array_equal(got.points2d[i], lab.points2d[j[0]][cams])
+
+
+def test_one_animal_sleap_session_has_no_individuals(tmp_path):
+    out = tmp_path / "solo"
+    r = CliRunner().invoke(
+        cli,
+        ["synth", str(out), "--frames", "4", "--cameras", "2", "--size", "96x80",
+         "--label-files", "sleap-session"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    dst = tmp_path / "solo.h5"
+    r = CliRunner().invoke(
+        cli, ["labels", "import", "--format", "sleap", str(out / "solo.slp"), "--instances",
+              "predicted", "-o", str(dst)],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    got = read_labels_h5(dst)
+    assert got.individual is None and len(got) == 4
+    truth = read_labels_h5(out / "labels.h5")
+    err = np.linalg.norm(got.points3d - truth.points3d, axis=-1)
+    assert np.nanmedian(err) < 15.0
