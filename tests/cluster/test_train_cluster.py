@@ -12,6 +12,7 @@ import socket
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 from click.testing import CliRunner
 
@@ -136,3 +137,16 @@ def test_bad_requests_are_refused_before_submitting(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "submitit", None)  # the cluster extra is not installed
     assert 'pip install "freipose[cluster]"' in refused("--executor", "slurm")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.gpu
+def test_local_job_on_this_machines_gpus(tmp_path):
+    """One process per GPU (at most 2; NCCL with 2), each on its own device."""
+    gpus = min(torch.cuda.device_count(), 2)
+    cfg = train_config(tmp_path, steps=4, checkpoint_every=2)
+    out = tmp_path / "run"
+    args = ["-q", "train", str(cfg), "--out", str(out), "--executor", "local", "--gpus", str(gpus)]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 0, res.output
+    assert f"1 node(s) x {gpus} process(es) on GPUs" in res.output
+    assert read_checkpoint(out / "model.pt")["step"] == 4 and logged_steps(out) == [1, 2, 3, 4]
