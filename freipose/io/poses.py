@@ -217,8 +217,10 @@ class PoseData(PicklableFrozen):
 #: the documented extra datasets that hold one value per animal: with an animal axis their
 #: shape has A after T (``points2d`` (T, A, C, K, 2)); the others are per frame
 ANIMAL_EXTRAS = frozenset(
-    ("points2d", "confidence2d", "boxes", "center", "smooth_std", "filled", "rejected")
-)
+    ("points2d", "confidence2d", "boxes", "center", "smooth_std", "filled", "rejected",
+     # the truth of synthetic scenes of several animals (freipose.synth.social_scene)
+     "visible2d", "hidden_by_animal", "on_top_of", "lift", "contact")
+)  # fmt: skip
 
 # The documented extra datasets: their shapes in T (frames), C (cameras) and K (keypoints).
 _EXTRA_SHAPES: Mapping[str, tuple[int | str, ...]] = MappingProxyType(
