@@ -100,6 +100,42 @@ def check_label_formats(formats: Sequence[str]) -> None:
         _sleap_io()
 
 
+def _instances(
+    sio: Any, skeleton: Any, points: np.ndarray, scores: np.ndarray, tracks: Sequence[Any]
+) -> dict[int, Any]:
+    """SLEAP predicted instances of the animals seen in one view at one instant.
+
+    Args:
+        sio: the ``sleap_io`` module.
+        skeleton: the SLEAP skeleton.
+        points: (A, K, 2) points, NaN where missing.
+        scores: (A, K) point scores.
+        tracks: (A,) the animals' tracks, or empty (one animal without a track).
+
+    Returns:
+        Animal index -> its instance, for the animals with a visible point.
+    """
+    out = {}
+    for a in range(len(points)):
+        seen = np.isfinite(points[a, :, 0])
+        if seen.any():
+            sc = np.where(seen, scores[a], 0.0)
+            out[a] = sio.PredictedInstance.from_numpy(
+                points[a], skeleton, point_scores=sc, score=float(np.mean(sc[seen])),
+                track=tracks[a] if tracks else None,
+            )  # fmt: skip
+    return out
+
+
+def _save_slp(sio: Any, labels: Any, path: Path) -> Path:
+    """Save SLEAP labels to ``path`` through a temporary name."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    sio.save_slp(labels, str(tmp), verbose=False)
+    tmp.replace(path)
+    return path
+
+
 def write_sleap(
     path: Path,
     video: Path,
@@ -133,25 +169,11 @@ def write_sleap(
         points, scores = points[:, None], scores[:, None]
     frames = []
     for t in range(len(points)):
-        instances = []
-        for a in range(points.shape[1]):
-            seen = np.isfinite(points[t, a, :, 0])
-            if not seen.any():
-                continue
-            sc = np.where(seen, scores[t, a], 0.0)
-            inst = sio.PredictedInstance.from_numpy(
-                points[t, a], skeleton, point_scores=sc, score=float(np.mean(sc[seen])),
-                track=tracks[a] if tracks else None,
-            )  # fmt: skip
-            instances.append(inst)
+        instances = list(_instances(sio, skeleton, points[t], scores[t], tracks).values())
         if instances:
             frames.append(sio.LabeledFrame(video=vid, frame_idx=t, instances=instances))
     labels = sio.Labels(labeled_frames=frames, videos=[vid], skeletons=[skeleton], tracks=tracks)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
-    sio.save_slp(labels, str(tmp), verbose=False)
-    tmp.replace(path)
-    return path
+    return _save_slp(sio, labels, path)
 
 
 def write_sleap_session(
@@ -202,20 +224,11 @@ def write_sleap_session(
         by_animal: list[dict[Any, Any]] = [{} for _ in range(points.shape[2])]
         by_camera = {}
         for ci, name in enumerate(cams):
-            instances = []
-            for a in range(points.shape[2]):
-                seen = np.isfinite(points[t, ci, a, :, 0])
-                if not seen.any():
-                    continue
-                sc = np.where(seen, scores[t, ci, a], 0.0)
-                inst = sio.PredictedInstance.from_numpy(
-                    points[t, ci, a], skeleton, point_scores=sc, score=float(np.mean(sc[seen])),
-                    track=tracks[a] if tracks else None,
-                )  # fmt: skip
-                instances.append(inst)
+            seen = _instances(sio, skeleton, points[t, ci], scores[t, ci], tracks)
+            for a, inst in seen.items():
                 by_animal[a][cams[name]] = inst
-            if instances:
-                lf = sio.LabeledFrame(video=vids[name], frame_idx=t, instances=instances)
+            if seen:
+                lf = sio.LabeledFrame(video=vids[name], frame_idx=t, instances=list(seen.values()))
                 frames.append(lf)
                 by_camera[cams[name]] = lf
         igs = [InstanceGroup(instance_by_camera=d) for d in by_animal if d]
@@ -230,10 +243,7 @@ def write_sleap_session(
     )
     labels = sio.Labels(labeled_frames=frames, videos=list(vids.values()), skeletons=[skeleton],
                         tracks=tracks, sessions=[session])  # fmt: skip
-    tmp = path.with_name(path.name + ".part")
-    sio.save_slp(labels, str(tmp), verbose=False)
-    tmp.replace(path)
-    return path
+    return _save_slp(sio, labels, path)
 
 
 def write_dlc(
