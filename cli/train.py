@@ -119,20 +119,7 @@ def train(
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-        job = {"gpus": gpus, "tasks_per_node": tasks_per_node, "max_retries": max_retries}
-        if executor is None and cluster_file is None:
-            if any(v is not None for v in job.values()) or nodes != 1 or no_wait:
-                raise click.UsageError(
-                    "--gpus, --nodes, --tasks-per-node, --max-retries and --no-wait apply to a "
-                    "training job: add --executor local|slurm (or --cluster FILE)"
-                )
-        else:
-            if stage == "detector":
-                raise click.UsageError(
-                    "--executor trains the pose or baseline network; train the detector without it"
-                )
-            _train_job(ctx, config, stage, resume, init, out_dir, threads, executor,
-                       cluster_file, nodes, no_wait, **job)  # fmt: skip
+        if _train_as_job(ctx):
             return
         # torchrun starts LOCAL_WORLD_SIZE processes on this machine, each with its threads
         use_threads(threads, workers=int(os.environ.get("LOCAL_WORLD_SIZE", "1") or 1))
@@ -197,50 +184,53 @@ def _command_line_init(init: str | None) -> str | None:
     return str(path.resolve())
 
 
-def _train_job(
-    ctx: click.Context,
-    config: Path,
-    stage: str,
-    resume: bool,
-    init: str | None,
-    out_dir: Path | None,
-    threads: int | None,
-    executor: str | None,
-    cluster_file: Path | None,
-    nodes: int,
-    no_wait: bool,
-    gpus: int | None,
-    tasks_per_node: int | None,
-    max_retries: int | None,
-) -> None:
-    """``freipose train --executor ...``: the training as a job of one process per GPU."""
+def _train_as_job(ctx: click.Context) -> bool:
+    """Run ``freipose train --executor ...`` (True), or refuse its options without it (False).
+
+    The training runs as a job of one process per GPU (or CPU processes) on the executor.
+    """
+    p = ctx.params
+    if p["executor"] is None and p["cluster_file"] is None:
+        job_options = ("gpus", "tasks_per_node", "max_retries")
+        if any(p[k] is not None for k in job_options) or p["nodes"] != 1 or p["no_wait"]:
+            raise click.UsageError(
+                "--gpus, --nodes, --tasks-per-node, --max-retries and --no-wait apply to a "
+                "training job: add --executor local|slurm (or --cluster FILE)"
+            )
+        return False
+    if p["stage"] == "detector":
+        raise click.UsageError(
+            "--executor trains the pose or baseline network; train the detector without it"
+        )
     from freipose.cli._cluster import cluster_config
     from freipose.cluster.train import TrainTask, run_train
 
-    cfg = cluster_config(executor, cluster_file, None, None, max_retries, gpus=gpus,
-                         cpus=threads)  # fmt: skip
-    procs = _job_processes(ctx, cfg, nodes, tasks_per_node, no_wait)
-    out = (out_dir if out_dir is not None else config.with_suffix("")).resolve()
+    config, threads, nodes = p["config"], p["threads"], p["nodes"]
+    cfg = cluster_config(p["executor"], p["cluster_file"], None, None, p["max_retries"],
+                         gpus=p["gpus"], cpus=threads)  # fmt: skip
+    procs = _job_processes(ctx, cfg, nodes, p["tasks_per_node"], p["no_wait"])
+    out = (p["out_dir"] or config.with_suffix("")).resolve()
     steps = _check_job_config(config, procs * nodes)
-    _check_job_folder(out, resume)
+    _check_job_folder(out, p["resume"])
     quiet = bool(ctx.obj and ctx.obj.get("quiet"))
     if cfg.executor == "local" and threads is None:
         from freipose.workers import choose_threads
 
         cfg = cfg.replace(cpus=choose_threads(None, workers=procs))
     task = TrainTask(
-        config=config.resolve(), out=out, kind="baseline" if stage == "baseline" else None,
-        init=_command_line_init(init), device="cuda" if cfg.gpus else "cpu", nodes=nodes,
+        config=config.resolve(), out=out, kind="baseline" if p["stage"] == "baseline" else None,
+        init=_command_line_init(p["init"]), device="cuda" if cfg.gpus else "cpu", nodes=nodes,
         tasks_per_node=procs, threads=cfg.cpus, steps=steps, executor=cfg.executor,
     )  # fmt: skip
     click.echo(f"training {out} on the {cfg.executor} executor: {nodes} node(s) x {procs} "
                f"process(es) on {'GPUs' if cfg.gpus else 'CPUs'}, {cfg.cpus} thread(s) each; "
                f"status: freipose jobs {out}")  # fmt: skip
-    result = run_train(task, cfg, wait=not no_wait, progress=not quiet, say=click.echo)
+    result = run_train(task, cfg, wait=not p["no_wait"], progress=not quiet, say=click.echo)
     if result.model is not None:
         click.echo(f"wrote {result.model}")
     else:
         click.echo(f"job {result.job_id} runs on; follow it with: freipose jobs {out}")
+    return True
 
 
 def _job_processes(
