@@ -13,11 +13,15 @@ Each mode runs ``--repeat`` times, in alternating order, and the medians are kep
 each mode's throughput (frames/s), the ratios local/direct and slurm/direct (target >= 0.9),
 the per-unit overhead (from a unit's submission to its first predicted frame, over the
 units of the first wave, which wait for no other unit), whether the joined files are
-identical (local and SLURM bit for bit; against the direct run, whose processes run more
-threads, the largest difference in mm), and the paper calculation of the tutorial: the wall
-time of 1,000 hours of 7-camera video at 100 fps on N one-core workers like this run's, in
-units of 6000 frames, from the measured per-frame cost and overhead (the cost scaled by the
-number of views from this run's cameras to 7).
+identical (local and SLURM bit for bit; against the direct run, whose process runs more
+threads and so sums in another order, the largest difference in mm; and, bit for bit, against
+a direct run of the first ``--identity-sessions`` sessions with one thread, the units' thread
+count), the share of frames where the animal was found (frames without it skip the network
+and would flatter the throughput), the machine's load average, and the paper calculation of
+the tutorial: core-hours and wall time of 1,000 hours of 7-camera video at 100 fps on N
+one-core workers like this run's units, in units of 6000 frames, from the measured per-frame
+cost (the direct run's core-seconds per frame, scaled by the number of views from this run's
+cameras to 7) and SLURM's per-unit overhead.
 
 Usage::
 
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -55,8 +60,12 @@ def render(work: Path, sessions: int, frames: int, cameras: int) -> list[Path]:
     return out
 
 
-def predict(mode: str, sessions: list[Path], out: Path, args: argparse.Namespace) -> float:
-    """Run one mode into ``out``; returns its wall time in seconds."""
+def predict(mode: str, sessions: list[Path], out: Path, args: argparse.Namespace,
+            threads: int | None = None) -> float:  # fmt: skip
+    """Run one mode into ``out``; returns its wall time in seconds.
+
+    ``threads``: the direct run's threads (default ``--cores``).
+    """
     from importlib.resources import files
 
     model = files("freipose.models") / "voxel_small.pt"
@@ -64,7 +73,7 @@ def predict(mode: str, sessions: list[Path], out: Path, args: argparse.Namespace
            "--model", str(model), "--method", "bgsub", "--device", "cpu",
            "-o", str(out)]  # fmt: skip
     if mode == "direct":
-        cmd += ["--threads", str(args.cores)]
+        cmd += ["--threads", str(threads or args.cores)]
     else:
         cfg = out.parent / f"{out.name}.toml"
         cfg.write_text(
@@ -105,13 +114,40 @@ def compare(a: Path, b: Path, names: list[str]) -> tuple[bool, float]:
     return equal, worst
 
 
+def found_share(folder: Path, names: list[str]) -> float:
+    """The share of frames whose pose was predicted (the animal found) over the sessions."""
+    import h5py
+
+    found = total = 0
+    for n in names:
+        with h5py.File(folder / f"{n}.poses.h5", "r") as f:
+            status = f["extra/status"][()]
+            found += int((status == 0).sum())
+            total += status.size
+    return found / total
+
+
 def paper(per_frame_s: float, overhead_s: float, chunk: int, cameras: int) -> dict:
-    """Wall time of 1,000 h of 7-camera 100 fps video on N workers like this run's (one core)."""
+    """1,000 h of 7-camera 100 fps video on N one-core workers like this run's units.
+
+    Args:
+        per_frame_s: one core's seconds per multi-view frame of ``cameras`` views.
+        overhead_s: a unit's overhead (submission to first frame).
+        chunk: frames per unit.
+        cameras: the views of the measured frames (the cost is scaled to 7 by views).
+    """
     frames = 1000 * 3600 * 100
-    scale = 7 / cameras  # the network's cost grows with the number of views
-    unit_s = chunk * per_frame_s * scale + overhead_s
+    frame_s = per_frame_s * 7 / cameras  # the network's cost grows with the number of views
     units = frames / chunk
-    return {f"hours_on_{n}_workers": units * unit_s / n / 3600 for n in (1, 10, 100)}
+    unit_s = chunk * frame_s + overhead_s
+    return {
+        "frames": frames,
+        "core_s_per_frame_7cams": frame_s,
+        "units": units,
+        "overhead_share": overhead_s / unit_s,
+        "core_hours": units * unit_s / 3600,
+        **{f"wall_hours_on_{n}_workers": units * unit_s / n / 3600 for n in (100, 1000)},
+    }
 
 
 def main() -> None:
@@ -122,6 +158,9 @@ def main() -> None:
     ap.add_argument("--chunk-frames", type=int, default=200, help="frames per unit")
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--identity-sessions", type=int, default=1,
+                    help="sessions of the one-thread direct run that the units must equal "
+                    "bit for bit (0: none)")  # fmt: skip
     ap.add_argument("--no-slurm", action="store_true", help="leave SLURM out")
     ap.add_argument("--work", type=Path, default=Path("cluster_bench"))
     args = ap.parse_args()
@@ -132,6 +171,7 @@ def main() -> None:
     times: dict[str, list[float]] = {m: [] for m in modes}
     overheads: dict[str, list[float]] = {m: [] for m in modes if m != "direct"}
     last: dict[str, Path] = {}
+    load_start = os.getloadavg()[0]
     for r in range(args.repeat):
         for mode in modes if r % 2 == 0 else modes[::-1]:
             out = args.work / f"{mode}_{r}"
@@ -140,8 +180,11 @@ def main() -> None:
             if mode != "direct":
                 overheads[mode] += first_wave_overheads(out, args.cores)
             last[mode] = out
+    load = os.getloadavg()[0]
     fps = {m: total / statistics.median(t) for m, t in times.items()}
-    figures: dict = {"frames": total, "frames_per_s": fps}
+    figures: dict = {"frames": total, "frames_per_s": fps,
+                     "found_share": found_share(last["direct"], names),
+                     "load_average_1min": {"start": load_start, "end": load}}  # fmt: skip
     for m in modes[1:]:
         figures[f"ratio_{m}_to_direct"] = fps[m] / fps["direct"]
         figures[f"overhead_s_{m}"] = statistics.median(overheads[m])
@@ -150,8 +193,17 @@ def main() -> None:
         figures[f"max_difference_mm_{m}"] = worst
     if "slurm" in modes:
         figures["identical_local_slurm"] = compare(last["local"], last["slurm"], names)[0]
-    per_frame = args.cores / fps["local"]  # one core's seconds per frame
-    figures["paper_1000h_7cams"] = paper(per_frame, figures["overhead_s_local"],
+    if args.identity_sessions:  # the same math with the units' one thread: bit for bit
+        ref = args.work / "direct_one_thread"
+        subprocess.run(["rm", "-rf", str(ref)], check=True)
+        predict("direct", sessions[: args.identity_sessions], ref, args, threads=1)
+        for m in modes[1:]:
+            figures[f"identical_to_one_thread_direct_{m}"] = compare(
+                ref, last[m], names[: args.identity_sessions]
+            )[0]
+    units_mode = "slurm" if "slurm" in modes else "local"
+    per_frame = args.cores / fps["direct"]  # core-seconds per frame of the work itself
+    figures["paper_1000h_7cams"] = paper(per_frame, figures[f"overhead_s_{units_mode}"],
                                          6000, args.cameras)  # fmt: skip
     print(json.dumps(figures, indent=1))
     write_result("cluster", figures, extra={k: v for k, v in vars(args).items() if k != "work"})
