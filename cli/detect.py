@@ -16,6 +16,7 @@ from freipose.cli._common import (
     overwrite_option,
     user_errors,
 )
+from freipose.cli._threads import threads_option, use_threads
 from freipose.errors import FreiPoseError
 
 
@@ -70,6 +71,7 @@ from freipose.errors import FreiPoseError
 )
 @overwrite_option("OUTPUT if it exists")
 @cluster_options
+@threads_option()
 @click.pass_context
 def detect(
     ctx: click.Context,
@@ -92,6 +94,7 @@ def detect(
     chunk_frames: int | None,
     parallel: int | None,
     max_retries: int | None,
+    threads: int | None,
 ) -> None:
     """Find the animal in every view and frame, consistently across views.
 
@@ -105,7 +108,8 @@ def detect(
 
     With --executor (or --cluster FILE) the frames are cut into units of --chunk-frames
     frames (whole batches) that run in worker processes (local) or as a SLURM job array;
-    their boxes are joined into OUTPUT, equal to a single run's. `freipose jobs OUTPUT`
+    their boxes are joined into OUTPUT, equal to a single run's with the same --threads
+    (each unit runs --threads threads, or the [cluster] table's cpus). `freipose jobs OUTPUT`
     shows the units; the same command again submits only what is missing.
 
     \b
@@ -126,7 +130,9 @@ def detect(
 
         if batch_size < 1:
             raise FreiPoseError(f"--batch-size must be >= 1, got {batch_size}")
-        config = cluster_config(executor, cluster_file, chunk_frames, parallel, max_retries)
+        config = cluster_config(executor, cluster_file, chunk_frames, parallel, max_retries,
+                                cpus=threads)  # fmt: skip
+        use_threads(threads)
         cfg = ConsistencyConfig(cube_size=cube_size, min_views=min_views)
         opened = discover_sessions(
             [session],

@@ -70,6 +70,24 @@ def test_detect_units_equal_a_direct_run(inputs, tmp_path):
     assert "s0: 3 done" in _run("jobs", out.parent)  # the folder lists its files' jobs
 
 
+def test_detect_units_with_a_detector_equal_a_direct_run(inputs, tmp_path):
+    import torch
+
+    from freipose.detect.detector import save_checkpoint
+    from freipose.detect.model import DetectorConfig, DetectorNet
+
+    torch.manual_seed(0)
+    det = tmp_path / "det.pt"
+    save_checkpoint(det, DetectorNet(DetectorConfig(input_size=64, width=0.25, neck_channels=8)))
+    args = [inputs["sessions"][1], "--model", det, "--device", "cpu", "--batch-size", "4",
+            "--threads", "1"]  # fmt: skip
+    _run("detect", *args, "-o", tmp_path / "direct.h5")
+    out = tmp_path / "units.h5"
+    said = _run("detect", *args, "-o", out, *UNITS, "--chunk-frames", "12")
+    assert "2 units done (2 jobs submitted in this run)" in said
+    assert h5_equal(tmp_path / "direct.h5", out) == []
+
+
 def test_detect_unit_that_fails_is_reported_and_resumed(inputs, tmp_path):
     s0 = inputs["sessions"][0]
     _run("detect", s0, *DETECT, "-o", tmp_path / "direct.h5")
