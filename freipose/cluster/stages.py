@@ -269,6 +269,24 @@ def load_task(root: Path) -> tuple[Any, ClusterConfig]:
     return task, ClusterConfig(**plan["cluster"])
 
 
+def _refuse_other_command(task: StageTask) -> None:
+    """Refuse to put a job where another command's job is (one job per output folder).
+
+    Raises:
+        FreiPoseError: ``ROOT/.jobs`` holds the job of another command.
+    """
+    path = task.root / JOBS_DIR / PLAN_FILE
+    try:
+        other = json.loads(path.read_text(encoding="utf-8")).get("command", task.command)
+    except (OSError, ValueError):
+        return
+    if other != task.command:
+        raise FreiPoseError(
+            f"{task.root} holds the job of `freipose {other}` ({path}); write the output of "
+            f"`freipose {task.command}` to another folder"
+        )
+
+
 def join_outputs(task: StageTask, units: Sequence[Unit]) -> tuple[list[Path], dict[str, str]]:
     """Join the outputs whose units are all complete.
 
@@ -344,6 +362,7 @@ def run_stage(
     """
     units = task.plan_units()
     with output_lock(task.root / JOBS_DIR / "driver", "job driver", option="-o"):
+        _refuse_other_command(task)
         if overwrite:
             task.remove_outputs(units)
         save_plan(task, config, units)

@@ -116,6 +116,12 @@ def test_smooth_units_equal_a_direct_run(inputs, tmp_path):
         assert h5_equal(tmp_path / "direct" / p.name, tmp_path / "units" / p.name) == []
     status = _run("jobs", tmp_path / "units")
     assert "units of `freipose smooth`" in status and "s0: 1 done" in status
+    plan = tmp_path / "poses" / ".jobs" / "plan.json"  # a prediction's job in that folder
+    plan.parent.mkdir(parents=True)
+    plan.write_text('{"command": "predict"}')
+    res = CliRunner().invoke(cli, ["smooth", *map(str, poses), "-o", str(plan.parents[1]), *UNITS])
+    assert res.exit_code != 0 and "holds the job of `freipose predict`" in res.output, res.output
+    assert plan.read_text() == '{"command": "predict"}'
 
 
 def test_variables_unit_equals_a_direct_run(inputs, tmp_path):
