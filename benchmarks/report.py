@@ -7,9 +7,12 @@ separate tables. The README block between ``<!-- demo-figures:begin -->`` and
 ``<!-- demo-figures:end -->`` gets the demo's key figures as ranges per CPU kind (a README
 without these markers is left as it is). The model card ``docs/models.md`` gets, between
 ``<!-- base-figures:begin -->`` and ``<!-- base-figures:end -->``, the shipped bases' data,
-steps, held-out figures and commands from their manifest ``freipose/models/bases.json``.
+steps, held-out figures and commands from their manifest ``freipose/models/bases.json``. The
+tutorial ``docs/tutorials/cluster.md`` gets, between ``<!-- cluster-figures:begin -->`` and
+``<!-- cluster-figures:end -->``, the latest run of ``benchmarks/cluster.py`` and the paper
+calculation made from its figures.
 
-    python benchmarks/report.py            # rewrite the page and the two blocks
+    python benchmarks/report.py            # rewrite the page and the three blocks
     python benchmarks/report.py --check    # exit 1 when one of them is out of date
 """
 
@@ -34,6 +37,8 @@ MODELS = ROOT / "docs" / "models.md"
 MANIFEST = ROOT / "freipose" / "models" / "bases.json"
 BEGIN, END = "<!-- demo-figures:begin -->", "<!-- demo-figures:end -->"
 CARD_BEGIN, CARD_END = "<!-- base-figures:begin -->", "<!-- base-figures:end -->"
+CLUSTER_DOC = ROOT / "docs" / "tutorials" / "cluster.md"
+CLUSTER_BEGIN, CLUSTER_END = "<!-- cluster-figures:begin -->", "<!-- cluster-figures:end -->"
 # the scripts that record results (each gets a section, recorded or not)
 BENCHMARKS = (
     "accuracy", "analysis", "calibration", "calibration_coverage", "classifier_days", "cluster",
@@ -293,6 +298,69 @@ def demo_block(records: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _yes(value: Any) -> str:
+    return {True: "yes", False: "no"}.get(value, "not checked")
+
+
+def cluster_block(records: list[dict[str, Any]]) -> str:
+    """The cluster tutorial's figures: the latest run of ``benchmarks/cluster.py``.
+
+    With the paper calculation of 1,000 hours of 7-camera video from its per-frame cost and
+    its units' overhead.
+    """
+    runs = [r for r in records if r["benchmark"] == "cluster"]
+    if not runs:
+        return "No run of `benchmarks/cluster.py` is recorded yet.\n"
+    r = runs[-1]
+    f, x, m = r["figures"], r["extra"], r["machine"]
+    fps, p = f["frames_per_s"], f["paper_1000h_7cams"]
+    load = f.get("load_average_1min", {})
+    overhead = f["overhead_s_slurm" if "slurm" in fps else "overhead_s_local"]
+    lines = [
+        f"Measured by `{command_text(r)}` on {r['date'][:10]} ({m['cpu_model']}, "
+        f"{m['cores']} cores, shared with other work: 1-minute load average "
+        f"{fmt(load.get('start', float('nan')))} at the start, "
+        f"{fmt(load.get('end', float('nan')))} at the end): {x['sessions']} synthetic sessions "
+        f"of {x['frames']} frames from {x['cameras']} cameras, units of {x['chunk_frames']} "
+        f"frames, {x['cores']} cores in every mode; the rat was found in "
+        f"{100 * f['found_share']:.0f} % of the frames.",
+        "",
+        "| mode | frames/s | ratio to direct | overhead per unit (submission to first frame) |",
+        "|---|---|---|---|",
+        f"| direct: one process, {x['cores']} threads | {fmt(fps['direct'])} | 1 | - |",
+    ]
+    names = {"local": f"local executor: {x['cores']} one-thread workers",
+             "slurm": f"SLURM: {x['cores']} one-core array tasks"}  # fmt: skip
+    for mode in ("local", "slurm"):
+        if mode in fps:
+            lines.append(f"| {names[mode]} | {fmt(fps[mode])} | "
+                         f"{f[f'ratio_{mode}_to_direct']:.2f} | "
+                         f"{fmt(f[f'overhead_s_{mode}'])} s |")  # fmt: skip
+    worst = max(f.get(f"max_difference_mm_{k}", 0.0) for k in ("local", "slurm"))
+    one = [f.get(f"identical_to_one_thread_direct_{k}") for k in ("local", "slurm") if k in fps]
+    lines += [
+        "",
+        f"Outputs: local and SLURM identical bit for bit: {_yes(f.get('identical_local_slurm'))}; "
+        f"equal bit for bit to a one-thread direct run of the same session(s): "
+        f"{_yes(all(one) if None not in one else None)}; against the {x['cores']}-thread direct "
+        f"run at most {worst:.2g} mm apart (its sums run in another order).",
+        "",
+        f"**Paper calculation** from these figures: 1,000 hours of 7-camera video at 100 fps "
+        f"are {p['frames'] / 1e6:.0f} million multi-view frames. At "
+        f"{p['core_s_per_frame_7cams']:.2f} core-seconds per 7-camera frame (the direct run's "
+        f"cost on this CPU, scaled from {x['cameras']} to 7 views) in {fmt(p['units'])} units "
+        f"of 6000 frames with {fmt(overhead)} s overhead each "
+        f"({100 * p['overhead_share']:.2f} % of a unit), the study takes "
+        f"{fmt(p['core_hours'])} core-hours (the cost: times your cluster's price per "
+        f"core-hour): {fmt(p['wall_hours_on_100_workers'])} hours on 100 one-core workers, "
+        f"{fmt(p['wall_hours_on_1000_workers'])} hours on 1000. The benchmark machine has no "
+        "GPU, so a GPU's rate is not measured here: with `r` frames/s per GPU, `N` GPUs take "
+        f"`{p['frames'] / 1e6:.0f}e6 / (N · r) + {fmt(p['units'])} · {fmt(overhead)} / N` "
+        "seconds (where loading the network onto a GPU does not change the overhead).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
 def replace_block(text: str, block: str, begin: str = BEGIN, end: str = END) -> str | None:
     """``text`` with the block between ``begin`` and ``end`` replaced (None without them)."""
     if begin not in text or end not in text:
@@ -349,13 +417,14 @@ def card_block(manifest: Path = MANIFEST) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Write (or with ``--check`` compare) the page and the README block."""
+    """Write (or with ``--check`` compare) the page, the README, model card and tutorial blocks."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--check", action="store_true", help="exit 1 when a file is out of date")
     ap.add_argument("--results", type=Path, default=None, help="results folder [the repo's]")
     ap.add_argument("--page", type=Path, default=PAGE)
     ap.add_argument("--readme", type=Path, default=README)
     ap.add_argument("--models", type=Path, default=MODELS, help="the model card")
+    ap.add_argument("--tutorial", type=Path, default=CLUSTER_DOC, help="the cluster tutorial")
     args = ap.parse_args(argv)
     records = load_results(folder=args.results or RESULTS)
     want = {args.page: page(records)}
@@ -368,6 +437,11 @@ def main(argv: list[str] | None = None) -> int:
         new = replace_block(card, card_block(), CARD_BEGIN, CARD_END)
         if new is not None:
             want[args.models] = new
+    if args.tutorial.is_file():
+        doc = args.tutorial.read_text(encoding="utf-8")
+        new = replace_block(doc, cluster_block(records), CLUSTER_BEGIN, CLUSTER_END)
+        if new is not None:
+            want[args.tutorial] = new
     stale = [p for p, text in want.items()
              if not p.is_file() or p.read_text(encoding="utf-8") != text]  # fmt: skip
     if args.check:

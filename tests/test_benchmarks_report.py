@@ -86,7 +86,8 @@ def test_readme_block_shows_ranges_per_cpu_kind(bench, fake_results, tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{bench.BEGIN}\nold\n{bench.END}\nrest\n")
     page = tmp_path / "benchmarks.md"
-    args = ["--results", str(fake_results), "--page", str(page), "--readme", str(readme)]
+    args = ["--results", str(fake_results), "--page", str(page), "--readme", str(readme),
+            "--tutorial", str(tmp_path / "cluster.md")]  # fmt: skip
     assert bench.main([*args, "--check"]) == 1
     assert bench.main(args) == 0
     text = readme.read_text()
@@ -103,9 +104,36 @@ def test_readme_block_shows_ranges_per_cpu_kind(bench, fake_results, tmp_path):
 def test_a_readme_without_markers_is_left_alone(bench, fake_results, tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text("no markers\n")
-    args = ["--results", str(fake_results), "--page", str(tmp_path / "b.md")]
+    args = ["--results", str(fake_results), "--page", str(tmp_path / "b.md"),
+            "--tutorial", str(tmp_path / "cluster.md")]  # fmt: skip
     assert bench.main([*args, "--readme", str(readme)]) == 0
     assert readme.read_text() == "no markers\n"
+
+
+def test_cluster_tutorial_block_reads_the_latest_run(bench, monkeypatch, tmp_path):
+    monkeypatch.setenv("FREIPOSE_RESULTS_DIR", str(tmp_path / "results"))
+    fps = {"direct": 4.0, "local": 3.8, "slurm": 3.6}
+    paper = {"frames": 360e6, "core_s_per_frame_7cams": 0.875, "units": 60000.0,
+             "overhead_share": 0.001, "core_hours": 87500.0, "wall_hours_on_100_workers": 875.0,
+             "wall_hours_on_1000_workers": 87.5}  # fmt: skip
+    figures = {"frames_per_s": fps, "found_share": 0.99, "ratio_local_to_direct": 0.95,
+               "ratio_slurm_to_direct": 0.9, "overhead_s_local": 2.0, "overhead_s_slurm": 5.0,
+               "identical_local_slurm": True, "identical_to_one_thread_direct_local": True,
+               "identical_to_one_thread_direct_slurm": True, "paper_1000h_7cams": paper,
+               "load_average_1min": {"start": 1.0, "end": 2.0}}  # fmt: skip
+    _result(monkeypatch, "cluster", figures, "avx2", 0, sessions=8, frames=150, cameras=4,
+            chunk_frames=150, cores=2)  # fmt: skip
+    doc = tmp_path / "cluster.md"
+    doc.write_text(f"intro\n{bench.CLUSTER_BEGIN}\nold\n{bench.CLUSTER_END}\nrest\n")
+    args = ["--results", str(tmp_path / "results"), "--page", str(tmp_path / "b.md"),
+            "--readme", str(tmp_path / "none.md"), "--tutorial", str(doc)]  # fmt: skip
+    assert bench.main(args) == 0
+    text = doc.read_text()
+    assert text.startswith("intro\n") and text.endswith(f"{bench.CLUSTER_END}\nrest\n")
+    assert "| SLURM: 2 one-core array tasks | 3.6 | 0.90 | 5 s |" in text
+    assert "0.88 core-seconds per 7-camera frame" in text and "87500 core-hours" in text
+    assert "875 hours on 100 one-core workers" in text and "+ 60000 · 5 / N" in text
+    assert bench.main([*args, "--check"]) == 0
 
 
 def test_results_off_writes_nothing(bench, monkeypatch, tmp_path):
