@@ -194,6 +194,23 @@ def _save_plan(task: TrainTask, config: ClusterConfig) -> None:
     atomic_write_text(path, json.dumps(doc, indent=1, default=str))
 
 
+def _refuse_other_job(out: Path) -> None:
+    """Refuse a run folder that holds another command's job (one job per folder).
+
+    Raises:
+        TrainJobError: ``RUN/.jobs`` holds the job of another command.
+    """
+    try:
+        other = json.loads(_plan_path(out).read_text(encoding="utf-8")).get("command", "train")
+    except (OSError, ValueError):
+        return
+    if other != "train":
+        raise TrainJobError(
+            f"{out} holds the job of `freipose {other}` ({_plan_path(out)}); train into "
+            "another folder (--out)"
+        )
+
+
 def is_train_job(out: Path) -> bool:
     """Whether ``out`` holds a training job of ``freipose train --executor``."""
     try:
@@ -395,12 +412,14 @@ def run_train(
         say: where the messages go.
 
     Raises:
-        TrainJobError: the job ended without its model after its retries.
+        TrainJobError: the job ended without its model after its retries, or the run
+            folder holds another command's job.
         ExecutorError: the engine cannot be used.
         OutputLockedError: another command drives a job in the same run folder.
     """
     from freipose.progress import progress_bar
 
+    _refuse_other_job(task.out)
     if task.model().is_file():
         say(f"{task.out}: the run is complete ({task.model()}); nothing to submit")
         return ClusterTrainResult(task.model(), "", 0)

@@ -137,6 +137,12 @@ def test_bad_requests_are_refused_before_submitting(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "submitit", None)  # the cluster extra is not installed
     assert 'pip install "freipose[cluster]"' in refused("--executor", "slurm")
     assert not (tmp_path / "run").exists()
+    monkeypatch.delitem(sys.modules, "submitit")
+    plan = tmp_path / "poses" / ".jobs" / "plan.json"  # another command's job
+    plan.parent.mkdir(parents=True)
+    plan.write_text('{"command": "predict"}')
+    res = CliRunner().invoke(cli, ["train", str(cfg), "--out", str(plan.parents[1]), *JOB])
+    assert res.exit_code != 0 and "holds the job of `freipose predict`" in res.output
 
 
 @pytest.mark.gpu
