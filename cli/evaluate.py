@@ -106,8 +106,9 @@ def evaluate(
         )  # fmt: skip
         train3d = _training_points(ev, train_labels)
         sanity = sanity_checks(ev, train3d)
-        summary = write_report(out_dir, ev.errors, ev.keypoints, sanity)
+        summary = write_report(out_dir, ev.errors, ev.keypoints, sanity, ev.settings)
         _echo_results(summary, sanity)
+        _echo_settings(ev.settings)
         click.echo(f"wrote {out_dir}")
 
 
@@ -133,6 +134,22 @@ def _training_points(ev: Evaluation, given: Path | None) -> np.ndarray | None:
             "was trained on"
         )
     return lab.points3d
+
+
+def _echo_settings(settings: dict[str, Any]) -> None:
+    """Print the inference settings of each result and those chosen on validation labels."""
+    for name, rep in settings.items():
+        used = ", ".join(f"{k} {v:g}" for k, v in rep["used"].items())
+        val = rep.get("validation")
+        if not val:
+            click.echo(f"{name}: {used} (as configured; no validation labels in training)")
+            continue
+        click.echo(
+            f"{name}: {used}; chosen after training on {val['instants']} validation instants "
+            f"(median P1 {val['median_p1_mm']:.2f} mm; configured "
+            + ", ".join(f"{k} {v:g}" for k, v in val["configured"].items())
+            + ")"
+        )
 
 
 def _echo_results(summary: dict[str, Any], sanity: Sanity) -> None:

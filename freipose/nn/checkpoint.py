@@ -243,3 +243,20 @@ def load_checkpoint(
     model.load_state_dict(ckpt["model"])
     model.to(device).eval()
     return model, config, skeleton
+
+
+def validation_record(path: str | Path) -> dict[str, Any]:
+    """What was chosen on validation labels after training (:mod:`freipose.nn.validation`).
+
+    Args:
+        path: a checkpoint written by ``freipose train``.
+
+    Returns:
+        The ``validation`` record of the checkpoint (the chosen and configured inference
+        settings, the errors tried, the uncertainty's scale); empty for a run without
+        validation labels.
+
+    Raises:
+        InputFileError, CheckpointError: see :func:`read_checkpoint`.
+    """
+    return dict(read_checkpoint(path).get("validation") or {})

@@ -8,6 +8,7 @@ optionally displaced by Gaussian noise to mimic detector error.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from collections.abc import Mapping, Sequence
@@ -133,6 +134,7 @@ class Evaluation:
         skeleton: the networks' skeleton (its keypoints are the labels').
         checkpoints: result name -> the checkpoint it came from.
         configs: result name -> the training config of that checkpoint.
+        settings: result name -> :func:`settings_report` of its checkpoint.
     """
 
     errors: dict[str, np.ndarray]
@@ -141,6 +143,7 @@ class Evaluation:
     skeleton: Skeleton
     checkpoints: dict[str, Path]
     configs: dict[str, TrainConfig]
+    settings: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
 
     @property
     def keypoints(self) -> tuple[str, ...]:
@@ -209,7 +212,31 @@ def evaluate_checkpoints(
             key = f"{label}_{out}" if len(outs) == 2 else label
             errors[key], preds[key] = jpe(pred[out], gt), pred[out]
             paths[key], configs[key] = Path(path), config
-    return Evaluation(errors, preds, gt, skel, paths, configs)
+    settings = {k: settings_report(paths[k], configs[k]) for k in paths}
+    return Evaluation(errors, preds, gt, skel, paths, configs, settings)
+
+
+def settings_report(path: Path, config: TrainConfig) -> dict[str, Any]:
+    """The inference settings a network was evaluated with, and where they come from.
+
+    Args:
+        path: the checkpoint.
+        config: its config as evaluated (with any ``--map-window``/``--fusion-reject``).
+
+    Returns:
+        ``used`` (the settings that acted), and for a checkpoint whose settings were chosen
+        on validation labels after training (:mod:`freipose.nn.validation`) ``validation``:
+        its ``chosen`` and ``configured`` values, the validation ``instants``, the median
+        P1 error (mm) of every value ``tried`` and the ``uncertainty_scale``.
+    """
+    from freipose.nn.checkpoint import validation_record
+    from freipose.nn.config import inference_settings
+
+    out: dict[str, Any] = {"used": inference_settings(config.model)}
+    record = validation_record(path)
+    if record:
+        out["validation"] = record
+    return out
 
 
 def trained_on(evaluation: Evaluation) -> tuple[Path | None, str]:
@@ -427,6 +454,7 @@ def write_report(
     results: Mapping[str, np.ndarray],
     keypoints: Sequence[str],
     sanity: Sanity | None = None,
+    settings: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write the evaluation outputs for one or more methods.
 
@@ -441,6 +469,8 @@ def write_report(
         results: method name -> JPE array (N, K) in mm.
         keypoints: the K keypoint names.
         sanity: the failure modes and references (:func:`sanity_checks`), if computed.
+        settings: method name -> :func:`settings_report` (each method's
+            ``inference_settings`` in metrics.json), if known.
 
     Returns:
         The summaries (method name -> :func:`jpe_summary`, plus ``failure_modes``).
@@ -457,6 +487,9 @@ def write_report(
             doc["references"] = sanity.references
         if sanity.comparisons:
             doc["comparisons"] = [c.to_dict() for c in sanity.comparisons]
+    for name, rep in (settings or {}).items():
+        if name in summary:
+            summary[name]["inference_settings"] = rep
     atomic_write_text(out / "metrics.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
     rows = ["method,keypoint,median_mm,p30_mm,p70_mm,n"]
     for name, s in summary.items():

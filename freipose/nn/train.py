@@ -50,6 +50,7 @@ from freipose.nn.sizing import resolve_cube
 from freipose.nn.train_log import append_log, plot_log, read_log, write_log
 from freipose.nn.types import Batch, SampleSource
 from freipose.nn.unlabeled_losses import UnlabeledTraining, unlabeled_training
+from freipose.nn.validation import with_validation
 from freipose.skeleton import Skeleton, load_skeleton
 
 log = logging.getLogger(__name__)
@@ -365,8 +366,8 @@ def _save(run: TrainRun, step: int, final: bool) -> None:
     with atomic_path(run.files.checkpoint) as tmp:
         tmp.write_bytes(data)
     if final:
-        with atomic_path(run.files.out / "model.pt") as tmp:
-            tmp.write_bytes(data)
+        with atomic_path(run.files.out / "model.pt") as tmp:  # settings chosen on validation
+            tmp.write_bytes(serialize_checkpoint(with_validation(ckpt, run.model, run.eval_source)))
     plot_log(run.files.log, run.files.out / "log.png", run.config.model.kind)
 
 

@@ -281,8 +281,11 @@ def test_train_and_eval_commands(tmp_path, monkeypatch):
     assert m0["voxel_P0"]["overall"] == m["voxel_P0"]["overall"]
     r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev1"), "--fusion-reject", "-1"])
     assert r.exit_code != 0 and "fusion_reject must be in [0, 1000]" in r.output
-    # --map-window 0 decodes the whole maps: the refinement's points (P1) change, P0 does not
-    r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev2"), "--map-window", "0"])
+    # another --map-window than the one chosen on the validation labels (0: the whole maps):
+    # the refinement's points (P1) change, P0 does not
+    used = m["voxel_P1"]["inference_settings"]["used"]["map_window"]
+    other = 0 if used else 3
+    r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev2"), "--map-window", str(other)])
     assert r.exit_code == 0, r.output
     m2 = json.loads((tmp_path / "ev2" / "metrics.json").read_text())
     assert m2["voxel_P0"]["overall"] == m["voxel_P0"]["overall"]
@@ -296,7 +299,7 @@ def test_train_and_eval_commands(tmp_path, monkeypatch):
     ckpt, held_out = tmp_path / "run" / "model.pt", tmp_path / "eval" / "labels.h5"
     own = smooth_error.model_validation_error(ckpt, held_out)
     whole = smooth_error.model_validation_error(
-        ckpt, held_out, overrides=InferenceOverrides(map_window=0)
+        ckpt, held_out, overrides=InferenceOverrides(map_window=other)
     )
     assert own.shape == whole.shape == (3, 5, 3) and not np.allclose(own, whole)
     r = runner.invoke(cli, [*ev_args, "-o", str(tmp_path / "ev3"), "--map-window", "-1"])
