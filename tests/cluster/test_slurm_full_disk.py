@@ -1,12 +1,12 @@
 """A unit whose output disk is full, on a real SLURM scheduler, then freed and resumed.
 
-The output folder is a real 16 MB tmpfs. Two toy sessions of 5 units run one unit at a
-time (``array_parallelism = 1``); when 9 units are done the disk is filled up to less than
-the last unit's part can take. That unit fails, is retried, and fails again; the run ends
-with a report naming the unit, the full disk and its path, the session that had no room to
-be joined (its parts are kept), and the command that finishes it.
-After the space is freed, ``freipose jobs OUTDIR --resume`` runs only that unit, and every
-session's joined file equals the direct run's bit for bit (each frame exactly once).
+The output folder is a real 16 MB tmpfs. Two toy sessions of 3 units (16, 16 and 8
+frames) run one unit at a time (``array_parallelism = 1``); when 5 units are done the disk
+is filled up to less than the last unit's part can take. That unit fails, is retried, and
+fails again; the run ends with a report naming the unit, the full disk and its path, the
+session that had no room to be joined (its parts are kept), and the command that finishes
+it. After the space is freed, ``freipose jobs OUTDIR --resume`` runs only that unit, and
+every session's joined file equals the direct run's bit for bit (each frame exactly once).
 
 Mounting a tmpfs needs root (CAP_SYS_ADMIN); the test skips with the reason elsewhere.
 """
@@ -29,7 +29,8 @@ from freipose.cluster.driver import read_journal
 pytestmark = pytest.mark.slurm
 
 STUDY = SESSIONS[:2]
-UNITS = 10  # 2 sessions x 5 units of 8 frames
+PER_SESSION = 3  # units of 16, 16 and 8 frames
+UNITS = 2 * PER_SESSION
 HEADROOM = 40 * 1024  # bytes left free: less than one unit's part needs (over 64 KiB)
 
 
@@ -91,7 +92,7 @@ def _freipose(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 
 def test_full_output_disk_for_one_unit_is_reported_then_resumed(toy_study, out, tmp_path):
-    cfg = cluster_file(tmp_path, executor="slurm", chunk_frames=8, array_parallelism=1,
+    cfg = cluster_file(tmp_path, executor="slurm", chunk_frames=16, array_parallelism=1,
                        poll_s=0.5, max_retries=1, cpus=1, mem_gb=1, time_min=10)  # fmt: skip
     study = {**toy_study, "sessions": toy_study["sessions"][: len(STUDY)]}
     cmd = [sys.executable, "-m", "freipose.cli.main",
@@ -114,7 +115,7 @@ def test_full_output_disk_for_one_unit_is_reported_then_resumed(toy_study, out, 
     assert "Traceback" not in output, output
     (failed,) = {e["unit"] for e in read_journal(out) if e["event"] == "failed"}
     session, index = failed.split(".")[0], int(failed.split(".")[1].split("-")[0])
-    part = out / f"{session}.shard-{index}-of-5.poses.h5"
+    part = out / f"{session}.shard-{index}-of-{PER_SESSION}.poses.h5"
     assert f"1 of {UNITS} units failed" in output, output
     assert f"{failed}: " in output and "after 2 jobs" in output, output
     assert f"cannot write {part}" in output and "free space there" in output, output
@@ -122,9 +123,11 @@ def test_full_output_disk_for_one_unit_is_reported_then_resumed(toy_study, out, 
     assert not (out / f"{session}.poses.h5").exists(), "a session joined without a unit"
     for s in set(STUDY) - {session}:  # complete, but no room to join it: said, parts kept
         assert f"{s}: its units are done, its parts kept, but it was not joined" in output
-        assert len(list(out.glob(f"{s}.shard-*-of-5.poses.h5"))) == 5
+        assert len(list(out.glob(f"{s}.shard-*-of-{PER_SESSION}.poses.h5"))) == PER_SESSION
     status = _freipose("jobs", str(out))
-    assert f"{session}: 4 done, 1 failed" in status.stdout, status.stdout + status.stderr
+    assert f"{session}: {PER_SESSION - 1} done, 1 failed" in status.stdout, (
+        status.stdout + status.stderr
+    )
     assert f"finish with: freipose jobs {out} --resume" in status.stdout
 
     filler.unlink()  # the space is given back: the resumed run submits only that unit
@@ -137,4 +140,4 @@ def test_full_output_disk_for_one_unit_is_reported_then_resumed(toy_study, out, 
     for s in STUDY:  # each frame exactly once, equal to the direct run
         assert h5_equal(toy_study["direct"] / f"{s}.poses.h5", out / f"{s}.poses.h5") == []
     assert not list(out.glob("*.shard-*")) and not list(out.glob("*.partial"))
-    assert all(f"{s}: 5 done" in resumed.stdout for s in STUDY), resumed.stdout
+    assert all(f"{s}: {PER_SESSION} done" in resumed.stdout for s in STUDY), resumed.stdout
