@@ -2,8 +2,11 @@
 
 Greedy selection over the predicted frames of a session (``poses.h5``):
 
-1. every frame gets an *uncertainty* ``u = 1 - mean keypoint confidence`` (1 where the
-   animal was not found);
+1. every frame gets an *uncertainty* ``u``: where the poses carry the network's calibrated
+   per-keypoint uncertainty (``extra/uncertainty``, mm, :mod:`freipose.nn.uncertainty`:
+   the disagreement of the views and of P0 and P1), the frame's mean of it over the
+   largest such mean; else ``u = 1 - mean keypoint confidence``; 1 where the animal was
+   not found;
 2. the first pick is the most uncertain frame; every next pick maximises
    ``u * (1 - exp(-d / s))``, where ``d`` is the frame's distance to the frames picked so
    far and ``s`` the median distance between frames: the RMS distance between the
@@ -45,12 +48,15 @@ class Selection:
         frame_index: (N,) video frame numbers.
         confidence: (N,) mean keypoint confidence of each pick (0 = not found).
         found: (N,) whether the animal was found in that frame.
+        uncertainty: (N,) mean per-keypoint uncertainty (mm) of each pick, NaN where the
+            poses carry none.
     """
 
     session: str
     frame_index: np.ndarray
     confidence: np.ndarray
     found: np.ndarray
+    uncertainty: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.frame_index)
@@ -95,7 +101,8 @@ def select_frames(
     feats, found = _features(data.poses.astype(np.float64))
     K = max(1, data.poses.shape[1])
     mean_conf = np.where(found, conf.mean(1), 0.0)
-    u = 1.0 - mean_conf
+    sigma = frame_uncertainty(data, found)
+    u = _uncertainty_weight(sigma, found) if np.isfinite(sigma).any() else 1.0 - mean_conf
     allowed = np.ones(T, bool)
     ex = np.asarray(sorted({int(e) for e in exclude}), dtype=np.int64)
     if len(ex):
@@ -139,7 +146,27 @@ def select_frames(
             name, len(picks), n, min_gap, T,
         )  # fmt: skip
     p = np.asarray(picks, dtype=np.int64)
-    return Selection(name, fi[p], mean_conf[p].astype(np.float32), found[p])
+    return Selection(name, fi[p], mean_conf[p].astype(np.float32), found[p], sigma[p])
+
+
+def frame_uncertainty(data: PoseData, found: np.ndarray) -> np.ndarray:
+    """(T,) each frame's mean per-keypoint uncertainty (mm); NaN where none is known."""
+    unc = data.extra.get("uncertainty")
+    T = len(data.frame_index)
+    if unc is None or np.shape(unc) != np.shape(data.confidence):
+        return np.full(T, np.nan)
+    u = np.asarray(unc, np.float64).reshape(T, -1)
+    ok = np.isfinite(u).any(1) & found
+    out = np.full(T, np.nan)
+    out[ok] = np.nanmean(u[ok], axis=1)
+    return out
+
+
+def _uncertainty_weight(sigma: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """(T,) in [0, 1]: ``sigma`` over its largest value; 1 where the animal was not found."""
+    top = float(np.nanmax(sigma))
+    w = np.where(np.isfinite(sigma), sigma / top if top > 0 else 0.0, 0.0)
+    return np.where(found, w, 1.0)
 
 
 def write_selection_csv(selections: Iterable[Selection], path: str | Path) -> Path:

@@ -29,6 +29,8 @@ class Estimate:
         confidence2d: (B, C, K) per-view confidences in [0, 1], 0 if unknown.
         boxes: (B, C, 4) crop boxes (x0, y0, x1, y1) in full-image pixels, NaN if none.
         center: (B, 3) world mm centre of the 3D grid, NaN where the animal was not found.
+        uncertainty: (B, K) calibrated per-keypoint standard error (mm,
+            :mod:`freipose.nn.uncertainty`), NaN where unknown; None: not estimated.
     """
 
     poses: np.ndarray
@@ -37,6 +39,7 @@ class Estimate:
     confidence2d: np.ndarray
     boxes: np.ndarray
     center: np.ndarray
+    uncertainty: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         p = np.asarray(self.poses, np.float32)
@@ -58,6 +61,11 @@ class Estimate:
             if a.shape != shape:
                 raise ValueError(f"Estimate.{name} must have shape {shape}, got {a.shape}")
             object.__setattr__(self, name, a)
+        if self.uncertainty is not None:
+            u = np.asarray(self.uncertainty, np.float32)
+            if u.shape != (b, k):
+                raise ValueError(f"Estimate.uncertainty must have shape {(b, k)}, got {u.shape}")
+            object.__setattr__(self, "uncertainty", u)
         conf = self.confidence
         conf = np.where(np.isfinite(conf), np.clip(conf, 0.0, 1.0), 0.0).astype(np.float32)
         missing = ~np.isfinite(p).all(-1)
@@ -147,6 +155,7 @@ def estimate_with_missing(
         n: getattr(out, n).copy()
         for n in ("poses", "confidence", "points2d", "confidence2d", "boxes", "center")
     }
+    fields["uncertainty"] = np.full((B, K), np.nan, np.float32)
     ran = np.zeros(B, bool)
     patterns = {tuple(row) for row in valid}
     for pat in sorted(patterns, reverse=True):
@@ -171,6 +180,8 @@ def estimate_with_missing(
         fields["poses"][rows] = est.poses
         fields["confidence"][rows] = est.confidence
         fields["center"][rows] = est.center
+        if est.uncertainty is not None:
+            fields["uncertainty"][rows] = est.uncertainty
         cam_idx = np.array(cams)
         for name in ("points2d", "confidence2d", "boxes"):
             arr = fields[name]

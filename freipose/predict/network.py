@@ -143,6 +143,8 @@ class NetworkEstimator:
         refine: report the refined pose P1 (default) or the 3D network's P0.
         provenance: facts stored in the output (model hash, detection settings).
         min_views: fewest agreeing views for a 3D centre.
+        uncertainty_scale: the scale of the per-keypoint uncertainty fitted on validation
+            labels (:mod:`freipose.nn.uncertainty`); NaN: the uncertainty is not known.
     """
 
     def __init__(
@@ -154,6 +156,7 @@ class NetworkEstimator:
         refine: bool = True,
         provenance: Mapping[str, Any] | None = None,
         min_views: int = 2,
+        uncertainty_scale: float = float("nan"),
     ):
         from freipose.detect.multiview import ConsistencyConfig
 
@@ -166,6 +169,7 @@ class NetworkEstimator:
         self.consistency = ConsistencyConfig(cube_size=self.cube_size, min_views=min_views)
         self.keypoints = tuple(skeleton.keypoints)
         self.provenance = dict(provenance or {})
+        self.uncertainty_scale = float(uncertainty_scale)
 
     def __call__(self, images: Sequence[np.ndarray], rig: CameraRig) -> Estimate:
         """Predict B time steps from one (B, H_c, W_c, 3) BGR array per camera of ``rig``."""
@@ -173,6 +177,7 @@ class NetworkEstimator:
 
         from freipose.detect.multiview import detect_multiview_batch
         from freipose.nn.inference import predict_batch
+        from freipose.nn.uncertainty import raw_uncertainty
 
         C = len(rig)
         if len(images) != C:
@@ -185,6 +190,8 @@ class NetworkEstimator:
             out = predict_batch(self.model, frames, [rig] * B, centers)
         poses = out["P1"] if self.refine else out["P0"]
         boxes = cube_crop_boxes(rig, centers, self.cube_size)  # (B, C, 4), NaN without centre
+        raw = raw_uncertainty(out["P0"], out["P1"], out["points2d"], out["confidence2d"],
+                              [rig] * B, self.config.model.voxel_size)  # fmt: skip
         return Estimate(
             poses=poses,
             confidence=out["confidence"],
@@ -192,6 +199,7 @@ class NetworkEstimator:
             confidence2d=out["confidence2d"][:, :C],
             boxes=boxes,
             center=centers,
+            uncertainty=self.uncertainty_scale * raw,
         )
 
 
@@ -353,6 +361,7 @@ def predict_sessions(
     Returns:
         One :class:`~freipose.predict.run.PredictResult` per session.
     """
+    from freipose.nn.checkpoint import validation_record
     from freipose.nn.config import inference_settings
 
     dev = resolve_device(device)
@@ -375,6 +384,9 @@ def predict_sessions(
         **spec.describe(),
         **inference_settings(config.model, refine),
     }
+    scale = float(validation_record(model_path).get("uncertainty_scale", float("nan")))
+    if np.isfinite(scale):  # fitted on validation labels after training
+        provenance["uncertainty_scale"] = scale
     results = []
     for s in sessions:
         out = output_path(outdir, s.name, shard)
@@ -383,7 +395,9 @@ def predict_sessions(
             res = PredictResult(path=out, skipped=True)
         else:
             source = shared or make_box_source(spec, s, ranges[s.name], dev)
-            est = NetworkEstimator(net, config, skel, source, refine, provenance, spec.min_views)
+            est = NetworkEstimator(
+                net, config, skel, source, refine, provenance, spec.min_views, scale
+            )
             res = predict_session(
                 s, est, outdir, frames=ranges[s.name], batch_size=batch_size, shard=shard,
                 overwrite=overwrite, skeleton=skel, chunk_frames=chunk_frames, progress=progress,

@@ -203,6 +203,7 @@ def create_layout(f: h5py.File, header: OutputHeader, chunk_rows: int) -> None:
     ds(g, "confidence2d", (T, *a, C, K), np.float32, np.float32(0))
     ds(g, "boxes", (T, *a, C, 4), np.float32, nan)
     ds(g, "center", (T, *a, 3), np.float32, nan)
+    ds(g, "uncertainty", (T, *a, K), np.float32, nan)
     ds(g, "status", (T,), np.int8, np.int8(STATUS_PENDING))
     ds(g, "frame_ok", (T, C), bool, False)
     g.attrs["cameras"] = json.dumps(header.rig.names)
@@ -216,7 +217,7 @@ def output_bytes(header: OutputHeader) -> int:
     """At most how many bytes the output file of ``header`` takes (its data uncompressed)."""
     T, K, C = header.num_frames, len(header.keypoints), len(header.rig)
     A = 1 if header.individuals is None else len(header.individuals)
-    floats = A * (3 * K + K + C * K * 2 + C * K + C * 4 + 3 + 1)
+    floats = A * (3 * K + K + C * K * 2 + C * K + C * 4 + 3 + K + 1)
     row = 4 * floats + 1 + C + 8  # + status, frame_ok, frame_index
     text = len(header.calibration_text()) + len(header.provenance_text())
     return T * row + text + len(header.skeleton_text() or "") + _OVERHEAD_BYTES
@@ -271,6 +272,7 @@ ROW_FIELDS = (
     "confidence2d",
     "boxes",
     "center",
+    "uncertainty",
     "status",
     "frame_ok",
 )
@@ -279,10 +281,7 @@ _PATHS = {
     "poses": "poses",
     "confidence": "confidence",
     "identity_confidence": "identity_confidence",
-    **{
-        n: f"extra/{n}"
-        for n in ("points2d", "confidence2d", "boxes", "center", "status", "frame_ok")
-    },
+    **{n: f"extra/{n}" for n in ROW_FIELDS[2:]},
 }
 
 
@@ -295,6 +294,11 @@ def _rows(est: Estimate) -> dict[str, np.ndarray]:
         "confidence2d": est.confidence2d,
         "boxes": est.boxes,
         "center": est.center,
+        "uncertainty": (
+            np.full(est.confidence.shape, np.nan, np.float32)
+            if est.uncertainty is None
+            else est.uncertainty
+        ),
     }
 
 

@@ -99,3 +99,52 @@ def test_eval_reports_the_settings_chosen_on_validation(trained, tmp_path):
     assert res.exit_code == 0, res.output
     doc = json.loads((tmp_path / "ev0" / "metrics.json").read_text())
     assert doc["voxel_P1"]["inference_settings"]["used"]["map_window"] == 0
+
+
+class _CentreBoxes:
+    """A box source: every camera's box around the toy animal's arena centre."""
+
+    def __init__(self, rig):
+        self.rig = rig
+
+    def propose(self, images, cameras):
+        from freipose.detect.base import Candidates
+        from freipose.geometry.crops import cube_crop_boxes
+
+        boxes = cube_crop_boxes(self.rig, np.array([0.0, 0, 40]), 200.0)
+        by_name = dict(zip(self.rig.names, boxes))
+        return [Candidates(by_name[c][None], np.ones(1)) for c in cameras]
+
+
+def test_predict_writes_the_calibrated_uncertainty_and_select_ranks_by_it(trained, tmp_path):
+    from test_unlabeled import _write_session
+
+    from freipose.io.poses import read_poses_h5
+    from freipose.io.session import discover_sessions
+    from freipose.labels.select import frame_uncertainty, select_frames
+    from freipose.predict.network import NetworkEstimator, load_model
+    from freipose.predict.run import predict_session
+
+    path, _ = trained
+    folder = _write_session(tmp_path / "s", toy_samples(6, seed=41))
+    session = discover_sessions([folder], need_fps=False)[0]
+    model, config, skel, _ = load_model(path)
+    scale = validation_record(path)["uncertainty_scale"]
+    est = NetworkEstimator(model, config, skel, _CentreBoxes(session.rig),
+                           uncertainty_scale=scale)  # fmt: skip
+    res = predict_session(session, est, tmp_path / "out", skeleton=skel, progress=False)
+    d = read_poses_h5(res.path)
+    u = d.extra["uncertainty"]
+    assert u.shape == (6, 5) and np.isfinite(u).all() and (u > 0).all()
+    sel = select_frames(d, 2, min_gap=0)
+    per_frame = frame_uncertainty(d, np.ones(6, bool))
+    assert sel.uncertainty[0] == pytest.approx(per_frame.max())  # the most uncertain first
+    # without a calibrated scale the uncertainty is unknown (NaN) and select falls back
+    # to the confidences
+    est = NetworkEstimator(model, config, skel, _CentreBoxes(session.rig))
+    res = predict_session(session, est, tmp_path / "raw", skeleton=skel, progress=False)
+    d = read_poses_h5(res.path)
+    assert np.isnan(d.extra["uncertainty"]).all()
+    sel = select_frames(d, 2, min_gap=0)
+    assert np.isnan(sel.uncertainty).all()
+    assert sel.confidence[0] == pytest.approx(d.confidence.mean(1).min(), abs=1e-6)
