@@ -79,7 +79,8 @@ def _show(status, show_all: bool) -> None:  # noqa: ANN001 - a JobsStatus
     for session, units in by_session.items():
         counts = {state: sum(u.state == state for u in units) for state in STATES}
         summary = ", ".join(f"{n} {state}" for state, n in counts.items() if n)
-        click.echo(f"  {session}: {summary}")
+        joined = ", not joined" if session in status.unjoined else ""
+        click.echo(f"  {session}: {summary}{joined}")
         for u in units:
             if u.state == "done" and not show_all:
                 continue
@@ -94,5 +95,6 @@ def _show(status, show_all: bool) -> None:  # noqa: ANN001 - a JobsStatus
     if status.frames_per_s is not None:
         click.echo(f"throughput so far: {status.frames_per_s:.1f} frames/s")
     missing = status.missing()
-    if missing and any(u.state in ("failed", "waiting") for u in missing):
+    stopped = not any(u.state in ("running", "queued") for u in missing)
+    if any(u.state in ("failed", "waiting") for u in missing) or (status.unjoined and stopped):
         click.echo(f"finish with: freipose jobs {target} --resume")

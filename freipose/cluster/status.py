@@ -60,6 +60,10 @@ class JobsStatus:
         units: the units' states.
         frames_per_s: done frames per second of wall time since the first submission
             (None before any).
+        command: the stage (``predict``, ``detect``...).
+        target: the output file of a command that writes one (None: a folder of outputs).
+        unjoined: the outputs whose units are all done but whose joined file is not there
+            (not joined yet, or the join failed: a full disk).
     """
 
     outdir: Path
@@ -68,6 +72,7 @@ class JobsStatus:
     frames_per_s: float | None
     command: str = "predict"
     target: Path | None = None
+    unjoined: tuple[str, ...] = ()
 
     def counts(self) -> dict[str, int]:
         """State -> number of units."""
@@ -146,5 +151,10 @@ def jobs_status(outdir: str | Path) -> JobsStatus:
         out.append(UnitStatus(u.name, u.session, u.frames, state, reason=reason,
                               seconds=_unit_seconds(outdir, u.name), **common))  # fmt: skip
     done_frames = sum(u.frames for u in out if u.state == DONE)
+    by_group: dict[str, list[UnitStatus]] = {}
+    for st in out:
+        by_group.setdefault(st.session, []).append(st)
+    unjoined = tuple(g for g, us in by_group.items()
+                     if all(u.state == DONE for u in us) and not task.output_done(g))  # fmt: skip
     return JobsStatus(outdir, config.executor, tuple(out), _throughput(events, done_frames),
-                      task.command, task.target)  # fmt: skip
+                      task.command, task.target, unjoined)  # fmt: skip

@@ -125,10 +125,11 @@ def test_full_output_disk_for_one_unit_is_reported_then_resumed(toy_study, out, 
         assert f"{s}: its units are done, its parts kept, but it was not joined" in output
         assert len(list(out.glob(f"{s}.shard-*-of-{PER_SESSION}.poses.h5"))) == PER_SESSION
     status = _freipose("jobs", str(out))
-    assert f"{session}: {PER_SESSION - 1} done, 1 failed" in status.stdout, (
-        status.stdout + status.stderr
-    )
+    shown = status.stdout + status.stderr
+    assert f"{session}: {PER_SESSION - 1} done, 1 failed" in status.stdout, shown
     assert f"finish with: freipose jobs {out} --resume" in status.stdout
+    for s in set(STUDY) - {session}:
+        assert f"{s}: {PER_SESSION} done, not joined" in status.stdout, shown
 
     filler.unlink()  # the space is given back: the resumed run submits only that unit
     before = len(read_journal(out))
