@@ -81,7 +81,11 @@ class StageTask(Protocol):
         """Every unit of the job; ``unit.session`` names the output the unit belongs to."""
 
     def run_unit(self, unit: Unit, on_first: Callable[[], None]) -> None:
-        """Do one unit's work (call ``on_first`` once its first frame is done)."""
+        """Do one unit's work; call ``on_first`` when its frames start (the overhead's end).
+
+        ``predict`` calls it when its first batch is done, the other stages when their
+        inputs are open and the work on the frames begins.
+        """
 
     def unit_is_done(self, unit: Unit) -> bool:
         """Whether the unit's part, or the output it belongs to, is complete on disk."""
