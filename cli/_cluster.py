@@ -14,7 +14,7 @@ import click
 EXECUTOR_HELP = (
     "Run the work as units on an executor: local (worker processes on this machine) or "
     'slurm (a SLURM job array; needs `pip install "freipose[cluster]"`). Finished units are '
-    "skipped when the command runs again; `freipose jobs OUTDIR` shows the units."
+    "skipped when the command runs again; `freipose jobs OUTPUT` shows the units."
 )
 
 
