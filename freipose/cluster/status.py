@@ -61,7 +61,8 @@ class JobsStatus:
         frames_per_s: done frames per second of wall time since the first submission
             (None before any).
         command: the stage (``predict``, ``detect``...).
-        target: the output file of a command that writes one (None: a folder of outputs).
+        target: what ``freipose jobs`` takes for this job: the output folder, or the output
+            file of a command that writes one (None: not known, the root is shown).
         unjoined: the outputs whose units are all done but whose joined file is not there
             (not joined yet, or the join failed: a full disk).
     """
