@@ -21,14 +21,14 @@ from typing import ClassVar
 import numpy as np
 
 from freipose.cluster.driver import Unit
-from freipose.cluster.stages import file_job_root
+from freipose.cluster.stages import FileJob
 from freipose.errors import FreiPoseError
 from freipose.io.session import Session
 from freipose.io.video import frame_range
 
 
 @dataclass(frozen=True)
-class DetectTask:
+class DetectTask(FileJob):
     """Everything every unit of one detection needs (pickled into each job).
 
     Attributes:
@@ -64,16 +64,6 @@ class DetectTask:
     batch_size: int
     chunk_frames: int
     threads: int
-
-    @property
-    def root(self) -> Path:
-        """``<folder>/.jobs/<name>`` of the output file."""
-        return file_job_root(self.out_path)
-
-    @property
-    def target(self) -> Path:
-        """``freipose jobs OUTPUT``."""
-        return self.out_path
 
     def frame_range(self) -> range:
         """The frames of the whole detection."""

@@ -24,6 +24,7 @@ from freipose.cluster.driver import Unit
 from freipose.cluster.stages import (
     PLAN_FILE,
     TASK_FILE,
+    FolderJob,
     StageResult,
     UnitArg,
     UnitsFailedError,
@@ -61,7 +62,7 @@ predict_unit = run_unit
 
 
 @dataclass(frozen=True)
-class PredictTask:
+class PredictTask(FolderJob):
     """Everything every unit of one prediction needs (pickled into each job).
 
     Attributes:
@@ -95,16 +96,6 @@ class PredictTask:
     chunk_frames: int
     threads: int
     skeleton: Any = None
-
-    @property
-    def root(self) -> Path:
-        """The output folder holds the job (``OUTDIR/.jobs``)."""
-        return self.outdir
-
-    @property
-    def target(self) -> Path:
-        """``freipose jobs OUTDIR``."""
-        return self.outdir
 
     def session(self, name: str) -> Session:
         """The session called ``name``."""

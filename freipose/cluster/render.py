@@ -13,11 +13,11 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from freipose.cluster.driver import Unit
-from freipose.cluster.stages import WholeOutputs, file_job_root
+from freipose.cluster.stages import FileJob, WholeOutputs
 
 
 @dataclass(frozen=True)
-class RenderTask(WholeOutputs):
+class RenderTask(FileJob, WholeOutputs):
     """Everything the unit of one ``render`` needs (pickled into its job).
 
     Attributes:
@@ -45,16 +45,6 @@ class RenderTask(WholeOutputs):
     tile_width: int
     show_3d: bool
     threads: int = 1
-
-    @property
-    def root(self) -> Path:
-        """``<folder>/.jobs/<name>`` of the output file."""
-        return file_job_root(self.out_path)
-
-    @property
-    def target(self) -> Path:
-        """``freipose jobs OUTPUT``."""
-        return self.out_path
 
     def outputs(self) -> dict[str, tuple[Path, int]]:
         """The video's name -> (the video, its frames)."""

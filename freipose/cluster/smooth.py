@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from freipose.cluster.driver import Unit
-from freipose.cluster.stages import WholeOutputs, poses_frames
+from freipose.cluster.stages import FolderJob, WholeOutputs, poses_frames
 
 
 @dataclass(frozen=True)
-class SmoothTask(WholeOutputs):
+class SmoothTask(FolderJob, WholeOutputs):
     """Everything every unit of one smoothing needs (pickled into each job).
 
     Attributes:
@@ -43,16 +43,6 @@ class SmoothTask(WholeOutputs):
     def of(cls, jobs: list[tuple[Path, Path]], outdir: Path, **kwargs: Any) -> SmoothTask:
         """The task of ``(poses file, smoothed file)`` pairs (their frames read here)."""
         return cls(tuple((src, dst, poses_frames(src)) for src, dst in jobs), outdir, **kwargs)
-
-    @property
-    def root(self) -> Path:
-        """The output folder holds the job (``OUTDIR/.jobs``)."""
-        return self.outdir
-
-    @property
-    def target(self) -> Path:
-        """``freipose jobs OUTDIR``."""
-        return self.outdir
 
     def outputs(self) -> dict[str, tuple[Path, int]]:
         """``<name>`` of ``<name>.poses.h5`` -> (the smoothed file, its frames)."""

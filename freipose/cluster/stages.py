@@ -113,6 +113,34 @@ def file_job_root(output: Path) -> Path:
     return output.parent / JOBS_DIR / output.name
 
 
+class FolderJob:
+    """A stage whose job lives in its output folder ``self.outdir`` (``OUTDIR/.jobs``)."""
+
+    @property
+    def root(self) -> Path:
+        """The output folder."""
+        return self.outdir  # type: ignore[attr-defined]
+
+    @property
+    def target(self) -> Path:
+        """``freipose jobs OUTDIR``."""
+        return self.outdir  # type: ignore[attr-defined]
+
+
+class FileJob:
+    """A stage that writes one file ``self.out_path``; its job is in ``<folder>/.jobs/<name>``."""
+
+    @property
+    def root(self) -> Path:
+        """``<folder>/.jobs/<name>`` of the output file."""
+        return file_job_root(self.out_path)  # type: ignore[attr-defined]
+
+    @property
+    def target(self) -> Path:
+        """``freipose jobs OUTPUT``."""
+        return self.out_path  # type: ignore[attr-defined]
+
+
 def has_plan(root: Path) -> bool:
     """Whether ``root`` holds a stage job's plan."""
     return (Path(root) / JOBS_DIR / PLAN_FILE).is_file() and (

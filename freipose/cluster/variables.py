@@ -12,11 +12,11 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from freipose.cluster.driver import Unit
-from freipose.cluster.stages import WholeOutputs, file_job_root, poses_frames
+from freipose.cluster.stages import FileJob, WholeOutputs, poses_frames
 
 
 @dataclass(frozen=True)
-class VariablesTask(WholeOutputs):
+class VariablesTask(FileJob, WholeOutputs):
     """Everything the unit of one ``analyze variables`` needs (pickled into its job).
 
     Attributes:
@@ -45,16 +45,6 @@ class VariablesTask(WholeOutputs):
     def of(cls, poses: Path, out_path: Path, **kwargs: Any) -> VariablesTask:
         """The task of ``poses`` (its frames read here)."""
         return cls(poses, out_path, frames=poses_frames(poses), **kwargs)
-
-    @property
-    def root(self) -> Path:
-        """``<folder>/.jobs/<name>`` of the output file."""
-        return file_job_root(self.out_path)
-
-    @property
-    def target(self) -> Path:
-        """``freipose jobs OUTPUT``."""
-        return self.out_path
 
     def outputs(self) -> dict[str, tuple[Path, int]]:
         """The poses file's name -> (``VARS.h5``, its frames)."""
