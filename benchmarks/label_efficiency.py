@@ -7,20 +7,20 @@ Held-out synthetic rigs outside the shipped bases' training ranges (``freipose s
 * ``arc_piebald``: a piebald rat (a coat the randomised bases never see) filmed by 4
   cameras all on one side (the ``arc`` layout, never drawn by ``--randomize``).
 
-Each rig has a labeled recording and a second recording of the same animal and cameras
-(another motion seed) that serves as the unlabeled video. The labeled recording is split in
-time: two blocks (40-50 % and 90-100 % of its frames) are held out for scoring, a gap of
-``--gap`` frames around them is unused, and each label budget (``--budgets``) draws its
-instants at random (per seed) from the rest. The labels are the generator's exact ones, and
-so is the scoring truth.
+Each rig is one recording (``--frames``, 100 s at 30 fps by default), split in time: two
+blocks (40-50 % and 90-100 % of its frames) are held out for scoring, and a gap of
+``--gap`` frames around them is unused. Each label budget (``--budgets``) draws its
+instants at random (per seed) from the rest, and the unlabeled video is the rest too, all
+of its frames (the same rig, animal and light; never the held-out blocks). The labels are
+the generator's exact ones, and so is the scoring truth.
 
 Every cell (rig, budget, seed, mode) trains the voxel network with ``freipose train``'s
 config and is scored on the held-out instants against the exact truth (median JPE of P1
 and P0 over the keypoints); the sanity references (the training labels' median pose at the
 held-out centre and at the training centre, :mod:`freipose.nn.references`) come with each
 budget. Modes: ``labels`` (labels only, ``--steps``), ``unlabeled`` (labels plus the
-``[unlabeled]`` losses on clips of the second recording, ``--steps``) and ``labels_time``
-(labels only, as many steps as fit in the wall time of the ``unlabeled`` cell: the
+``[unlabeled]`` losses on clips from outside the held-out blocks, ``--steps``) and
+``labels_time`` (labels only, as many steps as fit in the wall time of the ``unlabeled`` cell: the
 comparison at equal wall time). The cube centres of the unlabeled frames are the true
 centre plus Gaussian noise of ``--center-noise`` mm, written as ``freipose predict`` writes
 them (``extra/center``): a detector of that precision.
@@ -85,19 +85,17 @@ def freipose(args: list[str]) -> None:
         raise SystemExit(f"freipose {' '.join(args)} failed: {exc}") from exc
 
 
-def render(out: Path, rig: str, a: argparse.Namespace) -> tuple[Path, Path]:
-    """The labeled and the unlabeled recording of ``rig`` (rendered once)."""
-    base = ["--size", a.size, "--animal-seed", "7", *RIGS[rig]]
-    lab, unl = out / "rec" / rig / "labeled", out / "rec" / rig / "unlabeled"
+def render(out: Path, rig: str, a: argparse.Namespace) -> Path:
+    """The recording of ``rig`` (rendered once)."""
+    lab = out / "rec" / rig
     if not (lab / "labels.h5").exists():
-        freipose(["synth", str(lab), "--frames", str(a.frames), "--seed", "11", *base])
-    if not (unl / "labels.h5").exists():
-        freipose(["synth", str(unl), "--frames", str(a.unlabeled_frames), "--seed", "12", *base])
-    return lab, unl
+        freipose(["synth", str(lab), "--frames", str(a.frames), "--seed", "11",
+                  "--size", a.size, *RIGS[rig]])  # fmt: skip
+    return lab
 
 
 def split(lab: Path, gap: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (pool, held-out) of the labeled recording's instants (see the docstring)."""
+    """Indices (pool, held-out) of the recording's instants (see the docstring)."""
     from freipose.io.labels import read_labels_h5
 
     n = len(read_labels_h5(lab / "labels.h5"))
@@ -111,8 +109,12 @@ def split(lab: Path, gap: int) -> tuple[np.ndarray, np.ndarray]:
     return f[~near], f[held]
 
 
-def centers_file(unl: Path, noise: float) -> Path:
-    """``centers.poses.h5`` of the unlabeled recording: true centres plus detector noise."""
+def centers_file(unl: Path, pool: np.ndarray, noise: float) -> Path:
+    """``centers.poses.h5``: the true centres plus detector noise of the frames of ``pool``.
+
+    The other frames (the held-out blocks and their gaps) have none, so no clip is drawn
+    from them.
+    """
     from freipose.geometry.crops import label_centers
     from freipose.io.labels import read_labels_h5
     from freipose.io.poses import PoseData, write_poses_h5
@@ -125,6 +127,7 @@ def centers_file(unl: Path, noise: float) -> Path:
     p3 = labels.points3d[order]
     rng = np.random.default_rng(0)
     centers = label_centers(p3) + rng.normal(0.0, noise, (len(p3), 3))
+    centers[~np.isin(labels.frame_index[order], labels.frame_index[pool])] = np.nan
     data = PoseData(
         p3.astype(np.float32), np.ones(p3.shape[:2], np.float32), tuple(labels.keypoints),
         labels.frame_index[order].astype(np.int64), 30.0, (0.0, 0.0, 1.0),
@@ -135,17 +138,19 @@ def centers_file(unl: Path, noise: float) -> Path:
 
 
 def write_config(run: Path, labels: Path, steps: int, seed: int, a: argparse.Namespace,
-                 unl: Path | None) -> Path:  # fmt: skip
+                 unl: tuple[Path, np.ndarray] | None) -> Path:  # fmt: skip
     """The training config of one cell."""
     run.mkdir(parents=True, exist_ok=True)
     text = (
-        f'[data]\nlabels = "{labels}"\n\n[model]\npreset = "{a.preset}"\n\n[schedule]\n'
+        f'[data]\nlabels = "{labels}"\n\n[model]\npreset = "{a.preset}"\n'
+        + "".join(f"{kv}\n" for kv in a.model)
+        + "\n[schedule]\n"
         f"steps = {steps}\ncheckpoint_every = {steps}\neval_every = {steps}\n"
         f"log_every = 10\nseed = {seed}\n"
     )
     if unl is not None:
-        table = {"sessions": [str(unl)], "centers": "poses",
-                 "poses": [str(centers_file(unl, a.center_noise))], **UNLABELED_TABLE}  # fmt: skip
+        table = {"sessions": [str(unl[0])], "centers": "poses",
+                 "poses": [str(centers_file(*unl, a.center_noise))], **UNLABELED_TABLE}  # fmt: skip
         import tomli_w
 
         text += "\n" + tomli_w.dumps({"unlabeled": table})
@@ -199,7 +204,7 @@ def run_cell(out: Path, rig: str, budget: int, seed: int, mode: str, a: argparse
     cell = out / "cells" / f"{rig}_b{budget}_s{seed}_{mode}.json"
     if cell.exists():
         return
-    lab, unl = render(out, rig, a)
+    lab = render(out, rig, a)
     pool, held = split(lab, a.gap)
     labels = budget_labels(lab, pool, budget, seed)
     steps = a.steps
@@ -211,7 +216,7 @@ def run_cell(out: Path, rig: str, budget: int, seed: int, mode: str, a: argparse
         per_step = json.loads(plain.read_text())["train_s"] / a.steps
         steps = max(1, int(round(json.loads(other.read_text())["train_s"] / per_step)))
     run = out / "runs" / cell.stem
-    cfg = write_config(run, labels, steps, seed, a, unl if mode == "unlabeled" else None)
+    cfg = write_config(run, labels, steps, seed, a, (lab, pool) if mode == "unlabeled" else None)
     t0 = time.perf_counter()
     model = train_from_config(cfg, run / "pose", progress=False, init=a.init)
     wall = time.perf_counter() - t0
@@ -260,8 +265,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=300, help="training steps (equal-steps cells)")
     p.add_argument("--preset", default="tiny", help="model preset")
     p.add_argument("--init", default="scratch", help="model.init (base, scratch or a file)")
-    p.add_argument("--frames", type=int, default=1500, help="frames of the labeled recording")
-    p.add_argument("--unlabeled-frames", type=int, default=1500, help="unlabeled recording")
+    p.add_argument("--model", action="append", default=[], metavar="KEY=VALUE",
+                   help="[model] line added to every config, e.g. grid_size=16")  # fmt: skip
+    p.add_argument("--frames", type=int, default=3000, help="frames of each rig's recording")
     p.add_argument("--size", default="320x256", help="image size")
     p.add_argument("--gap", type=int, default=30, help="frames left out around held-out blocks")
     p.add_argument("--center-noise", type=float, default=5.0, help="mm, unlabeled centres")
@@ -286,8 +292,9 @@ def main(argv: list[str] | None = None) -> int:
     figures = table(a.out)
     if not a.no_record and figures:
         write_result("label_efficiency", figures, extra={
-            "steps": a.steps, "preset": a.preset, "init": a.init, "frames": a.frames,
-            "unlabeled_frames": a.unlabeled_frames, "size": a.size, "gap": a.gap,
+            "steps": a.steps, "preset": a.preset, "model": a.model, "init": a.init,
+            "frames": a.frames,
+            "size": a.size, "gap": a.gap,
             "center_noise_mm": a.center_noise, "eval_instants": a.eval_instants,
             "unlabeled": UNLABELED_TABLE,
         })  # fmt: skip

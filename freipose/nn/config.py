@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import Any, ClassVar
 
 from freipose.errors import FreiPoseError
 from freipose.io.toml import check_numbers, did_you_mean, read_toml
@@ -327,10 +327,18 @@ class AugmentConfig:
 
 @dataclass(frozen=True)
 class DataConfig:
-    """Where the training data is. Relative paths are relative to the config file."""
+    """Where the training data is. Relative paths are relative to the config file.
+
+    ``validation_labels``: a validation part of the labels (never the held-out test labels)
+    on which the inference settings are chosen and the uncertainty calibrated after
+    training (:mod:`freipose.nn.validation`); empty: the configured settings are kept.
+    """
+
+    PATH_KEYS: ClassVar[tuple[str, ...]] = ("labels", "eval_labels", "validation_labels", "root")
 
     labels: str = ""
     eval_labels: str = ""
+    validation_labels: str = ""
     root: str = ""
     cameras: tuple[str, ...] = ()
     skeleton: str = ""

@@ -116,8 +116,9 @@ def beats_reference_warnings(
     return [
         f"WARNING: {name} (median JPE {m:.2f} mm) does not beat the constant-pose reference "
         f"({AT_HELD_OUT}: {ref:.2f} mm): it has not learned more than the training labels' "
-        "median pose; train longer or on more labels, or compare --map-window 0 (2D points "
-        "from the whole maps, which helps a network whose map peaks are still off)"
+        "median pose; train longer or on more labels, add unlabeled video ([unlabeled]), and "
+        "give validation labels ([data] validation_labels) so that training chooses the 2D "
+        "decoding window (the whole maps help a network whose map peaks are still off)"
         for name, m in medians.items()
         if not m < ref
     ]

@@ -367,7 +367,7 @@ def _save(run: TrainRun, step: int, final: bool) -> None:
         tmp.write_bytes(data)
     if final:
         with atomic_path(run.files.out / "model.pt") as tmp:  # settings chosen on validation
-            tmp.write_bytes(serialize_checkpoint(with_validation(ckpt, run.model, run.eval_source)))
+            tmp.write_bytes(serialize_checkpoint(with_validation(ckpt, run.model, run.config)))
     plot_log(run.files.log, run.files.out / "log.png", run.config.model.kind)
 
 
@@ -563,7 +563,7 @@ def train_from_config(
         config,
         data=dataclasses.replace(
             config.data,
-            **{k: str(rel(v).resolve()) for k in ("labels", "eval_labels", "root")
+            **{k: str(rel(v).resolve()) for k in config.data.PATH_KEYS
                if (v := getattr(config.data, k))},
         ),
     )  # fmt: skip

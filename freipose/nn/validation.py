@@ -3,7 +3,7 @@
 A trained network's 2D decoding window (``model.map_window``) and P1's view rejection
 (``model.fusion_reject``) act at inference only; which values suit a network depends on
 how well it has learned (after few steps a wide window often decodes better). When a run
-has validation labels (``[data] eval_labels``), the final checkpoint ``model.pt`` gets
+has validation labels (``[data] validation_labels``), the final checkpoint ``model.pt`` gets
 the values with the lowest median P1 error on them: the window first (with the
 configured rejection), then the rejection with the chosen window; a value replaces the
 configured one only when it lowers the median by more than :data:`MIN_GAIN`. The same
@@ -19,12 +19,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from freipose.nn.config import ModelConfig, config_from_dict
+from freipose.nn.config import ModelConfig, TrainConfig, config_from_dict
 from freipose.nn.data import collate_prepared, prepare_sample
 from freipose.nn.inference import predict_prepared
 from freipose.nn.types import Batch, SampleSource
@@ -129,20 +130,41 @@ def choose_settings(net: torch.nn.Module, source: SampleSource, model: ModelConf
     }
 
 
+def validation_source(config: TrainConfig) -> SampleSource | None:
+    """The samples of ``[data] validation_labels`` (None without them).
+
+    Videos are relative to ``[data] root``, else to the labels file's folder.
+
+    Raises:
+        InputFileError: the labels file does not exist.
+        LabelsDataError: a camera of ``[data] cameras`` that the labels do not have.
+    """
+    from freipose.io.labels import read_labels_h5
+    from freipose.nn.dataset import MultiViewDataset
+
+    d = config.data
+    if not d.validation_labels:
+        return None
+    path = Path(d.validation_labels)
+    root = Path(d.root) if d.root else path.resolve().parent
+    return MultiViewDataset(read_labels_h5(path), root=root, cameras=list(d.cameras) or None)
+
+
 def with_validation(
-    ckpt: dict[str, Any], net: torch.nn.Module, source: SampleSource | None
+    ckpt: dict[str, Any], net: torch.nn.Module, config: TrainConfig
 ) -> dict[str, Any]:
-    """The final checkpoint with the settings chosen on ``source`` (unchanged without it).
+    """The final checkpoint with the settings chosen on the validation labels.
 
     Args:
         ckpt: the checkpoint dict (:func:`freipose.nn.checkpoint.training_checkpoint`).
         net: the trained network.
-        source: the run's validation samples, or None.
+        config: the run's config (``[data] validation_labels``: unchanged without them).
 
     Returns:
         ``ckpt`` with ``config.model`` holding the chosen settings and ``validation`` the
         record of :func:`choose_settings`.
     """
+    source = validation_source(config)
     if source is None:
         return ckpt
     model = config_from_dict(ckpt["config"]).model

@@ -23,15 +23,25 @@ from freipose.nn.validation import FUSION_REJECTS, MAP_WINDOWS
 def trained(tmp_path_factory):
     """A tiny network trained on toy samples with 96 validation instants."""
     out = tmp_path_factory.mktemp("run")
+    val = write_toy_labels(tmp_path_factory.mktemp("val"), toy_samples(96, seed=11))
     cfg = config_from_dict(
         {
+            "data": {"validation_labels": str(val)},
             "model": {"preset": "tiny", "cube_size": 300.0},
             "schedule": {"steps": 40, "lr": 3e-3, "checkpoint_every": 40, "eval_every": 40},
         }
     )
-    val = toy_samples(96, seed=11)
-    path = train_pose(cfg, out, toy_samples(8), toy_skeleton(), val, progress=False)
+    path = train_pose(cfg, out, toy_samples(8), toy_skeleton(), progress=False)
     return path, out
+
+
+def test_eval_labels_alone_do_not_choose_settings(tmp_path):
+    """Labels that only monitor training (often the held-out test labels) never tune."""
+    cfg = config_from_dict({"model": {"preset": "tiny", "cube_size": 300.0},
+                            "schedule": {"steps": 2}})  # fmt: skip
+    path = train_pose(cfg, tmp_path, toy_samples(2), toy_skeleton(), toy_samples(4, seed=3),
+                      progress=False)  # fmt: skip
+    assert validation_record(path) == {}
 
 
 def test_final_checkpoint_records_the_settings_chosen_on_validation(trained):
