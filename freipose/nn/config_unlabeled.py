@@ -8,7 +8,8 @@ agree (``multiview``), P0 must agree with P1 (``p0p1``), a clip must move smooth
 must give the same 3D pose (``equivariance``), and distances between keypoints that the
 labels show to be nearly rigid stay in the labeled set's range (``bones``). ``teacher``
 pulls the network toward the pose of an exponential moving average of itself where that
-teacher's views agree closely (pseudo-labels).
+teacher's views agree closely (pseudo-labels). The teacher is not stored in the
+checkpoints: a resumed run restarts it from the network's weights.
 
 The voxel cube of an unlabeled frame is placed as for prediction: ``centers = "labels"``
 places it at the median centre of the training labels of the session (or of all labels),
@@ -41,7 +42,7 @@ class UnlabeledConfig:
             unlabeled instants as labeled ones, rounded up to whole clips, at least one).
         start: fraction of the steps before the unlabeled losses act (the labeled losses
             shape the network first).
-        robust_scale: scale of the robust penalty ``s^2 log(1 + (e / s)^2)``: errors much
+        robust_scale: scale of the robust penalty ``s log(1 + e / s)``: errors much
             larger than it (real fast movement, an occluded keypoint) count little.
         weight_multiview: each view's refined 2D point against the projection of the fused
             3D point (P1), weighted by the view's confidence, views that cannot see it left out.
