@@ -19,11 +19,12 @@ config and is scored on the held-out instants against the exact truth (median JP
 and P0 over the keypoints); the sanity references (the training labels' median pose at the
 held-out centre and at the training centre, :mod:`freipose.nn.references`) come with each
 budget. Modes: ``labels`` (labels only, ``--steps``), ``unlabeled`` (labels plus the
-``[unlabeled]`` losses on clips from outside the held-out blocks, ``--steps``) and
-``labels_time`` (labels only, as many steps as fit in the wall time of the ``unlabeled`` cell: the
-comparison at equal wall time). The cube centres of the unlabeled frames are the true
-centre plus Gaussian noise of ``--center-noise`` mm, written as ``freipose predict`` writes
-them (``extra/center``): a detector of that precision.
+``[unlabeled]`` losses on clips from outside the held-out blocks, ``--steps``),
+``labels_time`` (labels only, as many steps as fit in the wall time of the ``unlabeled``
+cell: the comparison at equal wall time) and, with ``--ablate``, ``unlabeled-TERM`` (the
+unlabeled cell without that term: its contribution). The cube centres of the unlabeled
+frames are the true centre plus Gaussian noise of ``--center-noise`` mm, written as
+``freipose predict`` writes them (``extra/center``): a detector of that precision.
 
 Each cell writes its own result file (``OUT/cells/*.json``); a cell whose file exists is
 skipped, so the script resumes where it stopped and a larger grid reuses a smaller one.
@@ -33,7 +34,8 @@ recorded with ``benchmarks/_results.py`` (only the cells that ran).
 Example (the 2-core CPU, one thread, the smallest useful grid; one command line)::
 
     OMP_NUM_THREADS=1 python benchmarks/label_efficiency.py --out bench/label_eff
-        --rigs mouse_fisheye --budgets 10,50,200 --seeds 1 --steps 300
+        --rigs mouse_fisheye --budgets 10,50,200 --seeds 1 --steps 600
+        --model grid_size=16 --model crop_size=64
 """
 
 from __future__ import annotations
@@ -60,6 +62,9 @@ RIGS: dict[str, list[str]] = {
     ],
 }  # fmt: skip
 MODES = ("labels", "unlabeled", "labels_time")
+TERMS = ("multiview", "p0p1", "temporal", "equivariance", "bones")
+# the contribution of each unlabeled term: the unlabeled cell without it (--ablate)
+ABLATIONS = tuple(f"unlabeled-{t}" for t in TERMS)
 UNLABELED_TABLE = {
     "clip_frames": 3,
     "share": 0.5,
@@ -138,8 +143,8 @@ def centers_file(unl: Path, pool: np.ndarray, noise: float) -> Path:
 
 
 def write_config(run: Path, labels: Path, steps: int, seed: int, a: argparse.Namespace,
-                 unl: tuple[Path, np.ndarray] | None) -> Path:  # fmt: skip
-    """The training config of one cell."""
+                 unl: tuple[Path, np.ndarray] | None, without: str = "") -> Path:  # fmt: skip
+    """The training config of one cell (``without``: that unlabeled term weighted 0)."""
     run.mkdir(parents=True, exist_ok=True)
     text = (
         f'[data]\nlabels = "{labels}"\n\n[model]\npreset = "{a.preset}"\n'
@@ -151,6 +156,8 @@ def write_config(run: Path, labels: Path, steps: int, seed: int, a: argparse.Nam
     if unl is not None:
         table = {"sessions": [str(unl[0])], "centers": "poses",
                  "poses": [str(centers_file(*unl, a.center_noise))], **UNLABELED_TABLE}  # fmt: skip
+        if without:
+            table[f"weight_{without}"] = 0.0
         import tomli_w
 
         text += "\n" + tomli_w.dumps({"unlabeled": table})
@@ -216,9 +223,16 @@ def run_cell(out: Path, rig: str, budget: int, seed: int, mode: str, a: argparse
         per_step = json.loads(plain.read_text())["train_s"] / a.steps
         steps = max(1, int(round(json.loads(other.read_text())["train_s"] / per_step)))
     run = out / "runs" / cell.stem
-    cfg = write_config(run, labels, steps, seed, a, (lab, pool) if mode == "unlabeled" else None)
+    unl = (lab, pool) if mode.startswith("unlabeled") else None
+    before = (run / "train.toml").read_text() if (run / "train.toml").exists() else None
+    cfg = write_config(run, labels, steps, seed, a, unl, mode.partition("-")[2])
+    if before is not None and before != cfg.read_text():
+        raise SystemExit(f"{run} was trained with other settings; use another --out")
     t0 = time.perf_counter()
-    model = train_from_config(cfg, run / "pose", progress=False, init=a.init)
+    model = run / "pose" / "model.pt"  # a finished run is reused, a stopped one resumed
+    if not model.exists():
+        resume = (run / "pose" / "checkpoint.pt").exists()
+        model = train_from_config(cfg, run / "pose", progress=False, init=a.init, resume=resume)
     wall = time.perf_counter() - t0
     res = {"rig": rig, "budget": budget, "seed": seed, "mode": mode, "steps": steps,
            "train_s": train_seconds(run / "pose"), "wall_s": round(wall, 1),
@@ -236,7 +250,7 @@ def table(out: Path) -> dict[str, Any]:
     for c in cells:
         groups.setdefault((c["rig"], c["budget"], c["mode"]), []).append(c)
     figures: dict[str, Any] = {}
-    print(f"{'rig':14s} {'labels':>6s} {'mode':12s} {'seeds':>5s} {'steps':>6s} "
+    print(f"{'rig':14s} {'labels':>6s} {'mode':22s} {'seeds':>5s} {'steps':>6s} "
           f"{'P1 median mm (min-max)':>24s} {'P0':>6s} {'median pose':>11s}")  # fmt: skip
     for (rig, budget, mode), cs in sorted(groups.items()):
         p1 = np.array([c["P1"] for c in cs])
@@ -249,7 +263,7 @@ def table(out: Path) -> dict[str, Any]:
             "train_s_median": float(np.median([c["train_s"] for c in cs])),
         }  # fmt: skip
         f = figures[f"{rig} {budget} {mode}"]
-        print(f"{rig:14s} {budget:6d} {mode:12s} {len(cs):5d} {f['steps']:6d} "
+        print(f"{rig:14s} {budget:6d} {mode:22s} {len(cs):5d} {f['steps']:6d} "
               f"{f['P1_median_mm']:8.2f} ({f['P1_min_mm']:.2f}-{f['P1_max_mm']:.2f})"
               f"{'':5s} {f['P0_median_mm']:6.2f} {ref:11.2f}")  # fmt: skip
     return figures
@@ -263,6 +277,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=3, help="training seeds (0..N-1)")
     p.add_argument("--modes", default=",".join(MODES), help=f"comma-separated of {list(MODES)}")
     p.add_argument("--steps", type=int, default=300, help="training steps (equal-steps cells)")
+    p.add_argument("--ablate", action="store_true",
+                   help="also each unlabeled cell without one of its terms")  # fmt: skip
     p.add_argument("--preset", default="tiny", help="model preset")
     p.add_argument("--init", default="scratch", help="model.init (base, scratch or a file)")
     p.add_argument("--model", action="append", default=[], metavar="KEY=VALUE",
@@ -283,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         raise SystemExit(f"unknown rigs {unknown}; choose from {list(RIGS)}")
     budgets = [int(b) for b in a.budgets.split(",")]
-    modes = [m for m in MODES if m in a.modes.split(",")]
+    modes = [m for m in MODES if m in a.modes.split(",")] + (list(ABLATIONS) if a.ablate else [])
     for rig in rigs:
         for budget in budgets:
             for seed in range(a.seeds):
