@@ -221,6 +221,9 @@ def teacher_loss(
     return _weighted_mean(e, mask.float())
 
 
+_REFINED = ("u_multiview", "u_p0p1")  # the terms that act through the refined points
+
+
 class UnlabeledTraining:
     """The unlabeled part of every training step.
 
@@ -230,6 +233,9 @@ class UnlabeledTraining:
         model: the architecture.
         bones: the labels' rigid pairs (:func:`rigid_pairs`).
         steps: the run's steps (``config.start`` is a fraction of them).
+        refine_from: the first step that trains the refinement head
+            (``schedule.refine_start``); before it ``multiview`` and ``p0p1``, which act
+            through the refined points, are weighted 0 (they are still logged).
     """
 
     def __init__(
@@ -239,9 +245,11 @@ class UnlabeledTraining:
         model: ModelConfig,
         bones: RigidPairs,
         steps: int,
+        refine_from: int = 0,
     ):
         self.clips, self.config, self.model, self.bones = clips, config, model, bones
         self.first_step = int(round(config.start * steps))
+        self.refine_from = int(refine_from)
         self.teacher: torch.nn.Module | None = None
 
     def active(self, step: int) -> bool:
@@ -271,7 +279,11 @@ class UnlabeledTraining:
         )
         parts["u_equivariance"] = sum(equivariance_loss(out[k], ub, mcfg, s) for k in ("P0", "P1"))
         parts["u_bones"] = sum(bone_loss(out[k], self.bones, mcfg, s) for k in ("P0", "P1"))
-        total = sum(getattr(cfg, "weight_" + k[2:]) * v for k, v in parts.items())
+        refined = step >= self.refine_from
+        total = sum(
+            getattr(cfg, "weight_" + k[2:]) * v * (refined or k not in _REFINED)
+            for k, v in parts.items()
+        )
         if cfg.weight_teacher > 0:
             target, mask = self._pseudo_labels(net, b, amp)
             parts["u_teacher"] = sum(
@@ -337,4 +349,6 @@ def unlabeled_training(
     clips = UnlabeledClips(
         sessions, unl, config.model, aug, sched.seed, unl.clips_per_step(sched.batch_size)
     )
-    return UnlabeledTraining(clips, unl, config.model, rigid_pairs(labels.points3d), sched.steps)
+    refine_from = int(round(sched.refine_start * sched.steps))
+    bones = rigid_pairs(labels.points3d)
+    return UnlabeledTraining(clips, unl, config.model, bones, sched.steps, refine_from)

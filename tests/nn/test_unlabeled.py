@@ -18,6 +18,7 @@ from freipose.nn.config_ranges import UNLABELED_RANGES
 from freipose.nn.config_unlabeled import UnlabeledConfig
 from freipose.nn.data import collate_prepared, prepare_sample
 from freipose.nn.geometry import project_affine
+from freipose.nn.model import build_model
 from freipose.nn.train import train_from_config
 from freipose.nn.unlabeled import UnlabeledDataError, clip_starts, open_unlabeled
 from freipose.nn.unlabeled_losses import (
@@ -193,3 +194,23 @@ def test_baseline_with_unlabeled_sessions_is_refused(tmp_path):
     path, _ = _unlabeled_setup(tmp_path)
     with pytest.raises(UnlabeledDataError, match="voxel network"):
         train_from_config(path, tmp_path / "run", progress=False, kind="baseline")
+
+
+def test_refined_terms_wait_for_the_refinement_head(tmp_path):
+    _, labels_path = _unlabeled_setup(tmp_path)
+    cfg = config_from_dict(
+        {**config_to_dict(_config(steps=10, refine_start=0.5)), "unlabeled": {"sessions": ["day2"]}}
+    )
+    ut = unlabeled_training(cfg, tmp_path, read_labels_h5(labels_path))
+    assert ut is not None and ut.refine_from == 5
+    net = build_model(cfg.model, 5)
+    torch.manual_seed(0)
+    for step, refined in ((4, False), (5, True)):
+        total, parts = ut.loss(net, step, torch.device("cpu"), False)
+        w = cfg.unlabeled
+        rest = sum(getattr(w, "weight_" + k[2:]) * v for k, v in parts.items()
+                   if k not in ("u_multiview", "u_p0p1"))  # fmt: skip
+        both = w.weight_multiview * parts["u_multiview"] + w.weight_p0p1 * parts["u_p0p1"]
+        expected = rest + (both if refined else 0.0)
+        assert float(total) == pytest.approx(expected, rel=1e-4)
+    ut.close()
