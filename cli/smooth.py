@@ -83,9 +83,10 @@ def smooth(
 
     Each keypoint's true position follows a constant-velocity model; the network's
     prediction is that position plus an error correlated over frames (an offset that
-    drifts with a correlation time of its own) plus a white error that grows as the
-    frame's confidence falls, with heavy (Student-t) tails: a prediction that deviates
-    counts less the more it deviates, and only gross outliers (spikes) are left out
+    drifts with a correlation time of its own) plus a white error, one scale per
+    keypoint (a confidence that falls with an unusual pose would damp it), with heavy
+    (Student-t) tails: a prediction that deviates counts less the more it deviates, and
+    only gross outliers (spikes) are left out
     (extra/rejected; a warning names the keypoints with more than 2 % of their predictions
     left out, far more than the model expects). The parameters are fitted per keypoint on
     the recording, and the process noise rises where a keypoint moves clearly faster than

@@ -6,7 +6,8 @@ density ``q`` in mm^2/s^3), and ``b`` is the network's correlated error, an
 Ornstein-Uhlenbeck offset of standard deviation ``offset_sd`` (mm) and correlation time
 ``offset_tau`` (s) (an AR(1) series with ``phi = exp(-dt / tau)`` from frame to frame). A
 frame's measurement is ``z = x + b + e`` with a white error ``e`` of variance
-``sigma0^2 * c^-beta`` (``c`` the frame's confidence) and Student-t tails of
+``sigma0^2 * c^-beta`` (``c`` the frame's confidence; the fit sets ``beta = 0``, see
+:func:`fit_params`) and Student-t tails of
 :data:`NU` degrees of freedom: a measurement whose standardised residual ``d2`` (summed
 over the three axes) is large counts with the weight ``(NU + 3) / (NU + d2)`` (its
 variance divided by it), so an improbable measurement pulls little without a hard
@@ -222,15 +223,15 @@ def rts(states: tuple[np.ndarray, ...], dt: np.ndarray, params: tuple[np.ndarray
 
 
 def _candidates(center: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """(5, 11, K): the centre and its two neighbours along each of the 5 coordinates."""
-    d = np.vstack([np.zeros(5), np.eye(5), -np.eye(5)])  # (11, 5)
+    """(4, 9, K): the centre and its two neighbours along each of the 4 coordinates."""
+    d = np.vstack([np.zeros(4), np.eye(4), -np.eye(4)])  # (9, 4)
     return center[:, None, :] + d.T[:, :, None] * step[:, None, :]
 
 
 def _as_params(pts: np.ndarray, h: float) -> tuple[np.ndarray, ...]:
-    """(5, G, K) search coordinates -> the five (G, K, 1) parameters."""
-    q, s, b, o, tau = pts
-    return (np.exp(q)[..., None], np.exp(s)[..., None], np.maximum(b, 0.0)[..., None],
+    """(4, G, K) search coordinates -> the five (G, K, 1) parameters (``beta = 0``)."""
+    q, s, o, tau = pts
+    return (np.exp(q)[..., None], np.exp(s)[..., None], np.zeros_like(q)[..., None],
             np.exp(o)[..., None], np.clip(np.exp(tau), h, MAX_TAU_S)[..., None])  # fmt: skip
 
 
@@ -241,16 +242,23 @@ def fit_params(
 ) -> tuple[SmootherParams, np.ndarray]:
     """Maximum-likelihood parameters per keypoint, by a compass search.
 
-    The search starts at ``q = 1e5 mm^2/s^3, sigma0 = 2 mm, beta = 1, offset_sd = 2 mm,
+    The search starts at ``q = 1e5 mm^2/s^3, sigma0 = 2 mm, offset_sd = 2 mm,
     offset_tau = 0.3 s``; every round evaluates the centre and its two neighbours along
-    each coordinate (log q, log sigma0, beta, log offset_sd, log offset_tau) and moves to
-    the best of them; where the centre is the best, the steps are halved. The likelihood
-    is the Student-t one of the on-line weighted filter (:func:`forward`), so gross
-    outliers hardly move the fit.
+    each coordinate (log q, log sigma0, log offset_sd, log offset_tau) and moves to the
+    best of them; where the centre is the best, the steps are halved. The likelihood is
+    the Student-t one of the on-line weighted filter (:func:`forward`), so gross outliers
+    hardly move the fit.
+
+    The white error has one scale per keypoint (``beta = 0``): a pose network's
+    confidence falls where a body part takes an unusual pose (a stimulated paw lifted
+    and oscillating), so a variance that grows as the confidence falls makes the
+    smoother damp exactly those movements; a frame whose prediction is far off counts
+    little through its Student-t weight instead.
 
     Args:
         z: (T, K, 3) measurements in mm, NaN where missing.
-        conf: (T, K) confidences in [0, 1], floored at :data:`MIN_CONFIDENCE`.
+        conf: (T, K) confidences in [0, 1], floored at :data:`MIN_CONFIDENCE` (they
+            enter only through ``beta``, 0 here).
         dt: (T,) seconds from the previous frame.
 
     Returns:
@@ -260,25 +268,19 @@ def fit_params(
     lo = max(0, (t_n - FIT_FRAMES) // 2)
     z, conf, dt = z[lo : lo + FIT_FRAMES], conf[lo : lo + FIT_FRAMES], dt[lo : lo + FIT_FRAMES]
     h = float(np.median(dt[1:])) if len(dt) > 1 else 1.0
-    # searched as sigma at the median confidence, so that sigma and beta hardly correlate
-    c = conf.copy()
-    ref = np.array([np.median(c[np.isfinite(z[:, j, 0]), j]) for j in range(k_n)])
-    c = c / ref
-    start = [np.log(1e5), np.log(2.0), 1.0, np.log(2.0), np.log(0.3)]
+    start = [np.log(1e5), np.log(2.0), np.log(2.0), np.log(0.3)]
     center = np.array(start)[:, None] * np.ones((1, k_n))
-    step = np.array([np.log(10.0), np.log(10) / 2, 0.5, np.log(10) / 2, np.log(10) / 2])
+    step = np.array([np.log(10.0), np.log(10) / 2, np.log(10) / 2, np.log(10) / 2])
     step = step[:, None] * np.ones((1, k_n))
     best_ll = np.full(k_n, -np.inf)
     k = np.arange(k_n)
     for _ in range(_ROUNDS):
         pts = _candidates(center, step)
-        ll = forward(z, c, dt, _as_params(pts, h), keep=False).loglik  # (11, K)
+        ll = forward(z, conf, dt, _as_params(pts, h), keep=False).loglik  # (9, K)
         ll = np.where(np.isfinite(ll), ll, -np.inf)
         i = ll.argmax(axis=0)
         step = np.where((i == 0)[None], step / 2, step)  # no better neighbour: finer steps
         center, best_ll = pts[:, i, k], ll[i, k]
-    best = center
-    p = _as_params(best[:, None, :], h)
-    sigma0 = p[1][0, :, 0] * ref ** (p[2][0, :, 0] / 2)
-    params = SmootherParams(p[0][0, :, 0], sigma0, p[2][0, :, 0], p[3][0, :, 0], p[4][0, :, 0])
+    p = [a[0, :, 0] for a in _as_params(center[:, None, :], h)]
+    params = SmootherParams(*p)
     return params, best_ll

@@ -60,10 +60,12 @@ def test_two_sigma_coverage(smoothed):
 def test_fitted_noise_model(smoothed):
     _, _, res = smoothed
     p = res.params
-    # the fitted Student-t error's standard deviation at confidence 0.6 against the true one
-    sd = p.sigma0 * 0.6 ** (-p.beta / 2) * np.sqrt(NU / (NU - 2))
-    np.testing.assert_allclose(sd, 2.0 / np.sqrt(0.6), rtol=0.3)
-    assert np.all(p.beta > 0.4)  # low confidence counts little
+    # one white scale per keypoint (the confidence does not scale it): the fitted Student-t
+    # error's standard deviation against the RMS of the true noise, 2 mm / sqrt(conf) with
+    # conf uniform in [0.2, 1]: sqrt(4 ln(5) / 0.8) mm
+    assert np.all(p.beta == 0)
+    sd = p.sigma0 * np.sqrt(NU / (NU - 2))
+    np.testing.assert_allclose(sd, np.sqrt(4 * np.log(5) / 0.8), rtol=0.3)
 
 
 def test_gap_filled_within_band(smoothed):
