@@ -63,6 +63,23 @@ def ray_distances(
         :func:`freipose.nn.layers.triangulate_with_prior`).
     """
     xy = pixels_to_normalized(uv.float(), K.float(), None if dist is None else dist.float())
+    return normalized_ray_distances(points, xy, R, t)
+
+
+def normalized_ray_distances(
+    points: torch.Tensor, xy: torch.Tensor, R: torch.Tensor, t: torch.Tensor
+) -> torch.Tensor:
+    """:func:`ray_distances` of observations already in undistorted normalized coordinates.
+
+    Args:
+        points: (B, P, 3) world mm.
+        xy: (B, C, P, 2) float32 from :func:`pixels_to_normalized`.
+        R: (B, C, 3, 3) camera rotations.
+        t: (B, C, 3) camera translations (mm).
+
+    Returns:
+        (B, C, P) distances in mm.
+    """
     cam = torch.einsum("bcij,bpj->bcpi", R.float(), points.float()) + t.float()[:, :, None]
     z = cam[..., 2]
     return (xy * z[..., None] - cam[..., :2]).norm(dim=-1)

@@ -19,6 +19,7 @@ from freipose.geometry.camera import CameraRig
 from freipose.geometry.triangulation import triangulate_robust
 from freipose.nn.config import ModelConfig
 from freipose.nn.data import collate_prepared, prepare_sample, to_device
+from freipose.nn.fast import inference_autocast
 from freipose.nn.model import BaselineNet, VoxelPoseNet
 from freipose.nn.types import Batch, Prediction
 
@@ -98,8 +99,7 @@ def predict_prepared(model: nn.Module, batch: Batch, min_confidence: float = 0.1
     """
     device = next(model.parameters()).device
     b = to_device(batch, device)
-    use_amp = device.type == "cuda"
-    with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=use_amp):
+    with inference_autocast(model, device):
         out = model(b)
     mask = batch["view_mask"].numpy()
     aff = batch["affine"].numpy().astype(np.float64)

@@ -15,10 +15,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from freipose.geometry.torch_ops import _distortion
 from freipose.nn.geometry import (
+    normalized_ray_distances,
     pixels_to_normalized,
     project_affine,
-    ray_distances,
     voxel_offsets,
 )
 
@@ -41,10 +42,30 @@ def conv2d(cin: int, cout: int, k: int, norm: str, act: str = "relu") -> nn.Sequ
     return nn.Sequential(*layers)
 
 
+class Conv3d(nn.Conv3d):
+    """``nn.Conv3d`` whose 1x1x1 kernels run as one matrix product on channels-last volumes.
+
+    A 1x1x1 convolution of a channels-last (B, C, D, H, W) volume is ``linear`` on its
+    (B, D, H, W, C) view; the output is channels-last too. PyTorch's CPU convolution takes
+    its reference kernel for small batches of 1x1x1 kernels on one thread and copies
+    channels-last volumes in and out of it. Other kernels and layouts are ``nn.Conv3d``.
+    """
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The convolution of a (B, C, D, H, W) volume."""
+        pointwise = self.kernel_size == (1, 1, 1) and self.stride == (1, 1, 1)
+        if not (pointwise and self.groups == 1 and x.dim() == 5):
+            return super().forward(x)
+        if not x.is_contiguous(memory_format=torch.channels_last_3d) or x.is_contiguous():
+            return super().forward(x)
+        y = F.linear(x.permute(0, 2, 3, 4, 1), self.weight.flatten(1).to(x.dtype), self.bias)
+        return y.permute(0, 4, 1, 2, 3)
+
+
 def conv3d(cin: int, cout: int, k: int, norm: str, stride: int = 1) -> nn.Sequential:
     """3D conv (same padding) + norm + ReLU."""
     return nn.Sequential(
-        nn.Conv3d(cin, cout, k, stride=stride, padding=k // 2, bias=norm == "none"),
+        Conv3d(cin, cout, k, stride=stride, padding=k // 2, bias=norm == "none"),
         norm_layer(norm, cout, 3),
         nn.ReLU(inplace=True),
     )
@@ -146,6 +167,166 @@ def unproject(
     return total / count.clamp_min(1.0)[:, None, :], count
 
 
+def sampling_plan(
+    K: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    dist: torch.Tensor | None,
+    view_mask: torch.Tensor,
+    grid: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    crop_size: int,
+    feature_size: tuple[int, int],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where :func:`unproject` reads the feature maps for a voxel grid, as table rows and weights.
+
+    The bilinear sample of view v at voxel p (``grid_sample``, ``align_corners=False``,
+    border padding) is a weighted sum of four feature pixels; the mean over the views that
+    see p is then a weighted sum of ``4 V`` rows of the table of all views' feature pixels
+    (``(B*V*h*w, C)``, channels last), with the bilinear weights times ``valid / count``. The
+    plan depends only on the cameras and the grid, not on the features.
+
+    Args:
+        K: (B, V, 3, 3) affine crop intrinsics.
+        R: (B, V, 3, 3) camera rotations.
+        t: (B, V, 3) camera translations (mm).
+        dist: (B, V, 5) distortion coefficients (or None).
+        view_mask: (B, V) bool, real views.
+        grid: the voxel grid ``(center, axes, offsets)`` (:func:`lattice_pixels`).
+        crop_size: S, crop side in pixels.
+        feature_size: (h, w) of the feature maps.
+
+    Returns:
+        ``(rows, weights, count)``: (B*P, 4*V) int32 table rows, (B*P, 4*V) float32
+        weights and (B, P) number of views seeing each voxel (P = G**3).
+    """
+    B, V = view_mask.shape
+    h, w = feature_size
+    ix, iy, in_front = lattice_pixels(K, R, t, dist, grid, crop_size, (h, w))  # (B, P, V)
+    valid = in_front & ix.ge(-0.5) & ix.le(w - 0.5) & iy.ge(-0.5) & iy.le(h - 0.5)
+    valid &= view_mask[:, None, :]
+    count = valid.sum(-1, dtype=torch.float32)  # (B, P)
+    scale = valid / count.clamp_min(1.0)[..., None]  # (B, P, V)
+    # border padding; the left corner stays one pixel inside, so the four rows are
+    # r00 + (0, dx, dy*w, dy*w + dx)
+    dx, dy = int(w > 1), int(h > 1)
+    ix = ix.clamp_(0, w - 1)
+    iy = iy.clamp_(0, h - 1)
+    x0 = ix.floor().clamp_(max=w - 1 - dx)
+    y0 = iy.floor().clamp_(max=h - 1 - dy)
+    wx1 = ix.sub_(x0)
+    wy1 = iy.sub_(y0).mul_(scale)  # the rows of y1, valid / count included
+    wy = torch.stack([scale.sub_(wy1), wy1], dim=-1)  # (B, P, V, 2)
+    wx = torch.stack([1 - wx1, wx1], dim=-1)
+    weights = (wy[..., :, None] * wx[..., None, :]).reshape(B, -1, 4 * V)
+    first = torch.arange(B * V, device=K.device, dtype=torch.int32).reshape(B, 1, V) * (h * w)
+    r00 = y0.mul_(w).add_(x0).to(torch.int32).add_(first)  # (B, P, V)
+    corners = torch.tensor([0, dx, dy * w, dy * w + dx], dtype=torch.int32, device=K.device)
+    rows = (r00[..., None] + corners).reshape(B, -1, 4 * V)
+    return rows.reshape(-1, 4 * V), weights.reshape(-1, 4 * V), count
+
+
+def lattice_pixels(
+    K: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    dist: torch.Tensor | None,
+    grid: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    crop_size: int,
+    feature_size: tuple[int, int],
+    min_depth: float = 1e-3,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Feature-pixel coordinates of every voxel of a grid in every view (planar, fp32).
+
+    Voxel ``(i, j, k)`` (flat index ``i*G*G + j*G + k``) sits at ``center + axes @ (o[i],
+    o[j], o[k])``; its camera coordinates ``R (center + axes @ o) + t`` are a sum of one (G,)
+    term per grid axis, so each costs one broadcast sum. The projection is that of
+    :func:`freipose.geometry.torch_ops.project` (distortion included, skipped when every
+    coefficient is zero), followed by ``grid_sample``'s unnormalisation ``(u + 0.5) * w / S
+    - 0.5``.
+
+    Args:
+        K: (B, V, 3, 3) affine crop intrinsics.
+        R: (B, V, 3, 3) camera rotations.
+        t: (B, V, 3) camera translations (mm).
+        dist: (B, V, 5) distortion coefficients (or None).
+        grid: ``(center, axes, offsets)``: (B, 3) cube centres (world mm), (B, 3, 3) world
+            directions of the grid's index axes (columns) and (G,) voxel offsets along an
+            axis in mm (:func:`freipose.nn.geometry.voxel_axis`).
+        crop_size: S.
+        feature_size: (h, w).
+        min_depth: depths below this (mm) count as behind the camera.
+
+    Returns:
+        ``(ix, iy, in_front)``: (B, G**3, V) feature-pixel x and y and the mask of voxels in
+        front of the camera.
+    """
+    center, axes, offsets = (v.float() for v in grid)
+    B, V = K.shape[:2]
+    G = offsets.shape[0]
+    h, w = feature_size
+    K, R, t = K.float(), R.float(), t.float()
+    M = R @ axes[:, None]  # (B, V, 3, 3): camera coordinates per unit step along each axis
+    base = (R @ center[:, None, :, None])[..., 0] + t  # (B, V, 3)
+    # camera coordinate c of voxel (i, j, k): base_c + o_i M[c, 0] + o_j M[c, 1] + o_k M[c, 2],
+    # built as (B, 3, G, G, G, V): the views last, as the gather's bags want them
+    steps = (M[..., None] * offsets).permute(0, 2, 3, 4, 1)  # (B, 3, 3, G, V)
+    first_two = steps[:, :, 0, :, None] + (steps[:, :, 1, None] + base.mT[:, :, None, None])
+    cam = (first_two[:, :, :, :, None] + steps[:, :, 2, None, None]).reshape(B, 3, G**3, V)
+    x, y, z = cam.unbind(1)
+    in_front = z > min_depth
+    inv = torch.where(in_front, z, torch.full_like(z, min_depth)).reciprocal_()
+    x = x.mul_(inv)
+    y = y.mul_(inv)
+    if dist is not None and bool(dist.any()):
+        x, y, _ = _distortion(x, y, dist.float()[:, None].unbind(-1), distorted=True)
+    # (u + 0.5) * w / S - 0.5 with u = K[0,0] x + K[0,1] y + K[0,2]
+    sx, sy = w / crop_size, h / crop_size
+    ku = (K[:, :, 0, :] * sx)[:, None]  # (B, 1, V, 3)
+    kv = (K[:, :, 1, :] * sy)[:, None]
+    ix = (x * ku[..., 0]).addcmul_(y, ku[..., 1]).add_(ku[..., 2] + 0.5 * sx - 0.5)
+    iy = (x * kv[..., 0]).addcmul_(y, kv[..., 1]).add_(kv[..., 2] + 0.5 * sy - 0.5)
+    return ix, iy, in_front
+
+
+def unproject_gather(
+    features: torch.Tensor,
+    K: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    dist: torch.Tensor | None,
+    view_mask: torch.Tensor,
+    grid: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    crop_size: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`unproject` at the voxels of a grid, as one weighted gather of feature rows.
+
+    The same mean of bilinear samples (fp32 rounding apart, the same volume), computed by
+    one ``embedding_bag`` over the channels-last table of feature pixels
+    (:func:`sampling_plan`) instead of ``grid_sample``, a (B, V, C, P) intermediate and a
+    loop over the views. Differentiable in ``features``.
+
+    Args:
+        features: (B, V, C, h, w) per-view feature maps (any memory layout; channels last
+            avoids a copy).
+        K: (B, V, 3, 3) affine crop intrinsics.
+        R: (B, V, 3, 3) camera rotations.
+        t: (B, V, 3) camera translations (mm).
+        dist: (B, V, 5) distortion coefficients (or None).
+        view_mask: (B, V) bool, real views.
+        grid: the voxel grid ``(center, axes, offsets)`` (:func:`lattice_pixels`).
+        crop_size: S, crop side in pixels.
+
+    Returns:
+        ``(volume, count)``: (B, C, P) mean features (a view of a channels-last (B, P, C)
+        tensor) and (B, P) number of views seeing each voxel.
+    """
+    B, V, C, h, w = features.shape
+    rows, weights, count = sampling_plan(K, R, t, dist, view_mask, grid, crop_size, (h, w))
+    table = features.permute(0, 1, 3, 4, 2).reshape(B * V * h * w, C)
+    out = F.embedding_bag(rows, table, mode="sum", per_sample_weights=weights.to(table.dtype))
+    return out.reshape(B, -1, C).transpose(1, 2), count
+
+
 class UNet3D(nn.Module):
     """Encoder-decoder 3D CNN on the fused feature volume, one score volume per keypoint.
 
@@ -173,7 +354,7 @@ class UNet3D(nn.Module):
             ups.append(nn.ConvTranspose3d(c_prev, c, 4, stride=2, padding=1))
             skips.append(conv3d(channels[lvl], c, 1, norm))
             fuses.append(conv3d(2 * c, c, 3, norm))
-            heads.append(nn.Conv3d(c, out, 1, bias=False))  # softmax ignores a bias
+            heads.append(Conv3d(c, out, 1, bias=False))  # softmax ignores a bias
             c_prev = c
         self.ups, self.skips, self.fuses = (
             nn.ModuleList(ups),
@@ -181,11 +362,11 @@ class UNet3D(nn.Module):
             nn.ModuleList(fuses),
         )
         self.heads = nn.ModuleList(heads)
-        self.bottleneck_head = nn.Conv3d(channels[-1], out, 1, bias=False)
+        self.bottleneck_head = Conv3d(channels[-1], out, 1, bias=False)
         c0 = channels[0]
         self.final_up = nn.ConvTranspose3d(c_prev, c0, 4, stride=2, padding=1)
-        self.final_in = nn.Conv3d(cin, c0, 1)
-        self.final = nn.Conv3d(c0, out, 1, bias=False)
+        self.final_in = Conv3d(cin, c0, 1)
+        self.final = Conv3d(c0, out, 1, bias=False)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Score volumes of a (B, C, G, G, G) feature volume (see the class docstring)."""
@@ -500,6 +681,30 @@ def triangulate_with_prior(
         (B, K, 3) world mm.
     """
     xy = pixels_to_normalized(uv.float(), K.float(), None if dist is None else dist.float())
+    return triangulate_normalized(xy, weights, R, t, prior, prior_weight)
+
+
+def triangulate_normalized(
+    xy: torch.Tensor,
+    weights: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    prior: torch.Tensor,
+    prior_weight: float | torch.Tensor = 1e-3,
+) -> torch.Tensor:
+    """:func:`triangulate_with_prior` of undistorted normalized coordinates.
+
+    Args:
+        xy: (B, V, K, 2) float32 from :func:`freipose.nn.geometry.pixels_to_normalized`.
+        weights: (B, V, K) non-negative confidences (0 for padding views).
+        R: (B, V, 3, 3) camera rotations.
+        t: (B, V, 3) camera translations (mm).
+        prior: (B, K, 3) world mm.
+        prior_weight: scalar or (B, K) weight of the prior.
+
+    Returns:
+        (B, K, 3) world mm.
+    """
     x, y = xy[..., 0], xy[..., 1]  # (B, V, K)
     Rt = torch.cat([R, t[..., None]], dim=-1).float()  # (B, V, 3, 4)
     r1 = x[..., None] * Rt[:, :, None, 2] - Rt[:, :, None, 0]  # (B, V, K, 4)
@@ -550,9 +755,9 @@ def refuse_outlier_views(
         (B, K, 3) world mm.
     """
     Kc, R, t, dist = cameras
+    # the views' rays do not change between the rounds: undistort once
+    xy = pixels_to_normalized(uv.float(), Kc.float(), None if dist is None else dist.float())
     for _ in range(rounds):
-        kept = conf * (ray_distances(P1, uv, Kc, R, t, dist) <= max_distance)
-        P1 = triangulate_with_prior(
-            uv, kept, Kc, R, t, dist, prior, prior_scale * kept.sum(1) + 1e-3
-        )
+        kept = conf * (normalized_ray_distances(P1, xy, R, t) <= max_distance)
+        P1 = triangulate_normalized(xy, kept, R, t, prior, prior_scale * kept.sum(1) + 1e-3)
     return P1

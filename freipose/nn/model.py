@@ -35,7 +35,7 @@ from torch import nn
 from freipose.errors import InputFileError
 from freipose.io.checkpoints import POSE_NETWORK, UNSAFE, kind_error, kind_of, load_safely
 from freipose.nn.config import ModelConfig
-from freipose.nn.geometry import project_affine, voxel_offsets
+from freipose.nn.geometry import project_affine, voxel_axis, voxel_offsets
 from freipose.nn.layers import (
     Encoder2D,
     FeatureDecoder,
@@ -48,6 +48,7 @@ from freipose.nn.layers import (
     softargmax3d,
     triangulate_with_prior,
     unproject,
+    unproject_gather,
     volume_confidence,
 )
 
@@ -79,6 +80,12 @@ def _encoder(cfg: ModelConfig) -> Encoder2D:
     )
 
 
+def _view_crops(images: torch.Tensor, channels_last: bool) -> torch.Tensor:
+    """(B, V, 3, S, S) crops as one (B*V, 3, S, S) batch, channels last when asked."""
+    x = images.reshape(images.shape[0] * images.shape[1], *images.shape[2:])
+    return x.contiguous(memory_format=torch.channels_last) if channels_last else x
+
+
 class VoxelPoseNet(nn.Module):
     """The multi-view voxel network (see the module docstring).
 
@@ -96,6 +103,9 @@ class VoxelPoseNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.num_keypoints = num_keypoints
+        # the optimized layout (freipose.nn.fast): channels-last crops and volumes, the
+        # unprojection as one gather; the same poses within fp32 rounding
+        self.fast = False
         self.encoder = _encoder(cfg)
         self.unet = UNet3D(
             cfg.feature_channels, cfg.unet_channels, num_keypoints, cfg.norm, cfg.deep_supervision
@@ -131,7 +141,7 @@ class VoxelPoseNet(nn.Module):
         """Poses P0 and P1 of a collated batch (:class:`freipose.nn.types.NetworkOutput`)."""
         images = batch["images"]
         B, V = images.shape[:2]
-        feats, skip = self.encoder(images.reshape(B * V, *images.shape[2:]))
+        feats, skip = self.encoder(_view_crops(images, self.fast))
         out = self._initial_pose(batch, feats, skip)
         if self.refine is None or self.prior_log_weight is None:
             uv0, _ = project_affine(
@@ -166,22 +176,19 @@ class VoxelPoseNet(nn.Module):
         B, V = batch["images"].shape[:2]
         center = batch["center"]
         G = cfg.grid_size
-        offs = voxel_offsets(G, cfg.cube_size, device=center.device)[None]  # (1, G^3, 3)
         rot = batch.get("grid_rotation")
-        if rot is not None:
-            offs = offs @ rot.float().transpose(1, 2)  # (B, G^3, 3) world offsets
-        points = center[:, None, :] + offs
         vfeats = feats if self.lift is None else self.lift(feats, skip)
-        vol, _ = unproject(
-            vfeats.float().reshape(B, V, *vfeats.shape[1:]),
-            batch["K"],
-            batch["R"],
-            batch["t"],
-            batch["dist"],
-            batch["view_mask"],
-            points,
-            cfg.crop_size,
-        )
+        cams = (batch["K"], batch["R"], batch["t"], batch["dist"], batch["view_mask"])
+        vfeats5 = vfeats.float().reshape(B, V, *vfeats.shape[1:])
+        if self.fast:
+            axes = torch.eye(3, device=center.device).expand(B, 3, 3) if rot is None else rot
+            grid = (center, axes, voxel_axis(G, cfg.cube_size, device=center.device))
+            vol, _ = unproject_gather(vfeats5, *cams, grid, cfg.crop_size)
+        else:
+            offs = voxel_offsets(G, cfg.cube_size, device=center.device)[None]  # (1, G^3, 3)
+            if rot is not None:
+                offs = offs @ rot.float().transpose(1, 2)  # (B, G^3, 3) world offsets
+            vol, _ = unproject(vfeats5, *cams, center[:, None, :] + offs, cfg.crop_size)
         vol = vol.reshape(B, -1, G, G, G).to(vfeats.dtype)
         scores = self.unet(vol)
         decoded = [softargmax3d(s, center, cfg.cube_size, rot) for s in scores]
@@ -272,6 +279,7 @@ class BaselineNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.num_keypoints = num_keypoints
+        self.fast = False  # channels-last crops (freipose.nn.fast)
         self.encoder = _encoder(cfg)
         self.head = Head2D(
             cfg.feature_channels,
@@ -287,7 +295,7 @@ class BaselineNet(nn.Module):
         """Per-view 2D keypoints of a collated batch (see the class docstring)."""
         images = batch["images"]
         B, V = images.shape[:2]
-        feats, skip = self.encoder(images.reshape(B * V, *images.shape[2:]))
+        feats, skip = self.encoder(_view_crops(images, self.fast))
         maps, conf_logits = self.head(feats, skip)
         window = 0 if self.training else self.cfg.map_window
         uv, conf = decode_head(maps, conf_logits, self.cfg.map_stride, window)

@@ -1,0 +1,104 @@
+"""Inference and training backends of the pose networks: the reference and the optimized path.
+
+``eager`` runs the networks as written (:mod:`freipose.nn.model`, contiguous NCHW tensors,
+``grid_sample`` unprojection): the reference. ``optimized`` runs the same weights with
+
+* channels-last memory layout of every 2D map (``torch.channels_last``) and of the voxel
+  volumes (``torch.channels_last_3d``), the layout oneDNN's convolutions work in, so that no
+  convolution reorders its input or output;
+* the unprojection as one weighted gather of feature rows
+  (:func:`freipose.nn.layers.unproject_gather`): its sampling plan is computed once per batch
+  from the cameras and the grid (each voxel's camera coordinates a sum of one term per grid
+  axis) and the mean over the views is a single ``embedding_bag``, which writes the volume
+  directly in the channels-last layout of the 3D U-Net;
+
+and gives the same poses within fp32 rounding (``tests/nn/test_fast.py``). ``bf16`` is
+``optimized`` under bfloat16 autocast (convolutions in bfloat16: AMX / AVX-512-BF16 on CPUs
+that have them, tensor cores on GPUs; the geometry, soft-argmax and triangulation stay fp32),
+the path the GPU runs; its poses differ from fp32 by a bound stated in docs/explanation/
+backends.md and checked by the tests. ``auto`` is ``optimized``.
+
+:func:`optimize` applies a backend to a network in place (its weights keep their values and
+their state-dict names); :func:`inference_autocast` is the autocast context of a backend on a
+device.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import torch
+from torch import nn
+
+BACKENDS = ("auto", "eager", "optimized", "bf16")
+
+
+def resolve_backend(backend: str) -> str:
+    """The backend a name stands for (``auto`` -> ``optimized``).
+
+    Args:
+        backend: one of :data:`BACKENDS`.
+
+    Returns:
+        ``eager``, ``optimized`` or ``bf16``.
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    return "optimized" if backend == "auto" else backend
+
+
+def _to_layout(module: nn.Module, channels_last: bool) -> None:
+    """Convolution weights of ``module`` in channels-last (True) or contiguous layout."""
+    for m in module.modules():
+        if isinstance(m, nn.Conv2d | nn.ConvTranspose2d):
+            fmt = torch.channels_last if channels_last else torch.contiguous_format
+        elif isinstance(m, nn.Conv3d | nn.ConvTranspose3d):
+            fmt = torch.channels_last_3d if channels_last else torch.contiguous_format
+        else:
+            continue
+        with torch.no_grad():
+            m.weight.data = m.weight.data.contiguous(memory_format=fmt)
+
+
+def optimize(model: nn.Module, backend: str = "auto") -> nn.Module:
+    """Put a pose network on a backend, in place (see the module docstring).
+
+    Args:
+        model: a :class:`~freipose.nn.model.VoxelPoseNet` or
+            :class:`~freipose.nn.model.BaselineNet`.
+        backend: one of :data:`BACKENDS`.
+
+    Returns:
+        ``model`` itself, its ``backend`` attribute set (weights unchanged in value).
+    """
+    name = resolve_backend(backend)
+    fast = name != "eager"
+    _to_layout(model, fast)
+    model.fast = fast
+    model.backend = name
+    return model
+
+
+def backend_of(model: nn.Module) -> str:
+    """The backend a network runs on (``eager`` unless :func:`optimize` set another)."""
+    return str(getattr(getattr(model, "module", model), "backend", "eager"))
+
+
+@contextlib.contextmanager
+def inference_autocast(model: nn.Module, device: torch.device) -> Iterator[None]:
+    """The autocast of a network's backend: bfloat16 for ``bf16`` and on CUDA, else none.
+
+    Args:
+        model: a network (possibly wrapped, with ``module``).
+        device: where it runs.
+
+    Yields:
+        Nothing; inside the context the network runs in its precision.
+    """
+    amp = device.type == "cuda" or backend_of(model) == "bf16"
+    with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp):
+        yield
