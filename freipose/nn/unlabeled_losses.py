@@ -28,6 +28,7 @@ weighted terms to the labeled loss.
 from __future__ import annotations
 
 import copy
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -333,7 +334,8 @@ def unlabeled_training(
         cameras: ``[data] cameras`` (None: every calibrated camera).
 
     Raises:
-        UnlabeledDataError: unusable sessions or centres (see :func:`open_unlabeled`).
+        UnlabeledDataError: unusable sessions or centres (see :func:`open_unlabeled`), the
+            baseline, or several processes (torchrun).
     """
     unl = config.unlabeled
     if not unl.enabled:
@@ -342,6 +344,13 @@ def unlabeled_training(
         raise UnlabeledDataError(
             "the [unlabeled] losses train the voxel network (P0, P1 and the fused views); "
             "remove [unlabeled] sessions to train the baseline"
+        )
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        # DistributedDataParallel reduces each parameter's gradient once per backward; the
+        # unlabeled clips add a second forward pass before it
+        raise UnlabeledDataError(
+            "[unlabeled] training runs in one process; start it without torchrun (or remove "
+            "[unlabeled] sessions to train on several GPUs)"
         )
     sessions = open_unlabeled(unl, base, labels, cameras)
     aug = config.augment if config.augment.enabled else None

@@ -212,5 +212,13 @@ def test_refined_terms_wait_for_the_refinement_head(tmp_path):
                    if k not in ("u_multiview", "u_p0p1"))  # fmt: skip
         both = w.weight_multiview * parts["u_multiview"] + w.weight_p0p1 * parts["u_p0p1"]
         expected = rest + (both if refined else 0.0)
-        assert float(total) == pytest.approx(expected, rel=1e-4)
+        assert float(total.detach()) == pytest.approx(float(expected), rel=1e-4)
     ut.close()
+
+
+def test_several_processes_are_refused_before_any_work(tmp_path, monkeypatch):
+    path, _ = _unlabeled_setup(tmp_path)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(UnlabeledDataError, match="one process"):
+        train_from_config(path, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
