@@ -17,6 +17,9 @@ against the smoother with one process noise per keypoint, ``fixed q``, for compa
   used; the labeled instants themselves are left out of the coverage);
 * ``--gap N`` (default 10): the predictions of N frames in the middle are removed (a
   camera dropout) before smoothing; the error and coverage in the gap;
+* the bound of any smoother: the velocity error (and its ratio to raw) of the truth plus
+  the network's error with everything above 4, 6 and 8 Hz removed, i.e. of a smoother that
+  removed the network's error above that frequency and kept every movement;
 * the stimulated paw's 5 Hz amplitude during the stimulation (truth, raw, smoothed);
 * ``--bones``: the median over bones of the bone-length standard deviation (truth, raw,
   smoothed, smoothed with ``--bones``) and the JPE with ``--bones``;
@@ -172,6 +175,29 @@ def _analysis(demo: Path, held_out) -> dict[str, dict]:
     return {label: {k: r[k] for k in keys} for label, r in [("raw", raw), *rows]}
 
 
+def _lowpass(x: np.ndarray, fps: float, hz: float) -> np.ndarray:
+    """(T, ...) ``x`` without its components above ``hz`` (FFT along time, mean kept)."""
+    mean = x.mean(axis=0)
+    spec = np.fft.rfft(x - mean, axis=0)
+    spec[np.fft.rfftfreq(len(x), 1 / fps) > hz] = 0
+    return np.fft.irfft(spec, n=len(x), axis=0) + mean
+
+
+def _bound(raw: PoseData, truth: np.ndarray, vr: float) -> dict[str, float]:
+    """Print the velocity error of the truth plus the network's error low-passed at 4, 6, 8 Hz."""
+    vt = np.diff(truth, axis=0) * raw.fps
+    err = np.nan_to_num(raw.poses.astype(np.float64) - truth)
+    out = {}
+    for hz in (4.0, 6.0, 8.0):
+        est = truth + _lowpass(err, raw.fps, hz)
+        v = float(np.median(np.linalg.norm(np.diff(est, axis=0) * raw.fps - vt, axis=-1)))
+        out[f"{hz:g} Hz"] = v
+    print("bound: the truth plus the network's error without its part above 4 / 6 / 8 Hz: "
+          "velocity error " + " / ".join(f"{v:.1f}" for v in out.values()) + " mm/s ("
+          + " / ".join(f"{v / vr:.2f}" for v in out.values()) + " x raw)")  # fmt: skip
+    return out
+
+
 def _targets(figures: dict, cover: float) -> dict[str, bool]:
     """Print and return the smoother's targets: met or not (issue figures, raw vs smoothed)."""
     raw, sm = figures["errors"]["raw"], figures["errors"]["smoothed"]
@@ -233,6 +259,9 @@ def main() -> None:
     figures: dict[str, object] = {
         "errors": _errors(raw, truth, {"smoothed": sm.poses, "smoothed, fixed q": fixed.poses})
     }
+    figures["velocity error bound mm/s"] = _bound(
+        raw, truth, figures["errors"]["raw"]["velocity_error_mm_s"]
+    )
     own = smooth_poses(raw)
     err = np.abs(sm.poses - truth)
     lab_frames = set(int(f) for f in read_labels_h5(labels).frame_index)
