@@ -55,6 +55,16 @@ from freipose.errors import FreiPoseError
 )
 @inference_options
 @click.option(
+    "--backend",
+    type=click.Choice(["auto", "optimized", "eager", "bf16"]),
+    default="auto",
+    show_default=True,
+    help="How the network runs: optimized (auto; channels-last layout and a gathered "
+    "unprojection, the eager poses within fp32 rounding), eager (the reference) or bf16 "
+    "(optimized in bfloat16; poses within about 1 mm of fp32, see docs/explanation/"
+    "backends.md).",
+)
+@click.option(
     "--shard",
     help="I/N: process only the I-th (0-based) of N contiguous parts of the frames; join the "
     "parts with `freipose merge`.",
@@ -91,6 +101,7 @@ def predict(
     refine: bool,
     fusion_reject: float | None,
     map_window: int | None,
+    backend: str,
     shard: str | None,
     skeleton: str | None,
     smooth: bool,
@@ -163,6 +174,7 @@ def predict(
             device=device,
             refine=refine,
             overrides=overrides,
+            backend=backend,
             shard=shard_t,
             overwrite=overwrite,
             expected_skeleton=expected,

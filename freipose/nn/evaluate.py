@@ -29,6 +29,7 @@ from freipose.nn.config import InferenceOverrides, TrainConfig
 from freipose.nn.data import collate_prepared, prepare_sample
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.failure_modes import NOT_LABELED
+from freipose.nn.fast import optimize
 from freipose.nn.inference import predict_prepared
 from freipose.nn.types import SampleSource
 from freipose.progress import progress_bar
@@ -194,6 +195,7 @@ def evaluate_checkpoints(
     skel = Skeleton(name="labels", keypoints=tuple(lab.keypoints))
     for name, path in checkpoints.items():
         model, config, skeleton = load_checkpoint(path, device, overrides=overrides)
+        optimize(model, "optimized")  # the eager poses within fp32 rounding (nn.fast)
         if tuple(skeleton.keypoints) != tuple(lab.keypoints):
             raise EvaluationError(
                 f"{path}: the network predicts keypoints {list(skeleton.keypoints)} but "

@@ -102,3 +102,59 @@ def inference_autocast(model: nn.Module, device: torch.device) -> Iterator[None]
     amp = device.type == "cuda" or backend_of(model) == "bf16"
     with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp):
         yield
+
+
+def forward_flops(model: nn.Module, batch: object) -> int:
+    """Floating-point operations of one forward pass (``torch.utils.flop_counter``).
+
+    Counts the matrix products and convolutions (two per multiply-add), as
+    ``FlopCounterMode`` does; elementwise work is not counted.
+
+    Args:
+        model: a network (on its backend).
+        batch: its input (a collated batch).
+
+    Returns:
+        The count for the whole batch.
+    """
+    from torch.utils.flop_counter import FlopCounterMode
+
+    device = next(model.parameters()).device
+    with (
+        torch.inference_mode(),
+        inference_autocast(model, device),
+        FlopCounterMode(display=False) as counter,
+    ):
+        model(batch)
+    return int(counter.get_total_flops())
+
+
+def matmul_roofline(n: int = 2048, repeats: int = 3, device: str = "cpu") -> float:
+    """GFLOP/s of a fp32 ``n x n`` matrix product on the current threads (best of ``repeats``).
+
+    The reference for the networks' achieved GFLOP/s: what the same cores reach on the most
+    favourable dense kernel.
+
+    Args:
+        n: matrix side.
+        repeats: timed products after one warm-up.
+        device: where to multiply.
+
+    Returns:
+        GFLOP/s.
+    """
+    import time
+
+    a = torch.randn(n, n, device=device)
+    b = torch.randn(n, n, device=device)
+    a @ b
+    best = float("inf")
+    for _ in range(max(1, repeats)):
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        t = time.perf_counter()
+        a @ b
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        best = min(best, time.perf_counter() - t)
+    return 2 * n**3 / best / 1e9

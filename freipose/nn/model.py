@@ -103,7 +103,7 @@ class VoxelPoseNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.num_keypoints = num_keypoints
-        # the optimized layout (freipose.nn.fast): channels-last crops and volumes, the
+        # the optimized backend (freipose.nn.fast): channels-last crops and volumes, the
         # unprojection as one gather; the same poses within fp32 rounding
         self.fast = False
         self.encoder = _encoder(cfg)
@@ -180,7 +180,9 @@ class VoxelPoseNet(nn.Module):
         vfeats = feats if self.lift is None else self.lift(feats, skip)
         cams = (batch["K"], batch["R"], batch["t"], batch["dist"], batch["view_mask"])
         vfeats5 = vfeats.float().reshape(B, V, *vfeats.shape[1:])
-        if self.fast:
+        # the gather's backward (a sort of its plan) costs more than grid_sample's: with a
+        # gradient to the features the optimized backend unprojects as the eager one does
+        if self.fast and not (vfeats5.requires_grad and torch.is_grad_enabled()):
             axes = torch.eye(3, device=center.device).expand(B, 3, 3) if rot is None else rot
             grid = (center, axes, voxel_axis(G, cfg.cube_size, device=center.device))
             vol, _ = unproject_gather(vfeats5, *cams, grid, cfg.crop_size)

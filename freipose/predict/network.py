@@ -3,8 +3,9 @@
 Per time step, the box source (trained detector, background subtraction or fixed boxes)
 proposes boxes in every view; :func:`freipose.detect.detect_multiview_batch` turns them
 into a consistent 3D centre; the voxel network (:func:`freipose.nn.inference.predict_batch`,
-inference mode, bfloat16 autocast on CUDA) predicts the pose in a cube around it. A time
-step without a centre gives NaN poses with confidence 0.
+inference mode, on the backend of :mod:`freipose.nn.fast`, bfloat16 autocast on CUDA)
+predicts the pose in a cube around it. A time step without a centre gives NaN poses with
+confidence 0.
 """
 
 from __future__ import annotations
@@ -325,6 +326,7 @@ def predict_sessions(
     device: str = "auto",
     refine: bool = True,
     overrides: InferenceOverrides | None = None,
+    backend: str = "auto",
     shard: tuple[int, int] | None = None,
     chunk_frames: int = CHUNK_FRAMES,
     overwrite: bool = False,
@@ -350,6 +352,9 @@ def predict_sessions(
         refine: report P1 (default) or P0.
         overrides: inference-only ``[model]`` settings instead of the checkpoint's (None:
             its own); the values that shape the reported pose are in the provenance.
+        backend: how the network runs (:mod:`freipose.nn.fast`): ``auto``/``optimized``
+            (the eager poses within fp32 rounding), ``eager`` (the reference) or ``bf16``;
+            stored in the provenance.
         shard: ``(i, n)``: predict shard i of n.
         chunk_frames: rows per committed chunk; shard boundaries fall on whole chunks.
         overwrite: redo complete outputs.
@@ -363,11 +368,17 @@ def predict_sessions(
     """
     from freipose.nn.checkpoint import validation_record
     from freipose.nn.config import inference_settings
+    from freipose.nn.fast import optimize, resolve_backend
 
+    try:
+        backend = resolve_backend(backend)
+    except ValueError as exc:
+        raise PredictError(f"--{exc}") from exc
     dev = resolve_device(device)
     bounds = {s.name: frame_range(frames, s.num_frames) for s in sessions}
     ranges = {name: (r.start, r.stop) for name, r in bounds.items()}
     net, config, skel, sha = load_model(model_path, dev, overrides)
+    optimize(net, backend)
     check_keypoints(skel, expected_skeleton, model_path)
     if spec.method == "auto" and spec.labels is None and config.data.labels:
         spec = dataclasses.replace(spec, labels=Path(config.data.labels))  # the training labels
@@ -381,6 +392,7 @@ def predict_sessions(
         "model_sha256": sha,
         "model_file": Path(model_path).name,
         "refine": refine,
+        "backend": backend,
         **spec.describe(),
         **inference_settings(config.model, refine),
     }
