@@ -134,3 +134,17 @@ def test_bf16_poses_within_stated_bound(rendered) -> None:
     d = np.linalg.norm(got["P1"] - ref["P1"], axis=-1)
     assert np.median(d) < BF16_MEDIAN_MM, f"median {np.median(d):.3f} mm"
     assert np.percentile(d, 90) < BF16_P90_MM, f"90th percentile {np.percentile(d, 90):.3f} mm"
+
+
+@pytest.mark.gpu
+def test_cuda_optimized_poses_within_bf16_bound(rendered) -> None:
+    """The GPU path (bf16 autocast, channels-last, gather) against fp32 eager on the CPU."""
+    from freipose.nn.checkpoint import load_checkpoint
+    from freipose.nn.evaluate import predict_dataset
+
+    ref = _predict("eager", rendered)
+    model, _, _ = load_checkpoint(BASE, "cuda")
+    got = predict_dataset(optimize(model, "optimized"), rendered, batch_size=4)
+    d = np.linalg.norm(got["P1"] - ref["P1"], axis=-1)
+    assert np.median(d) < BF16_MEDIAN_MM, f"median {np.median(d):.3f} mm"
+    assert np.percentile(d, 90) < BF16_P90_MM, f"90th percentile {np.percentile(d, 90):.3f} mm"
