@@ -173,8 +173,8 @@ def write_result(
     now = dt.datetime.now(dt.timezone.utc)
     mach, git = machine(), git_state()
     argv = list(sys.argv if command is None else command)
-    if argv and Path(argv[0]).is_absolute():
-        path0 = Path(argv[0])
+    if argv and (Path(argv[0]).is_absolute() or Path(argv[0]).is_file()):
+        path0 = Path(argv[0]).absolute()  # a script run from another folder: from the repo
         argv[0] = str(path0.relative_to(ROOT)) if path0.is_relative_to(ROOT) else str(path0)
     record = {
         "schema": SCHEMA,

@@ -20,8 +20,10 @@ count), the share of frames where the animal was found (frames without it skip t
 and would flatter the throughput), the machine's load average, and the paper calculation of
 the tutorial: core-hours and wall time of 1,000 hours of 7-camera video at 100 fps on N
 one-core workers like this run's units, in units of 6000 frames, from the measured per-frame
-cost (the direct run's core-seconds per frame, scaled by the number of views from this run's
-cameras to 7) and SLURM's per-unit overhead.
+cost (a SLURM unit's seconds per frame after its first batch, median over the units, scaled by
+the number of views from this run's cameras to 7) and SLURM's per-unit overhead. On a shared
+machine a process with more threads than free cores runs several times slower (see
+``--threads``); the one-thread direct run's throughput is printed beside the others.
 
 Usage::
 
@@ -96,6 +98,17 @@ def first_wave_overheads(out: Path, cores: int) -> list[float]:
         if rec.get("first_frame_at"):
             starts.append((rec["started_at"], rec["first_frame_at"] - t_sub))
     return [o for _, o in sorted(starts)[:cores]]
+
+
+def unit_frame_seconds(out: Path, batch: int = 8) -> float:
+    """Median seconds per frame of the units after their first batch (one core each)."""
+    per = []
+    for f in (out / ".jobs" / "units").glob("*.json"):
+        rec = json.loads(f.read_text())
+        if rec.get("first_frame_at") and rec.get("frames", 0) > batch:
+            end = rec["started_at"] + rec["seconds"]
+            per.append((end - rec["first_frame_at"]) / (rec["frames"] - batch))
+    return statistics.median(per)
 
 
 def compare(a: Path, b: Path, names: list[str]) -> tuple[bool, float]:
@@ -196,13 +209,15 @@ def main() -> None:
     if args.identity_sessions:  # the same math with the units' one thread: bit for bit
         ref = args.work / "direct_one_thread"
         subprocess.run(["rm", "-rf", str(ref)], check=True)
-        predict("direct", sessions[: args.identity_sessions], ref, args, threads=1)
+        seconds = predict("direct", sessions[: args.identity_sessions], ref, args, threads=1)
+        figures["frames_per_s_one_thread_direct"] = args.identity_sessions * args.frames / seconds
         for m in modes[1:]:
             figures[f"identical_to_one_thread_direct_{m}"] = compare(
                 ref, last[m], names[: args.identity_sessions]
             )[0]
     units_mode = "slurm" if "slurm" in modes else "local"
-    per_frame = args.cores / fps["direct"]  # core-seconds per frame of the work itself
+    per_frame = unit_frame_seconds(last[units_mode])  # a one-core unit's seconds per frame
+    figures[f"unit_s_per_frame_{units_mode}"] = per_frame
     figures["paper_1000h_7cams"] = paper(per_frame, figures[f"overhead_s_{units_mode}"],
                                          6000, args.cameras)  # fmt: skip
     print(json.dumps(figures, indent=1))
