@@ -731,6 +731,7 @@ def refuse_outlier_views(
     prior_scale: torch.Tensor,
     max_distance: float,
     rounds: int = 2,
+    xy: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The fusion of :func:`triangulate_with_prior` again, without the views that disagree.
 
@@ -750,13 +751,16 @@ def refuse_outlier_views(
         prior_scale: (1 or B, K) the prior's weight per unit of the views' confidence.
         max_distance: mm.
         rounds: fusions after the first.
+        xy: ``uv`` in undistorted normalized coordinates
+            (:func:`freipose.nn.geometry.pixels_to_normalized`), when the caller has them.
 
     Returns:
         (B, K, 3) world mm.
     """
     Kc, R, t, dist = cameras
     # the views' rays do not change between the rounds: undistort once
-    xy = pixels_to_normalized(uv.float(), Kc.float(), None if dist is None else dist.float())
+    if xy is None:
+        xy = pixels_to_normalized(uv.float(), Kc.float(), None if dist is None else dist.float())
     for _ in range(rounds):
         kept = conf * (normalized_ray_distances(P1, xy, R, t) <= max_distance)
         P1 = triangulate_normalized(xy, kept, R, t, prior, prior_scale * kept.sum(1) + 1e-3)

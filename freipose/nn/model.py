@@ -35,7 +35,7 @@ from torch import nn
 from freipose.errors import InputFileError
 from freipose.io.checkpoints import POSE_NETWORK, UNSAFE, kind_error, kind_of, load_safely
 from freipose.nn.config import ModelConfig
-from freipose.nn.geometry import project_affine, voxel_axis, voxel_offsets
+from freipose.nn.geometry import pixels_to_normalized, project_affine, voxel_axis, voxel_offsets
 from freipose.nn.layers import (
     Encoder2D,
     FeatureDecoder,
@@ -46,7 +46,7 @@ from freipose.nn.layers import (
     gaussian_log_prior,
     refuse_outlier_views,
     softargmax3d,
-    triangulate_with_prior,
+    triangulate_normalized,
     unproject,
     unproject_gather,
     volume_confidence,
@@ -255,11 +255,12 @@ class VoxelPoseNet(nn.Module):
         # (the prior is the unjittered P0: the weight learns how far to trust P0 as it is at
         # inference, while the head learns corrections from the jittered one)
         prior_w = prior_log_weight.exp()[None] * conf.sum(1)  # (B, K)
-        P1 = triangulate_with_prior(uv, conf, K, R, t, dist, P0.detach(), prior_w + 1e-3)
+        xy = pixels_to_normalized(uv.float(), K.float(), None if dist is None else dist.float())
+        P1 = triangulate_normalized(xy, conf, R, t, P0.detach(), prior_w + 1e-3)
         if not self.training and cfg.fusion_reject > 0:
             P1 = refuse_outlier_views(
                 P1, uv, conf, (K, R, t, dist), P0.detach(), prior_log_weight.exp()[None],
-                cfg.fusion_reject * cfg.voxel_size,
+                cfg.fusion_reject * cfg.voxel_size, xy=xy,
             )  # fmt: skip
         return {
             "P1": P1,
