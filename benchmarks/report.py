@@ -43,7 +43,7 @@ CLUSTER_BEGIN, CLUSTER_END = "<!-- cluster-figures:begin -->", "<!-- cluster-fig
 BENCHMARKS = (
     "accuracy", "analysis", "calibration", "calibration_coverage", "classifier_days", "cluster",
     "demo",
-    "detector", "label_page", "null_studies", "own_rig", "predict", "real_finetune", "smooth",
+    "detector", "label_efficiency", "label_page", "null_studies", "own_rig", "predict", "real_finetune", "smooth",
     "synth", "throughput", "train_base",
 )  # fmt: skip
 # settings that differ between runs of the same experiment (not a different experiment)
