@@ -215,13 +215,18 @@ def sampling_plan(
     y0 = iy.floor().clamp_(max=h - 1 - dy)
     wx1 = ix.sub_(x0)
     wy1 = iy.sub_(y0).mul_(scale)  # the rows of y1, valid / count included
-    wy = torch.stack([scale.sub_(wy1), wy1], dim=-1)  # (B, P, V, 2)
-    wx = torch.stack([1 - wx1, wx1], dim=-1)
-    weights = (wy[..., :, None] * wx[..., None, :]).reshape(B, -1, 4 * V)
+    wy0 = scale.sub_(wy1)
+    wx0 = 1 - wx1
     first = torch.arange(B * V, device=K.device, dtype=torch.int32).reshape(B, 1, V) * (h * w)
     r00 = y0.mul_(w).add_(x0).to(torch.int32).add_(first)  # (B, P, V)
-    corners = torch.tensor([0, dx, dy * w, dy * w + dx], dtype=torch.int32, device=K.device)
-    rows = (r00[..., None] + corners).reshape(B, -1, 4 * V)
+    # (B, P, V, 4) in the bags' order, each corner written in place (a broadcast over a
+    # last axis of 4 would be laid out corner-major and copied)
+    weights = torch.empty(r00.shape + (4,), dtype=torch.float32, device=K.device)
+    rows = torch.empty(r00.shape + (4,), dtype=torch.int32, device=K.device)
+    corners = ((wy0, wx0, 0), (wy0, wx1, dx), (wy1, wx0, dy * w), (wy1, wx1, dy * w + dx))
+    for c, (wy, wx, offset) in enumerate(corners):
+        torch.mul(wy, wx, out=weights[..., c])
+        torch.add(r00, offset, out=rows[..., c])
     return rows.reshape(-1, 4 * V), weights.reshape(-1, 4 * V), count
 
 
