@@ -344,12 +344,17 @@ def cluster_block(records: list[dict[str, Any]]) -> str:
                      f"session(s); not at the same cores) | "
                      f"{fmt(f['frames_per_s_one_thread_direct'])} | - | - |")  # fmt: skip
     ratios = [f[f"ratio_{k}_to_direct"] for k in ("local", "slurm") if k in fps]
+    if unit_cost:
+        work = x["chunk_frames"] * f[unit_cost[0]]
+        lines += ["", f"A unit of {x['chunk_frames']} frames did {fmt(work)} s of work after "
+                  f"{fmt(overhead)} s of overhead ({100 * overhead / (work + overhead):.0f} % of "
+                  f"its time); with the default `chunk_frames = 6000` the overhead is "
+                  f"{100 * p['overhead_share']:.1f} % (the paper calculation below)."]  # fmt: skip
     if max(ratios) > 1.2:
-        lines += ["", f"The units ran faster than the direct run: on a machine shared with "
-                  f"other work, one process's {x['cores']} threads wait for each other while "
-                  f"{x['cores']} one-thread processes do not (see `--threads`), so these "
-                  "ratios show that difference, not the executors' cost; the overhead column "
-                  "shows that cost."]  # fmt: skip
+        lines += ["", f"The units ran faster than the direct run: its {x['cores']} threads in "
+                  "one process ran several times slower than one thread on this machine shared "
+                  "with other work (see `--threads`), so these ratios show that slowdown, not "
+                  "the executors' cost; the overhead column shows that cost."]  # fmt: skip
     worst = max(f.get(f"max_difference_mm_{k}", 0.0) for k in ("local", "slurm"))
     one = [f.get(f"identical_to_one_thread_direct_{k}") for k in ("local", "slurm") if k in fps]
     lines += [
