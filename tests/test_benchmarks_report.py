@@ -120,7 +120,8 @@ def test_cluster_tutorial_block_reads_the_latest_run(bench, monkeypatch, tmp_pat
                "ratio_slurm_to_direct": 0.9, "overhead_s_local": 2.0, "overhead_s_slurm": 5.0,
                "identical_local_slurm": True, "identical_to_one_thread_direct_local": True,
                "identical_to_one_thread_direct_slurm": True, "paper_1000h_7cams": paper,
-               "load_average_1min": {"start": 1.0, "end": 2.0}}  # fmt: skip
+               "load_average_1min": {"start": 1.0, "end": 2.0},
+               "unit_s_per_frame_slurm": 0.1}  # fmt: skip
     _result(monkeypatch, "cluster", figures, "avx2", 0, sessions=8, frames=150, cameras=4,
             chunk_frames=150, cores=2)  # fmt: skip
     doc = tmp_path / "cluster.md"
@@ -133,6 +134,9 @@ def test_cluster_tutorial_block_reads_the_latest_run(bench, monkeypatch, tmp_pat
     assert "| SLURM: 2 one-core array tasks | 3.6 | 0.90 | 5 s |" in text
     assert "0.88 core-seconds per 7-camera frame" in text and "87500 core-hours" in text
     assert "875 hours on 100 one-core workers" in text and "+ 60000 · 5 / N" in text
+    assert "A unit of 150 frames did 15 s of work after 5 s of overhead (25 % of its" in text
+    assert "a SLURM unit's cost per frame after its first batch" in text
+    assert "The units ran faster" not in text
     assert bench.main([*args, "--check"]) == 0
 
 
