@@ -7,7 +7,7 @@
   volumes (``torch.channels_last_3d``), the layout oneDNN's convolutions work in, so that no
   convolution reorders its input or output;
 * the unprojection as one weighted gather of feature rows
-  (:func:`freipose.nn.layers.unproject_gather`): its sampling plan is computed once per batch
+  (:func:`freipose.nn.unprojection.unproject_gather`): its sampling plan is computed once per batch
   from the cameras and the grid (each voxel's camera coordinates a sum of one term per grid
   axis) and the mean over the views is a single ``embedding_bag``, which writes the volume
   directly in the channels-last layout of the 3D U-Net;

@@ -47,10 +47,9 @@ from freipose.nn.layers import (
     refuse_outlier_views,
     softargmax3d,
     triangulate_normalized,
-    unproject,
-    unproject_gather,
     volume_confidence,
 )
+from freipose.nn.unprojection import unproject, unproject_gather
 
 log = logging.getLogger(__name__)
 

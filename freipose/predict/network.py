@@ -205,7 +205,10 @@ class NetworkEstimator:
 
 
 def load_model(
-    model_path: str | Path, device: str = "cpu", overrides: InferenceOverrides | None = None
+    model_path: str | Path,
+    device: str = "cpu",
+    overrides: InferenceOverrides | None = None,
+    backend: str = "eager",
 ) -> tuple[Any, Any, Skeleton, str]:
     """Load a pose checkpoint for prediction.
 
@@ -214,6 +217,7 @@ def load_model(
         device: where the network runs.
         overrides: inference-only ``[model]`` settings instead of the checkpoint's (None:
             its own).
+        backend: how the network runs (:data:`freipose.nn.fast.BACKENDS`).
 
     Returns:
         ``(model, config, skeleton, sha256 of the file)``.
@@ -221,10 +225,17 @@ def load_model(
     Raises:
         InputFileError: no such file.
         CheckpointError: not a FreiPose pose checkpoint (e.g. a detector checkpoint), corrupt.
-        PredictError: weights that do not fit the network (e.g. a hand-edited file).
+        PredictError: weights that do not fit the network (e.g. a hand-edited file), an
+            unknown backend.
     """
     from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.config import ConfigError
+    from freipose.nn.fast import optimize, resolve_backend
+
+    try:
+        backend = resolve_backend(backend)
+    except ValueError as exc:
+        raise PredictError(f"--{exc}") from exc
 
     path = Path(model_path)
     try:
@@ -233,7 +244,7 @@ def load_model(
         raise
     except Exception as exc:  # noqa: BLE001 - e.g. state-dict mismatches in a hand-edited file
         raise PredictError(f"{path}: cannot load the pose network ({exc})") from exc
-    return model, config, skeleton, file_sha256(path)
+    return optimize(model, backend), config, skeleton, file_sha256(path)
 
 
 def check_keypoints(skeleton: Skeleton, expected: Skeleton | None, model_path: str | Path) -> None:
@@ -368,17 +379,12 @@ def predict_sessions(
     """
     from freipose.nn.checkpoint import validation_record
     from freipose.nn.config import inference_settings
-    from freipose.nn.fast import optimize, resolve_backend
+    from freipose.nn.fast import backend_of
 
-    try:
-        backend = resolve_backend(backend)
-    except ValueError as exc:
-        raise PredictError(f"--{exc}") from exc
     dev = resolve_device(device)
     bounds = {s.name: frame_range(frames, s.num_frames) for s in sessions}
     ranges = {name: (r.start, r.stop) for name, r in bounds.items()}
-    net, config, skel, sha = load_model(model_path, dev, overrides)
-    optimize(net, backend)
+    net, config, skel, sha = load_model(model_path, dev, overrides, backend)
     check_keypoints(skel, expected_skeleton, model_path)
     if spec.method == "auto" and spec.labels is None and config.data.labels:
         spec = dataclasses.replace(spec, labels=Path(config.data.labels))  # the training labels
@@ -392,7 +398,7 @@ def predict_sessions(
         "model_sha256": sha,
         "model_file": Path(model_path).name,
         "refine": refine,
-        "backend": backend,
+        "backend": backend_of(net),
         **spec.describe(),
         **inference_settings(config.model, refine),
     }

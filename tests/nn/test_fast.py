@@ -16,7 +16,8 @@ import torch
 
 from freipose.nn.fast import backend_of, optimize, resolve_backend
 from freipose.nn.geometry import voxel_axis, voxel_offsets
-from freipose.nn.layers import Conv3d, unproject, unproject_gather
+from freipose.nn.layers import Conv3d
+from freipose.nn.unprojection import unproject, unproject_gather
 
 BASE = Path(__file__).parents[2] / "freipose" / "models" / "voxel_small.pt"
 # bf16 bound of docs/explanation/backends.md (P1 against fp32 eager, rendered rat frames)
