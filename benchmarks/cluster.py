@@ -27,7 +27,7 @@ machine a process with more threads than free cores runs several times slower (s
 
 Usage::
 
-    python benchmarks/cluster.py                      # 8 sessions of 200 frames, 2 cores
+    python benchmarks/cluster.py                      # 8 sessions of 600 frames, 2 cores (~12 min)
     python benchmarks/cluster.py --no-slurm --sessions 4 --frames 100
 """
 
@@ -166,9 +166,9 @@ def paper(per_frame_s: float, overhead_s: float, chunk: int, cameras: int) -> di
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", type=int, default=8)
-    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--cameras", type=int, default=4)
-    ap.add_argument("--chunk-frames", type=int, default=200, help="frames per unit")
+    ap.add_argument("--chunk-frames", type=int, default=600, help="frames per unit")
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--identity-sessions", type=int, default=1,
