@@ -9,9 +9,7 @@ match the document, so the test follows it when it changes.
 
 from __future__ import annotations
 
-import glob
 import re
-import shlex
 from pathlib import Path
 
 import pytest
@@ -20,6 +18,7 @@ from click.testing import CliRunner
 from freipose.cli.main import cli
 from freipose.io.labels import read_labels_h5
 from freipose.nn.checkpoint import read_checkpoint
+from freipose.testing import fenced_blocks, freipose_commands
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "own-data.md"
@@ -36,34 +35,7 @@ SUBSTITUTIONS = {
 }
 
 
-def _blocks(text: str) -> list[tuple[str, str, str | None]]:
-    """(language, body, file name) of every fenced block, in order."""
-    out = []
-    pat = re.compile(r"(?:<!-- file: (\S+) -->\n)?```(\w+)\n(.*?)```", re.S)
-    for m in pat.finditer(text):
-        out.append((m.group(2), m.group(3), m.group(1)))
-    return out
-
-
-def _commands(body: str) -> list[list[str]]:
-    """The ``freipose`` commands of a bash block as argument lists (globs expanded)."""
-    joined = body.replace("\\\n", " ")
-    cmds = []
-    for line in joined.splitlines():
-        line = line.split(" #")[0].strip()
-        if not line or line.startswith("#"):
-            continue
-        args = shlex.split(line)
-        assert args[0] == "freipose", line
-        expanded = []
-        for a in args[1:]:
-            hits = sorted(glob.glob(a)) if any(ch in a for ch in "*?[") else []
-            expanded += hits or [a]
-        cmds.append(expanded)
-    return cmds
-
-
-def test_own_data_commands(tmp_path, monkeypatch):
+def test_own_datafreipose_commands(tmp_path, monkeypatch):
     pytest.importorskip("sleap_io")
     text = DOC.read_text(encoding="utf-8")
     for old in SUBSTITUTIONS:
@@ -74,12 +46,12 @@ def test_own_data_commands(tmp_path, monkeypatch):
     runner = CliRunner()
     outputs = {}
     ran = 0
-    for lang, body, name in _blocks(text):
+    for lang, body, name in fenced_blocks(text):
         if lang == "toml" and name:
             Path(name).write_text(body, encoding="utf-8")
         if lang != "bash":
             continue
-        for args in _commands(body):
+        for args in freipose_commands(body):
             res = runner.invoke(cli, args)
             assert res.exit_code == 0, f"freipose {' '.join(args)}\n{res.output}"
             outputs[" ".join(args[:2])] = outputs.get(" ".join(args[:2]), "") + res.output

@@ -12,9 +12,6 @@ page, so the test follows it when it changes. ``tests/test_own_data.py`` does th
 
 from __future__ import annotations
 
-import glob
-import re
-import shlex
 import shutil
 from pathlib import Path
 
@@ -24,6 +21,7 @@ import pytest
 from click.testing import CliRunner
 
 from freipose.cli.main import cli
+from freipose.testing import fenced_blocks, freipose_commands
 
 ROOT = Path(__file__).resolve().parents[2]
 TUTORIALS = ROOT / "docs" / "tutorials"
@@ -56,29 +54,6 @@ CLUSTER_SUBSTITUTIONS = {
 }
 
 
-def _blocks(text: str) -> list[tuple[str, str, str | None]]:
-    """(language, body, file name) of every fenced block, in order."""
-    pat = re.compile(r"(?:<!-- file: (\S+) -->\n)?```(\w+)\n(.*?)```", re.S)
-    return [(m.group(2), m.group(3), m.group(1)) for m in pat.finditer(text)]
-
-
-def _commands(body: str) -> list[list[str]]:
-    """The ``freipose`` commands of a bash block as argument lists (globs expanded)."""
-    cmds = []
-    for line in body.replace("\\\n", " ").splitlines():
-        line = line.split(" #")[0].strip()
-        if not line or line.startswith("#"):
-            continue
-        args = shlex.split(line)
-        assert args[0] == "freipose", f"a tutorial command that is not freipose's: {line}"
-        expanded = []
-        for a in args[1:]:
-            hits = sorted(glob.glob(a)) if any(ch in a for ch in "*?[") else []
-            expanded += hits or [a]
-        cmds.append(expanded)
-    return cmds
-
-
 def run_page(name: str, substitutions: dict[str, str]) -> dict[str, str]:
     """Run the page's blocks in the current folder; the output of each command by its line."""
     text = (TUTORIALS / name).read_text(encoding="utf-8")
@@ -87,12 +62,12 @@ def run_page(name: str, substitutions: dict[str, str]) -> dict[str, str]:
         text = text.replace(old, new)
     runner = CliRunner()
     outputs = {}
-    for lang, body, file_name in _blocks(text):
+    for lang, body, file_name in fenced_blocks(text):
         if lang == "toml" and file_name:
             Path(file_name).write_text(body, encoding="utf-8")
         if lang != "bash":
             continue
-        for args in _commands(body):
+        for args in freipose_commands(body):
             res = runner.invoke(cli, args)
             assert res.exit_code == 0, f"freipose {' '.join(args)}\n{res.output}"
             outputs[" ".join(args)] = res.output
@@ -108,7 +83,7 @@ def demo_folder(tiny_demo, tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_demo_tutorial_commands(demo_folder):
+def test_demo_tutorialfreipose_commands(demo_folder):
     out = run_page("demo.md", DEMO_SUBSTITUTIONS)
     assert len(out) == 4
     # the rerun skipped the seven finished steps and wrote the report again
@@ -122,7 +97,7 @@ def test_demo_tutorial_commands(demo_folder):
 
 
 @pytest.mark.slow
-def test_analysis_tutorial_commands(demo_folder):
+def test_analysis_tutorialfreipose_commands(demo_folder):
     run_page("analysis.md", ANALYSIS_SUBSTITUTIONS)
     assert Path("rec/rat1_day4/events.csv").read_text().startswith("start_s,end_s")
     classification = pd.read_csv("results/classification.csv")
@@ -138,7 +113,7 @@ def test_analysis_tutorial_commands(demo_folder):
 
 
 @pytest.mark.slow
-def test_cluster_tutorial_commands(demo_folder):
+def test_cluster_tutorialfreipose_commands(demo_folder):
     out = run_page("cluster.md", CLUSTER_SUBSTITUTIONS)
     for folder in ("poses_units", "poses_cluster"):
         for day in ("rat1_day2", "rat1_day3"):
