@@ -121,10 +121,8 @@ def detect(
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.detect.multiview import ConsistencyConfig
-        from freipose.detect.pipeline import detect_session, make_source, open_sources
-        from freipose.io.atomic import refuse_existing, remove_leftover_partials
-        from freipose.io.boxes import read_boxes_h5, write_boxes_h5
-        from freipose.io.lock import output_lock
+        from freipose.detect.pipeline import make_source, open_sources
+        from freipose.io.boxes import read_boxes_h5
         from freipose.io.session import discover_sessions
         from freipose.io.video import frame_range
 
@@ -155,26 +153,8 @@ def detect(
             run_through_executor(ctx, task, config, overwrite)
             _say_result(output, read_boxes_h5(output))
             return
-        refuse_existing(output, overwrite)  # before the work; again under the lock
-        # Partial results survive an interruption; rerunning the command continues.
-        progress = output.with_name(f".{output.name}.progress.npz")
-        with output_lock(output, "boxes file"):
-            refuse_existing(output, overwrite)
-            remove_leftover_partials(output)
-            remove_leftover_partials(progress)
-            data = detect_session(
-                rig,
-                sources,
-                rng,
-                source,
-                cfg,
-                batch_size,
-                method_name,
-                desc,
-                progress_file=progress,
-            )
-            write_boxes_h5(data, output)
-            progress.unlink(missing_ok=True)
+        data = _detect_here(output, overwrite, rig, sources, rng, source, cfg, batch_size,
+                            method_name, desc)  # fmt: skip
         _say_result(output, data)
 
 
@@ -186,3 +166,27 @@ def _say_result(output: Path, data) -> None:  # noqa: ANN001 - a BoxesData
         f"{output}: {n} frames x {len(data.cameras)} cameras ({data.method}); 3D centre in "
         f"{found}/{n} frames, {float(data.n_agree.mean()):.2f} agreeing views on average"
     )
+
+
+def _detect_here(output: Path, overwrite: bool, rig, sources, rng, source, cfg, batch_size: int,
+                 method_name: str, desc: str):  # fmt: skip
+    """Detect in this process under the output's lock; returns the written BoxData.
+
+    Partial results survive an interruption (.OUTPUT.progress.npz); rerunning continues.
+    """
+    from freipose.detect.pipeline import detect_session
+    from freipose.io.atomic import refuse_existing, remove_leftover_partials
+    from freipose.io.boxes import write_boxes_h5
+    from freipose.io.lock import output_lock
+
+    refuse_existing(output, overwrite)  # before the work; again under the lock
+    progress = output.with_name(f".{output.name}.progress.npz")
+    with output_lock(output, "boxes file"):
+        refuse_existing(output, overwrite)
+        remove_leftover_partials(output)
+        remove_leftover_partials(progress)
+        data = detect_session(rig, sources, rng, source, cfg, batch_size, method_name, desc,
+                              progress_file=progress)  # fmt: skip
+        write_boxes_h5(data, output)
+        progress.unlink(missing_ok=True)
+    return data
