@@ -120,6 +120,20 @@ def ar1_error(
     return out
 
 
+def recording_stimulation(preset: StudyPreset, rng: np.random.Generator) -> StimulationConfig:
+    """One recording's protocol: the preset's, its first window at a random time in its first pause.
+
+    Args:
+        preset: the design.
+        rng: the recording's random generator (draws the onset first).
+
+    Returns:
+        The protocol of the recording (``onset_s`` plus a uniform draw up to ``spacing_s``).
+    """
+    stim = StimulationConfig.from_dict(dict(preset.stimulation))
+    return dataclasses.replace(stim, onset_s=stim.onset_s + float(rng.uniform(0, stim.spacing_s)))
+
+
 def _manifest_entry(name: str, animal: str, condition: str, split: str) -> str:
     values = dict(name=name, poses=f"{name}.poses.h5", events=f"{name}_events.csv",
                   animal=animal, condition=condition, split=split)  # fmt: skip
@@ -131,8 +145,7 @@ def _recording(
 ) -> tuple[np.ndarray, list[tuple[float, float]]]:
     """One recording's poses (T, 12, 3) and stimulation windows."""
     rng = np.random.default_rng(seed)
-    stim = StimulationConfig.from_dict(dict(preset.stimulation))
-    stim = dataclasses.replace(stim, onset_s=stim.onset_s + float(rng.uniform(0, stim.spacing_s)))
+    stim = recording_stimulation(preset, rng)
     state = simulate_motion(preset.frames, preset.fps, rng, body, stim)
     poses = build_body(body, state).keypoints
     if with_error and preset.error_mm > 0:
