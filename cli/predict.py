@@ -79,6 +79,17 @@ from freipose.errors import FreiPoseError
     help="Also smooth each session's poses over time (as `freipose smooth`) into "
     "OUTDIR/smoothed/<session>.poses.h5.",
 )
+@click.option(
+    "--animals",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Animals in each session. 2 or more: every animal is found in every view (--method "
+    "bgsub or --detector), followed over the whole recording (a first, cheap pass over the "
+    "frames that a resumed run repeats), and the network predicts each one's cube; the poses "
+    "file has an animal axis (individuals animal_0, animal_1, ..., identity confidence and "
+    "flags). Not with --shard, --executor or --smooth.",
+)
 @click.option("--overwrite", is_flag=True, help="Redo outputs that exist and are complete.")
 @cluster_options
 @threads_option()
@@ -105,6 +116,7 @@ def predict(
     shard: str | None,
     skeleton: str | None,
     smooth: bool,
+    animals: int,
     overwrite: bool,
     executor: str | None,
     cluster_file: Path | None,
@@ -137,6 +149,8 @@ def predict(
           --cluster cluster.toml
       freipose jobs poses/
       freipose predict rec1/ --model model.pt --detector det.pt -o poses/ --smooth
+      # two animals: found by background subtraction, followed, a pose per animal
+      freipose predict pair/ --model model.pt --method bgsub --animals 2 -o poses/
     """  # noqa: D301 - click needs the \b (backspace) paragraph marker
     with user_errors():
         from freipose.io.checkpoints import DETECTOR, POSE_NETWORK, check_checkpoints
@@ -149,6 +163,7 @@ def predict(
         config = cluster_config(executor, cluster_file, chunk_frames, parallel, max_retries,
                                 cpus=threads)  # fmt: skip
         shard_t = _check_options(batch, parse_shard(shard), smooth, config is not None)
+        _check_animals(animals, shard_t, smooth, config is not None)
         spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
         overrides = inference_overrides(fusion_reject, map_window)
         expected = load_skeleton(skeleton) if skeleton else None
@@ -156,6 +171,10 @@ def predict(
         check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
         found = discover_sessions(sessions, calibration, camera_map=camera_map_from(camera_map))
         _say_calibrations(found, calibration is not None, quiet)
+        if animals > 1:
+            _predict_animals(found, model, spec, outdir, animals, frames, batch, device,
+                             refine, overrides, backend, overwrite, expected, quiet)  # fmt: skip
+            return
         if smooth:
             _refuse_stale_smoothed(outdir, [s.name for s in found], overwrite)
         if config is not None:
@@ -165,22 +184,11 @@ def predict(
                 _smooth_results([_Done(p) for p in paths], outdir, overwrite)
             return
         results = predict_sessions(
-            found,
-            model,
-            spec,
-            outdir,
-            frames=frames,
-            batch_size=batch,
-            device=device,
-            refine=refine,
-            overrides=overrides,
-            backend=backend,
-            shard=shard_t,
-            overwrite=overwrite,
-            expected_skeleton=expected,
-            progress=not quiet,
+            found, model, spec, outdir, frames=frames, batch_size=batch, device=device,
+            refine=refine, overrides=overrides, backend=backend, shard=shard_t,
+            overwrite=overwrite, expected_skeleton=expected, progress=not quiet,
             report=echo_result,
-        )
+        )  # fmt: skip
         if smooth:
             _smooth_results(results, outdir, overwrite)
 
@@ -206,6 +214,40 @@ def _check_options(
             "give one or the other"
         )
     return shard
+
+
+def _check_animals(animals: int, shard: tuple[int, int] | None, smooth: bool, units: bool) -> None:
+    """Refuse options that several animals do not take.
+
+    Raises:
+        FreiPoseError: --animals 2+ with --shard, --executor or --smooth.
+    """
+    if animals < 2:
+        return
+    whole = "who is who is followed over the whole recording in one run"
+    refused = (
+        ("--shard", shard is not None, whole),
+        ("--executor/--cluster", units, whole),
+        ("--smooth", smooth, "the smoother takes one animal's poses"),
+    )
+    for name, on, why in refused:
+        if on:
+            raise FreiPoseError(f"--animals {animals} does not go with {name}: {why}; leave it out")
+
+
+def _predict_animals(
+    found: list, model: Path, spec: Any, outdir: Path, animals: int, frames: str | None,
+    batch: int, device: str, refine: bool, overrides: Any, backend: str, overwrite: bool,
+    expected: Any, quiet: bool,
+) -> None:  # fmt: skip
+    """``--animals N``: track every session's animals, then predict each one's poses."""
+    from freipose.predict.animals_run import predict_animal_sessions
+
+    predict_animal_sessions(
+        found, model, spec, outdir, animals, frames=frames, batch_size=batch, device=device,
+        refine=refine, overrides=overrides, backend=backend, overwrite=overwrite,
+        expected_skeleton=expected, progress=not quiet, report=echo_result,
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -218,6 +218,7 @@ class PoseData(PicklableFrozen):
 #: shape has A after T (``points2d`` (T, A, C, K, 2)); the others are per frame
 ANIMAL_EXTRAS = frozenset(
     ("points2d", "confidence2d", "boxes", "center", "smooth_std", "filled", "rejected",
+     "uncertainty", "identity_flagged",
      # the truth of synthetic scenes of several animals (freipose.synth.social_scene)
      "visible2d", "hidden_by_animal", "on_top_of", "lift", "contact")
 )  # fmt: skip
@@ -234,6 +235,8 @@ _EXTRA_SHAPES: Mapping[str, tuple[int | str, ...]] = MappingProxyType(
         "smooth_std": ("T", "K", 3),
         "filled": ("T", "K"),
         "rejected": ("T", "K"),
+        "uncertainty": ("T", "K"),
+        "identity_flagged": ("T",),
     }
 )
 

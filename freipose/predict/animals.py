@@ -43,6 +43,8 @@ from freipose.predict.tracking import (
     track_animals,
 )
 
+_NO_IMAGE = np.zeros((1, 1, 3), np.uint8)
+
 
 @dataclass(frozen=True, eq=False)
 class RecordingTracks:
@@ -60,7 +62,7 @@ class RecordingTracks:
 
 
 def track_recording(
-    frames: Iterable[Sequence[np.ndarray]],
+    frames: Iterable[Sequence[np.ndarray | None]],
     rig: CameraRig,
     source: BoxSource,
     n_animals: int,
@@ -74,7 +76,8 @@ def track_recording(
     """Detect, associate and track ``n_animals`` over a recording (module docstring).
 
     Args:
-        frames: per time instant C BGR uint8 images (the rig's order).
+        frames: per time instant C BGR uint8 images (the rig's order); None for a camera
+            whose frame could not be decoded (no boxes in that view).
         rig: the cameras.
         source: a box source giving several boxes per view.
         n_animals: how many animals.
@@ -93,18 +96,21 @@ def track_recording(
     dets: list[AnimalDetections] = []
     cands: list[tuple[Candidates, ...]] = []
     feats: list[np.ndarray] = []
-    batch: list[Sequence[np.ndarray]] = []
+    batch: list[Sequence[np.ndarray | None]] = []
 
     def flush() -> None:
-        flat = [img for fr in batch for img in fr]
-        got = source.propose(flat, names * len(batch))
-        for i, fr in enumerate(batch):
-            cd = tuple(got[i * len(names) : (i + 1) * len(names)])
+        flat = [img for fr in batch for img in fr if img is not None]
+        got = iter(
+            source.propose(flat, [n for fr in batch for n, im in zip(names, fr) if im is not None])
+        )
+        for fr in batch:
+            cd = tuple(Candidates.empty() if img is None else next(got) for img in fr)
             det = detect_animals(cd, rig, cfg, bounds)
             cands.append(cd)
             dets.append(det)
-            if appearance:
-                feats.append(colour_features(fr, det.boxes, det.own))
+            if appearance:  # a missing view has no own box: its image is never read
+                shown = [_NO_IMAGE if img is None else img for img in fr]
+                feats.append(colour_features(shown, det.boxes, det.own))
         batch.clear()
 
     for fr in frames:

@@ -177,8 +177,6 @@ class NetworkEstimator:
         import torch
 
         from freipose.detect.multiview import detect_multiview_batch
-        from freipose.nn.inference import predict_batch
-        from freipose.nn.uncertainty import raw_uncertainty
 
         C = len(rig)
         if len(images) != C:
@@ -187,7 +185,29 @@ class NetworkEstimator:
         frames = [[images[c][b] for c in range(C)] for b in range(B)]
         with torch.inference_mode():
             dets = detect_multiview_batch(frames, rig, self.source, self.consistency)
-            centers = np.stack([d.center for d in dets]).astype(np.float64)
+        centers = np.stack([d.center for d in dets]).astype(np.float64)
+        return self.predict_at(frames, rig, centers)
+
+    def predict_at(
+        self, frames: Sequence[Sequence[np.ndarray]], rig: CameraRig, centers: np.ndarray
+    ) -> Estimate:
+        """The network on cubes at given centres (the detection already done).
+
+        Args:
+            frames: per sample, one BGR image per camera of ``rig``.
+            rig: the cameras (C).
+            centers: (B, 3) world mm cube centres; a NaN row gives a sample not found.
+
+        Returns:
+            The :class:`Estimate` of the B samples.
+        """
+        import torch
+
+        from freipose.nn.inference import predict_batch
+        from freipose.nn.uncertainty import raw_uncertainty
+
+        C, B = len(rig), len(frames)
+        with torch.inference_mode():
             out = predict_batch(self.model, frames, [rig] * B, centers)
         poses = out["P1"] if self.refine else out["P0"]
         boxes = cube_crop_boxes(rig, centers, self.cube_size)  # (B, C, 4), NaN without centre
@@ -326,6 +346,41 @@ def make_box_source(
             s.close()
 
 
+def network_provenance(
+    net: Any, config: Any, sha: str, model_path: str | Path, spec: DetectorSpec, refine: bool
+) -> tuple[dict[str, Any], float]:
+    """The facts a prediction stores about its network and detection, and the uncertainty scale.
+
+    Args:
+        net: the loaded network (its backend is recorded).
+        config: its training config.
+        sha: the checkpoint's SHA-256.
+        model_path: the checkpoint.
+        spec: how the animal is found.
+        refine: P1 (True) or P0 reported.
+
+    Returns:
+        ``(provenance, uncertainty scale)``; the scale is NaN when the checkpoint has none
+        (fitted on validation labels after training), and in the provenance when it has.
+    """
+    from freipose.nn.checkpoint import validation_record
+    from freipose.nn.config import inference_settings
+    from freipose.nn.fast import backend_of
+
+    provenance = {
+        "model_sha256": sha,
+        "model_file": Path(model_path).name,
+        "refine": refine,
+        "backend": backend_of(net),
+        **spec.describe(),
+        **inference_settings(config.model, refine),
+    }
+    scale = float(validation_record(model_path).get("uncertainty_scale", float("nan")))
+    if np.isfinite(scale):
+        provenance["uncertainty_scale"] = scale
+    return provenance, scale
+
+
 def predict_sessions(
     sessions: Sequence[Session],
     model_path: str | Path,
@@ -377,10 +432,6 @@ def predict_sessions(
     Returns:
         One :class:`~freipose.predict.run.PredictResult` per session.
     """
-    from freipose.nn.checkpoint import validation_record
-    from freipose.nn.config import inference_settings
-    from freipose.nn.fast import backend_of
-
     dev = resolve_device(device)
     bounds = {s.name: frame_range(frames, s.num_frames) for s in sessions}
     ranges = {name: (r.start, r.stop) for name, r in bounds.items()}
@@ -394,17 +445,7 @@ def predict_sessions(
     elif spec.method == "fixed":
         for s in sessions:  # every camera of every session must have a box
             shared = make_box_source(spec, s, ranges[s.name], dev)
-    provenance = {
-        "model_sha256": sha,
-        "model_file": Path(model_path).name,
-        "refine": refine,
-        "backend": backend_of(net),
-        **spec.describe(),
-        **inference_settings(config.model, refine),
-    }
-    scale = float(validation_record(model_path).get("uncertainty_scale", float("nan")))
-    if np.isfinite(scale):  # fitted on validation labels after training
-        provenance["uncertainty_scale"] = scale
+    provenance, scale = network_provenance(net, config, sha, model_path, spec, refine)
     results = []
     for s in sessions:
         out = output_path(outdir, s.name, shard)

@@ -357,7 +357,7 @@ def _predict_locked(
         frames=loop.frames,
         seconds=time.perf_counter() - t0,
         missing=loop.missing,
-        status_counts=_status_counts(out),
+        status_counts=status_counts(out),
     )
 
 
@@ -390,7 +390,8 @@ STATUS_NAMES = {
 }
 
 
-def _status_counts(path: Path) -> dict[str, int]:
+def status_counts(path: Path) -> dict[str, int]:
+    """Frames of a finished poses file per status name (``STATUS_NAMES``)."""
     import h5py
 
     with h5py.File(path, "r") as f:

@@ -199,6 +199,8 @@ def create_layout(f: h5py.File, header: OutputHeader, chunk_rows: int) -> None:
         f.create_dataset("individuals", data=str_array(header.individuals))
         ds(f, "identity_confidence", (T, *a), np.float32, nan)
     g = f.create_group("extra")
+    if header.individuals is not None:
+        ds(g, "identity_flagged", (T, *a), bool, False)
     ds(g, "points2d", (T, *a, C, K, 2), np.float32, nan)
     ds(g, "confidence2d", (T, *a, C, K), np.float32, np.float32(0))
     ds(g, "boxes", (T, *a, C, 4), np.float32, nan)
@@ -251,7 +253,7 @@ def verify_partial(f: h5py.File, size: int) -> None:
     """
     done = int(f.attrs["completed_frames"])
     for name in _PATHS.values():
-        if name not in f and name == "identity_confidence":  # one animal: no such dataset
+        if name not in f and name in _ANIMAL_ONLY:  # one animal: no such dataset
             continue
         d = f[name]
         if d.chunks is not None:
@@ -276,11 +278,13 @@ ROW_FIELDS = (
     "status",
     "frame_ok",
 )
-ANIMAL_ROW_FIELDS = (*ROW_FIELDS, "identity_confidence")  # an output with an animal axis
+_ANIMAL_ONLY = ("identity_confidence", "extra/identity_flagged")
+ANIMAL_ROW_FIELDS = (*ROW_FIELDS, "identity_confidence", "identity_flagged")  # an animal axis
 _PATHS = {
     "poses": "poses",
     "confidence": "confidence",
     "identity_confidence": "identity_confidence",
+    "identity_flagged": "extra/identity_flagged",
     **{n: f"extra/{n}" for n in ROW_FIELDS[2:]},
 }
 
@@ -435,6 +439,7 @@ class IncrementalPosesWriter:
         status: np.ndarray,
         frame_ok: np.ndarray,
         identity_confidence: np.ndarray | None = None,
+        flagged: np.ndarray | None = None,
     ) -> None:
         """Append the next ``B`` rows of an output with an animal axis.
 
@@ -444,6 +449,7 @@ class IncrementalPosesWriter:
             status: (B,) status per frame.
             frame_ok: (B, C) the frames that were decoded.
             identity_confidence: (B, A) in [0, 1], or None (NaN: unknown).
+            flagged: (B, A) bool, an identity swap cannot be ruled out (None: none flagged).
 
         Raises:
             ValueError: not one estimate per animal, or estimates of different lengths.
@@ -462,6 +468,8 @@ class IncrementalPosesWriter:
         if identity_confidence is not None:
             ident = np.asarray(identity_confidence, np.float32).reshape(B, len(names))
         vals["identity_confidence"] = ident
+        flags = np.zeros((B, len(names)), bool) if flagged is None else flagged
+        vals["identity_flagged"] = np.asarray(flags, bool).reshape(B, len(names))
         self._add(B, vals, status, frame_ok)
 
     def _add(
