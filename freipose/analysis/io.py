@@ -192,16 +192,26 @@ def variables_from_poses(
         source: the poses' origin, for messages.
 
     Returns:
-        The variables.
+        The variables; poses of several animals give every animal's variables and its social
+        variables, each name prefixed with the animal's individual
+        (:func:`freipose.analysis.social.recording_variables`).
     """
     skel = resolve_skeleton(data, skeleton)
     check_keypoints(data.keypoints, skel, source)
-    feet = data.poses[:, list(skel.feet), :] if skel.feet else None
+    feet = data.poses[..., list(skel.feet), :] if skel.feet else None
     known = world_up(data.calibration) if data.calibration is not None else None
     same_up = known is not None and float(known.up @ np.asarray(data.up, np.float64)) > 0.999
     if str(floor) == "world" and known is not None and known.floor is not None and same_up:
         floor = FloorPlane(known.up, known.floor, "calibration")  # the stored floor height
     plane = resolve_floor(floor, data.up, feet)
+    if data.individuals is not None:
+        from freipose.analysis.social import recording_variables
+
+        if len(data.individuals) == 1:  # one animal with an animal axis: its own variables
+            return compute_variables(data.poses[:, 0], data.frame_index, data.fps, skel, plane,
+                                     config)  # fmt: skip
+        return recording_variables(data.poses, data.individuals, data.frame_index, data.fps,
+                                   skel, plane, config)  # fmt: skip
     return compute_variables(data.poses, data.frame_index, data.fps, skel, plane, config)
 
 

@@ -114,6 +114,7 @@ def social_variables(
     animal: int,
     up: Sequence[float] = (0.0, 0.0, 1.0),
     config: SocialConfig | None = None,
+    individuals: Sequence[str] | None = None,
 ) -> SocialVariables:
     """The social variables of ``animal`` towards every other animal (module docstring).
 
@@ -124,6 +125,7 @@ def social_variables(
         animal: index of the animal ``a``.
         up: (3,) the up direction.
         config: contact threshold and extra keypoint pairs.
+        individuals: (A,) the animals' names in the parts (default ``animal <index>``).
 
     Returns:
         :class:`SocialVariables` with (A - 1) x (4 + len(pairs)) + ... columns.
@@ -165,13 +167,9 @@ def social_variables(
     for b in range(n):
         if b == a:
             continue
-        other = f"animal {b}"
-        add(
-            "social_dist",
-            f"head-head of {other}",
-            np.linalg.norm(head[:, a] - head[:, b], axis=-1),
-            head_m,
-        )
+        other = f"animal {b}" if individuals is None else str(individuals[b])
+        hh = np.linalg.norm(head[:, a] - head[:, b], axis=-1)
+        add("social_dist", f"head-head of {other}", hh, head_m)
         add(
             "social_dist",
             f"head-tail of {other}",
@@ -217,6 +215,7 @@ def animal_variables(
     animal: int,
     config: VariableConfig = VariableConfig(),
     social: SocialConfig | None = None,
+    individuals: Sequence[str] | None = None,
 ) -> Variables:
     """One animal's variables: its body variables, then its social variables.
 
@@ -229,6 +228,7 @@ def animal_variables(
         animal: which animal.
         config: gap filling and STFT settings (as for one animal).
         social: contact threshold and extra keypoint pairs.
+        individuals: (A,) the animals' names (see :func:`social_variables`).
 
     Returns:
         :class:`~freipose.analysis.variables.Variables` of the animal, the social variables
@@ -245,7 +245,7 @@ def animal_variables(
         ],
         axis=1,
     )
-    soc = social_variables(filled, skeleton, fps, animal, floor.normal, social)
+    soc = social_variables(filled, skeleton, fps, animal, floor.normal, social, individuals)
     return Variables(
         values=np.concatenate([own.values, soc.values], axis=1),
         names=own.names + soc.names,
@@ -259,4 +259,69 @@ def animal_variables(
         frequencies=own.frequencies,
         floor=own.floor,
         info={**own.info, "animal": int(animal), "animals": int(p.shape[1])},
+    )
+
+
+def recording_variables(
+    poses: np.ndarray,
+    individuals: Sequence[str],
+    frame_index: np.ndarray,
+    fps: float,
+    skeleton: Skeleton,
+    floor: FloorPlane,
+    config: VariableConfig = VariableConfig(),
+    social: SocialConfig | None = None,
+) -> Variables:
+    """The variables of every animal of a recording, in one table.
+
+    Each animal's :func:`animal_variables` (its body variables, then its social variables
+    towards the others, named by the others' ``individuals``), its variables' names
+    prefixed with its name: ``animal_0/local_z[Nose]``,
+    ``animal_0/social_dist[head-head of animal_1]``. The parts stay the keypoint or angle
+    (the social ones name the other animal).
+
+    Args:
+        poses: (T, A, K, 3) world mm, NaN = missing, A >= 2.
+        individuals: (A,) the animals' names.
+        frame_index: (T,) strictly increasing video frames.
+        fps: frames per second.
+        skeleton: keypoints, body frame and angles.
+        floor: the floor plane (its normal is up).
+        config: gap filling and STFT settings.
+        social: contact threshold and extra keypoint pairs.
+
+    Returns:
+        :class:`~freipose.analysis.variables.Variables` with the A animals' columns, in
+        order; ``info`` sums the keypoints missing and interpolated over the animals, counts
+        the frames with any undefined variable, and lists ``individuals``.
+    """
+    names = [str(n) for n in individuals]
+    p = _check(poses, skeleton)
+    if len(names) != p.shape[1]:
+        raise VariablesError(f"{len(names)} individuals for poses of {p.shape[1]} animals")
+    per = [
+        animal_variables(p, frame_index, fps, skeleton, floor, a, config, social, names)
+        for a in range(len(names))
+    ]
+    first = per[0]
+    values = np.concatenate([v.values for v in per], axis=1)
+    info = dict(first.info)
+    for key in ("keypoints_missing", "keypoints_interpolated"):
+        info[key] = int(sum(int(v.info[key]) for v in per))
+    info.pop("animal", None)
+    info["frames_with_nan"] = int(np.isnan(values).any(axis=1).sum())
+    info["individuals"] = names
+    return Variables(
+        values=values,
+        names=tuple(f"{n}/{v}" for n, var in zip(names, per, strict=True) for v in var.names),
+        kinds=tuple(k for v in per for k in v.kinds),
+        components=tuple(c for v in per for c in v.components),
+        parts=tuple(x for v in per for x in v.parts),
+        involved=np.concatenate([v.involved for v in per], axis=0),
+        keypoints=first.keypoints,
+        frame_index=first.frame_index,
+        fps=first.fps,
+        frequencies=first.frequencies,
+        floor=first.floor,
+        info=info,
     )
