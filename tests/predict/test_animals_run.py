@@ -1,0 +1,109 @@
+"""The prediction loop of several animals: each animal's cube at its own centre, frames
+missing in some cameras, and a killed run resumed to the same file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from predict_helpers import h5_equal, small_rig
+
+from freipose.geometry import CameraRig
+from freipose.predict.estimator import Estimate
+
+BASE = Path(__file__).parents[2] / "freipose" / "models" / "voxel_small.pt"
+
+
+@dataclass
+class _CentreNetwork:
+    """Stands in for the network: every keypoint at the cube centre, one call recorded."""
+
+    keypoints: tuple[str, ...] = ("a", "b")
+    provenance: dict | None = None
+
+    def __post_init__(self) -> None:
+        self.calls: list[tuple[int, tuple[str, ...]]] = []
+
+    def predict_at(self, frames, rig: CameraRig, centers: np.ndarray) -> Estimate:
+        b, c = len(frames), len(rig)
+        assert all(len(f) == c for f in frames)
+        self.calls.append((b, tuple(rig.names)))
+        poses = np.repeat(np.asarray(centers, np.float64)[:, None], 2, axis=1)
+        found = np.isfinite(centers).all(-1)
+        return Estimate(poses, np.where(found[:, None], 1.0, 0.0) * np.ones((b, 2)),
+                        np.zeros((b, c, 2, 2)), np.ones((b, c, 2)), np.zeros((b, c, 4)),
+                        centers)  # fmt: skip
+
+
+def test_each_animal_gets_its_own_centre_and_missing_views_their_own_call() -> None:
+    from freipose.predict.animals_run import estimate_animals
+
+    rig = small_rig(3)
+    b_n, a_n = 4, 2
+    images = [np.zeros((b_n, 8, 8, 3), np.uint8) for _ in range(3)]
+    valid = np.ones((b_n, 3), bool)
+    valid[1, 2] = False  # frame 1: camera 2 not decoded
+    valid[3, 1:] = False  # frame 3: one camera left
+    centres = np.arange(b_n * a_n * 3, dtype=np.float64).reshape(b_n, a_n, 3)
+    centres[2, 1] = np.nan  # animal 1 not tracked in frame 2
+    net = _CentreNetwork()
+    ests, ran = estimate_animals(net, images, valid, rig, centres)  # type: ignore[arg-type]
+    assert len(ests) == a_n and ran.tolist() == [True, True, True, False]
+    for a in range(a_n):
+        for b in range(3):
+            expect = centres[b, a]
+            np.testing.assert_array_equal(ests[a].center[b], expect.astype(np.float32))
+        assert np.isnan(ests[a].poses[3]).all()  # too few views: not run
+    assert np.isnan(ests[1].poses[2]).all() and (ests[1].confidence[2] == 0).all()
+    assert np.isfinite(ests[0].poses[2]).all()
+    # one call with all cameras (frames 0 and 2 of both animals), one without camera 2
+    assert sorted(net.calls) == [(2, ("cam0", "cam1")), (4, ("cam0", "cam1", "cam2"))]
+    assert np.isnan(ests[0].points2d[1, 2]).all() and (ests[0].confidence2d[1, 2] == 0).all()
+
+
+@pytest.mark.slow
+def test_a_killed_run_of_several_animals_resumes_to_the_same_file(tmp_path, monkeypatch, caplog):
+    from freipose.io.session import discover_sessions
+    from freipose.predict.animals_run import predict_animal_sessions
+    from freipose.predict.network import DetectorSpec
+    from freipose.predict.writer import IncrementalPosesWriter, partial_path
+    from freipose.synth import SceneConfig, generate_session
+
+    if not BASE.is_file():
+        pytest.skip(f"the shipped base model {BASE} is not in this checkout")
+    cfg = SceneConfig(frames=16, fps=6, seed=6, n_cameras=4, size=(256, 208), animals=2,
+                      coat_mix="different")  # fmt: skip
+    paths = generate_session(tmp_path / "pair", cfg, workers=1, progress=False)
+    (session,) = discover_sessions([paths.folder], paths.calibration)
+    spec = DetectorSpec("bgsub", bg_samples=16)
+
+    def run(out: Path) -> Path:
+        (res,) = predict_animal_sessions([session], BASE, spec, out, 2, batch_size=4,
+                                         device="cpu", chunk_frames=8, progress=False)  # fmt: skip
+        return res.path
+
+    reference = run(tmp_path / "whole")
+    real_add = IncrementalPosesWriter.add_animals
+    calls = []
+
+    def killed_after_two(self, *args, **kwargs):
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        calls.append(1)
+        real_add(self, *args, **kwargs)
+
+    monkeypatch.setattr(IncrementalPosesWriter, "add_animals", killed_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        run(tmp_path / "killed")
+    monkeypatch.undo()
+    part = partial_path(tmp_path / "killed" / "pair.poses.h5")
+    import h5py
+
+    with h5py.File(part, "r") as f:
+        assert int(f.attrs["completed_frames"]) == 8
+    with caplog.at_level("INFO", logger="freipose.predict.writer"):
+        resumed = run(tmp_path / "killed")
+    assert "resuming after 8 of 16 frames" in caplog.text
+    assert h5_equal(resumed, reference) == []
