@@ -286,7 +286,9 @@ def variables(
     the floor with their velocities and STFTs, and the skeleton's angles (docs/formats.md,
     VARS.h5): 9 + 2F per keypoint and 2 per angle, with F = STFT window / 2 + 1
     frequencies. The 12-keypoint rat with 6 angles has 912 at the default 64-frame
-    window and 528 at 32 frames (freipose demo).
+    window and 528 at 32 frames (freipose demo). Poses of several animals give each animal's
+    variables, named after it (animal_0/local_z[Nose]), then its social variables towards
+    the others (distances, facing, contact: animal_0/facing[animal_1]).
 
     With --executor (or --cluster FILE) the file is one unit, run in a worker process
     (local) or as a SLURM job; an existing OUTPUT is kept. `freipose jobs OUTPUT` shows it.

@@ -290,7 +290,7 @@ def predict_animal_session(session: Session, run: AnimalRun, outdir: str | Path)
             tracks = track_session(session, run.source, run.n_animals, (run.start, run.stop),
                                    run.network.cube_size, run.network.consistency.min_views,
                                    run.batch_size, run.progress)  # fmt: skip
-            frames = _predict_rows(session, run, tracks, writer, done)
+            frames, missing = _predict_rows(session, run, tracks, writer, done)
             up = None
             if world_up(session.rig) is None:
                 k = len(header.keypoints)
@@ -300,13 +300,17 @@ def predict_animal_session(session: Session, run: AnimalRun, outdir: str | Path)
         finally:
             writer.close()
     return PredictResult(path=out, frames=frames, seconds=time.perf_counter() - t0,
-                         status_counts=status_counts(out))  # fmt: skip
+                         missing=missing, status_counts=status_counts(out))  # fmt: skip
 
 
 def _predict_rows(
     session: Session, run: AnimalRun, tracks: Tracks, writer: IncrementalPosesWriter, done: int
-) -> int:
-    """Predict and write the rows ``done ..`` of the run; returns how many were written."""
+) -> tuple[int, dict[str, int]]:
+    """Predict and write the rows ``done ..`` of the run.
+
+    Returns:
+        ``(rows written, camera -> first frame that could not be decoded)``.
+    """
     shapes = [(cam.height, cam.width) for cam in session.rig]
     n = 0
     bar = progress_bar(total=run.stop - run.start, initial=done, unit="frame", desc=session.name,
@@ -329,7 +333,8 @@ def _predict_rows(
                                tracks.flagged[rows])  # fmt: skip
             n += len(fb)
             bar.update(len(fb))
-    return n
+        missing = {session.rig.names[c]: i for c, i in sorted(reader.first_missing.items())}
+    return n, missing
 
 
 def predict_animal_sessions(

@@ -218,7 +218,8 @@ def _frame_inputs(
     X = np.where(ok[:, None], X, 1e12)  # a hypothesis without a centre is never matched
     F = None
     if features is not None:
-        F = np.asarray(features[t], dtype=np.float64).reshape(len(X), -1)
+        F = np.asarray(features[t], dtype=np.float64)
+        F = F.reshape(len(X), -1) if len(X) else F.reshape(0, F.shape[-1] if F.ndim else 0)
     return X, F
 
 

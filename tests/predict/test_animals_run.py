@@ -107,3 +107,25 @@ def test_a_killed_run_of_several_animals_resumes_to_the_same_file(tmp_path, monk
         resumed = run(tmp_path / "killed")
     assert "resuming after 8 of 16 frames" in caplog.text
     assert h5_equal(resumed, reference) == []
+
+
+def test_tracking_leaves_out_views_whose_frame_is_missing() -> None:
+    from freipose.detect.base import Candidates
+    from freipose.predict.animals import track_recording
+
+    rig = small_rig(3)
+    seen: list[str] = []
+
+    class OneBox:
+        def propose(self, images, cameras):
+            seen.extend(cameras)
+            assert all(isinstance(im, np.ndarray) for im in images)
+            return [Candidates(np.array([[60.0, 40, 100, 80]]), np.ones(1)) for _ in images]
+
+    img = np.zeros((120, 160, 3), np.uint8)
+    frames = [[img, img, img], [img, None, img], [None, None, img]]
+    res = track_recording(frames, rig, OneBox(), 1, 10.0, chunk=2)
+    assert seen == ["cam0", "cam1", "cam2", "cam0", "cam2", "cam2"]
+    assert [len(c[1].boxes) for c in res.candidates] == [1, 0, 0]
+    assert [len(c[0].boxes) for c in res.candidates] == [1, 1, 0]
+    assert res.tracks.centers.shape == (3, 1, 3)
