@@ -529,6 +529,8 @@ def resume_command(path: str | Path, state: RunState) -> str:
         parts.append(f"--min-views {int(prov['min_views'])}")
     if prov.get("refine") is False:
         parts.append("--no-refine")
+    if int(prov.get("animals", 1)) > 1:
+        parts.append(f"--animals {int(prov['animals'])}")
     if "session" in prov:
         parts.append(f"--frames {state.frames[0]}:{state.frames[1]}")
     if state.shard:

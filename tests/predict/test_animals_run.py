@@ -65,6 +65,7 @@ def test_each_animal_gets_its_own_centre_and_missing_views_their_own_call() -> N
 
 @pytest.mark.slow
 def test_a_killed_run_of_several_animals_resumes_to_the_same_file(tmp_path, monkeypatch, caplog):
+    from freipose.io.poses import resume_command, run_state
     from freipose.io.session import discover_sessions
     from freipose.predict.animals_run import predict_animal_sessions
     from freipose.predict.network import DetectorSpec
@@ -103,6 +104,8 @@ def test_a_killed_run_of_several_animals_resumes_to_the_same_file(tmp_path, monk
 
     with h5py.File(part, "r") as f:
         assert int(f.attrs["completed_frames"]) == 8
+    command = resume_command(part, run_state(part))
+    assert "--method bgsub --bg-samples 16" in command and "--animals 2" in command, command
     with caplog.at_level("INFO", logger="freipose.predict.writer"):
         resumed = run(tmp_path / "killed")
     assert "resuming after 8 of 16 frames" in caplog.text
