@@ -52,8 +52,8 @@ class RecordingTracks:
 
     Attributes:
         tracks: the :class:`~freipose.predict.tracking.Tracks` (T frames, A animals).
-        detections: (T,) the animal hypotheses per frame.
-        candidates: (T, C) the box source's candidates.
+        detections: (T,) the animal hypotheses per frame (empty: not kept).
+        candidates: (T, C) the box source's candidates (empty: not kept).
     """
 
     tracks: Tracks
@@ -72,6 +72,7 @@ def track_recording(
     bounds: np.ndarray | None = None,
     appearance: bool = True,
     chunk: int = 32,
+    keep: bool = True,
 ) -> RecordingTracks:
     """Detect, associate and track ``n_animals`` over a recording (module docstring).
 
@@ -87,6 +88,9 @@ def track_recording(
         bounds: (3, 2) world box mm the animals' centres lie in (e.g. the arena).
         appearance: use the coat colours of the boxes in the tracking.
         chunk: time instants sent to ``source`` at once.
+        keep: keep every frame's candidates and hypotheses in the result (False: the
+            tracks only, ``detections`` and ``candidates`` empty: a long recording's
+            prediction needs no more).
 
     Returns:
         :class:`RecordingTracks`.
@@ -95,6 +99,8 @@ def track_recording(
     names = list(rig.names)
     dets: list[AnimalDetections] = []
     cands: list[tuple[Candidates, ...]] = []
+    centres: list[np.ndarray] = []
+    boxes: list[np.ndarray] = []
     feats: list[np.ndarray] = []
     batch: list[Sequence[np.ndarray | None]] = []
 
@@ -106,8 +112,11 @@ def track_recording(
         for fr in batch:
             cd = tuple(Candidates.empty() if img is None else next(got) for img in fr)
             det = detect_animals(cd, rig, cfg, bounds)
-            cands.append(cd)
-            dets.append(det)
+            centres.append(det.centers)
+            boxes.append(det.boxes)
+            if keep:
+                cands.append(cd)
+                dets.append(det)
             if appearance:  # a missing view has no own box: its image is never read
                 shown = [_NO_IMAGE if img is None else img for img in fr]
                 feats.append(colour_features(shown, det.boxes, det.own))
@@ -122,8 +131,8 @@ def track_recording(
     if batch:
         flush()
     tracks = track_animals(
-        [d.centers for d in dets], n_animals, fps,
-        features=feats if appearance else None, boxes=[d.boxes for d in dets], config=tracking,
+        centres, n_animals, fps, features=feats if appearance else None, boxes=boxes,
+        config=tracking,
     )  # fmt: skip
     return RecordingTracks(tracks, tuple(dets), tuple(cands))
 

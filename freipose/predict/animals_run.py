@@ -164,7 +164,8 @@ def track_session(
         unit="frame", desc=f"{session.name}: tracking", disable=not progress or None, leave=False,
     )  # fmt: skip
     with bar:
-        res = track_recording(bar, session.rig, source, n_animals, session.fps, cfg, chunk=batch)
+        res = track_recording(bar, session.rig, source, n_animals, session.fps, cfg,
+                              chunk=batch, keep=False)  # fmt: skip
     return res.tracks
 
 
