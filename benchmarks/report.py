@@ -43,7 +43,7 @@ CLUSTER_BEGIN, CLUSTER_END = "<!-- cluster-figures:begin -->", "<!-- cluster-fig
 BENCHMARKS = (
     "accuracy", "analysis", "calibration", "calibration_coverage", "classifier_days", "cluster",
     "demo", "detector", "label_efficiency", "label_page", "null_studies", "own_rig", "predict",
-    "real_finetune", "smooth", "social", "synth", "throughput", "train_base",
+    "real_finetune", "smooth", "social", "study_predicted", "synth", "throughput", "train_base",
 )  # fmt: skip
 # settings that differ between runs of the same experiment (not a different experiment)
 RUN_KEYS = {"seed", "folder", "finished", "demo", "out", "workdir", "work", "export"}
@@ -218,7 +218,7 @@ def section(name: str, by_settings: dict[str, list[dict[str, Any]]]) -> list[str
     for key, runs in by_settings.items():
         settings = json.loads(key)
         if len(by_settings) > 1 and settings:
-            text = ", ".join(f"{k} {v}" for k, v in settings.items())
+            text = ", ".join(f"{k}={v}" for k, v in settings.items())
             lines += [f"### {text}", ""]
         lines += provenance(runs) + [""] + table(runs) + [""]
         lines += ["Reproduce (one run):", "", "```bash", command_text(runs[-1]), "```", ""]

@@ -66,8 +66,8 @@ def test_aggregation_gives_median_range_runs_and_seeds(bench, fake_results):
     assert "- runs: 4 (seeds 0, 1, 2); CPU kinds: avx512 3, avx2 1" in text
     assert "| analysis/predicted/best_variable | v1 (2x), v2 | v1 (2x), v2 | - |" in text
     # other settings (the tiny preset, other frame counts) are other tables, not in the range
-    assert text.count("## demo") == 1 and "### preset tiny" in text and "99" in text
-    assert "### frames 100" in text and "### frames 20" in text
+    assert text.count("## demo") == 1 and "### preset=tiny" in text and "99" in text
+    assert "### frames=100" in text and "### frames=20" in text
     assert "| render_fps | 10 |" in text and "| ok | true |" in text
     assert "```bash\npython benchmarks/x.py --seed " in text
 

@@ -18,6 +18,7 @@ from click.testing import CliRunner
 from freipose.cli.main import cli
 from freipose.io.poses import read_poses_h5
 from freipose.nn.checkpoint import validation_record
+from freipose.testing import fenced_blocks, freipose_commands
 
 ROOT = Path(__file__).resolve().parents[2]
 PAGE = ROOT / "docs" / "tutorials" / "few-labels.md"
@@ -32,21 +33,21 @@ SUBSTITUTIONS = {
 
 
 def _own_data():
-    """``tests/test_own_data.py`` as a module (its block parser and substitutions)."""
+    """``tests/test_own_data.py`` as a module (its page and substitutions)."""
     spec = importlib.util.spec_from_file_location("own_data", ROOT / "tests" / "test_own_data.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
 
 
-def _run_page(text: str, mod, runner: CliRunner) -> dict[str, str]:
+def _run_page(text: str, runner: CliRunner) -> dict[str, str]:
     outputs: dict[str, str] = {}
-    for lang, body, name in mod._blocks(text):
+    for lang, body, name in fenced_blocks(text):
         if lang == "toml" and name:
             Path(name).write_text(body, encoding="utf-8")
         if lang != "bash":
             continue
-        for args in mod._commands(body):
+        for args in freipose_commands(body):
             res = runner.invoke(cli, args)
             assert res.exit_code == 0, f"freipose {' '.join(args)}\n{res.output}"
             outputs[" ".join(args[:2])] = outputs.get(" ".join(args[:2]), "") + res.output
@@ -67,10 +68,10 @@ def test_few_labels_tutorial_commands(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     runner = CliRunner()
     # the own-rig page up to its step 7 (the tutorial's starting point)
-    _run_page(own.split("## 8.")[0], mod, runner)
+    _run_page(own.split("## 8.")[0], runner)
     # the rig's calibration beside the session's videos, as the tutorial asks
     Path("rec/mouse1/calibration.toml").write_text(Path("calibration.toml").read_text())
-    outputs = _run_page(text, mod, runner)
+    outputs = _run_page(text, runner)
     log = Path("runs/pose_unlabeled/log.csv").read_text().splitlines()
     header = log[0].split(",")
     last = dict(zip(header, log[-1].split(",")))
