@@ -225,8 +225,13 @@ def output_bytes(header: OutputHeader) -> int:
     return T * row + text + len(header.skeleton_text() or "") + _OVERHEAD_BYTES
 
 
-def check_free_space(path: Path, needed: int) -> None:
+def check_free_space(path: Path, needed: int, what: str = "it takes") -> None:
     """Refuse to start writing ``needed`` bytes in ``path``'s folder when it has fewer free.
+
+    Args:
+        path: the output.
+        needed: bytes about to be written.
+        what: what takes them, in the message ("it takes", "its next rows take").
 
     Raises:
         OutputWriteError: the disk holding ``path`` has less than ``needed`` bytes free.
@@ -234,7 +239,7 @@ def check_free_space(path: Path, needed: int) -> None:
     free = shutil.disk_usage(path.parent).free
     if free < needed:
         raise OutputWriteError(
-            f"cannot write {path}: it takes up to {bytes_text(needed)} and the disk holding "
+            f"cannot write {path}: {what} up to {bytes_text(needed)} and the disk holding "
             f"{path.parent.absolute()} has {bytes_text(free)} free; free space there (or "
             f"write to another folder) and run the command again",
             errno.ENOSPC,
@@ -503,6 +508,10 @@ class IncrementalPosesWriter:
         """Write the first ``n`` buffered rows; a failed write removes the partial file."""
         assert self._out is not None
         try:
+            # a nearly full disk stops the run here, cleanly, whether or not HDF5 would
+            # have found room for these rows in space the file already holds
+            need = sum(a.nbytes for k in self._fields for a in self._buf[k])
+            check_free_space(self.path, need, "its next rows take")
             self._write_rows(self._out, n)
         except OutputWriteError:
             self._give_up()
