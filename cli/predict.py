@@ -88,7 +88,7 @@ from freipose.errors import FreiPoseError
     "bgsub or --detector), followed over the whole recording (a first, cheap pass over the "
     "frames that a resumed run repeats), and the network predicts each one's cube; the poses "
     "file has an animal axis (individuals animal_0, animal_1, ..., identity confidence and "
-    "flags). Not with --shard, --executor or --smooth.",
+    "flags; --smooth smooths each animal on its own). Not with --shard or --executor.",
 )
 @click.option("--overwrite", is_flag=True, help="Redo outputs that exist and are complete.")
 @cluster_options
@@ -163,7 +163,7 @@ def predict(
         config = cluster_config(executor, cluster_file, chunk_frames, parallel, max_retries,
                                 cpus=threads)  # fmt: skip
         shard_t = _check_options(batch, parse_shard(shard), smooth, config is not None)
-        _check_animals(animals, shard_t, smooth, config is not None)
+        _check_animals(animals, shard_t, config is not None)
         spec = detector_spec(detector, method, fixed_boxes, bg_samples, min_views)
         overrides = inference_overrides(fusion_reject, map_window)
         expected = load_skeleton(skeleton) if skeleton else None
@@ -171,12 +171,15 @@ def predict(
         check_checkpoints(("--model", model, POSE_NETWORK), ("--detector", detector, DETECTOR))
         found = discover_sessions(sessions, calibration, camera_map=camera_map_from(camera_map))
         _say_calibrations(found, calibration is not None, quiet)
-        if animals > 1:
-            _predict_animals(found, model, spec, outdir, animals, frames, batch, device,
-                             refine, overrides, backend, overwrite, expected, quiet)  # fmt: skip
-            return
         if smooth:
             _refuse_stale_smoothed(outdir, [s.name for s in found], overwrite)
+        if animals > 1:
+            done = _predict_animals(found, model, spec, outdir, animals, frames, batch,
+                                    device, refine, overrides, backend, overwrite, expected,
+                                    quiet)  # fmt: skip
+            if smooth:
+                _smooth_results(done, outdir, overwrite)
+            return
         if config is not None:
             paths = _predict_units(found, model, spec, outdir, frames, batch, device, refine,
                                    overrides, expected, config, overwrite, quiet)  # fmt: skip
@@ -216,11 +219,11 @@ def _check_options(
     return shard
 
 
-def _check_animals(animals: int, shard: tuple[int, int] | None, smooth: bool, units: bool) -> None:
+def _check_animals(animals: int, shard: tuple[int, int] | None, units: bool) -> None:
     """Refuse options that several animals do not take.
 
     Raises:
-        FreiPoseError: --animals 2+ with --shard, --executor or --smooth.
+        FreiPoseError: --animals 2+ with --shard or --executor.
     """
     if animals < 2:
         return
@@ -228,7 +231,6 @@ def _check_animals(animals: int, shard: tuple[int, int] | None, smooth: bool, un
     refused = (
         ("--shard", shard is not None, whole),
         ("--executor/--cluster", units, whole),
-        ("--smooth", smooth, "the smoother takes one animal's poses"),
     )
     for name, on, why in refused:
         if on:
@@ -239,11 +241,11 @@ def _predict_animals(
     found: list, model: Path, spec: Any, outdir: Path, animals: int, frames: str | None,
     batch: int, device: str, refine: bool, overrides: Any, backend: str, overwrite: bool,
     expected: Any, quiet: bool,
-) -> None:  # fmt: skip
+) -> list:  # fmt: skip
     """``--animals N``: track every session's animals, then predict each one's poses."""
     from freipose.predict.animals_run import predict_animal_sessions
 
-    predict_animal_sessions(
+    return predict_animal_sessions(
         found, model, spec, outdir, animals, frames=frames, batch_size=batch, device=device,
         refine=refine, overrides=overrides, backend=backend, overwrite=overwrite,
         expected_skeleton=expected, progress=not quiet, report=echo_result,

@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from freipose.errors import FreiPoseError
+from freipose.io.animals import stack_animals
 from freipose.io.atomic import refuse_existing
 from freipose.io.lock import output_lock
 from freipose.io.poses import PoseData, read_poses_h5, write_poses_h5
@@ -428,9 +429,16 @@ def smooth_poses(
             (:mod:`freipose.predict.smooth_bones`); the standard deviation stays the
             smoother's.
 
+    Poses with an animal axis are smoothed animal by animal (each animal's own fit); the
+    provenance's ``smoother`` then holds the shared settings and ``animals``: per animal its
+    fitted parameters, rejected count and any warning.
+
     Raises:
-        SmoothingError: too few predicted frames, or ``bones`` without usable limbs.
+        SmoothingError: too few predicted frames (of any animal), or ``bones`` without
+            usable limbs.
     """
+    if data.individuals is not None:
+        return _smooth_animals(data, source, error_floor, bones)
     res = smooth_arrays(data.poses, data.confidence, frame_intervals(data.frame_index, data.fps))
     floor, persistent = _persistent(error_floor, data.keypoints)
     std = np.sqrt(res.std**2 + floor[None] ** 2)
@@ -475,6 +483,26 @@ def smooth_poses(
         "smooth_offset": res.offset.astype(np.float32),
     }
     return dataclasses.replace(data, poses=mean.astype(np.float32), provenance=prov, extra=extra)
+
+
+def _smooth_animals(
+    data: PoseData, source: str, error_floor: np.ndarray | HeldOutError | None, bones: bool
+) -> PoseData:
+    """:func:`smooth_poses` of each animal of poses (T, A, K, 3), joined again."""
+    done = {}
+    for name in data.individuals or ():
+        try:
+            done[name] = smooth_poses(data.animal(name), f"{source} ({name})", error_floor, bones)
+        except SmoothingError as exc:
+            raise SmoothingError(f"animal {name}: {exc}") from exc
+    out = stack_animals(done, data.identity_confidence)
+    per_animal = {n: d.provenance["smoother"] for n, d in done.items()}
+    first = next(iter(per_animal.values()))
+    own = ("params", "rejected", "warning", "adaptive_process_noise", "bones", "source")
+    shared = {k: v for k, v in first.items() if k not in own}
+    animals = {n: {k: e[k] for k in own if k in e} for n, e in per_animal.items()}
+    prov = {**dict(data.provenance), "smoother": {**shared, "source": source, "animals": animals}}
+    return dataclasses.replace(out, provenance=prov)
 
 
 def refuse_same(src: Path, dst: Path) -> None:

@@ -40,7 +40,7 @@ def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     _run(["synth", str(session), "--animals", "2", "--coat-mix", "different", "--frames",
           str(T), "--fps", "6", "--cameras", "4", "--size", "256x208", "--seed", "6"])  # fmt: skip
     _run(["predict", str(session), "--model", str(BASE), "--method", "bgsub", "--animals", "2",
-          "-o", str(root / "poses"), "--device", "cpu", "--batch", "4"])  # fmt: skip
+          "-o", str(root / "poses"), "--device", "cpu", "--batch", "4", "--smooth"])  # fmt: skip
     return session, root / "poses" / "pair.poses.h5"
 
 
@@ -59,6 +59,9 @@ def test_predicted_animals_are_each_near_their_own_truth(pair: tuple[Path, Path]
     assert d.extra["center"].shape == (T, 2, 3) and d.extra["points2d"].shape == (T, 2, 4, 12, 2)
     assert d.provenance["animals"] == 2 and d.provenance["detection"] == "bgsub"
     assert (d.extra["status"] == 0).all()
+    smoothed = read_poses_h5(path.parent / "smoothed" / path.name)  # --smooth: per animal
+    assert smoothed.individuals == d.individuals and smoothed.poses.shape == d.poses.shape
+    assert set(smoothed.provenance["smoother"]["animals"]) == set(d.individuals)
     found = np.isfinite(d.poses).all((2, 3))
     assert found.sum(0).min() >= 30, found.sum(0)
     ok = found & np.isfinite(d.identity_confidence)
@@ -121,7 +124,6 @@ def test_render_export_and_social_variables_take_the_animals(
 @pytest.mark.parametrize(
     ("extra", "says"),
     [
-        (["--method", "bgsub", "--smooth"], "--smooth"),
         (["--method", "bgsub", "--shard", "0/2"], "--shard"),
         (["--method", "bgsub", "--executor", "local"], "--executor"),
         (["--method", "fixed", "--fixed-boxes", "BOXES"], "--method fixed"),
