@@ -2,7 +2,8 @@
 
 * :class:`SplitForeground` (a :class:`~freipose.detect.base.BoxSource`): background
   subtraction (the foreground of a fitted
-  :class:`~freipose.detect.fallback.BackgroundSubtractor`) that proposes one box per
+  :class:`~freipose.detect.fallback.BackgroundSubtractor`, without its thin parts such as
+  tails, which would stretch a box far past the body) that proposes one box per
   animal: fragments of one animal are merged (a smaller gap than the single-animal
   path, so that nearby animals stay apart), and a blob larger than one animal is split
   into as many animals as its area holds (the expected count shared out by area): first
@@ -58,6 +59,33 @@ def _shares(areas: np.ndarray, n_animals: int, ratio: float = 1.75) -> np.ndarra
             break
         k[i] += 1
     return k
+
+
+def without_thin_parts(mask: np.ndarray, thin: float) -> np.ndarray:
+    """The foreground without its thin parts (a rat's tail, a shadow's edge).
+
+    An opening with a disc of radius ``thin`` x the half-width of the thickest blob (its
+    deepest distance-transform pixel) removes every part narrower than the disc; the
+    bodies keep their outline. Where the opening would remove more than half the
+    foreground (no animal is that thin), the mask is returned as it is.
+
+    Args:
+        mask: (h, w) uint8 0/255 foreground.
+        thin: the disc's radius as a fraction of the thickest half-width (0: no change).
+
+    Returns:
+        (h, w) uint8 0/255.
+    """
+    m = np.asarray(mask, np.uint8)
+    if thin <= 0 or not m.any():
+        return m
+    dt = cv2.distanceTransform((m > 0).astype(np.uint8), cv2.DIST_L2, 3)
+    r = int(round(thin * float(dt.max())))
+    if r < 1:
+        return m
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    opened = cv2.morphologyEx(m, cv2.MORPH_OPEN, disc)
+    return opened if 2 * np.count_nonzero(opened) >= np.count_nonzero(m) else m
 
 
 def split_blob(
@@ -116,6 +144,9 @@ class SplitForeground:
         merge_gap: fragments closer than this fraction of a group's longer side merge.
         min_area: smallest animal, as a fraction of the image area.
         margin: added on every side of a box, as a fraction of its longer side.
+        thin: parts of the foreground narrower than about this fraction of the thickest
+            animal's width (tails, their shadows) are removed before the boxes are made
+            (:func:`without_thin_parts`); 0 keeps them.
     """
 
     def __init__(
@@ -125,6 +156,7 @@ class SplitForeground:
         merge_gap: float = 0.05,
         min_area: float | None = None,
         margin: float | None = None,
+        thin: float = 0.3,
     ):
         if n_animals < 1:
             raise DetectConfigError(f"n_animals must be >= 1, got {n_animals}")
@@ -133,9 +165,11 @@ class SplitForeground:
         self.merge_gap = merge_gap
         self.min_area = subtractor.min_area if min_area is None else min_area
         self.margin = subtractor.margin if margin is None else margin
+        self.thin = thin
 
     def _one(self, image: np.ndarray, camera: str) -> Candidates:
         mask, s = self.subtractor.foreground(image, camera)
+        mask = without_thin_parts(mask, self.thin)
         n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
         groups, areas = _merged_blobs(stats[1:], self.min_area * mask.size, self.merge_gap)
         groups, areas = groups[: self.n_animals], areas[: self.n_animals]

@@ -18,6 +18,11 @@ in no particular order; :func:`track_animals` keeps A tracks, one per animal:
   and the Hungarian algorithm (:func:`scipy.optimize.linear_sum_assignment`) picks the
   matches. Tracks are started from hypotheses far from every existing track until there
   are A of them;
+* **reacquisition**: a track unmatched for two frames takes a hypothesis that no track
+  follows, lies farther than the gate from every matched one and was there in the previous
+  frame too (an animal whose track was lost, e.g. it followed the other animal out of a
+  contact; a false hypothesis seldom lasts two frames): by appearance where known,
+  restarting with no velocity;
 * **identity confidence**: per matched track, how much more the best alternative would
   cost (exchanging hypotheses with another track, or taking an unmatched hypothesis):
   ``1 - exp(-margin / confidence_scale)``. Close contact with similar motion and look
@@ -64,6 +69,8 @@ class TrackingConfig:
         miss_cost_per_s: ... growing by this per second unseen, so that a long-lost animal
             is found again farther away, but a false hypothesis far from a track just
             hidden does not take it.
+        reacquire: a lost track takes an animal no track follows (see the module
+            docstring).
     """
 
     gate_mm: float = 100.0
@@ -78,6 +85,7 @@ class TrackingConfig:
     flag_below: float = 0.5
     miss_cost: float = 1.0
     miss_cost_per_s: float = 1.0
+    reacquire: bool = True
 
     def __post_init__(self) -> None:
         for name in ("gate_mm", "max_speed", "confidence_scale"):
@@ -262,6 +270,7 @@ def track_animals(
     out_h = np.full((t_n, a_n), -1, dtype=np.int64)
     out_c = np.full((t_n, a_n), np.nan)
     tracks: list[_Track] = []
+    prev_free = np.zeros((0, 3))
     for t in range(t_n):
         X, F = _frame_inputs(centers, features, t)
         cost = _costs(tracks, X, F, cfg)
@@ -269,11 +278,13 @@ def track_animals(
         miss = cfg.miss_cost + cfg.miss_cost_per_s * unseen_s
         match = _assign(cost, miss)
         margin = _margins(cost, match, miss)
+        _reacquire(tracks, X, F, match, margin, prev_free, cfg)
         _start_tracks(tracks, X, F, match, a_n, cfg)
         match = np.concatenate([match, np.full(len(tracks) - len(match), -1)])
         for i in range(len(tracks) - len(margin)):  # started now: matched to their seed
             match[len(margin) + i] = _seed_of(tracks[len(margin) + i], X)
         margin = np.concatenate([margin, np.full(len(tracks) - len(margin), np.inf)])
+        prev_free = _unclaimed(X, match)
         pos = np.stack([tr.predict() for tr in tracks]) if tracks else np.zeros((0, 3))
         for i, tr in enumerate(tracks):
             j = int(match[i])
@@ -292,6 +303,63 @@ def track_animals(
                 out_b[t, i] = np.asarray(boxes[t])[j]
     flagged = np.nan_to_num(out_c, nan=1.0) < cfg.flag_below
     return Tracks(out_x, out_b, out_h, out_c, flagged, float(fps))
+
+
+def _reacquire(
+    tracks: list[_Track], X: np.ndarray, F: np.ndarray | None, match: np.ndarray,
+    margin: np.ndarray, prev_free: np.ndarray, cfg: TrackingConfig,
+) -> np.ndarray:  # fmt: skip
+    """Lost tracks take the animals that no track follows (changes ``match`` and ``margin``).
+
+    A hypothesis no track took, farther than ``gate_mm`` from every matched one and seen
+    in the previous frame too (within ``gate_mm`` of a hypothesis no track took then: a
+    false hypothesis seldom lasts), is an animal whose track was lost (e.g. it followed
+    the other animal out of a contact). The tracks unmatched in this frame and the
+    previous one take such hypotheses, by appearance where it is known (Hungarian), and
+    restart there with no velocity; their margin is that of the appearance assignment.
+
+    Returns:
+        (N,) bool, the tracks that were reacquired.
+    """
+    n = len(tracks)
+    got = np.zeros(n, bool)
+    if not cfg.reacquire or not n or not len(X) or not len(prev_free):
+        return got
+    lost = np.flatnonzero((match[:n] < 0) & (np.array([tr.unseen for tr in tracks]) >= 1))
+    taken = X[match[match >= 0]]
+    ok = np.isfinite(X).all(-1) & (np.abs(X).max(-1) < 1e11)
+    ok[match[match >= 0]] = False
+    if len(taken):
+        ok &= np.linalg.norm(X[:, None] - taken[None], axis=-1).min(1) > cfg.gate_mm
+    ok &= np.linalg.norm(X[:, None] - prev_free[None], axis=-1).min(1) <= cfg.gate_mm
+    free = np.flatnonzero(ok)
+    if not len(lost) or not len(free):
+        return got
+    cost = np.zeros((len(lost), len(free)))
+    for r, i in enumerate(lost):
+        d = np.linalg.norm(X[free] - tracks[i].pos, axis=-1)
+        cost[r] = 0.01 * d / cfg.gate_mm  # ties: the nearest
+        if F is not None and tracks[i].feature is not None and cfg.appearance_weight > 0:
+            look = np.linalg.norm(F[free] - tracks[i].feature, axis=-1)
+            cost[r] += cfg.appearance_weight * np.nan_to_num(look, nan=0.0)
+    rows, cols = linear_sum_assignment(cost)
+    miss = np.full(len(lost), FORBIDDEN)
+    sub = np.full(len(lost), -1, dtype=np.int64)
+    sub[rows] = cols
+    m2 = _margins(cost, sub, miss)
+    for r, cidx in zip(rows, cols, strict=True):
+        i, j = lost[r], free[cidx]
+        tr = tracks[i]
+        tr.pos, tr.vel, tr.unseen = X[j].copy(), np.zeros(3), 0
+        match[i], margin[i], got[i] = j, m2[r], True
+    return got
+
+
+def _unclaimed(X: np.ndarray, match: np.ndarray) -> np.ndarray:
+    """The finite hypotheses (n, 3) no track took in this frame."""
+    ok = np.isfinite(X).all(-1) & (np.abs(X).max(-1) < 1e11) if len(X) else np.zeros(0, bool)
+    ok[match[match >= 0]] = False
+    return X[ok]
 
 
 def _start_tracks(

@@ -17,6 +17,7 @@ from freipose.detect.multi import (
     detect_animals,
     detect_animals_batch,
     split_blob,
+    without_thin_parts,
 )
 from freipose.geometry import project
 from freipose.synth.rig import default_rig
@@ -44,6 +45,20 @@ def test_split_blob_at_a_narrow_contact_and_side_by_side_by_colour() -> None:
     ys = sorted(np.nonzero(p)[0].mean() for p in parts)
     assert abs(ys[0] - 19.5) < 3 and abs(ys[1] - 49.5) < 3
     assert len(split_blob(side, 1)) == 1
+
+
+def test_thin_parts_such_as_tails_are_removed_and_bodies_kept() -> None:
+    m = np.zeros((80, 200), np.uint8)
+    cv2.ellipse(m, (60, 40), (40, 18), 0, 0, 360, 255, -1)
+    cv2.line(m, (100, 40), (190, 60), 255, 2)  # a tail, 2-3 px wide
+    out = without_thin_parts(m, 0.3)
+    xs = np.nonzero(out)[1]
+    assert xs.max() <= 101 and xs.min() <= 21  # the tail is gone, the body's ends kept
+    assert np.count_nonzero(out) >= 0.95 * np.count_nonzero(m[:, :100])
+    np.testing.assert_array_equal(without_thin_parts(m, 0.0), m)
+    thin_only = np.zeros((40, 40), np.uint8)
+    thin_only[20, 5:35] = 255  # nothing but thin parts: kept as it is
+    np.testing.assert_array_equal(without_thin_parts(thin_only, 0.3), thin_only)
 
 
 def test_shares_split_only_blobs_holding_several_animals() -> None:

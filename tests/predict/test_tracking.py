@@ -98,6 +98,21 @@ def test_identity_kept_through_full_occlusion_and_false_hypotheses() -> None:
         assert tr.observed[41:65, 1].sum() <= 3
 
 
+def test_a_lost_track_takes_back_its_animal_seen_far_from_the_prediction() -> None:
+    a = _line((-200, 0), (-200, 0), 40)
+    b = np.concatenate([_line((200, 0), (200, 0), 10), _line((200, -250), (200, -250), 30)])
+    truth = np.stack([a, b], 1)
+    centres, feats = _hypotheses(truth, np.random.default_rng(1), hidden={1: range(10, 15)})
+    late = track_animals(centres, 2, FPS, features=feats,
+                         config=TrackingConfig(reacquire=False))  # fmt: skip
+    # 250 mm from its prediction: beyond the gate of a track unseen for 5 frames
+    assert (identity_switches(late.centers, truth)[1][15:18, 1] == -1).all()
+    back = track_animals(centres, 2, FPS, features=feats)
+    switches, assigned = identity_switches(back.centers, truth)
+    assert switches == 0 and (assigned[:10] >= 0).all()
+    assert assigned[15, 1] == -1 and (assigned[16:, 1] >= 0).all()  # seen twice first
+
+
 def test_tracks_from_simulated_views_of_three_animals() -> None:
     rig = default_rig(7, seed=0)
     arena = np.array([[-300.0, 300], [-300, 300], [0, 200]])
