@@ -18,7 +18,9 @@ measures, for ``submitit`` (what ``freipose.cluster`` uses) and ``dask-jobqueue`
    cancelled with ``scancel``. The engine's own API is then asked for that unit's result for
    at most ``--cancel-timeout`` seconds: did it rerun the unit (how many times it started,
    read from files the unit writes), report an error (which), or give no answer (the timeout)?
-   Also: when ``squeue`` stopped listing the job, and whether Dask replaced the lost worker.
+   Also: when ``squeue`` stopped listing the cancelled array task (submitit), whether it
+   still lists the cancelled worker job and how many worker jobs are left (Dask). submitit
+   is also sent what SLURM sends before a preemption (``SIGTERM``, ``USR2``): it requeues.
 3. **What each needs on the cluster**: the TCP ports the submitting process listens on while
    the jobs run (read from ``/proc``), the files the engine writes per unit, and what the
    engine needs running (stated per engine in ``NEEDS``).
@@ -428,7 +430,7 @@ def cancel_dask(folder: Path, args: argparse.Namespace) -> dict:
             out["seconds_to_answer"] = time.perf_counter() - t0
         except TimeoutError:
             pass
-        out["squeue_gone_s"] = None if squeue_lists(job) else "gone"
+        out["job_listed_at_end"] = squeue_lists(job)
         out["starts"] = len(starts(marks, "u0"))
         out["other_unit_done"] = _other_done(lambda: futures[1].result(), args)
         listed = subprocess.run(
