@@ -481,7 +481,7 @@ def measure_times(engines: Sequence[str], work: Path, args: argparse.Namespace) 
                 for suffix, (seconds, results) in runs.items():
                     if results != expected:
                         raise RuntimeError(f"{engine} {name}: wrong results {results!r}")
-                    times.setdefault(f"{engine}{suffix}_{name}_s", []).append(seconds)
+                    times.setdefault(f"{engine}{suffix}_{name}_s", []).append(round(seconds, 3))
                     print(f"  {engine}{suffix} {name}: {seconds:.2f} s", file=sys.stderr)
     figures: dict[str, Any] = {"medians": medians(times), "repeats": times}
     serial = args.units * args.sleep
