@@ -88,6 +88,37 @@ def without_thin_parts(mask: np.ndarray, thin: float) -> np.ndarray:
     return opened if 2 * np.count_nonzero(opened) >= np.count_nonzero(m) else m
 
 
+def _seeds_on(blob: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """The seeds (n, 2) (x, y in the blob's pixels) that lie on the blob, finite ones only."""
+    sd = seeds[np.isfinite(seeds).all(-1)]
+    h, w = blob.shape
+    ix, iy = np.round(sd[:, 0]).astype(int), np.round(sd[:, 1]).astype(int)
+    ok = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+    ok[ok] = blob[iy[ok], ix[ok]]
+    return sd[ok]
+
+
+def split_by_seeds(mask: np.ndarray, seeds: np.ndarray) -> list[np.ndarray]:
+    """Split a blob between animals whose centres are known: each pixel to its nearest seed.
+
+    Args:
+        mask: (h, w) bool, the blob.
+        seeds: (k, 2) the animals' centres, x and y in the blob's pixels.
+
+    Returns:
+        k bool masks (h, w).
+    """
+    ys, xs = np.nonzero(mask)
+    d = np.hypot(xs[:, None] - seeds[None, :, 0], ys[:, None] - seeds[None, :, 1])
+    near = np.argmin(d, axis=1)
+    out = []
+    for j in range(len(seeds)):
+        part = np.zeros(mask.shape, bool)
+        part[ys[near == j], xs[near == j]] = True
+        out.append(part)
+    return out
+
+
 def split_blob(
     mask: np.ndarray, k: int, colour: np.ndarray | None = None, seed: int = 0
 ) -> list[np.ndarray]:
@@ -167,7 +198,7 @@ class SplitForeground:
         self.margin = subtractor.margin if margin is None else margin
         self.thin = thin
 
-    def _one(self, image: np.ndarray, camera: str) -> Candidates:
+    def _one(self, image: np.ndarray, camera: str, seeds: np.ndarray | None = None) -> Candidates:
         mask, s = self.subtractor.foreground(image, camera)
         mask = without_thin_parts(mask, self.thin)
         n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
@@ -185,7 +216,12 @@ class SplitForeground:
             x1, y1 = (int(v) for v in np.ceil(box[2:] + 0.5))
             blob = mask[y0:y1, x0:x1] > 0
             img = (small if small is not None else np.asarray(image))[y0:y1, x0:x1]
-            for part in split_blob(blob, int(k), img if img.ndim == 3 else None):
+            inner = None if seeds is None else _seeds_on(blob, (seeds + 0.5) * s - 0.5 - [x0, y0])
+            if k > 1 and inner is not None and len(inner) >= k:
+                parts = split_by_seeds(blob, inner[:k])
+            else:
+                parts = split_blob(blob, int(k), img if img.ndim == 3 else None)
+            for part in parts:
                 ys, xs = np.nonzero(part)
                 if len(xs) == 0:
                     continue
@@ -204,6 +240,38 @@ class SplitForeground:
         if len(images) != len(cameras):
             raise ValueError(f"{len(images)} images but {len(cameras)} camera names")
         return [self._one(img, cam) for img, cam in zip(images, cameras, strict=True)]
+
+    def propose_seeded(
+        self, images: Sequence[np.ndarray], cameras: Sequence[str], seeds: Sequence[np.ndarray]
+    ) -> list[Candidates]:
+        """:meth:`propose`, blobs of several animals split at their expected centres.
+
+        ``seeds`` holds per image the centres (n, 2) in full-image pixels (e.g. the
+        projections of the 3D hypotheses); a blob of k animals on which at least k of
+        them lie is split between the first k (:func:`split_by_seeds`), other blobs as
+        in :meth:`propose`.
+        """
+        if not len(images) == len(cameras) == len(seeds):
+            raise ValueError(f"{len(images)} images, {len(cameras)} camera names and "
+                             f"{len(seeds)} seed arrays")  # fmt: skip
+        return [self._one(img, cam, np.asarray(sd, np.float64).reshape(-1, 2))
+                for img, cam, sd in zip(images, cameras, seeds, strict=True)]  # fmt: skip
+
+    def foreground_masks(
+        self, images: Sequence[np.ndarray], cameras: Sequence[str]
+    ) -> list[np.ndarray]:
+        """The foreground the boxes are made from: (H, W) bool per image, full size."""
+        if len(images) != len(cameras):
+            raise ValueError(f"{len(images)} images but {len(cameras)} camera names")
+        out = []
+        for img, cam in zip(images, cameras, strict=True):
+            mask, _ = self.subtractor.foreground(img, cam)
+            mask = without_thin_parts(mask, self.thin)
+            h, w = np.asarray(img).shape[:2]
+            if mask.shape != (h, w):
+                mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
+            out.append(mask > 0)
+        return out
 
 
 class PeakBoxes:

@@ -2,7 +2,10 @@
 
 :func:`track_recording` runs, chunk by chunk, a box source that gives several boxes per
 view (:class:`freipose.detect.multi.SplitForeground`, :class:`~freipose.detect.multi.PeakBoxes`),
-the association into 3D animal hypotheses (:func:`freipose.detect.multi.detect_animals`),
+the association into 3D animal hypotheses (:func:`freipose.detect.multi.detect_animals`;
+with a source that can split blobs at given centres, such as ``SplitForeground``, a
+second look splits the blobs of animals in contact where the hypotheses project and is
+kept where more views agree),
 the coat colour of each hypothesis from its own boxes
 (:func:`freipose.predict.tracking.colour_features`), and then the tracking
 (:func:`freipose.predict.tracking.track_animals`).
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +38,7 @@ from freipose.detect.boxes import (
     visible_fraction,
 )
 from freipose.detect.multi import AnimalDetections, AnimalsConfig, detect_animals
-from freipose.geometry import CameraRig, triangulate
+from freipose.geometry import CameraRig, project_rig, triangulate
 from freipose.predict.tracking import (
     TrackingConfig,
     Tracks,
@@ -103,6 +107,8 @@ def track_recording(
     boxes: list[np.ndarray] = []
     feats: list[np.ndarray] = []
     batch: list[Sequence[np.ndarray | None]] = []
+    masker = getattr(source, "foreground_masks", None)  # the coats' pixels, where known
+    reseed = getattr(source, "propose_seeded", None)  # blobs split at the hypotheses
 
     def flush() -> None:
         flat = [img for fr in batch for img in fr if img is not None]
@@ -112,6 +118,10 @@ def track_recording(
         for fr in batch:
             cd = tuple(Candidates.empty() if img is None else next(got) for img in fr)
             det = detect_animals(cd, rig, cfg, bounds)
+            if reseed is not None and len(det):
+                cd2, det2 = _resplit(reseed, fr, names, rig, det, cfg, bounds)
+                if det2.n_views.sum() > det.n_views.sum():  # the views agree more
+                    cd, det = cd2, det2
             centres.append(det.centers)
             boxes.append(det.boxes)
             if keep:
@@ -119,7 +129,16 @@ def track_recording(
                 dets.append(det)
             if appearance:  # a missing view has no own box: its image is never read
                 shown = [_NO_IMAGE if img is None else img for img in fr]
-                feats.append(colour_features(shown, det.boxes, det.own))
+                fg = None
+                if masker is not None:
+                    got_m = iter(
+                        masker(
+                            [im for im in fr if im is not None],
+                            [n for n, im in zip(names, fr) if im is not None],
+                        )
+                    )
+                    fg = [None if im is None else next(got_m) for im in fr]  # fmt: skip
+                feats.append(colour_features(shown, det.boxes, det.own, masks=fg))
         batch.clear()
 
     for fr in frames:
@@ -135,6 +154,30 @@ def track_recording(
         config=tracking,
     )  # fmt: skip
     return RecordingTracks(tracks, tuple(dets), tuple(cands))
+
+
+def _resplit(
+    reseed: Any,
+    frame: Sequence[np.ndarray | None],
+    names: list[str],
+    rig: CameraRig,
+    det: AnimalDetections,
+    cfg: AnimalsConfig,
+    bounds: np.ndarray | None,
+) -> tuple[tuple[Candidates, ...], AnimalDetections]:
+    """Candidates and hypotheses again, blobs split at the hypotheses' projections.
+
+    A second look at animals in contact: a view's blob of two animals is split along the
+    line between where the first hypotheses project (the other views fix them), not
+    where its outline narrows. :func:`track_recording` keeps it where more boxes agree
+    with the hypotheses than at the first look.
+    """
+    uv = project_rig(det.centers[:, None, :], rig)[:, :, 0, :]  # (H, C, 2)
+    shown = [c for c, im in enumerate(frame) if im is not None]
+    got = iter(reseed([frame[c] for c in shown], [names[c] for c in shown],
+                      [uv[:, c] for c in shown]))  # fmt: skip
+    cd = tuple(Candidates.empty() if im is None else next(got) for im in frame)
+    return cd, detect_animals(cd, rig, cfg, bounds)
 
 
 @dataclass(frozen=True)

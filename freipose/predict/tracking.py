@@ -158,7 +158,10 @@ def _costs(
     if feats is not None and cfg.appearance_weight > 0:
         for i, tr in enumerate(tracks):
             if tr.feature is not None:
-                cost[i] += cfg.appearance_weight * np.linalg.norm(feats - tr.feature, axis=-1)
+                look = np.linalg.norm(feats - tr.feature, axis=-1)
+                if np.isfinite(look).any():  # relative: the look chooses, motion gates
+                    look = np.nan_to_num(look - np.nanmin(look), nan=0.0)
+                    cost[i] += cfg.appearance_weight * look
     return np.where(d <= gate[:, None], cost, FORBIDDEN)
 
 
@@ -385,9 +388,18 @@ def _seed_of(tr: _Track, X: np.ndarray) -> int:
 
 
 def colour_features(
-    images: Sequence[np.ndarray], boxes: np.ndarray, use: np.ndarray | None = None, bins: int = 6
+    images: Sequence[np.ndarray],
+    boxes: np.ndarray,
+    use: np.ndarray | None = None,
+    bins: int = 6,
+    masks: Sequence[np.ndarray | None] | None = None,
 ) -> np.ndarray:
-    """Coat colour of each hypothesis: hue-saturation histograms of its boxes, over its views.
+    """Coat colour of each hypothesis: colour histograms of its boxes, over its views.
+
+    Per box a hue-saturation histogram (``bins`` x ``bins``) and a brightness histogram
+    (``bins``): hue and saturation tell coloured coats apart, brightness black from white
+    (both without saturation). With ``masks`` only the foreground pixels of a box count
+    (not the floor around the animal).
 
     Args:
         images: C BGR uint8 images (H, W, 3), one per camera.
@@ -395,19 +407,22 @@ def colour_features(
         use: (H, C) bool, the views to use (e.g. ``own``: not the boxes shared by two
             animals); default all finite boxes.
         bins: histogram bins per channel.
+        masks: C foreground masks (H, W) bool or None (a view without: the whole box).
 
     Returns:
-        (H, bins * bins) square roots of the normalised histograms, so that the Euclidean
-        distance of two rows is sqrt(2) x their Hellinger distance (0..sqrt(2)); NaN rows
+        (H, bins * bins + bins) square roots of the two histograms, each normalised and
+        weighted 1/2, so that the Euclidean distance of two rows is 0..sqrt(2); NaN rows
         for hypotheses without a usable box.
     """
     b = np.asarray(boxes, dtype=np.float64)
     h, c = b.shape[:2]
     ok = np.isfinite(b).all(-1) if use is None else np.asarray(use, bool) & np.isfinite(b).all(-1)
-    out = np.full((h, bins * bins), np.nan)
+    out = np.full((h, bins * bins + bins), np.nan)
     hsv = [cv2.cvtColor(np.asarray(img), cv2.COLOR_BGR2HSV) for img in images]
+    fg = [None if masks is None or masks[v] is None else np.asarray(masks[v], np.uint8)
+          for v in range(len(hsv))]  # fmt: skip
     for i in range(h):
-        acc = np.zeros(bins * bins)
+        acc_hs, acc_v = np.zeros(bins * bins), np.zeros(bins)
         for v in np.flatnonzero(ok[i]):
             hh, ww = hsv[v].shape[:2]
             x0, y0 = max(int(b[i, v, 0] + 0.5), 0), max(int(b[i, v, 1] + 0.5), 0)
@@ -415,10 +430,15 @@ def colour_features(
             if x1 <= x0 or y1 <= y0:
                 continue
             patch = hsv[v][y0:y1, x0:x1]
-            hist = cv2.calcHist([patch], [0, 1], None, [bins, bins], [0, 180, 0, 256]).ravel()
-            acc += hist / max(hist.sum(), 1.0)
-        if acc.sum() > 0:
-            out[i] = np.sqrt(acc / acc.sum())
+            m = None if fg[v] is None else np.ascontiguousarray(fg[v][y0:y1, x0:x1])
+            if m is not None and not m.any():
+                continue
+            hs = cv2.calcHist([patch], [0, 1], m, [bins, bins], [0, 180, 0, 256]).ravel()
+            val = cv2.calcHist([patch], [2], m, [bins], [0, 256]).ravel()
+            acc_hs += hs / max(hs.sum(), 1.0)
+            acc_v += val / max(val.sum(), 1.0)
+        if acc_hs.sum() > 0:
+            out[i] = np.sqrt(0.5 * np.r_[acc_hs / acc_hs.sum(), acc_v / acc_v.sum()])
     return out
 
 

@@ -17,6 +17,7 @@ from freipose.detect.multi import (
     detect_animals,
     detect_animals_batch,
     split_blob,
+    split_by_seeds,
     without_thin_parts,
 )
 from freipose.geometry import project
@@ -116,6 +117,35 @@ def test_split_foreground_finds_both_animals_in_contact() -> None:
     # apart, every view has one box per animal
     far = source.propose(images[-1], RIG.names)
     assert all(len(c) == 2 for c in far)
+
+
+def test_blob_split_at_the_animals_expected_centres() -> None:
+    side = np.zeros((70, 200), bool)  # pressed side by side: no neck, one coat
+    side[5:35, 10:190] = side[35:65, 10:190] = True
+    parts = split_by_seeds(side, np.array([[100.0, 50], [100, 20]]))
+    assert [round(np.nonzero(p)[0].mean(), 1) for p in parts] == [49.5, 19.5]
+    assert sum(p.sum() for p in parts) == side.sum()
+    blind = split_blob(side, 2)  # one coat, no neck: the outline alone cuts across both
+    assert all(abs(np.nonzero(p)[0].mean() - 34.5) < 3 for p in blind)
+    # the source: with the centres of two animals in contact, per view the blob is split
+    # between them; the foreground masks are the image's size
+    scene = social_scene(2, n_frames=300, seed=0)
+    d = np.linalg.norm(scene.centres[:, 0] - scene.centres[:, 1], axis=-1)
+    t = int(np.argmin(d))
+    images, bgs = _render(scene, [t])
+    sub = BackgroundSubtractor(dict(zip(RIG.names, bgs, strict=True)), threshold=25)
+    source = SplitForeground(sub, n_animals=2)
+    uv = np.stack([project(scene.centres[t], cam) for cam in RIG])  # (C, 2, 2)
+    seeded = source.propose_seeded(images[0], RIG.names, list(uv))
+    tb = true_boxes(scene, RIG)[t]  # (C, A, 4)
+    plain = source.propose(images[0], RIG.names)
+    hits = [[(box_iou(c.boxes[:, None], tb[v][None]) >= 0.5).any(0).sum() for v, c in
+             enumerate(found)] for found in (plain, seeded)]  # fmt: skip
+    assert sum(hits[1]) >= sum(hits[0]) and sum(hits[1]) >= 0.75 * 2 * len(RIG), hits
+    masks = source.foreground_masks(images[0], RIG.names)
+    assert masks[0].shape == images[0][0].shape[:2] and masks[0].dtype == bool
+    with pytest.raises(ValueError, match="seed arrays"):
+        source.propose_seeded(images[0], RIG.names, list(uv)[:2])
 
 
 def test_detect_animals_on_simulated_boxes() -> None:

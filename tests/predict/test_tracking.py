@@ -145,9 +145,22 @@ def test_colour_features_and_bad_input() -> None:
     img[:, 40:] = (255, 0, 0)  # blue
     boxes = np.array([[[0, 0, 39, 39], [0, 0, 39, 39]], [[40, 0, 79, 39], [np.nan] * 4]], float)
     f = colour_features([img, img], boxes)
-    assert f.shape == (2, 36)
+    assert f.shape == (2, 42)
     np.testing.assert_allclose((f**2).sum(1), 1.0)
-    assert np.linalg.norm(f[0] - f[1]) > 1.3  # disjoint histograms: sqrt(2)
+    assert np.linalg.norm(f[0] - f[1]) > 0.9  # disjoint hue histograms, same brightness
+    # black and white coats: no hue, no saturation; told apart by brightness, and only
+    # the animal's pixels count where the foreground is given
+    floor = np.full((40, 80, 3), 128, np.uint8)
+    coats = floor.copy()
+    coats[10:30, 5:35] = 10
+    coats[10:30, 45:75] = 245
+    fg = np.zeros((40, 80), bool)
+    fg[10:30, 5:35] = fg[10:30, 45:75] = True
+    two = np.array([[[0, 0, 39, 39]], [[40, 0, 79, 39]]], float)
+    plain = colour_features([coats], two)
+    masked = colour_features([coats], two, masks=[fg])
+    assert np.linalg.norm(masked[0] - masked[1]) > 0.95  # disjoint brightness histograms
+    assert np.linalg.norm(plain[0] - plain[1]) < np.linalg.norm(masked[0] - masked[1])
     assert np.isnan(colour_features([img, img], boxes, use=np.zeros((2, 2), bool))).all()
     with pytest.raises(TrackingError, match="n_animals"):
         track_animals([np.zeros((1, 3))], 0, FPS)
