@@ -25,7 +25,7 @@ in :mod:`freipose.nn.checkpoint`, batch inference in :mod:`freipose.nn.inference
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +77,33 @@ def _encoder(cfg: ModelConfig) -> Encoder2D:
     return Encoder2D(
         cfg.encoder_channels, cfg.encoder_convs, cfg.encoder_pools, cfg.feature_channels, cfg.norm
     )
+
+
+Dense = Callable[..., Any]
+
+
+def _dense_runner(device_type: str) -> Dense:
+    """Runs a network's dense parts in the precision of the autocast around its forward.
+
+    The forward pass computes everything else (unprojection geometry, soft-argmax,
+    projection, triangulation) in float32 with autocast off: a bfloat16 matrix product of
+    world coordinates in mm rounds them by up to a few mm.
+
+    Args:
+        device_type: ``cpu`` or ``cuda``.
+
+    Returns:
+        ``run(module, *args)``: the module's output, computed under the autocast that was
+        active when the runner was made.
+    """
+    enabled = torch.is_autocast_enabled(device_type)
+    dtype = torch.get_autocast_dtype(device_type)
+
+    def run(module: nn.Module, *args: Any) -> Any:
+        with torch.autocast(device_type=device_type, dtype=dtype, enabled=enabled):
+            return module(*args)
+
+    return run
 
 
 def _view_crops(images: torch.Tensor, channels_last: bool) -> torch.Tensor:
@@ -137,29 +164,41 @@ class VoxelPoseNet(nn.Module):
         self.prior_log_weight = nn.Parameter(torch.zeros(num_keypoints)) if cfg.refine else None
 
     def forward(self, batch: Mapping[str, Any]) -> dict[str, Any]:
-        """Poses P0 and P1 of a collated batch (:class:`freipose.nn.types.NetworkOutput`)."""
+        """Poses P0 and P1 of a collated batch (:class:`freipose.nn.types.NetworkOutput`).
+
+        Under autocast only the encoder, the feature lift, the 3D U-Net and the refinement
+        head run in reduced precision; the geometry and the decoding stay in float32.
+        """
         images = batch["images"]
         B, V = images.shape[:2]
-        feats, skip = self.encoder(_view_crops(images, self.fast))
-        out = self._initial_pose(batch, feats, skip)
-        if self.refine is None or self.prior_log_weight is None:
-            uv0, _ = project_affine(
-                out["P0"].detach(), batch["K"], batch["R"], batch["t"], batch["dist"]
-            )
+        dense = _dense_runner(images.device.type)
+        with torch.autocast(device_type=images.device.type, enabled=False):
+            feats, skip = dense(self.encoder, _view_crops(images, self.fast))
+            out = self._initial_pose(batch, feats, skip, dense)
+            if self.refine is None or self.prior_log_weight is None:
+                uv0, _ = project_affine(
+                    out["P0"].detach(), batch["K"], batch["R"], batch["t"], batch["dist"]
+                )
+                out.update(
+                    P1=out["P0"],
+                    points2d=uv0,
+                    confidence2d=out["confidence0"][:, None].expand(B, V, -1),
+                    confidence=out["confidence0"],
+                )
+                return out
             out.update(
-                P1=out["P0"],
-                points2d=uv0,
-                confidence2d=out["confidence0"][:, None].expand(B, V, -1),
-                confidence=out["confidence0"],
+                self._refined_pose(
+                    batch, feats, skip, out["P0"], (self.refine, self.prior_log_weight), dense
+                )
             )
-            return out
-        out.update(
-            self._refined_pose(batch, feats, skip, out["P0"], self.refine, self.prior_log_weight)
-        )
         return out
 
     def _initial_pose(
-        self, batch: Mapping[str, Any], feats: torch.Tensor, skip: list[torch.Tensor]
+        self,
+        batch: Mapping[str, Any],
+        feats: torch.Tensor,
+        skip: list[torch.Tensor],
+        dense: Dense,
     ) -> dict[str, Any]:
         """P0: the features unprojected into the voxel grid, the 3D U-Net and soft-argmax.
 
@@ -167,6 +206,7 @@ class VoxelPoseNet(nn.Module):
             batch: the collated batch.
             feats: (B*V, C, h, w) encoder features.
             skip: the encoder's skip maps.
+            dense: runs the lift and the U-Net (:func:`_dense_runner`).
 
         Returns:
             ``P0``, ``P0_aux``, ``confidence0`` and ``volume_probs``.
@@ -176,7 +216,7 @@ class VoxelPoseNet(nn.Module):
         center = batch["center"]
         G = cfg.grid_size
         rot = batch.get("grid_rotation")
-        vfeats = feats if self.lift is None else self.lift(feats, skip)
+        vfeats = feats if self.lift is None else dense(self.lift, feats, skip)
         cams = (batch["K"], batch["R"], batch["t"], batch["dist"], batch["view_mask"])
         vfeats5 = vfeats.float().reshape(B, V, *vfeats.shape[1:])
         # the gather's backward (a sort of its plan) costs more than grid_sample's: with a
@@ -191,7 +231,7 @@ class VoxelPoseNet(nn.Module):
                 offs = offs @ rot.float().transpose(1, 2)  # (B, G^3, 3) world offsets
             vol, _ = unproject(vfeats5, *cams, center[:, None, :] + offs, cfg.crop_size)
         vol = vol.reshape(B, -1, G, G, G).to(vfeats.dtype)
-        scores = self.unet(vol)
+        scores = dense(self.unet, vol)
         decoded = [softargmax3d(s, center, cfg.cube_size, rot) for s in scores]
         P0, probs = decoded[-1]
         return {
@@ -207,8 +247,8 @@ class VoxelPoseNet(nn.Module):
         feats: torch.Tensor,
         skip: list[torch.Tensor],
         P0: torch.Tensor,
-        refine: Head2D,
-        prior_log_weight: torch.Tensor,
+        fusion: tuple[Head2D, torch.Tensor],
+        dense: Dense,
     ) -> dict[str, Any]:
         """P1: the 2D refinement of P0's projections fused by confidence-weighted triangulation.
 
@@ -217,13 +257,14 @@ class VoxelPoseNet(nn.Module):
             feats: (B*V, C, h, w) encoder features.
             skip: the encoder's skip maps.
             P0: (B, K, 3) the initial pose.
-            refine: the refinement head.
-            prior_log_weight: (K,) log of P0's weight in the fusion.
+            fusion: the refinement head and (K,) the log of P0's weight in the fusion.
+            dense: runs the refinement head (:func:`_dense_runner`).
 
         Returns:
             ``P1``, ``points2d``, ``confidence2d``, ``confidence`` and ``map_logits``.
         """
         cfg = self.cfg
+        refine, prior_log_weight = fusion
         B, V = batch["images"].shape[:2]
         K, R, t, dist = batch["K"], batch["R"], batch["t"], batch["dist"]
         mask = batch["view_mask"]
@@ -236,7 +277,7 @@ class VoxelPoseNet(nn.Module):
             P0d = P0d + jitter.to(P0d.dtype)
         uv0, _ = project_affine(P0d, K, R, t, dist)  # (B, V, K, 2)
         heat = gaussian_heatmaps(uv0.reshape(B * V, -1, 2), h, cfg.stride, cfg.heatmap_sigma)
-        maps, conf_logits = refine(feats, skip, heat)
+        maps, conf_logits = dense(refine, feats, skip, heat)
         # Residual formulation: the map logits are added to a Gaussian log-prior around the
         # projected P0, so an untrained head returns P0's projection (P1 = P0) and training
         # learns corrections.
@@ -294,14 +335,19 @@ class BaselineNet(nn.Module):
         )
 
     def forward(self, batch: Mapping[str, Any]) -> dict[str, Any]:
-        """Per-view 2D keypoints of a collated batch (see the class docstring)."""
+        """Per-view 2D keypoints of a collated batch (see the class docstring).
+
+        Under autocast only the encoder and the head run in reduced precision.
+        """
         images = batch["images"]
         B, V = images.shape[:2]
-        feats, skip = self.encoder(_view_crops(images, self.fast))
-        maps, conf_logits = self.head(feats, skip)
-        window = 0 if self.training else self.cfg.map_window
-        uv, conf = decode_head(maps, conf_logits, self.cfg.map_stride, window)
-        conf = conf.reshape(B, V, -1) * batch["view_mask"][:, :, None]
+        dense = _dense_runner(images.device.type)
+        with torch.autocast(device_type=images.device.type, enabled=False):
+            feats, skip = dense(self.encoder, _view_crops(images, self.fast))
+            maps, conf_logits = dense(self.head, feats, skip)
+            window = 0 if self.training else self.cfg.map_window
+            uv, conf = decode_head(maps.float(), conf_logits, self.cfg.map_stride, window)
+            conf = conf.reshape(B, V, -1) * batch["view_mask"][:, :, None]
         return {
             "points2d": uv.reshape(B, V, -1, 2),
             "confidence2d": conf,

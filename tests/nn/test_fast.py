@@ -21,8 +21,8 @@ from freipose.nn.unprojection import unproject, unproject_gather
 
 BASE = Path(__file__).parents[2] / "freipose" / "models" / "voxel_small.pt"
 # bf16 bound of docs/explanation/backends.md (P1 against fp32 eager, rendered rat frames)
-BF16_MEDIAN_MM = 1.0
-BF16_P90_MM = 2.0
+BF16_MEDIAN_MM = 0.25
+BF16_P90_MM = 0.5
 
 
 def _rotation_z(angle: float) -> torch.Tensor:

@@ -573,3 +573,41 @@ def test_map_loss_prefers_the_label_and_skips_hidden_or_outside_labels():
     nan = gt.clone()
     nan[0, 0, 1] = float("nan")
     torch.testing.assert_close(map_cross_entropy(logits, nan, vis, cfg), only0)
+
+
+def test_autocast_runs_the_dense_parts_only():
+    """Under bf16 autocast the encoder and the U-Net compute in bfloat16, while the
+    decoding stays in float32: a sharp score volume far from the origin decodes to its
+    voxel's world position exactly (a bfloat16 product of mm offsets rounds it by up to
+    half a mm)."""
+    from nn_toydata import toy_batch
+
+    cfg = config_from_dict({"model": {"preset": "tiny"}}).model
+    torch.manual_seed(0)
+    model = build_model(cfg, 3).eval()
+    b = toy_batch(cfg, 2, cams=3)
+    b["center"] = b["center"] + torch.tensor([1234.5, -987.25, 2345.75])
+    G = cfg.grid_size
+    voxels = torch.tensor([[3, G - 2, 1], [G - 4, 2, G - 3], [1, 1, G - 2]])  # (K, 3) i, j, k
+    seen = {}
+
+    def sharp(module, inputs, output):
+        seen["unet"] = output[-1].dtype
+        scores = torch.zeros(2, 3, G, G, G)
+        for k, (i, j, m) in enumerate(voxels.tolist()):
+            scores[:, k, i, j, m] = 80.0
+        return [scores]
+
+    def encoder_dtype(module, inputs, output):
+        seen["encoder"] = output[0].dtype
+
+    model.unet.register_forward_hook(sharp)
+    model.encoder.register_forward_hook(encoder_dtype)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        out = model(b)
+    assert seen == {"encoder": torch.bfloat16, "unet": torch.bfloat16}
+    offs = voxel_offsets(G, cfg.cube_size)  # (G^3, 3), flat index i*G*G + j*G + k
+    flat = voxels[:, 0] * G * G + voxels[:, 1] * G + voxels[:, 2]
+    expected = b["center"][:, None, :] + offs[flat][None]
+    assert out["P0"].dtype == torch.float32 and out["P1"].dtype == torch.float32
+    torch.testing.assert_close(out["P0"], expected, atol=1e-3, rtol=0)
