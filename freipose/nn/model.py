@@ -24,8 +24,9 @@ in :mod:`freipose.nn.checkpoint`, batch inference in :mod:`freipose.nn.inference
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -82,19 +83,20 @@ def _encoder(cfg: ModelConfig) -> Encoder2D:
 Dense = Callable[..., Any]
 
 
-def _dense_runner(device_type: str) -> Dense:
-    """Runs a network's dense parts in the precision of the autocast around its forward.
+@contextlib.contextmanager
+def _dense_precision(device_type: str) -> Iterator[Dense]:
+    """Autocast off for a network's forward, except in the dense parts it runs through.
 
-    The forward pass computes everything else (unprojection geometry, soft-argmax,
-    projection, triangulation) in float32 with autocast off: a bfloat16 matrix product of
-    world coordinates in mm rounds them by up to a few mm.
+    Inside the context everything (unprojection geometry, soft-argmax, projection,
+    triangulation) computes in float32: a bfloat16 matrix product of world coordinates in
+    mm rounds them by up to a few mm. The dense parts (convolutions) keep the autocast that
+    was active on entry.
 
     Args:
         device_type: ``cpu`` or ``cuda``.
 
-    Returns:
-        ``run(module, *args)``: the module's output, computed under the autocast that was
-        active when the runner was made.
+    Yields:
+        ``run(module, *args)``: the module's output, computed under the entry autocast.
     """
     enabled = torch.is_autocast_enabled(device_type)
     dtype = torch.get_autocast_dtype(device_type)
@@ -103,7 +105,8 @@ def _dense_runner(device_type: str) -> Dense:
         with torch.autocast(device_type=device_type, dtype=dtype, enabled=enabled):
             return module(*args)
 
-    return run
+    with torch.autocast(device_type=device_type, enabled=False):
+        yield run
 
 
 def _view_crops(images: torch.Tensor, channels_last: bool) -> torch.Tensor:
@@ -171,8 +174,7 @@ class VoxelPoseNet(nn.Module):
         """
         images = batch["images"]
         B, V = images.shape[:2]
-        dense = _dense_runner(images.device.type)
-        with torch.autocast(device_type=images.device.type, enabled=False):
+        with _dense_precision(images.device.type) as dense:
             feats, skip = dense(self.encoder, _view_crops(images, self.fast))
             out = self._initial_pose(batch, feats, skip, dense)
             if self.refine is None or self.prior_log_weight is None:
@@ -188,7 +190,7 @@ class VoxelPoseNet(nn.Module):
                 return out
             out.update(
                 self._refined_pose(
-                    batch, feats, skip, out["P0"], (self.refine, self.prior_log_weight), dense
+                    batch, feats, skip, out["P0"], self.refine, self.prior_log_weight, dense
                 )
             )
         return out
@@ -206,7 +208,7 @@ class VoxelPoseNet(nn.Module):
             batch: the collated batch.
             feats: (B*V, C, h, w) encoder features.
             skip: the encoder's skip maps.
-            dense: runs the lift and the U-Net (:func:`_dense_runner`).
+            dense: runs the lift and the U-Net (:func:`_dense_precision`).
 
         Returns:
             ``P0``, ``P0_aux``, ``confidence0`` and ``volume_probs``.
@@ -247,7 +249,8 @@ class VoxelPoseNet(nn.Module):
         feats: torch.Tensor,
         skip: list[torch.Tensor],
         P0: torch.Tensor,
-        fusion: tuple[Head2D, torch.Tensor],
+        refine: Head2D,
+        prior_log_weight: torch.Tensor,
         dense: Dense,
     ) -> dict[str, Any]:
         """P1: the 2D refinement of P0's projections fused by confidence-weighted triangulation.
@@ -257,14 +260,14 @@ class VoxelPoseNet(nn.Module):
             feats: (B*V, C, h, w) encoder features.
             skip: the encoder's skip maps.
             P0: (B, K, 3) the initial pose.
-            fusion: the refinement head and (K,) the log of P0's weight in the fusion.
-            dense: runs the refinement head (:func:`_dense_runner`).
+            refine: the refinement head.
+            prior_log_weight: (K,) log of P0's weight in the fusion.
+            dense: runs the refinement head (:func:`_dense_precision`).
 
         Returns:
             ``P1``, ``points2d``, ``confidence2d``, ``confidence`` and ``map_logits``.
         """
         cfg = self.cfg
-        refine, prior_log_weight = fusion
         B, V = batch["images"].shape[:2]
         K, R, t, dist = batch["K"], batch["R"], batch["t"], batch["dist"]
         mask = batch["view_mask"]
@@ -341,12 +344,11 @@ class BaselineNet(nn.Module):
         """
         images = batch["images"]
         B, V = images.shape[:2]
-        dense = _dense_runner(images.device.type)
-        with torch.autocast(device_type=images.device.type, enabled=False):
+        with _dense_precision(images.device.type) as dense:
             feats, skip = dense(self.encoder, _view_crops(images, self.fast))
             maps, conf_logits = dense(self.head, feats, skip)
             window = 0 if self.training else self.cfg.map_window
-            uv, conf = decode_head(maps.float(), conf_logits, self.cfg.map_stride, window)
+            uv, conf = decode_head(maps, conf_logits, self.cfg.map_stride, window)
             conf = conf.reshape(B, V, -1) * batch["view_mask"][:, :, None]
         return {
             "points2d": uv.reshape(B, V, -1, 2),
