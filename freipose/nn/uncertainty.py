@@ -34,27 +34,28 @@ def view_disagreement(
     """Confidence-weighted RMS distance (mm) of 3D points from their views' rays.
 
     Args:
-        points3d: (K, 3) world mm.
-        points2d: (V, K, 2) full-image pixels of the V cameras of ``rig`` (NaN: none).
-        confidence2d: (V, K) in [0, 1].
+        points3d: (..., K, 3) world mm.
+        points2d: (..., V, K, 2) full-image pixels of the V cameras of ``rig`` (NaN: none).
+        confidence2d: (..., V, K) in [0, 1].
         rig: the V cameras.
 
     Returns:
-        (K,) mm; NaN where no view has a point or the 3D point is unknown.
+        (..., K) mm; NaN where no view has a point or the 3D point is unknown.
     """
-    V, K = confidence2d.shape
-    d2 = np.zeros((V, K))
-    w = np.zeros((V, K))
+    V = confidence2d.shape[-2]
+    d2 = np.zeros(confidence2d.shape)
+    w = np.zeros(confidence2d.shape)
     for v, cam in enumerate(list(rig)[:V]):
-        xy = undistort_pixels(np.nan_to_num(points2d[v]), cam)  # (K, 2) normalized
+        uv = points2d[..., v, :, :]
+        xy = undistort_pixels(np.nan_to_num(uv), cam)  # (..., K, 2) normalized
         Xc = points3d @ np.asarray(cam.R).T + np.asarray(cam.t)
-        lateral = xy * Xc[:, 2:3] - Xc[:, :2]
-        ok = np.isfinite(points2d[v]).all(-1) & np.isfinite(lateral).all(-1)
-        d2[v] = np.where(ok, (lateral**2).sum(-1), 0.0)
-        w[v] = np.where(ok, np.clip(confidence2d[v], 0.0, 1.0), 0.0)
-    total = w.sum(0)
+        lateral = xy * Xc[..., 2:3] - Xc[..., :2]
+        ok = np.isfinite(uv).all(-1) & np.isfinite(lateral).all(-1)
+        d2[..., v, :] = np.where(ok, (lateral**2).sum(-1), 0.0)
+        w[..., v, :] = np.where(ok, np.clip(confidence2d[..., v, :], 0.0, 1.0), 0.0)
+    total = w.sum(-2)
     with np.errstate(invalid="ignore", divide="ignore"):
-        rms = np.sqrt((w * d2).sum(0) / total)
+        rms = np.sqrt((w * d2).sum(-2) / total)
     return np.where((total > 0) & np.isfinite(points3d).all(-1), rms, np.nan)
 
 
@@ -68,6 +69,8 @@ def raw_uncertainty(
 ) -> np.ndarray:
     """The uncalibrated uncertainty ``u`` (mm) of a batch (see the module docstring).
 
+    Samples that share a rig (the same object, as in a prediction run) are computed together.
+
     Args:
         P0: (B, K, 3) the 3D network's estimate (mm).
         P1: (B, K, 3) the refined estimate (mm).
@@ -79,14 +82,16 @@ def raw_uncertainty(
     Returns:
         (B, K) mm; NaN where P1 is unknown.
     """
-    out = np.full(P1.shape[:2], np.nan)
+    views = np.full(P1.shape[:2], np.nan)
+    groups: dict[int, list[int]] = {}
     for b, rig in enumerate(rigs):
-        n = len(rig)
-        views = view_disagreement(P1[b], points2d[b, :n], confidence2d[b, :n], rig)
-        views = np.where(np.isfinite(views), views, 0.0)
-        p01 = np.linalg.norm(P0[b] - P1[b], axis=-1)
-        out[b] = np.sqrt(views**2 + p01**2 + (0.5 * voxel_size) ** 2)
-    return out
+        groups.setdefault(id(rig), []).append(b)
+    for idx in groups.values():
+        rig, n = rigs[idx[0]], len(rigs[idx[0]])
+        views[idx] = view_disagreement(P1[idx], points2d[idx, :n], confidence2d[idx, :n], rig)
+    views = np.where(np.isfinite(views), views, 0.0)
+    p01 = np.linalg.norm(P0 - P1, axis=-1)
+    return np.sqrt(views**2 + p01**2 + (0.5 * voxel_size) ** 2)
 
 
 @dataclass(frozen=True)
