@@ -19,7 +19,7 @@ from torch import nn
 from freipose.nn.geometry import (
     normalized_ray_distances,
     pixels_to_normalized,
-    voxel_offsets,
+    voxel_axis,
 )
 from freipose.nn.unprojection import unproject as unproject  # re-exported: the layers' API
 
@@ -235,9 +235,13 @@ def softargmax3d(
     """
     B, K = logits.shape[:2]
     G = logits.shape[-1]
-    probs = torch.softmax(logits.float().reshape(B, K, -1), dim=-1)
-    offs = voxel_offsets(G, cube_size, device=logits.device)  # (G^3, 3)
-    local = probs @ offs  # (B, K, 3) in grid axes
+    # contiguous first: a channels-last volume would make the softmax run along a stride
+    probs = torch.softmax(logits.float().contiguous().reshape(B, K, -1), dim=-1)
+    # the expectation of a lattice offset is the expectation of each axis's marginal
+    ax = voxel_axis(G, cube_size, device=logits.device)  # (G,)
+    p = probs.reshape(B, K, G, G, G)
+    yz = p.sum(2)  # (B, K, G, G) marginal of the y and z indices
+    local = torch.stack([p.sum((3, 4)) @ ax, yz.sum(3) @ ax, yz.sum(2) @ ax], -1)  # (B, K, 3)
     if rotation is not None:
         local = local @ rotation.float().transpose(1, 2)
     return center.float()[:, None, :] + local, probs
