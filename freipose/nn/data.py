@@ -1,13 +1,14 @@
 """From multi-view samples (``freipose.nn.dataset.MultiViewDataset``) to network input.
 
 For every view the voxel cube around the sample's centre (or its middle part,
-``model.crop_fraction``) is projected into the full
-frame (:func:`freipose.geometry.crops.cube_crop_boxes`), that square is cut out and resized
-to the crop size, and the crop camera is derived exactly (:func:`crop_camera`). During
-training the centre is the mean of the labeled 3D points plus Gaussian jitter, and each
-crop gets a random in-plane rotation, zoom and shift that are folded into the crop
-camera (a general affine intrinsic matrix, see :mod:`freipose.nn.geometry`), plus colour,
-blur and noise augmentation. Batches pad the view axis; ``view_mask`` tells real views.
+``model.crop_fraction``) is projected into the full frame
+(:func:`freipose.geometry.crops.cube_crop_boxes`), that square is cut out and resized to
+the crop size, and the crop camera is derived exactly
+(:func:`freipose.geometry.crops.crop_camera`). During training the centre is the mean of
+the labeled 3D points plus Gaussian jitter, and each crop gets a random in-plane rotation,
+zoom and shift that are folded into the crop camera (a general affine intrinsic matrix,
+see :mod:`freipose.nn.geometry`), plus colour, blur and noise augmentation. Batches pad
+the view axis; ``view_mask`` tells real views.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from freipose.errors import FreiPoseError
 from freipose.geometry.camera import CameraRig
 from freipose.geometry.crops import (
     crop_affine,
-    crop_camera,
     cube_crop_boxes,
     label_centers,
     warp_to_crop,
@@ -219,7 +219,7 @@ def _crop_views(
         valid[v] = True
         T = _aug_affine(aug.rng, aug.config, S) if aug is not None else np.eye(3)
         A = T @ crop_affine(box, S)
-        Ks[v] = T @ crop_camera(cam, box, S).K
+        Ks[v] = A @ cam.K  # the crop camera's intrinsics (crop_camera) after T
         affines[v] = A
         if images:
             img = images[v]
