@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 
 from freipose.geometry.camera import Camera, CameraRig
-from freipose.geometry.projection import project
 
 
 def crop_affine(box: np.ndarray, out_size: int) -> np.ndarray:
@@ -152,16 +151,9 @@ def cube_crop_boxes(rig: CameraRig, centers: np.ndarray, cube_size: float) -> np
         (..., C, 4) boxes ``(x0, y0, x1, y1)``, square, centred on the projected centre.
     """
     c = np.asarray(centers, dtype=np.float64)
-    corners = cube_corners(c, cube_size)  # (..., 8, 3)
-    out = []
-    for cam in rig:
-        uv = project(corners, cam)  # (..., 8, 2)
-        mid = project(c, cam)  # (..., 2)
-        half = np.max(np.abs(uv - mid[..., None, :]), axis=(-2, -1))  # (...,)
-        half = np.where(np.isfinite(half), half, np.nan)
-        out.append(
-            np.stack(
-                [mid[..., 0] - half, mid[..., 1] - half, mid[..., 0] + half, mid[..., 1] + half], -1
-            )
-        )
-    return np.stack(out, axis=-2)
+    points = np.concatenate([c[..., None, :], cube_corners(c, cube_size)], axis=-2)  # (..., 9, 3)
+    uv = rig.project(points)  # (..., C, 9, 2)
+    mid = uv[..., 0, :]  # (..., C, 2)
+    half = np.max(np.abs(uv[..., 1:, :] - mid[..., None, :]), axis=(-2, -1))  # (..., C)
+    half = np.where(np.isfinite(half), half, np.nan)
+    return np.concatenate([mid - half[..., None], mid + half[..., None]], axis=-1)
