@@ -6,7 +6,8 @@
   :class:`FixedBoxes` (a TOML file), which need no training;
 * :mod:`.multiview`: robust 3D centre from candidate boxes of all views, consistent boxes
   and cube crops (:func:`detect_multiview`, :func:`detect_multiview_batch`,
-  :func:`consistent_detection` -> :class:`MultiViewDetection`);
+  :func:`consistent_detection` -> :class:`MultiViewDetection`, several instants at once
+  with :func:`consistent_detections`);
 * :mod:`.multi`: several animals: one box per animal per view (:class:`~.multi.SplitForeground`
   splits touching animals in the foreground, :class:`~.multi.PeakBoxes` keeps several
   detector peaks) and 3D animal hypotheses with a box in every view
@@ -26,6 +27,7 @@ from freipose.detect.multiview import (
     ConsistencyConfig,
     MultiViewDetection,
     consistent_detection,
+    consistent_detections,
     detect_multiview,
     detect_multiview_batch,
 )
@@ -39,6 +41,7 @@ __all__ = [
     "FixedBoxes",
     "MultiViewDetection",
     "consistent_detection",
+    "consistent_detections",
     "detect_multiview",
     "detect_multiview_batch",
 ]

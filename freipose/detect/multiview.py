@@ -106,17 +106,37 @@ def _padded(cands: Sequence[Candidates], cfg: ConsistencyConfig) -> tuple[np.nda
 def _verify(
     X: np.ndarray, rig: CameraRig, centres: np.ndarray, scores: np.ndarray, tol: np.ndarray
 ):
-    """For proposals X (H, 3): per view agreement (H, C), best candidate (H, C), quality (H,)."""
-    uv = project_rig(X[:, None, :], rig)[:, :, 0, :]  # (H, C, 2), NaN behind a camera
-    err = np.linalg.norm(uv[:, :, None, :] - centres[None], axis=-1)  # (H, C, M)
-    inl = np.isfinite(err) & (err < tol[None])
-    rank = np.where(
-        inl, err / tol[None] / np.sqrt(np.nan_to_num(scores, nan=0.0)[None] + 1e-3), np.inf
-    )
-    best = np.argmin(rank, axis=-1)  # (H, C)
+    """Proposals X (T, H, 3) against T instants' candidates (T, C, M, ...).
+
+    Returns per proposal and view the agreement (T, H, C) and best candidate (T, H, C), the
+    quality (T, H) and the pixel errors (T, H, C, M).
+    """
+    uv = project_rig(X[:, :, None, :], rig)[:, :, :, 0, :]  # (T, H, C, 2), NaN behind a camera
+    err = np.linalg.norm(uv[:, :, :, None, :] - centres[:, None], axis=-1)  # (T, H, C, M)
+    tol, sc = tol[:, None], np.nan_to_num(scores, nan=0.0)[:, None]
+    inl = np.isfinite(err) & (err < tol)
+    rank = np.where(inl, err / tol / np.sqrt(sc + 1e-3), np.inf)
+    best = np.argmin(rank, axis=-1)  # (T, H, C)
     agree = inl.any(-1)
-    gain = np.where(inl, np.nan_to_num(scores)[None] * (1 - err / tol[None]), 0.0).max(-1)
+    gain = np.where(inl, sc * (1 - err / tol), 0.0).max(-1)
     return agree, best, gain.sum(-1), err
+
+
+def _proposals(centres: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """(T, H, C, 2) observations: every pair of views and of their candidates' centres.
+
+    The proposals are laid out in the same order for every instant (view pairs, then
+    candidate pairs); a proposal with a missing candidate is all NaN.
+    """
+    T, c, m = scores.shape
+    combos = [(i, j, a, b) for i, j in itertools.combinations(range(c), 2)
+              for a, b in itertools.product(range(m), range(m))]  # fmt: skip
+    obs = np.full((T, len(combos), c, 2), np.nan)
+    for h, (i, j, a, b) in enumerate(combos):
+        ok = np.isfinite(scores[:, i, a]) & np.isfinite(scores[:, j, b])
+        obs[ok, h, i] = centres[ok, i, a]
+        obs[ok, h, j] = centres[ok, j, b]
+    return obs
 
 
 def consistent_detection(
@@ -132,58 +152,113 @@ def consistent_detection(
     Returns:
         a :class:`MultiViewDetection`.
     """
+    return consistent_detections([candidates], rig, config)[0]
+
+
+def consistent_detections(
+    candidates: Sequence[Sequence[Candidates]],
+    rig: CameraRig,
+    config: ConsistencyConfig | None = None,
+) -> list[MultiViewDetection]:
+    """:func:`consistent_detection` of T time instants, computed together.
+
+    Args:
+        candidates: per instant, one :class:`Candidates` per camera of ``rig``.
+        rig: the cameras (C).
+        config: tolerances, cube size, etc.
+
+    Returns:
+        T :class:`MultiViewDetection`.
+    """
     cfg = config or ConsistencyConfig()
     c = len(rig)
-    if len(candidates) != c:
-        raise ValueError(
-            f"expected candidates for {c} cameras ({rig.names}), got {len(candidates)}"
-        )
-    boxes, scores = _padded(candidates, cfg)
-    centres = box_centers(boxes)  # (C, M, 2)
+    for cands in candidates:
+        if len(cands) != c:
+            raise ValueError(f"expected candidates for {c} cameras ({rig.names}), got {len(cands)}")
+    if not candidates:
+        return []
+    padded = [_padded(cands, cfg) for cands in candidates]
+    boxes = np.stack([p[0] for p in padded])  # (T, C, M, 4)
+    scores = np.stack([p[1] for p in padded])  # (T, C, M)
+    centres = box_centers(boxes)  # (T, C, M, 2)
     sz = box_sizes(boxes)
     tol = np.maximum(
         cfg.min_tolerance_px, cfg.rel_tolerance * np.sqrt(np.abs(sz[..., 0] * sz[..., 1]))
     )
     tol = np.where(np.isfinite(scores), tol, np.nan)
+    center, agree, chosen = _centres(centres, scores, tol, rig, cfg)
+    crops = cube_crop_boxes(rig, center, cfg.cube_size)  # (T, C, 4)
+    return [
+        _detection(cands, boxes[k], scores[k], center[k], agree[k], chosen[k], crops[k], rig)
+        for k, cands in enumerate(candidates)
+    ]
 
+
+def _centres(
+    centres: np.ndarray,
+    scores: np.ndarray,
+    tol: np.ndarray,
+    rig: CameraRig,
+    cfg: ConsistencyConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Steps 1-4 of the module docstring for T instants.
+
+    Returns:
+        ``(center, agree, chosen)``: (T, 3) world mm (NaN: none), (T, C) agreeing views and
+        (T, C) their chosen candidates.
+    """
+    T, c = scores.shape[:2]
+    idx = np.arange(c)
+    center = np.full((T, 3), np.nan)
+    agree = np.zeros((T, c), dtype=bool)
+    chosen = np.zeros((T, c), dtype=np.int64)
     # 1. Proposals from every pair of views and every pair of their candidates.
-    m = cfg.max_candidates
-    obs = []
-    for i, j in itertools.combinations(range(c), 2):
-        for a, b in itertools.product(range(m), range(m)):
-            if np.isfinite(scores[i, a]) and np.isfinite(scores[j, b]):
-                p = np.full((c, 2), np.nan)
-                p[i], p[j] = centres[i, a], centres[j, b]
-                obs.append(p)
-    center = np.full(3, np.nan)
-    agree = np.zeros(c, dtype=bool)
-    chosen = np.zeros(c, dtype=np.int64)
-    if obs:
-        X = triangulate(np.stack(obs), rig)  # (H, 3)
-        X = X[np.isfinite(X).all(-1)]
-        if len(X):
-            # 2-3. Verify every proposal; most agreeing views, then best quality.
-            ag, best, quality, _ = _verify(X, rig, centres, scores, tol)
-            count = ag.sum(-1)
-            h = int(np.lexsort((quality, count))[-1])
-            if count[h] >= cfg.min_views:
-                agree, chosen = ag[h], best[h]
-                # 4. Refit from the chosen boxes, then verify and refit once more. The
-                # weighted DLT suffices: box centres are not projections of one 3D point,
-                # so a pixel-optimal polish of their triangulation gains nothing.
-                for _ in range(2):
-                    pts = np.where(agree[:, None], centres[np.arange(c), chosen], np.nan)
-                    w = np.where(agree, scores[np.arange(c), chosen], 0.0)
-                    Xr = triangulate_weighted(pts, np.maximum(w, 1e-3) * agree, rig)
-                    if not np.isfinite(Xr).all():
-                        break
-                    ag2, best2, _, _ = _verify(Xr[None], rig, centres, scores, tol)
-                    if ag2[0].sum() < cfg.min_views:
-                        break
-                    center, agree, chosen = Xr, ag2[0], best2[0]
-                if not np.isfinite(center).all():
-                    center = X[h]
+    X = triangulate(_proposals(centres, scores), rig)  # (T, H, 3)
+    found = np.isfinite(X).all(-1)
+    # 2-3. Verify every proposal; most agreeing views, then best quality (the last of ties).
+    ag, best, quality, _ = _verify(np.where(found[..., None], X, np.nan), rig, centres, scores, tol)
+    count = np.where(found, ag.sum(-1), -1)
+    top = np.zeros(T, dtype=np.int64)
+    for k in range(T):
+        cand = np.flatnonzero(found[k])
+        if len(cand):
+            top[k] = cand[np.lexsort((quality[k, cand], count[k, cand]))[-1]]
+    rows = np.arange(T)
+    won = found.any(-1) & (count[rows, top] >= cfg.min_views)
+    agree[won], chosen[won] = ag[rows, top][won], best[rows, top][won]
+    # 4. Refit from the chosen boxes, then verify and refit once more. The weighted DLT
+    # suffices: box centres are not projections of one 3D point, so a pixel-optimal polish
+    # of their triangulation gains nothing. An instant stops at its first failed round.
+    active = won.copy()
+    for _ in range(2):
+        pts = np.where(agree[..., None], centres[rows[:, None], idx, chosen], np.nan)
+        w = np.where(agree, scores[rows[:, None], idx, chosen], 0.0)
+        Xr = triangulate_weighted(pts, np.maximum(w, 1e-3) * agree, rig)  # (T, 3)
+        active &= np.isfinite(Xr).all(-1)
+        ag2, best2, _, _ = _verify(Xr[:, None], rig, centres, scores, tol)
+        active &= ag2[:, 0].sum(-1) >= cfg.min_views
+        center[active], agree[active], chosen[active] = (
+            Xr[active],
+            ag2[active, 0],
+            best2[active, 0],
+        )
+    unrefined = won & ~np.isfinite(center).all(-1)
+    center[unrefined] = X[rows, top][unrefined]
+    return center, agree, chosen
 
+
+def _detection(
+    candidates: Sequence[Candidates],
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    center: np.ndarray,
+    agree: np.ndarray,
+    chosen: np.ndarray,
+    crops: np.ndarray,
+    rig: CameraRig,
+) -> MultiViewDetection:
+    """Step 5 of the module docstring: one instant's boxes around its centre."""
+    c = len(rig)
     out_boxes = np.full((c, 4), np.nan)
     out_scores = np.full(c, np.nan)
     if np.isfinite(center).all():
@@ -191,9 +266,8 @@ def consistent_detection(
         out_boxes[agree] = boxes[idx, chosen][agree]
         out_scores[agree] = scores[idx, chosen][agree]
         _replace_missing(out_boxes, out_scores, agree, center, rig)
-        crops = cube_crop_boxes(rig, center, cfg.cube_size)
     else:
-        agree[:] = False
+        agree = np.zeros(c, dtype=bool)
         for i, cd in enumerate(candidates):  # fall back to each view's best box
             if len(cd):
                 out_boxes[i], out_scores[i] = cd.boxes[0], cd.scores[0]
@@ -254,9 +328,8 @@ def detect_multiview_batch(
         )
         none = Candidates(np.zeros((0, 4)), np.zeros(0))
         cands = [next(found) if ok[i] else none for i in range(len(flat))]
-    return [
-        consistent_detection(cands[t * c : (t + 1) * c], rig, config) for t in range(len(frames))
-    ]
+    return consistent_detections([cands[t * c : (t + 1) * c] for t in range(len(frames))],
+                                 rig, config)  # fmt: skip
 
 
 def detect_multiview(

@@ -8,6 +8,7 @@ from freipose.detect import (
     ConsistencyConfig,
     FixedBoxes,
     consistent_detection,
+    consistent_detections,
     detect_multiview,
 )
 from freipose.detect.boxes import box_centers, box_iou
@@ -122,3 +123,39 @@ def test_detect_multiview_with_fixed_boxes(circle_rig):
     np.testing.assert_allclose(box_centers(det.crop_boxes), box_centers(boxes), atol=1e-6)
     with pytest.raises(ValueError, match="expected 6 images"):
         detect_multiview(frames[:2], circle_rig, fixed)
+
+
+def _cluttered(rig, rng, n):
+    """n instants: per view 0-3 candidates, most near the animal, some anywhere."""
+    out = []
+    for _ in range(n):
+        uv = rig.project(rng.normal([0, 0, 80], 60, 3)[None])[:, 0]
+        cands = []
+        for c in range(len(rig)):
+            k = int(rng.integers(0, 4))
+            near = rng.random(k) < 0.6
+            ctr = np.where(near[:, None], uv[c] + rng.normal(0, 6, (k, 2)),
+                           rng.uniform(0, 640, (k, 2)))  # fmt: skip
+            half = rng.uniform(20, 60, (k, 1))
+            scores = np.sort(rng.uniform(0.05, 1, k))[::-1]
+            cands.append(Candidates(np.concatenate([ctr - half, ctr + half], 1), scores))
+        out.append(cands)
+    return out
+
+
+def test_instants_computed_together_equal_one_by_one(circle_rig, rng):
+    """The batched consistency (what detection and prediction run) is the per-instant one."""
+    cases = _cluttered(circle_rig, rng, 120)
+    cfg = ConsistencyConfig(cube_size=320.0)
+    together = consistent_detections(cases, circle_rig, cfg)
+    found = 0
+    for cands, got in zip(cases, together, strict=True):
+        want = consistent_detection(cands, circle_rig, cfg)
+        assert (got.agree == want.agree).all() and got.n_agree == want.n_agree
+        np.testing.assert_allclose(got.center, want.center, atol=1e-6)
+        np.testing.assert_allclose(got.boxes, want.boxes, atol=1e-6)
+        np.testing.assert_allclose(got.scores, want.scores)
+        np.testing.assert_allclose(got.crop_boxes, want.crop_boxes, atol=1e-6)
+        found += bool(np.isfinite(got.center).all())
+    assert 20 < found < 120  # both outcomes occur
+    assert consistent_detections([], circle_rig, cfg) == []
