@@ -168,14 +168,11 @@ def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray, iterations: int = 2
     if not np.any(d):
         return xy_d.copy()
     xd, yd = xy_d[..., 0], xy_d[..., 1]
-    k1, k2, p1, p2, k3 = (d[..., i] for i in range(5))
     x, y = xd, yd
     for _ in range(iterations):  # OpenCV's scheme: a good start for Newton
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xy2 = 2 * x * y
-        xn = (xd - (p1 * xy2 + p2 * (r2 + 2 * x * x))) / radial
-        yn = (yd - (p1 * (r2 + 2 * y * y) + p2 * xy2)) / radial
+        t = distortion_terms(x, y, d)
+        xn = (xd - (t.dx_p1 + t.dx_p2)) / t.radial
+        yn = (yd - (t.dy_p1 + t.dy_p2)) / t.radial
         moved = _largest_change(xn - x, yn - y)
         x, y = xn, yn
         if moved <= _FIXED_POINT_TOL:
