@@ -108,8 +108,8 @@ def _verify(
 ):
     """Proposals X (T, H, 3) against T instants' candidates (T, C, M, ...).
 
-    Returns per proposal and view the agreement (T, H, C) and best candidate (T, H, C), the
-    quality (T, H) and the pixel errors (T, H, C, M).
+    Returns per proposal and view the agreement (T, H, C) and best candidate (T, H, C), and
+    the quality (T, H).
     """
     uv = project_rig(X[:, :, None, :], rig)[:, :, :, 0, :]  # (T, H, C, 2), NaN behind a camera
     err = np.linalg.norm(uv[:, :, :, None, :] - centres[:, None], axis=-1)  # (T, H, C, M)
@@ -119,7 +119,7 @@ def _verify(
     best = np.argmin(rank, axis=-1)  # (T, H, C)
     agree = inl.any(-1)
     gain = np.where(inl, sc * (1 - err / tol), 0.0).max(-1)
-    return agree, best, gain.sum(-1), err
+    return agree, best, gain.sum(-1)
 
 
 def _proposals(centres: np.ndarray, scores: np.ndarray) -> np.ndarray:
@@ -216,7 +216,7 @@ def _centres(
     X = triangulate(_proposals(centres, scores), rig)  # (T, H, 3)
     found = np.isfinite(X).all(-1)
     # 2-3. Verify every proposal; most agreeing views, then best quality (the last of ties).
-    ag, best, quality, _ = _verify(np.where(found[..., None], X, np.nan), rig, centres, scores, tol)
+    ag, best, quality = _verify(np.where(found[..., None], X, np.nan), rig, centres, scores, tol)
     count = np.where(found, ag.sum(-1), -1)
     top = np.zeros(T, dtype=np.int64)
     for k in range(T):
@@ -235,7 +235,7 @@ def _centres(
         w = np.where(agree, scores[rows[:, None], idx, chosen], 0.0)
         Xr = triangulate_weighted(pts, np.maximum(w, 1e-3) * agree, rig)  # (T, 3)
         active &= np.isfinite(Xr).all(-1)
-        ag2, best2, _, _ = _verify(Xr[:, None], rig, centres, scores, tol)
+        ag2, best2, _ = _verify(Xr[:, None], rig, centres, scores, tol)
         active &= ag2[:, 0].sum(-1) >= cfg.min_views
         center[active], agree[active], chosen[active] = (
             Xr[active],
