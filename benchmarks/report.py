@@ -165,12 +165,28 @@ def runs_text(runs: list[dict[str, Any]]) -> str:
     return f"{len(runs)} runs, seed{'s' if ',' in seeds else ''} {seeds}"
 
 
+# options whose value is a folder of the machine that ran the benchmark: shown as a name to fill in
+LOCAL_FOLDERS = {"--work": "WORK", "--out": "OUT", "--demo": "DEMO"}
+
+
 def command_text(rec: dict[str, Any]) -> str:
-    """The command line of a record, as a shell would take it."""
+    """The command line of a record, as a shell would take it from the repository root.
+
+    The script is named by its path in the repository, and the scratch and run folders of
+    the machine that ran it (:data:`LOCAL_FOLDERS`) by a name in capitals.
+    """
     argv = list(rec.get("command") or [])
     if argv and argv[0].endswith(".py"):
-        argv = ["python", *argv]
-    return shlex.join(argv)
+        argv = ["python", f"benchmarks/{Path(argv[0]).name}", *argv[1:]]
+    shown = []
+    for i, arg in enumerate(argv):
+        opt, eq, _ = arg.partition("=")
+        if eq and opt in LOCAL_FOLDERS:
+            arg = f"{opt}={LOCAL_FOLDERS[opt]}"
+        elif i and argv[i - 1] in LOCAL_FOLDERS:
+            arg = LOCAL_FOLDERS[argv[i - 1]]
+        shown.append(arg)
+    return shlex.join(shown)
 
 
 def provenance(runs: list[dict[str, Any]]) -> list[str]:
@@ -213,13 +229,18 @@ def table(runs: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _setting(value: Any) -> Any:
+    """A setting as a heading shows it: an absolute path by its file name (a model file)."""
+    return Path(value).name if isinstance(value, str) and Path(value).is_absolute() else value
+
+
 def section(name: str, by_settings: dict[str, list[dict[str, Any]]]) -> list[str]:
     """One benchmark's section: per settings, provenance, figures and the command."""
     lines = [f"## {name}", ""]
     for key, runs in by_settings.items():
         settings = json.loads(key)
         if len(by_settings) > 1 and settings:
-            text = ", ".join(f"{k}={v}" for k, v in settings.items())
+            text = ", ".join(f"{k}={_setting(v)}" for k, v in settings.items())
             lines += [f"### {text}", ""]
         lines += provenance(runs) + [""] + table(runs) + [""]
         lines += ["Reproduce (one run):", "", "```bash", command_text(runs[-1]), "```", ""]

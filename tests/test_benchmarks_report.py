@@ -149,3 +149,15 @@ def test_results_off_writes_nothing(bench, monkeypatch, tmp_path):
     path = write_result("x", {"a": float("nan")})
     assert json.loads(path.read_text())["figures"] == {"a": None}
     assert write_result("x", {"a": 2.0}).name.endswith("_2.json")
+
+
+def test_commands_are_shown_from_the_repository_root_without_local_folders(bench):
+    rec = {"command": ["cluster.py", "--sessions", "8", "--work", "/tmp/cb/run1",
+                       "--out=/work/runs/x", "--demo", "/work/runs/demo-seed0"]}  # fmt: skip
+    assert bench.command_text(rec) == (
+        "python benchmarks/cluster.py --sessions 8 --work WORK --out=OUT --demo DEMO"
+    )
+    rec = {"command": ["benchmarks/predict.py", "--model", "/m/voxel_small.pt"]}
+    assert bench.command_text(rec) == "python benchmarks/predict.py --model /m/voxel_small.pt"
+    assert bench._setting("/work/main/freipose/models/voxel_small.pt") == "voxel_small.pt"
+    assert bench._setting("small") == "small" and bench._setting(3) == 3
