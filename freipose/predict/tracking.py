@@ -27,7 +27,12 @@ in no particular order; :func:`track_animals` keeps A tracks, one per animal:
   cost (exchanging hypotheses with another track, or taking an unmatched hypothesis):
   ``1 - exp(-margin / confidence_scale)``. Close contact with similar motion and look
   gives a margin near 0: the frame is *flagged* (confidence below ``flag_below``), where
-  an identity swap cannot be ruled out.
+  an identity swap cannot be ruled out;
+* **the whole recording** (``resolve``): the frame-by-frame pass can still exchange two
+  animals in a long contact; :func:`freipose.predict.identity.resolve_identities` then
+  decides, over the whole recording, which animal each track follows in every frame (from
+  the coats and the continuity of every animal's motion) and reorders the tracks; the
+  frames where it moved an animal to another track are flagged.
 
 Shapes: T frames, A animals (tracks), H_t hypotheses at frame t, C cameras, F features.
 """
@@ -42,6 +47,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from freipose.errors import FreiPoseError
+from freipose.predict.identity import resolve_identities
 
 FORBIDDEN = 1e6  # cost of a pair beyond the gate
 
@@ -71,6 +77,10 @@ class TrackingConfig:
             hidden does not take it.
         reacquire: a lost track takes an animal no track follows (see the module
             docstring).
+        resolve: after the frame-by-frame pass, undo its swaps over the whole recording
+            (:func:`freipose.predict.identity.resolve_identities`, up to 4 animals).
+        swap_cost: cost of one track changing animal in that pass.
+        motion_sigma_mm: typical jump of an animal between two frames in that pass, mm.
     """
 
     gate_mm: float = 100.0
@@ -86,9 +96,12 @@ class TrackingConfig:
     miss_cost: float = 1.0
     miss_cost_per_s: float = 1.0
     reacquire: bool = True
+    resolve: bool = True
+    swap_cost: float = 2.0
+    motion_sigma_mm: float = 30.0
 
     def __post_init__(self) -> None:
-        for name in ("gate_mm", "max_speed", "confidence_scale"):
+        for name in ("gate_mm", "max_speed", "confidence_scale", "motion_sigma_mm"):
             if not getattr(self, name) > 0:
                 raise TrackingError(f"{name} must be positive, got {getattr(self, name)}")
         for name in ("velocity_smoothing", "appearance_rate"):
@@ -96,8 +109,10 @@ class TrackingConfig:
                 raise TrackingError(f"{name} must be in (0, 1], got {getattr(self, name)}")
         if not 0 <= self.velocity_decay <= 1:
             raise TrackingError(f"velocity_decay must be in [0, 1], got {self.velocity_decay}")
-        if self.gate_growth_mm < 0 or self.appearance_weight < 0 or self.contact_mm < 0:
-            raise TrackingError("gate_growth_mm, appearance_weight and contact_mm must be >= 0")
+        if min(self.gate_growth_mm, self.appearance_weight, self.contact_mm, self.swap_cost) < 0:
+            raise TrackingError(
+                "gate_growth_mm, appearance_weight, contact_mm and swap_cost must be >= 0"
+            )
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,7 +125,8 @@ class Tracks:
             when no boxes were given).
         hypothesis: (T, A) int64 index of the matched hypothesis in its frame, -1 none.
         confidence: (T, A) identity confidence in [0, 1]; NaN where unmatched.
-        flagged: (T, A) confidence below ``flag_below``: a swap cannot be ruled out.
+        flagged: (T, A) confidence below ``flag_below`` (a swap cannot be ruled out), or
+            the frame where the whole-recording pass moved the animal to this track.
         fps: frames per second.
     """
 
@@ -305,6 +321,13 @@ def track_animals(
             if c and boxes is not None and np.size(boxes[t]):
                 out_b[t, i] = np.asarray(boxes[t])[j]
     flagged = np.nan_to_num(out_c, nan=1.0) < cfg.flag_below
+    if cfg.resolve:
+        res = resolve_identities(out_x, out_h, features, cfg.contact_mm, cfg.swap_cost,
+                                 cfg.motion_sigma_mm)  # fmt: skip
+        rows = np.arange(t_n)[:, None]
+        o = res.order
+        out_x, out_b, out_h = out_x[rows, o], out_b[rows, o], out_h[rows, o]
+        out_c, flagged = out_c[rows, o], flagged[rows, o] | res.corrected
     return Tracks(out_x, out_b, out_h, out_c, flagged, float(fps))
 
 

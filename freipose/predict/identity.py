@@ -1,0 +1,224 @@
+"""Identities over a whole recording: the swaps of the frame-by-frame tracker undone.
+
+:func:`freipose.predict.tracking.track_animals` links each frame's hypotheses to the tracks
+of the frame before. Where two animals come close, stand in one blob or one is hidden, it
+can exchange them, and every frame after carries the wrong identity. :func:`resolve_identities`
+looks at the whole recording at once. Per frame, which animal each track follows is a
+permutation of the A animals (A! states); a hidden Markov model scores a sequence of states
+by
+
+* **appearance**: each track's coat features (:func:`~freipose.predict.tracking.colour_features`)
+  against one model per animal, learnt from the recording itself (k-means of the features,
+  refined from the decoded identities); per frame and track the squared distance in units of
+  the typical distance to the nearest model, capped so that a blob of two coats decides
+  little;
+* **motion**: each animal's jump from one frame to the next under the two frames' states,
+  ``(jump / motion_sigma_mm)^2 / 2``, capped: a change of state exactly where the
+  frame-by-frame tracker exchanged two animals keeps both continuous, one frame early or
+  late makes both jump;
+* **changes**: a track's animal may change only where the track is *ambiguous* (within
+  ``contact_mm`` of another track, an unmatched one where it was last seen, or unmatched
+  itself in this frame or the one before), at ``swap_cost`` per track changed.
+
+The Viterbi algorithm finds the best sequence; the appearance models are learnt again from
+it, a few times. The tracks are then reordered per frame so that track ``a`` follows animal
+``a`` throughout (animal ``a`` being the one that input track ``a`` follows most), and the
+frames where the identities were corrected are flagged.
+
+Shapes: T frames, A animals (tracks), S = A! states, F features.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.cluster.vq import kmeans2
+from scipy.optimize import linear_sum_assignment
+
+MAX_ANIMALS = 4  # 4! = 24 states; more animals are left as the frame-by-frame tracker made them
+APPEARANCE_CAP = 9.0  # largest appearance cost of one track in one frame
+MOTION_CAP = 10.0  # largest motion cost of one animal between two frames
+ITERATIONS = 5
+
+
+@dataclass(frozen=True)
+class IdentityResolution:
+    """What :func:`resolve_identities` did.
+
+    Attributes:
+        order: (T, A) int64 per frame the input track that follows animal ``a``.
+        corrected: (T, A) bool, the frames where an animal changed track (output order).
+        changes: the number of frames with a correction.
+        separation: distance between the two closest appearance models in units of the
+            typical distance of a feature to its model (NaN: no appearance); below about
+            2 the coats hardly tell the animals apart and motion decides.
+    """
+
+    order: np.ndarray
+    corrected: np.ndarray
+    changes: int
+    separation: float
+
+
+def track_features(hypothesis: np.ndarray, features: Sequence[np.ndarray]) -> np.ndarray | None:
+    """(T, A, F) the features of each track's matched hypothesis (NaN: unmatched or none).
+
+    Args:
+        hypothesis: (T, A) int64 matched hypothesis per frame and track, -1 none.
+        features: T arrays (H_t, F).
+
+    Returns:
+        The array, or None when no frame has a feature.
+    """
+    dims = [np.shape(f)[-1] for f in features if np.ndim(f) == 2 and np.shape(f)[0]]
+    if not dims:
+        return None
+    t_n, a_n = hypothesis.shape
+    out = np.full((t_n, a_n, dims[0]), np.nan)
+    for t in range(t_n):
+        h = hypothesis[t]
+        m = h >= 0
+        if m.any():
+            out[t, m] = np.asarray(features[t], dtype=np.float64)[h[m]]
+    return out
+
+
+def _ambiguous(centers: np.ndarray, contact_mm: float) -> np.ndarray:
+    """(T, A) tracks that may exchange animals in a frame.
+
+    A track is ambiguous where it is unmatched (now or one frame before), or within
+    ``contact_mm`` of another track, an unmatched track counting where it was last seen
+    (the blob of two animals that one track follows while the other is unmatched).
+    """
+    t_n, a_n = centers.shape[:2]
+    seen = np.isfinite(centers).all(-1)
+    last = centers.copy()
+    for t in range(1, t_n):
+        last[t, ~seen[t]] = last[t - 1, ~seen[t]]
+    d = np.linalg.norm(last[:, :, None] - last[:, None], axis=-1)
+    d[:, np.arange(a_n), np.arange(a_n)] = np.inf
+    amb = (np.where(np.isnan(d), np.inf, d) < contact_mm).any(-1) | ~seen
+    amb[1:] |= ~seen[:-1]
+    return amb
+
+
+def _appearance_costs(
+    feats: np.ndarray, ident: np.ndarray | None, perms: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """(T, S) appearance cost of every state, and the models' separation.
+
+    The models are k-means centres of the features (``ident`` None), or the mean features
+    of each animal under the decoded identities ``ident`` (T, A).
+    """
+    t_n, a_n = feats.shape[:2]
+    ok = np.isfinite(feats).all(-1)
+    if ok.sum() < 2 * a_n:
+        return np.zeros((t_n, len(perms))), float("nan")
+    if ident is None:
+        z = feats[ok]
+        rng = np.random.default_rng(0)
+        fits = [kmeans2(z, a_n, minit="++", seed=rng) for _ in range(5)]
+        models = min(fits, key=lambda f: float(((z - f[0][f[1]]) ** 2).sum()))[0]
+    else:
+        models = np.stack([
+            feats[ok & (ident == a)].mean(0) if (ok & (ident == a)).any() else
+            np.full(feats.shape[-1], np.nan) for a in range(a_n)
+        ])  # fmt: skip
+    d2 = ((feats[:, :, None, :] - models[None, None]) ** 2).sum(-1)  # (T, A, A)
+    near2 = np.nanmin(np.where(np.isnan(d2), np.inf, d2), -1)
+    scale = float(np.median(near2[ok & np.isfinite(near2)]))
+    scale = scale if scale > 0 else 1.0
+    cost = np.where(ok[..., None] & np.isfinite(d2), np.minimum(d2 / scale, APPEARANCE_CAP), 0.0)
+    per_state = np.stack([cost[:, np.arange(a_n), p].sum(-1) for p in perms], 1)
+    md = np.linalg.norm(models[:, None] - models[None], axis=-1)
+    md[np.arange(a_n), np.arange(a_n)] = np.inf
+    return per_state, float(np.nanmin(md) / np.sqrt(scale))
+
+
+def _viterbi(
+    appearance: np.ndarray,
+    centers: np.ndarray,
+    amb: np.ndarray,
+    perms: np.ndarray,
+    swap_cost: float,
+    sigma: float,
+) -> np.ndarray:
+    """(T,) the best state per frame (module docstring)."""
+    t_n, s_n = appearance.shape
+    carrier = np.argsort(perms, axis=1)  # (S, A) the track that follows animal a
+    changed = perms[:, None, :] != perms[None, :, :]  # (S from, S to, A tracks)
+    n_changed = changed.sum(-1)
+    cost = appearance[0].copy()
+    back = np.zeros((t_n, s_n), dtype=np.int64)
+    for t in range(1, t_n):
+        before = centers[t - 1][carrier]  # (S, A, 3) animal a's place under each state
+        now = centers[t][carrier]
+        jump = np.linalg.norm(before[:, None] - now[None], axis=-1)  # (S, S, A)
+        motion = np.nan_to_num(np.minimum((jump / sigma) ** 2 / 2, MOTION_CAP), nan=0.0)
+        allowed = ~(changed & ~amb[t]).any(-1)
+        step = np.where(allowed, swap_cost * n_changed, np.inf) + motion.sum(-1)
+        total = cost[:, None] + step
+        back[t] = np.argmin(total, 0)
+        cost = total[back[t], np.arange(s_n)] + appearance[t]
+    states = np.zeros(t_n, dtype=np.int64)
+    states[-1] = int(np.argmin(cost))
+    for t in range(t_n - 1, 0, -1):
+        states[t - 1] = back[t, states[t]]
+    return states
+
+
+def resolve_identities(
+    centers: np.ndarray,
+    hypothesis: np.ndarray,
+    features: Sequence[np.ndarray] | None,
+    contact_mm: float = 150.0,
+    swap_cost: float = 2.0,
+    motion_sigma_mm: float = 30.0,
+) -> IdentityResolution:
+    """Which track follows which animal in every frame (see the module docstring).
+
+    Args:
+        centers: (T, A, 3) the tracks' centres, mm, NaN where unmatched.
+        hypothesis: (T, A) int64 the tracks' matched hypotheses, -1 none.
+        features: T arrays (H_t, F) the hypotheses' appearance (None: motion alone).
+        contact_mm: tracks closer than this may exchange animals.
+        swap_cost: cost of one track changing animal.
+        motion_sigma_mm: typical jump of an animal between two frames, mm.
+
+    Returns:
+        :class:`IdentityResolution`; with one animal, more than ``MAX_ANIMALS`` or no
+        frames, the identity order and no corrections.
+    """
+    x = np.asarray(centers, dtype=np.float64)
+    t_n, a_n = x.shape[:2]
+    same = np.broadcast_to(np.arange(a_n), (t_n, a_n)).copy()
+    if a_n < 2 or a_n > MAX_ANIMALS or t_n < 2:
+        return IdentityResolution(same, np.zeros((t_n, a_n), bool), 0, float("nan"))
+    perms = np.array(list(itertools.permutations(range(a_n))), dtype=np.int64)  # (S, A)
+    feats = None if features is None else track_features(hypothesis, features)
+    amb = _ambiguous(x, contact_mm)
+    ident: np.ndarray | None = None
+    states = np.zeros(t_n, dtype=np.int64)
+    separation = float("nan")
+    appearance = np.zeros((t_n, len(perms)))
+    for _ in range(ITERATIONS if feats is not None else 1):
+        if feats is not None:
+            appearance, separation = _appearance_costs(feats, ident, perms)
+        new = _viterbi(appearance, x, amb, perms, swap_cost, motion_sigma_mm)
+        if ident is not None and np.array_equal(new, states):
+            break
+        states, ident = new, perms[new]
+    ident = perms[states]  # (T, A) the animal each input track follows
+    # name the animals after the tracks that follow them most: no change, no reordering
+    counts = np.zeros((a_n, a_n))
+    np.add.at(counts, (np.broadcast_to(np.arange(a_n), ident.shape), ident), 1)
+    tracks_, animals = linear_sum_assignment(-counts)
+    rename = np.empty(a_n, dtype=np.int64)
+    rename[animals] = tracks_
+    order = np.argsort(rename[ident], axis=1)  # (T, A) the track of animal a
+    moved = np.zeros((t_n, a_n), bool)
+    moved[1:] = order[1:] != order[:-1]
+    return IdentityResolution(order, moved, int(moved.any(1).sum()), separation)

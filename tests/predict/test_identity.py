@@ -1,0 +1,114 @@
+"""The whole-recording identity pass: swaps of the frame-by-frame tracker undone, nothing else."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from freipose.predict.identity import resolve_identities, track_features
+from freipose.predict.tracking import identity_switches
+
+COATS = np.array([[0.9, 0.9, 0.85], [0.3, 0.25, 0.2], [0.8, 0.3, 0.1]])
+
+
+def _side_by_side(n: int, rng: np.random.Generator, gap: float = 80.0, animals: int = 2):
+    """Animals walking together ``gap`` mm apart (in contact), the third far away."""
+    walk = np.cumsum(rng.normal(0, 4, (n, 3)) * [1, 1, 0], 0) + [0, 0, 40]
+    out = [walk + [0, k * gap, 0] for k in range(min(animals, 2))]
+    if animals == 3:
+        out.append(walk + [0, -400, 0])
+    return np.stack(out, 1)
+
+
+def _tracked(truth: np.ndarray, rng: np.random.Generator, swaps: dict[int, tuple[int, int]],
+             coats: np.ndarray = COATS, hidden: range = range(0)):  # fmt: skip
+    """Tracks that exchange animals at the given frames, with the hypotheses' coat features.
+
+    Hypothesis ``a`` of a frame is animal ``a`` (noisy centre and coat); track ``i`` follows
+    animal ``carry[i]``, and ``swaps[t] = (i, j)`` exchanges what tracks i and j follow from
+    frame t on. During ``hidden`` the second track is unmatched (a blob of two animals).
+    """
+    t_n, a_n = truth.shape[:2]
+    carry = np.arange(a_n)
+    centers = np.full((t_n, a_n, 3), np.nan)
+    hyp = np.full((t_n, a_n), -1, dtype=np.int64)
+    feats = []
+    for t in range(t_n):
+        if t in swaps:
+            i, j = swaps[t]
+            carry[[i, j]] = carry[[j, i]]
+        x = truth[t] + rng.normal(0, 3, (a_n, 3))
+        feats.append(coats[:a_n] + rng.normal(0, 0.05, (a_n, 3)))
+        for i in range(a_n):
+            if i == 1 and t in hidden:
+                continue
+            centers[t, i], hyp[t, i] = x[carry[i]], carry[i]
+    return centers, hyp, feats
+
+
+def _apply(order: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    return centers[np.arange(len(order))[:, None], order]
+
+
+def test_a_swap_in_contact_is_undone_at_its_frame() -> None:
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        truth = _side_by_side(200, rng)
+        # the frame-by-frame tracker exchanged the animals in a blob of both (frames 55-64)
+        centers, hyp, feats = _tracked(truth, rng, {60: (0, 1)}, hidden=range(55, 65))
+        assert identity_switches(centers, truth)[0] >= 1
+        res = resolve_identities(centers, hyp, feats)
+        assert identity_switches(_apply(res.order, centers), truth)[0] == 0
+        assert res.changes == 1 and res.corrected[60].all() and res.corrected.sum() == 2
+        assert res.separation > 5  # two clearly different coats
+
+
+def test_coats_decide_where_motion_cannot() -> None:
+    rng = np.random.default_rng(7)
+    truth = _side_by_side(200, rng)
+    # both tracks lose their animals in the blob and come back exchanged: no jump to see
+    centers, hyp, feats = _tracked(truth, rng, {60: (0, 1)}, hidden=range(50, 70))
+    centers[50:70, 0] = np.nan
+    hyp[50:70, 0] = -1
+    blind = resolve_identities(centers, hyp, None)
+    assert blind.changes == 0  # motion alone has no reason to exchange them
+    res = resolve_identities(centers, hyp, feats)
+    assert identity_switches(_apply(res.order, centers), truth)[0] == 0
+    assert res.changes == 1
+
+
+def test_tracks_apart_and_tracks_without_a_swap_are_left_alone() -> None:
+    for seed in range(4):
+        rng = np.random.default_rng(10 + seed)
+        truth = _side_by_side(150, rng, gap=400.0)  # never in contact
+        centers, hyp, feats = _tracked(truth, rng, {70: (0, 1)})
+        res = resolve_identities(centers, hyp, feats)
+        np.testing.assert_array_equal(res.order, np.broadcast_to([0, 1], (150, 2)))
+        # two animals in contact with the same coat, correctly tracked: nothing to correct
+        close = _side_by_side(150, rng)
+        same = np.repeat(COATS[:1], 3, 0)
+        centers, hyp, feats = _tracked(close, rng, {}, coats=same)
+        assert resolve_identities(centers, hyp, feats).changes == 0
+
+
+def test_three_animals_two_in_contact_exchange() -> None:
+    rng = np.random.default_rng(3)
+    truth = _side_by_side(200, rng, animals=3)
+    centers, hyp, feats = _tracked(truth, rng, {90: (0, 1)}, hidden=range(85, 95))
+    res = resolve_identities(centers, hyp, feats)
+    assert identity_switches(_apply(res.order, centers), truth)[0] == 0
+    assert (res.order[:, 2] == 2).all()  # the animal far away never changes track
+
+
+def test_track_features_and_trivial_cases() -> None:
+    hyp = np.array([[1, -1], [0, 1]])
+    feats = [np.array([[0.0, 1.0], [2.0, 3.0]]), np.array([[4.0, 5.0], [6.0, 7.0]])]
+    f = track_features(hyp, feats)
+    assert f is not None
+    np.testing.assert_array_equal(f[0, 0], [2, 3])
+    assert np.isnan(f[0, 1]).all()
+    np.testing.assert_array_equal(f[1], [[4, 5], [6, 7]])
+    assert track_features(hyp, [np.zeros((0, 2))] * 2) is None
+    one = resolve_identities(np.zeros((5, 1, 3)), np.zeros((5, 1), np.int64), None)
+    assert one.changes == 0 and (one.order == 0).all()
+    empty = resolve_identities(np.full((0, 2, 3), np.nan), np.zeros((0, 2), np.int64), None)
+    assert empty.order.shape == (0, 2)
