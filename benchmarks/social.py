@@ -12,8 +12,10 @@ touching animals), then :func:`freipose.predict.animals.score_tracks` against th
   the tracked animal's own box (IoU >= 0.5);
 * frames followed per animal, median 3D centre error, share of flagged frames.
 
-Sanity references in the same run: the tracker without the coat colours (motion alone),
-and the tracker fed the true centres (an ideal detector; it must not switch). The
+References in the same run: the frame-by-frame tracker alone (without the
+whole-recording identity pass, :mod:`freipose.predict.identity`), the tracker without
+the coat colours (motion alone), and the tracker fed the true centres (an ideal
+detector; it must not switch). The
 2-animal figures are the target's; the 3-animal figures are printed and recorded.
 
 Example (about 2 minutes per 2-minute session on 2 cores)::
@@ -37,7 +39,7 @@ from freipose.io.calibration import load_calibration
 from freipose.io.poses import read_poses_h5
 from freipose.io.video import FrameSource
 from freipose.predict.animals import score_tracks, track_recording, true_animal_boxes
-from freipose.predict.tracking import identity_switches, track_animals
+from freipose.predict.tracking import TrackingConfig, identity_switches, track_animals
 from freipose.synth import SceneConfig, generate_session
 
 ARENA = np.array([[-300.0, 300], [-300, 300], [-20, 250]])
@@ -63,9 +65,13 @@ def run_session(folder: Path, animals: int, seed: int, args: argparse.Namespace)
     t_track = time.perf_counter() - t0
     p2, v2 = truth.extra["points2d"], truth.extra["visible2d"]
     full = score_tracks(res, p2, v2, rig)
-    blind = track_animals([d.centers for d in res.detections], animals, truth.fps)
-    blind_sw, _ = identity_switches(blind.centers, true_animal_boxes(p2, rig)[1])
     _, centres = true_animal_boxes(p2, rig)
+    hyps = [d.centers for d in res.detections]
+    blind = track_animals(hyps, animals, truth.fps)
+    blind_sw, _ = identity_switches(blind.centers, centres)
+    online = track_animals(hyps, animals, truth.fps, features=list(res.features),
+                           config=TrackingConfig(resolve=False))  # fmt: skip
+    online_sw, _ = identity_switches(online.centers, centres)
     ideal = track_animals(list(centres), animals, truth.fps)
     ideal_sw, _ = identity_switches(ideal.centers, centres)
     contact = truth.extra["contact"]
@@ -74,6 +80,7 @@ def run_session(folder: Path, animals: int, seed: int, args: argparse.Namespace)
         "minutes": full.minutes,
         "switches": full.switches,
         "switches_motion_only": int(blind_sw),
+        "switches_frame_by_frame": int(online_sw),
         "switches_true_centres": int(ideal_sw),
         "recall_boxes": list(full.recall_boxes),
         "recall_tracked": list(full.recall_tracked),
@@ -97,6 +104,9 @@ def summarize(runs: list[dict]) -> dict:
         "switches_per_10min": 10 * sw / minutes,
         "switches_per_10min_motion_only": 10
         * sum(r["switches_motion_only"] for r in runs)
+        / minutes,
+        "switches_per_10min_frame_by_frame": 10
+        * sum(r["switches_frame_by_frame"] for r in runs)
         / minutes,
         "switches_true_centres": sum(r["switches_true_centres"] for r in runs),
         "min_recall_boxes": min(min(r["recall_boxes"]) for r in runs),
@@ -132,7 +142,8 @@ def main() -> None:
                 r = run_session(folder, n, 1000 + i, args)
                 runs.append(r)
                 print(f"{n} animals, seed {r['seed']}: {r['switches']} switches "
-                      f"(motion only {r['switches_motion_only']}, true centres "
+                      f"(frame by frame only {r['switches_frame_by_frame']}, motion only "
+                      f"{r['switches_motion_only']}, true centres "
                       f"{r['switches_true_centres']}) in {r['minutes']:.1f} min; recall boxes "
                       f"{np.round(r['recall_boxes'], 3)}, tracked "
                       f"{np.round(r['recall_tracked'], 3)}, "
@@ -142,7 +153,8 @@ def main() -> None:
             s = summarize(runs)
             figures[f"animals{n}"] = {"summary": s, "runs": runs}
             print(f"== {n} animals: {s['switches_per_10min']:.2f} switches per 10 min "
-                  f"(motion only {s['switches_per_10min_motion_only']:.2f}; true centres "
+                  f"(frame by frame only {s['switches_per_10min_frame_by_frame']:.2f}, "
+                  f"motion only {s['switches_per_10min_motion_only']:.2f}; true centres "
                   f"{s['switches_true_centres']} switches), recall per animal and view "
                   f">= {s['min_recall_boxes']:.3f} (tracked {s['min_recall_tracked']:.3f}), "
                   f"median centre error {s['median_center_error_mm']:.1f} mm",

@@ -58,11 +58,14 @@ class RecordingTracks:
         tracks: the :class:`~freipose.predict.tracking.Tracks` (T frames, A animals).
         detections: (T,) the animal hypotheses per frame (empty: not kept).
         candidates: (T, C) the box source's candidates (empty: not kept).
+        features: (T,) the hypotheses' coat features (H_t, F) (empty: not kept, or no
+            appearance).
     """
 
     tracks: Tracks
     detections: tuple[AnimalDetections, ...]
     candidates: tuple[tuple[Candidates, ...], ...]
+    features: tuple[np.ndarray, ...] = ()
 
 
 def track_recording(
@@ -92,9 +95,9 @@ def track_recording(
         bounds: (3, 2) world box mm the animals' centres lie in (e.g. the arena).
         appearance: use the coat colours of the boxes in the tracking.
         chunk: time instants sent to ``source`` at once.
-        keep: keep every frame's candidates and hypotheses in the result (False: the
-            tracks only, ``detections`` and ``candidates`` empty: a long recording's
-            prediction needs no more).
+        keep: keep every frame's candidates, hypotheses and features in the result
+            (False: the tracks only, ``detections``, ``candidates`` and ``features``
+            empty: a long recording's prediction needs no more).
 
     Returns:
         :class:`RecordingTracks`.
@@ -153,7 +156,7 @@ def track_recording(
         centres, n_animals, fps, features=feats if appearance else None, boxes=boxes,
         config=tracking,
     )  # fmt: skip
-    return RecordingTracks(tracks, tuple(dets), tuple(cands))
+    return RecordingTracks(tracks, tuple(dets), tuple(cands), tuple(feats) if keep else ())
 
 
 def _resplit(
