@@ -7,15 +7,16 @@ Each session is read twice:
    :class:`~freipose.detect.multi.PeakBoxes` around a trained detector), the association
    of the views' boxes into 3D animal hypotheses and the tracking with motion and coat
    colour (:func:`freipose.predict.animals.track_recording`) over the run's whole frame
-   range, in order: who is who in a frame depends on every frame before it. The tracks
-   cost the box proposals only; a resumed run makes them again.
+   range, in order, then the whole-recording identity pass
+   (:mod:`freipose.predict.identity`): who is who in a frame depends on the frames before
+   and after it. The tracks cost the box proposals only; a resumed run makes them again.
 2. **poses** (:func:`predict_animal_session`): per batch of frames the voxel network on
    each tracked animal's cube, centred on its track (the animals are extra samples of one
    network batch), written by the resumable
    :class:`~freipose.predict.writer.IncrementalPosesWriter` with an animal axis:
    ``individuals`` ``animal_0``, ``animal_1``, ... (the tracks, in the order they were
    first found), ``identity_confidence`` and ``extra/identity_flagged`` (the tracker's
-   confidence and its flag where a swap cannot be ruled out). An animal that its track
+   confidence and its flag where a swap cannot be ruled out or was undone). An animal that its track
    does not match in a frame has NaN poses there; a frame is ``status`` 0 when any animal
    was predicted.
 """
