@@ -68,7 +68,9 @@ def _interrupted(cfg: Path, run: Path, job: list, interrupt: list[str]) -> tuple
     """Run the training into ``run``; after step 6, ``interrupt`` its job (+ its id).
 
     Returns:
-        The job's id and the step it had logged when it was interrupted.
+        The job's id and the last step it had logged once it was stopped (the job runs on
+        while the signal is on its way: it may checkpoint a step after the one read before
+        the interrupt).
     """
     deadline = time.monotonic() + 300
     cmd = [sys.executable, "-m", "freipose.cli.main", "-q", "train", str(cfg), "--out",
@@ -81,6 +83,7 @@ def _interrupted(cfg: Path, run: Path, job: list, interrupt: list[str]) -> tuple
         assert step < STEPS, f"the run ended (step {step}) before the test could interrupt it"
         subprocess.run([*interrupt, job_id], check=True)
         _until("the requeued job", lambda: _squeue_state(job_id) == "PENDING", deadline)
+        step = _last_step(run)  # stopped: no step is logged until it starts again
         subprocess.run(["scontrol", "update", f"jobid={job_id}", "starttime=now"], check=True)
         output, _ = proc.communicate(timeout=max(deadline - time.monotonic(), 1))
     finally:
