@@ -132,8 +132,8 @@ def main() -> None:
     ap.add_argument("--animals", default="2,3", help="animal counts [2,3]")
     ap.add_argument("--workdir", type=Path, default=None, help="keep the sessions here")
     args = ap.parse_args()
-    figures: dict = {"settings": {k: (str(v) if isinstance(v, Path) else v)
-                                  for k, v in vars(args).items()}}  # fmt: skip
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    figures: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.workdir or Path(tmp)
         for n in (int(a) for a in args.animals.split(",")):
@@ -159,7 +159,7 @@ def main() -> None:
                   f">= {s['min_recall_boxes']:.3f} (tracked {s['min_recall_tracked']:.3f}), "
                   f"median centre error {s['median_center_error_mm']:.1f} mm",
                   flush=True)  # fmt: skip
-    write_result("social", figures)
+    write_result("social", figures, extra=settings)
 
 
 if __name__ == "__main__":

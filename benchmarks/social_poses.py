@@ -226,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
           f"x{summary['ratio_worst_max']:.2f}; target <= 1.3), single-animal network "
           f"x{summary['ratio_single_network_worst_median']:.2f}")  # fmt: skip
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(a).items()}
-    write_result("social_poses", {"settings": settings, "summary": summary, "runs": runs})
+    write_result("social_poses", {"summary": summary, "runs": runs}, extra=settings)
     return 0
 
 
