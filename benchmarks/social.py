@@ -10,7 +10,8 @@ touching animals), then :func:`freipose.predict.animals.score_tracks` against th
 * detection recall per animal over the views where it is visible (at least half its
   keypoints visible and half its box inside the image), of the candidate boxes and of
   the tracked animal's own box (IoU >= 0.5);
-* frames followed per animal, median 3D centre error, share of flagged frames.
+* frames followed per animal, median 3D centre error, share of flagged frames, and how
+  many of the switches were flagged (a flag on either track from 5 frames before).
 
 References in the same run: the frame-by-frame tracker alone (without the
 whole-recording identity pass, :mod:`freipose.predict.identity`), the tracker without
@@ -87,6 +88,7 @@ def run_session(folder: Path, animals: int, seed: int, args: argparse.Namespace)
         "followed": list(full.followed),
         "center_error_mm": full.center_error_mm,
         "flagged_fraction": full.flagged_fraction,
+        "switches_flagged": full.switches_flagged,
         "contact_fraction": float(np.asarray(contact).any((1, 2)).mean()),
         "render_s": t_render,
         "track_ms_per_frame": 1000 * t_track / frames_n,
@@ -115,6 +117,7 @@ def summarize(runs: list[dict]) -> dict:
         "min_followed": min(min(r["followed"]) for r in runs),
         "median_center_error_mm": float(np.median([r["center_error_mm"] for r in runs])),
         "flagged_fraction": float(np.mean([r["flagged_fraction"] for r in runs])),
+        "switches_flagged": sum(r["switches_flagged"] for r in runs),
         "contact_fraction": float(np.mean([r["contact_fraction"] for r in runs])),
         "track_ms_per_frame": float(np.median([r["track_ms_per_frame"] for r in runs])),
     }
@@ -157,6 +160,8 @@ def main() -> None:
                   f"motion only {s['switches_per_10min_motion_only']:.2f}; true centres "
                   f"{s['switches_true_centres']} switches), recall per animal and view "
                   f">= {s['min_recall_boxes']:.3f} (tracked {s['min_recall_tracked']:.3f}), "
+                  f"{s['switches_flagged']} of {s['switches']} switches flagged "
+                  f"({100 * s['flagged_fraction']:.1f} % of the frames flagged), "
                   f"median centre error {s['median_center_error_mm']:.1f} mm",
                   flush=True)  # fmt: skip
     write_result("social", figures, extra=settings)

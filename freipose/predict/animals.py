@@ -197,6 +197,9 @@ class TrackScores:
         center_error_mm: median distance of matched tracks from the true centres.
         flagged_fraction: fraction of matched (frame, track) pairs flagged.
         n_visible: (A,) visible (frame, view) pairs per animal.
+        switches_flagged: the switches where the tracker flagged one of the two tracks
+            from ``flag_window`` frames before the animal was last matched to the frame of
+            the switch (a user who checks the flagged frames finds these).
     """
 
     switches: int
@@ -208,6 +211,7 @@ class TrackScores:
     center_error_mm: float
     flagged_fraction: float
     n_visible: tuple[int, ...]
+    switches_flagged: int
 
 
 def true_animal_boxes(points2d: np.ndarray, rig: CameraRig) -> tuple[np.ndarray, np.ndarray]:
@@ -224,6 +228,7 @@ def score_tracks(
     rig: CameraRig,
     min_visible: float = 0.5,
     max_dist: float = 60.0,
+    flag_window: int = 5,
 ) -> TrackScores:
     """Scores of a :class:`RecordingTracks` against known keypoints.
 
@@ -234,6 +239,7 @@ def score_tracks(
         rig: the cameras (C).
         min_visible: fraction of an animal's keypoints visible in a view for it to count.
         max_dist: farthest track from a true centre that still follows it, mm.
+        flag_window: frames before a switch in which a flag counts for it.
 
     Returns:
         :class:`TrackScores`.
@@ -281,4 +287,23 @@ def score_tracks(
         center_error_mm=float(np.median(errs)) if errs else float("nan"),
         flagged_fraction=float(tr.flagged[matched].mean()) if matched.any() else float("nan"),
         n_visible=tuple(int(v) for v in n_vis),
+        switches_flagged=_flagged_switches(assigned, tr.flagged, flag_window),
     )
+
+
+def _flagged_switches(assigned: np.ndarray, flagged: np.ndarray, window: int) -> int:
+    """Switches (as :func:`identity_switches` counts them) with a flag on either track.
+
+    Args:
+        assigned: (T, B) the track matched to each true animal per frame, -1 none.
+        flagged: (T, A) the tracks' flags.
+        window: frames before the animal's last match in which a flag counts.
+    """
+    found = 0
+    for b in range(assigned.shape[1]):
+        seen = np.flatnonzero(assigned[:, b] >= 0)
+        for t0, t1 in zip(seen[:-1], seen[1:], strict=True):
+            old, new = assigned[t0, b], assigned[t1, b]
+            if old != new:
+                found += int(flagged[max(t0 - window, 0) : t1 + 1, [old, new]].any())
+    return found

@@ -31,7 +31,7 @@ Shapes: T frames, A animals (tracks), S = A! states, F features.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,12 +55,18 @@ class IdentityResolution:
         separation: distance between the two closest appearance models in units of the
             typical distance of a feature to its model (NaN: no appearance); below about
             2 the coats hardly tell the animals apart and motion decides.
+        margin: (T, A) per frame and animal (output order), where the animal's track is
+            in contact or lost (inf elsewhere: no exchange can happen there), how much
+            more the best sequence costs in which another animal is in this one's place
+            than at the first frame: near 0 where neither coats nor motion can tell
+            whether the animals were exchanged.
     """
 
     order: np.ndarray
     corrected: np.ndarray
     changes: int
     separation: float
+    margin: np.ndarray
 
 
 def track_features(hypothesis: np.ndarray, features: Sequence[np.ndarray]) -> np.ndarray | None:
@@ -138,6 +144,25 @@ def _appearance_costs(
     return per_state, float(np.nanmin(md) / np.sqrt(scale))
 
 
+def _step_costs(
+    centers: np.ndarray, amb: np.ndarray, perms: np.ndarray, swap_cost: float, sigma: float
+) -> Callable[[int], np.ndarray]:
+    """A function t -> (S, S) cost of going from each state at t - 1 to each state at t."""
+    carrier = np.argsort(perms, axis=1)  # (S, A) the track that follows animal a
+    changed = perms[:, None, :] != perms[None, :, :]  # (S from, S to, A tracks)
+    n_changed = changed.sum(-1)
+
+    def step(t: int) -> np.ndarray:
+        before = centers[t - 1][carrier]  # (S, A, 3) animal a's place under each state
+        now = centers[t][carrier]
+        jump = np.linalg.norm(before[:, None] - now[None], axis=-1)  # (S, S, A)
+        motion = np.nan_to_num(np.minimum((jump / sigma) ** 2 / 2, MOTION_CAP), nan=0.0)
+        allowed = ~(changed & ~amb[t]).any(-1)
+        return np.where(allowed, swap_cost * n_changed, np.inf) + motion.sum(-1)
+
+    return step
+
+
 def _viterbi(
     appearance: np.ndarray,
     centers: np.ndarray,
@@ -145,29 +170,36 @@ def _viterbi(
     perms: np.ndarray,
     swap_cost: float,
     sigma: float,
-) -> np.ndarray:
-    """(T,) the best state per frame (module docstring)."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """The best state per frame (T,) and each track's identity margin (T, A).
+
+    The margin of track i at frame t is how much more the best sequence costs in which
+    track i follows another animal at t than at the first frame (the min-marginals of a
+    backward pass and a forward pass that starts in the best first state): near 0 where
+    the evidence cannot tell whether the animals were exchanged since.
+    """
     t_n, s_n = appearance.shape
-    carrier = np.argsort(perms, axis=1)  # (S, A) the track that follows animal a
-    changed = perms[:, None, :] != perms[None, :, :]  # (S from, S to, A tracks)
-    n_changed = changed.sum(-1)
-    cost = appearance[0].copy()
+    step = _step_costs(centers, amb, perms, swap_cost, sigma)
+    bwd = np.zeros((t_n, s_n))
+    for t in range(t_n - 1, 0, -1):
+        bwd[t - 1] = (step(t) + (appearance[t] + bwd[t])[None, :]).min(1)
+    first = int(np.argmin(appearance[0] + bwd[0]))
+    fwd = np.full((t_n, s_n), np.inf)
+    fwd[0, first] = appearance[0, first]
     back = np.zeros((t_n, s_n), dtype=np.int64)
     for t in range(1, t_n):
-        before = centers[t - 1][carrier]  # (S, A, 3) animal a's place under each state
-        now = centers[t][carrier]
-        jump = np.linalg.norm(before[:, None] - now[None], axis=-1)  # (S, S, A)
-        motion = np.nan_to_num(np.minimum((jump / sigma) ** 2 / 2, MOTION_CAP), nan=0.0)
-        allowed = ~(changed & ~amb[t]).any(-1)
-        step = np.where(allowed, swap_cost * n_changed, np.inf) + motion.sum(-1)
-        total = cost[:, None] + step
+        total = fwd[t - 1][:, None] + step(t)
         back[t] = np.argmin(total, 0)
-        cost = total[back[t], np.arange(s_n)] + appearance[t]
+        fwd[t] = total[back[t], np.arange(s_n)] + appearance[t]
     states = np.zeros(t_n, dtype=np.int64)
-    states[-1] = int(np.argmin(cost))
+    states[-1] = int(np.argmin(fwd[-1]))
     for t in range(t_n - 1, 0, -1):
         states[t - 1] = back[t, states[t]]
-    return states
+    through = fwd + bwd  # (T, S) best cost of a sequence through each state
+    best = through[np.arange(t_n), states]
+    other = perms[None, :, :] != perms[states][:, None, :]  # (T, S, A)
+    alt = np.where(other, through[:, :, None], np.inf).min(1)  # (T, A)
+    return states, np.maximum(alt - best[:, None], 0.0)
 
 
 def resolve_identities(
@@ -196,7 +228,8 @@ def resolve_identities(
     t_n, a_n = x.shape[:2]
     same = np.broadcast_to(np.arange(a_n), (t_n, a_n)).copy()
     if a_n < 2 or a_n > MAX_ANIMALS or t_n < 2:
-        return IdentityResolution(same, np.zeros((t_n, a_n), bool), 0, float("nan"))
+        none = np.zeros((t_n, a_n), bool)
+        return IdentityResolution(same, none, 0, float("nan"), np.full((t_n, a_n), np.inf))
     perms = np.array(list(itertools.permutations(range(a_n))), dtype=np.int64)  # (S, A)
     feats = None if features is None else track_features(hypothesis, features)
     amb = _ambiguous(x, contact_mm)
@@ -204,10 +237,11 @@ def resolve_identities(
     states = np.zeros(t_n, dtype=np.int64)
     separation = float("nan")
     appearance = np.zeros((t_n, len(perms)))
+    margin = np.zeros((t_n, a_n))
     for _ in range(ITERATIONS if feats is not None else 1):
         if feats is not None:
             appearance, separation = _appearance_costs(feats, ident, perms)
-        new = _viterbi(appearance, x, amb, perms, swap_cost, motion_sigma_mm)
+        new, margin = _viterbi(appearance, x, amb, perms, swap_cost, motion_sigma_mm)
         if ident is not None and np.array_equal(new, states):
             break
         states, ident = new, perms[new]
@@ -221,4 +255,8 @@ def resolve_identities(
     order = np.argsort(rename[ident], axis=1)  # (T, A) the track of animal a
     moved = np.zeros((t_n, a_n), bool)
     moved[1:] = order[1:] != order[:-1]
-    return IdentityResolution(order, moved, int(moved.any(1).sum()), separation)
+    margin = np.where(amb, margin, np.inf)  # apart from the others: no exchange here
+    rows = np.arange(t_n)[:, None]
+    return IdentityResolution(
+        order, moved, int(moved.any(1).sum()), separation, margin[rows, order]
+    )

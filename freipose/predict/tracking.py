@@ -32,7 +32,8 @@ in no particular order; :func:`track_animals` keeps A tracks, one per animal:
   animals in a long contact; :func:`freipose.predict.identity.resolve_identities` then
   decides, over the whole recording, which animal each track follows in every frame (from
   the coats and the continuity of every animal's motion) and reorders the tracks; the
-  frames where it moved an animal to another track are flagged.
+  frames where it moved an animal to another track are flagged, and so are those where
+  another animal would fit the track almost as well (``flag_margin``).
 
 Shapes: T frames, A animals (tracks), H_t hypotheses at frame t, C cameras, F features.
 """
@@ -71,6 +72,10 @@ class TrackingConfig:
         contact_mm: tracks closer than this are in contact (appearance not updated).
         confidence_scale: cost margin (gate units) of confidence ``1 - 1/e``.
         flag_below: confidence below which a frame is flagged.
+        flag_margin: a frame is also flagged where the whole-recording pass could place
+            another animal in this track at less than this extra cost (its ``margin``);
+            an exchange of two tracks costs ``2 * swap_cost`` by itself, so the default
+            flags where the coats and the motion add less than 1 to that.
         miss_cost: cost of leaving a track unmatched (gate units) ...
         miss_cost_per_s: ... growing by this per second unseen, so that a long-lost animal
             is found again farther away, but a false hypothesis far from a track just
@@ -93,6 +98,7 @@ class TrackingConfig:
     contact_mm: float = 150.0
     confidence_scale: float = 0.3
     flag_below: float = 0.5
+    flag_margin: float = 5.0
     miss_cost: float = 1.0
     miss_cost_per_s: float = 1.0
     reacquire: bool = True
@@ -328,6 +334,7 @@ def track_animals(
         o = res.order
         out_x, out_b, out_h = out_x[rows, o], out_b[rows, o], out_h[rows, o]
         out_c, flagged = out_c[rows, o], flagged[rows, o] | res.corrected
+        flagged |= (out_h >= 0) & (res.margin < cfg.flag_margin)
     return Tracks(out_x, out_b, out_h, out_c, flagged, float(fps))
 
 

@@ -70,10 +70,13 @@ def test_coats_decide_where_motion_cannot() -> None:
     centers[50:70, 0] = np.nan
     hyp[50:70, 0] = -1
     blind = resolve_identities(centers, hyp, None)
-    assert blind.changes == 0  # motion alone has no reason to exchange them
+    assert blind.changes == 0  # motion alone has no reason to exchange them ...
+    # ... nor against it: after the blob, exchanging costs the exchange alone (2 x 2.0)
+    np.testing.assert_allclose(blind.margin[75:], 4.0, atol=1e-6)
     res = resolve_identities(centers, hyp, feats)
     assert identity_switches(_apply(res.order, centers), truth)[0] == 0
     assert res.changes == 1
+    assert (res.margin[75:] > 20).all()  # the coats tell them apart
 
 
 def test_tracks_apart_and_tracks_without_a_swap_are_left_alone() -> None:
@@ -83,6 +86,7 @@ def test_tracks_apart_and_tracks_without_a_swap_are_left_alone() -> None:
         centers, hyp, feats = _tracked(truth, rng, {70: (0, 1)})
         res = resolve_identities(centers, hyp, feats)
         np.testing.assert_array_equal(res.order, np.broadcast_to([0, 1], (150, 2)))
+        assert np.isinf(res.margin).all()  # no frame where they could be exchanged
         # two animals in contact with the same coat, correctly tracked: nothing to correct
         close = _side_by_side(150, rng)
         same = np.repeat(COATS[:1], 3, 0)
@@ -112,3 +116,17 @@ def test_track_features_and_trivial_cases() -> None:
     assert one.changes == 0 and (one.order == 0).all()
     empty = resolve_identities(np.full((0, 2, 3), np.nan), np.zeros((0, 2), np.int64), None)
     assert empty.order.shape == (0, 2)
+
+
+def test_switches_flagged_counts_a_flag_near_a_switch_on_either_track() -> None:
+    from freipose.predict.animals import _flagged_switches
+
+    assigned = np.array([[0, 1]] * 10 + [[-1, -1]] * 3 + [[1, 0]] * 10)  # both switch at 13
+    flagged = np.zeros((23, 2), bool)
+    assert _flagged_switches(assigned, flagged, 5) == 0
+    flagged[6, 1] = True  # 3 frames before the animals were last matched, on track 1
+    assert _flagged_switches(assigned, flagged, 5) == 2  # both switches involve track 1
+    assert _flagged_switches(assigned, flagged, 2) == 0
+    flagged[:] = False
+    flagged[20, 0] = True  # after the switch: not a warning of it
+    assert _flagged_switches(assigned, flagged, 5) == 0
