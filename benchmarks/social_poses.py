@@ -11,7 +11,9 @@ costs, at the same training budget:
   ones (a two-animal session has a row per animal and frame);
 * networks, from the shipped base model at the same ``--steps`` and batch: ``single``,
   trained on the single-animal twins, and ``social``, trained on the two-animal
-  sessions: as many labeled instants of the same coats;
+  sessions: as many labeled instants of the same coats; each chooses its inference
+  settings on ``--val`` validation sessions of its kind (seeds 2500 + i), as
+  ``docs/own-data.md`` recommends;
 * scores (``freipose eval``, the cube centred on each animal's labeled centre, so that
   the network is scored and not the tracking), per animal of the held-out sessions:
   median P1 JPE of ``single`` on its single-animal twins (the animal alone), of
@@ -91,11 +93,14 @@ def sessions(out: Path, a: argparse.Namespace) -> dict[str, Path]:
 
     Every social session has single-animal twins, one per animal with that animal's coat
     and as many frames: the two networks learn from as many labeled instants of the same
-    coats. Keys: ``social_train``, ``single_train``, and per animal k of the held-out
-    sessions ``social_test_k`` (that animal's rows) and ``single_test_k`` (its twins).
+    coats. Keys: ``social_train``, ``single_train``, ``social_val``, ``single_val`` (with
+    ``--val``), and per animal k of the held-out sessions ``social_test_k`` (that
+    animal's rows) and ``single_test_k`` (its twins).
     """
     files: dict[str, Path] = {}
-    for part, first, n in (("train", 2000, a.train), ("test", 3000, a.test)):
+    for part, first, n in (("train", 2000, a.train), ("val", 2500, a.val), ("test", 3000, a.test)):
+        if not n:
+            continue
         social, single = [], []
         for i in range(n):
             rec = out / "data" / f"social_{part}{i}"
@@ -107,8 +112,8 @@ def sessions(out: Path, a: argparse.Namespace) -> dict[str, Path]:
                 single.append(twin / "labels.h5")
         labels = out / "labels"
         files[f"social_{part}"] = _merge(social, labels / f"social_{part}.h5")
-        if part == "train":
-            files["single_train"] = _merge(single, labels / "single_train.h5")
+        if part in ("train", "val"):
+            files[f"single_{part}"] = _merge(single, labels / f"single_{part}.h5")
             continue
         for k in range(2):
             one = labels / f"social_test_animal{k}.h5"
@@ -134,13 +139,21 @@ def _one_animal(path: Path, animal: str, out: Path) -> None:
     tmp.replace(out)
 
 
-def train(out: Path, labels: Path, a: argparse.Namespace, seed: int) -> Path:
-    """Fine-tune the base model on ``labels``; returns the checkpoint."""
+def train(
+    out: Path, labels: Path, a: argparse.Namespace, seed: int, validation: Path | None = None
+) -> Path:
+    """Fine-tune the base model on ``labels``; returns the checkpoint.
+
+    With ``validation`` labels the inference settings are chosen on them after training
+    (``[data] validation_labels``, as ``docs/own-data.md`` recommends).
+    """
     out.mkdir(parents=True, exist_ok=True)
     cfg = out / "train.toml"
+    val = f'validation_labels = "{validation}"\n' if validation else ""
     cfg.write_text(
-        f'[data]\nlabels = "{labels}"\nskeleton = "rat"\n\n[model]\npreset = "{a.preset}"\n\n'
-        f"[schedule]\nsteps = {a.steps}\ncheckpoint_every = {a.steps}\nseed = {seed}\n",
+        f'[data]\nlabels = "{labels}"\n{val}skeleton = "rat"\n\n[model]\n'
+        f'preset = "{a.preset}"\n\n[schedule]\nsteps = {a.steps}\n'
+        f"checkpoint_every = {a.steps}\nseed = {seed}\n",
         encoding="utf-8",
     )
     model = out / "pose" / "model.pt"
@@ -189,8 +202,8 @@ def run_seed(out: Path, files: dict[str, Path], a: argparse.Namespace, seed: int
     """Train both networks with one seed and score them per animal."""
     run = out / f"seed{seed}"
     t0 = time.perf_counter()
-    single = train(run / "single", files["single_train"], a, seed)
-    social = train(run / "social", files["social_train"], a, seed)
+    single = train(run / "single", files["single_train"], a, seed, files.get("single_val"))
+    social = train(run / "social", files["social_train"], a, seed, files.get("social_val"))
     res: dict[str, Any] = {"seed": seed, "train_s": time.perf_counter() - t0}
     for k in range(2):
         alone = evaluate(single, files[f"single_test_{k}"], run / f"eval_single_alone{k}")
@@ -218,6 +231,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--frames", type=int, default=150, help="frames per session [150]")
     ap.add_argument("--train", type=int, default=2, help="training sessions per case [2]")
     ap.add_argument("--test", type=int, default=2, help="held-out sessions per case [2]")
+    ap.add_argument("--val", type=int, default=1,
+                    help="validation sessions per case, on which each network's inference "
+                         "settings are chosen (0: none) [1]")  # fmt: skip
     ap.add_argument("--size", default="320x256", help="image size WxH [320x256]")
     ap.add_argument("--steps", type=int, default=300, help="training steps [300]")
     ap.add_argument("--preset", default="small", help="network preset [small]")
