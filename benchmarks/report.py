@@ -99,7 +99,7 @@ def spread(values: list[Any]) -> dict[str, Any]:
         return {"median": statistics.median(nums), "min": min(nums), "max": max(nums),
                 "n": len(nums)}  # fmt: skip
     counts = Counter(
-        json.dumps(v) if not isinstance(v, str) else v for v in values if v is not None
+        _setting(v) if isinstance(v, str) else json.dumps(v) for v in values if v is not None
     )
     return {"values": counts.most_common(), "n": sum(counts.values())}
 
@@ -230,7 +230,10 @@ def table(runs: list[dict[str, Any]]) -> list[str]:
 
 
 def _setting(value: Any) -> Any:
-    """A setting as a heading shows it: an absolute path by its file name (a model file)."""
+    """A setting or a text figure as the page shows it: an absolute path by its file name.
+
+    A model file, or a file on the recording machine.
+    """
     return Path(value).name if isinstance(value, str) and Path(value).is_absolute() else value
 
 

@@ -161,3 +161,6 @@ def test_commands_are_shown_from_the_repository_root_without_local_folders(bench
     assert bench.command_text(rec) == "python benchmarks/predict.py --model /m/voxel_small.pt"
     assert bench._setting("/work/main/freipose/models/voxel_small.pt") == "voxel_small.pt"
     assert bench._setting("small") == "small" and bench._setting(3) == 3
+    # a text figure that is a path on the recording machine: its file name
+    cell = bench.cell(bench.spread(["/work/runs/demo-seed0/analysis/study.toml"]))
+    assert cell == "study.toml"
