@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _cli import freipose
 from _results import write_result
 
 RIGS: dict[str, list[str]] = {
@@ -76,20 +77,6 @@ UNLABELED_TABLE = {
     "weight_equivariance": 0.5,
     "weight_bones": 0.5,
 }
-
-
-def freipose(args: list[str]) -> None:
-    """Run ``freipose ARGS`` in this process.
-
-    Raises:
-        SystemExit: the command failed.
-    """
-    from freipose.cli.main import cli
-
-    try:
-        cli.main(["-q", *args], standalone_mode=False)
-    except Exception as exc:  # a benchmark stops at the first failing command
-        raise SystemExit(f"freipose {' '.join(args)} failed: {exc}") from exc
 
 
 def render(out: Path, rig: str, a: argparse.Namespace) -> Path:

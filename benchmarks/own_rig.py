@@ -37,12 +37,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _cli import step as run_step
 from _results import write_result
 
 RIG = [
@@ -56,26 +56,11 @@ AT_HELD_OUT = "median pose at held-out centre"
 AT_TRAINING = "median pose at training centre"
 
 
-def freipose(args: list[str]) -> float:
-    """Run ``freipose ARGS`` in this process; returns its wall time in seconds.
-
-    Raises:
-        SystemExit: the command failed.
-    """
-    from freipose.cli.main import cli
-
-    t0 = time.perf_counter()
-    try:
-        cli.main(["-q", *args], standalone_mode=False)
-    except Exception as exc:  # a benchmark stops at the first failing command
-        raise SystemExit(f"freipose {' '.join(args)} failed: {exc}") from exc
-    return time.perf_counter() - t0
-
-
 def step(done: Path, args: list[str], times: dict[str, float], name: str) -> None:
     """Run a command unless its output ``done`` exists (then its earlier time is kept)."""
-    if not done.exists():
-        times[name] = round(freipose(args), 1)
+    seconds = run_step(done, args)
+    if seconds is not None:
+        times[name] = round(seconds, 1)
 
 
 def prepare(out: Path, a: argparse.Namespace, times: dict[str, float]) -> None:

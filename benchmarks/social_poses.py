@@ -41,31 +41,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _cli import step
 from _results import write_result
 
 SCENE = ["--cameras", "4", "--fps", "10", "--coat-mix", "different"]
-
-
-def freipose(args: list[str]) -> float:
-    """Run ``freipose ARGS`` in this process; returns its wall time in seconds.
-
-    Raises:
-        SystemExit: the command failed.
-    """
-    from freipose.cli.main import cli
-
-    t0 = time.perf_counter()
-    try:
-        cli.main(["-q", *args], standalone_mode=False)
-    except Exception as exc:  # a benchmark stops at the first failing command
-        raise SystemExit(f"freipose {' '.join(args)} failed: {exc}") from exc
-    return time.perf_counter() - t0
-
-
-def step(done: Path, args: list[str]) -> None:
-    """Run a command unless its output ``done`` exists."""
-    if not done.exists():
-        freipose(args)
 
 
 def _coats(rec: Path) -> list[str]:
