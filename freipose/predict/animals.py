@@ -44,6 +44,7 @@ from freipose.predict.tracking import (
     Tracks,
     colour_features,
     identity_switches,
+    switch_events,
     track_animals,
 )
 
@@ -292,18 +293,14 @@ def score_tracks(
 
 
 def _flagged_switches(assigned: np.ndarray, flagged: np.ndarray, window: int) -> int:
-    """Switches (as :func:`identity_switches` counts them) with a flag on either track.
+    """Switches (:func:`~freipose.predict.tracking.switch_events`) with a flag on either track.
 
     Args:
         assigned: (T, B) the track matched to each true animal per frame, -1 none.
         flagged: (T, A) the tracks' flags.
         window: frames before the animal's last match in which a flag counts.
     """
-    found = 0
-    for b in range(assigned.shape[1]):
-        seen = np.flatnonzero(assigned[:, b] >= 0)
-        for t0, t1 in zip(seen[:-1], seen[1:], strict=True):
-            old, new = assigned[t0, b], assigned[t1, b]
-            if old != new:
-                found += int(flagged[max(t0 - window, 0) : t1 + 1, [old, new]].any())
-    return found
+    return sum(
+        int(flagged[max(t0 - window, 0) : t1 + 1, [old, new]].any())
+        for _, t0, t1, old, new in switch_events(assigned)
+    )

@@ -131,8 +131,10 @@ class Tracks:
             when no boxes were given).
         hypothesis: (T, A) int64 index of the matched hypothesis in its frame, -1 none.
         confidence: (T, A) identity confidence in [0, 1]; NaN where unmatched.
-        flagged: (T, A) confidence below ``flag_below`` (a swap cannot be ruled out), or
-            the frame where the whole-recording pass moved the animal to this track.
+        flagged: (T, A) confidence below ``flag_below`` (a swap cannot be ruled out), the
+            frame where the whole-recording pass moved the animal to this track, or a
+            contact where that pass could not tell whether animals were exchanged
+            (``flag_margin``).
         fps: frames per second.
     """
 
@@ -500,8 +502,6 @@ def identity_switches(
             f"{tx.shape} and {gx.shape}"
         )
     assigned = np.full(gx.shape[:2], -1, dtype=np.int64)
-    last = np.full(gx.shape[1], -1, dtype=np.int64)
-    switches = 0
     for t in range(len(tx)):
         d = np.linalg.norm(tx[t][:, None] - gx[t][None], axis=-1)  # (A, B)
         d = np.where(np.isfinite(d), d, FORBIDDEN)
@@ -511,7 +511,23 @@ def identity_switches(
             if d[r, b] > max_dist or 2 * d[r, b] > second[r]:
                 continue
             assigned[t, b] = r
-            if last[b] >= 0 and last[b] != r:
-                switches += 1
-            last[b] = r
-    return switches, assigned
+    return len(switch_events(assigned)), assigned
+
+
+def switch_events(assigned: np.ndarray) -> np.ndarray:
+    """The identity switches of :func:`identity_switches`, one row each.
+
+    Args:
+        assigned: (T, B) the track matched to each true animal per frame, -1 none.
+
+    Returns:
+        (n, 5) int64 rows ``(animal, last frame on the old track, frame of the switch,
+        old track, new track)``: consecutive matches of an animal to different tracks.
+    """
+    rows = []
+    for b in range(assigned.shape[1]):
+        seen = np.flatnonzero(assigned[:, b] >= 0)
+        for t0, t1 in zip(seen[:-1], seen[1:], strict=True):
+            if assigned[t0, b] != assigned[t1, b]:
+                rows.append((b, t0, t1, assigned[t0, b], assigned[t1, b]))
+    return np.asarray(rows, dtype=np.int64).reshape(-1, 5)
