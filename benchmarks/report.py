@@ -344,7 +344,8 @@ def cluster_block(records: list[dict[str, Any]]) -> str:
     source = (f"a {unit_cost[0].rsplit('_', 1)[1].replace('slurm', 'SLURM')} unit's cost per "
               "frame after its first batch" if unit_cost else "the direct run's cost")  # fmt: skip
     lines = [
-        f"Measured by `{command_text(r)}` on {r['date'][:10]} ({m['cpu_model']}, "
+        f"Measured by `{command_text(r)}` (its latest recorded run, listed with its date and "
+        f"commit on the [benchmarks](../benchmarks.md) page; {m['cpu_model']}, "
         f"{m['cores']} cores, shared with other work: 1-minute load average "
         f"{fmt(load.get('start', float('nan')))} at the start, "
         f"{fmt(load.get('end', float('nan')))} at the end): {x['sessions']} synthetic sessions "
