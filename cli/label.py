@@ -57,6 +57,13 @@ from freipose.cli._common import user_errors
     "--max-residual", type=float, default=3.0, show_default=True,
     help="Reprojection residual (px) above which a label is highlighted.",
 )  # fmt: skip
+@click.option(
+    "--animals",
+    help="Label several animals at each instant: their number (named animal_0, animal_1, "
+    "... as `freipose predict --animals` names them) or their names, comma-separated "
+    "(e.g. resident,intruder) [default: the animals of OUTPUT if it exists, else those of "
+    "the --poses-dir predictions, else one].",
+)
 @click.option("--no-browser", is_flag=True, help="Do not open the page in a web browser.")
 def label(
     sessions: tuple[Path, ...],
@@ -69,6 +76,7 @@ def label(
     host: str,
     port: int,
     max_residual: float,
+    animals: str | None,
     no_browser: bool,
 ) -> None:
     """Label keypoints in every camera view of an instant at once, in the browser.
@@ -77,7 +85,9 @@ def label(
     Clicking a keypoint in one view draws its epipolar curve in the others; a second view
     triangulates it and projects it into the rest, where Enter accepts the projections.
     Every edit is written to OUTPUT at once (labels.h5, read by train, labels check and
-    labels export); Ctrl-C stops the server. See docs/tutorials/labeling.md.
+    labels export); Ctrl-C stops the server. With several animals (--animals) each animal
+    of an instant is labeled on its own (A switches between them; the others' labels are
+    drawn for reference) and OUTPUT has a row per animal. See docs/tutorials/labeling.md.
 
     \b
     Example:
@@ -88,20 +98,27 @@ def label(
     with user_errors():
         from freipose.io.labels import labels_file_lock
         from freipose.labelui.server import network_warning, serving
-        from freipose.labelui.startup import open_store
+        from freipose.labelui.startup import open_store, parse_animals
         from freipose.labelui.store import StoreSettings
 
+        names = None if animals is None else parse_animals(animals)
         with labels_file_lock(output):  # before the file is read: no writer in between
             store = open_store(
                 sessions, calibration, skeleton, output, frames=frames, poses_dir=poses_dir,
                 per_session=per_session, settings=StoreSettings(max_residual=max_residual),
+                animals=names,
             )  # fmt: skip
             with (
                 serving(store, host, port, lock=False) as (running, handle),
                 contextlib.suppress(KeyboardInterrupt),  # Ctrl-C: stop, report below
             ):
+                who = (
+                    f" ({len(store.animals)} animals each: {', '.join(store.animals)})"
+                    if store.animals
+                    else ""
+                )
                 click.echo(
-                    f"labeling {len(store)} instants of {len(store.sessions)} sessions "
+                    f"labeling {len(store)} instants{who} of {len(store.sessions)} sessions "
                     f"into {output}"
                 )
                 if (warning := network_warning(host)) is not None:

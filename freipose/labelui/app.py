@@ -140,10 +140,12 @@ def _config(store: LabelStore) -> dict[str, Any]:
             {
                 "session": x.session,
                 "frame": x.frame,
+                "individual": x.individual,
                 "confidence": None if x.confidence != x.confidence else round(x.confidence, 4),
             }
             for x in store.instants
         ],  # fmt: skip
+        "animals": list(dict.fromkeys(x.individual for x in store.instants if x.individual)),
         "max_residual": store.settings.max_residual,
         "bone_tolerance": store.settings.bone_tolerance,
         "output": store.output.name,

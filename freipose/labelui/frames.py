@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 class FrameCache:
     """JPEG frames of instants, by (instant index, camera).
 
+    Instants of one session and frame (several animals) share their images.
+
     Args:
         sessions: session name -> the session.
         instants: the instants (their indices are the keys).
@@ -43,7 +45,7 @@ class FrameCache:
         self.instants = instants
         self.quality = int(quality)
         self._max = max(1, cache_instants) * max(len(s.cameras) for s in sessions.values())
-        self._cache: OrderedDict[tuple[int, str], bytes] = OrderedDict()
+        self._cache: OrderedDict[tuple[str, int, str], bytes] = OrderedDict()
         self._cache_lock = threading.Lock()
         self._sources: dict[tuple[str, str], FrameSource] = {}
         self._source_locks: dict[tuple[str, str], threading.Lock] = {
@@ -53,14 +55,14 @@ class FrameCache:
         self._worker = threading.Thread(target=self._prefetch_loop, daemon=True)
         self._worker.start()
 
-    def _get(self, key: tuple[int, str]) -> bytes | None:
+    def _get(self, key: tuple[str, int, str]) -> bytes | None:
         with self._cache_lock:
             data = self._cache.get(key)
             if data is not None:
                 self._cache.move_to_end(key)
             return data
 
-    def _put(self, key: tuple[int, str], data: bytes) -> None:
+    def _put(self, key: tuple[str, int, str], data: bytes) -> None:
         with self._cache_lock:
             self._cache[key] = data
             self._cache.move_to_end(key)
@@ -77,7 +79,7 @@ class FrameCache:
         x = self.instants[index]
         if camera not in self.sessions[x.session].cameras:
             raise KeyError(camera)
-        key = (index, camera)
+        key = (x.session, x.frame, camera)
         data = self._get(key)
         if data is not None:
             return data

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from freipose.errors import FreiPoseError
-from freipose.io.labels import read_labels_h5
+from freipose.io.labels import LabelSet, read_labels_h5
 from freipose.io.poses import PoseData, read_poses_h5
 from freipose.io.session import Session, discover_sessions
 from freipose.labels.select import read_selection_csv
-from freipose.labelui.store import Instant, LabelStore, StoreSettings, read_status
+from freipose.labelui.store import Instant, LabelStore, StoreSettings, read_animals, read_status
 from freipose.skeleton import Skeleton, load_skeleton
 
 log = logging.getLogger(__name__)
@@ -52,14 +52,77 @@ def _predictions(
     return out
 
 
-def _confidence(pred: PoseData | None, frame: int) -> float:
+def _confidence(pred: PoseData | None, frame: int, animal: str = "") -> float:
+    """Mean keypoint confidence of the prediction at ``frame`` (of ``animal``, if named)."""
     if pred is None:
         return float("nan")
     hit = np.flatnonzero(pred.frame_index == frame)
     if not len(hit):
         return float("nan")
     c = pred.confidence[hit[0]]
+    if pred.individuals is not None and animal:
+        if animal not in pred.individuals:
+            return float("nan")
+        c = c[pred.individuals.index(animal)]
     return float(np.nanmean(c)) if np.isfinite(c).any() else 0.0
+
+
+def parse_animals(text: str) -> tuple[str, ...]:
+    """The animals named by ``--animals``: a count (``animal_0``, ...) or names, comma-separated.
+
+    A count names the animals as ``freipose predict --animals`` does, so that the labels
+    and the predictions speak of the same animals.
+
+    Raises:
+        LabelStartError: a count below 1, an empty or repeated name.
+    """
+    text = text.strip()
+    if text.isdigit():
+        n = int(text)
+        if n < 1:
+            raise LabelStartError(f"--animals must be at least 1, got {n}")
+        return tuple(f"animal_{a}" for a in range(n)) if n > 1 else ()
+    names = tuple(a.strip() for a in text.split(","))
+    if any(not a for a in names) or len(set(names)) != len(names):
+        raise LabelStartError(
+            f"--animals {text!r}: expected a number of animals or distinct names separated "
+            f"by commas (e.g. --animals resident,intruder)"
+        )
+    return names
+
+
+def _run_animals(
+    given: Sequence[str] | None,
+    existing: LabelSet | None,
+    recorded: Sequence[str],
+    predictions: dict[str, PoseData],
+) -> tuple[str, ...]:
+    """The animals to label: as given, else the labels file's, else the predictions'.
+
+    The file's animals are those its labeling run recorded (``recorded``) followed by any
+    other animal its rows name (imported labels).
+    """
+    if given is not None:
+        return tuple(given)
+    if existing is not None and (recorded or existing.individuals):
+        return tuple(dict.fromkeys([*recorded, *existing.individuals]))
+    names: dict[str, None] = {}
+    for p in predictions.values():
+        names.update(dict.fromkeys(p.individuals or ()))
+    return tuple(names) if len(names) > 1 else ()
+
+
+def per_animal(
+    instants: Sequence[Instant], animals: Sequence[str], predictions: dict[str, PoseData]
+) -> list[Instant]:
+    """Each instant once per animal, the animals of one frame next to each other."""
+    if not animals:
+        return list(instants)
+    return [
+        Instant(x.session, x.frame, _confidence(predictions.get(x.session), x.frame, a), a)
+        for x in instants
+        for a in animals
+    ]
 
 
 def choose_instants(
@@ -123,8 +186,12 @@ def open_store(
     poses_dir: Path | None = None,
     per_session: int = 20,
     settings: StoreSettings | None = None,
+    animals: Sequence[str] | None = None,
 ) -> LabelStore:
     """Check the inputs of ``freipose label`` and open its :class:`LabelStore`.
+
+    ``animals`` names the animals to label at each instant (None: those of the labels
+    file, else those of the predictions, else one animal; ``()``: one animal).
 
     Raises:
         LabelStartError, SessionError, MediaError, InputFileError, LabelsFormatError,
@@ -133,6 +200,7 @@ def open_store(
     skel = load_skeleton(skeleton)
     sessions = discover_sessions(inputs, calibration, cameras="videos", need_fps=False)
     existing = status = None
+    recorded: tuple[str, ...] = ()
     if Path(output).exists():
         existing = read_labels_h5(output)
         if existing.keypoints != skel.keypoints:
@@ -141,9 +209,22 @@ def open_store(
                 f"{skel.name!r} {list(skel.keypoints)}; pass the --skeleton these labels were "
                 f"made with, or another -o file"
             )
+        recorded = read_animals(Path(output))
         status = read_status(
             Path(output), (len(existing), len(existing.cameras), len(existing.keypoints))
         )
     preds = _predictions(sessions, poses_dir, skel)
-    instants = choose_instants(sessions, frames, per_session, preds)
+    names = _run_animals(animals, existing, recorded, preds)
+    if existing is not None and len(existing) and bool(existing.individuals) != bool(names):
+        held = (
+            f"the animals {list(existing.individuals)}"
+            if existing.individuals
+            else "one animal per instant"
+        )
+        asked = f"the animals {list(names)}" if names else "one animal"
+        raise LabelStartError(
+            f"{output}: it holds labels of {held}, and this run labels {asked}; pass "
+            f"--animals as the file was made (or leave it out), or another -o file"
+        )
+    instants = per_animal(choose_instants(sessions, frames, per_session, preds), names, preds)
     return LabelStore(sessions, skel, instants, Path(output), existing, status, preds, settings)

@@ -1,6 +1,7 @@
 """The labels being edited: one state per instant, saved to ``labels.h5`` after every edit.
 
-Each instant (a session and a video frame) has labels ``points`` (V, K, 2) and states
+Each instant (a session, a video frame and, with several animals, one of them) has labels
+``points`` (V, K, 2) and states
 ``status`` (V, K) over the session's V cameras (see :mod:`freipose.labelui.geometry`),
 and a version number that every save increments: a save that names an older version is
 refused (:class:`StaleVersionError`), so two tabs editing one instant never overwrite
@@ -10,7 +11,8 @@ each other silently.
 :mod:`freipose.io.labels` (``points2d`` and ``visible2d`` from the visible labels,
 ``points3d`` triangulated from them) plus the group ``labelui`` with the dataset
 ``status`` (N, V, K) int8, so that occluded and not-in-view marks survive a restart.
-Rows of sessions that this run does not edit are kept unchanged.
+Rows of sessions that this run does not edit are kept unchanged. With several animals the
+file has the ``individual`` column: one row per animal labeled at a frame.
 """
 
 from __future__ import annotations
@@ -41,21 +43,29 @@ from freipose.labelui.geometry import (
 from freipose.skeleton import Skeleton
 
 STATUS_DATASET = "labelui/status"
+ANIMALS_ATTR = "animals"  # attribute of the labelui group: the animals the run labels
 
 
 @dataclass(frozen=True)
 class Instant:
-    """One time instant to label.
+    """One time instant to label (with several animals: one animal at one instant).
 
     Attributes:
         session: the session's name.
         frame: the video frame number.
         confidence: mean keypoint confidence of the prediction (NaN when unknown).
+        individual: the animal's name; ``""`` when the run labels one animal.
     """
 
     session: str
     frame: int
     confidence: float = float("nan")
+    individual: str = ""
+
+    @property
+    def key(self) -> tuple[str, int, str]:
+        """(session, frame, individual): what identifies the instant."""
+        return self.session, self.frame, self.individual
 
 
 @dataclass(frozen=True)
@@ -127,7 +137,7 @@ class LabelStore:
         self._lock = threading.Lock()
         self._keep = self._foreign_rows(existing)
         self.instants: list[Instant] = list(instants)
-        self._index = {(x.session, x.frame): i for i, x in enumerate(self.instants)}
+        self._index = {x.key: i for i, x in enumerate(self.instants)}
         self._points: list[np.ndarray] = []
         self._status: list[np.ndarray] = []
         for x in self.instants:
@@ -138,6 +148,10 @@ class LabelStore:
         self.saves = 0
         if existing is not None:
             self._resume(existing, existing_status)
+        # the instants of each (session, frame): the animals of one moment
+        self._moments: dict[tuple[str, int], list[int]] = {}
+        for i, x in enumerate(self.instants):
+            self._moments.setdefault((x.session, x.frame), []).append(i)
         K, L = skeleton.num_keypoints, len(skeleton.limbs)
         self._p3d = np.full((len(self.instants), K, 3), np.nan)
         self._bones = np.full((len(self.instants), L), np.nan)
@@ -158,14 +172,16 @@ class LabelStore:
             name, frame = str(existing.session[r]), int(existing.frame_index[r])
             if name not in self.sessions:
                 continue
-            if (name, frame) not in self._index:
-                self._index[(name, frame)] = len(self.instants)
-                self.instants.append(Instant(name, frame))
+            ind = "" if existing.individual is None else str(existing.individual[r])
+            key = (name, frame, ind)
+            if key not in self._index:
+                self._index[key] = len(self.instants)
+                self.instants.append(Instant(name, frame, individual=ind))
                 v = len(self.sessions[name].cameras)
                 self._points.append(np.full((v, self.skeleton.num_keypoints, 2), np.nan))
                 self._status.append(np.zeros((v, self.skeleton.num_keypoints), np.int8))
                 self._version.append(0)
-            i = self._index[(name, frame)]
+            i = self._index[key]
             for v, cam in enumerate(self.sessions[name].cameras):
                 if cam not in existing.cameras:
                     continue
@@ -181,6 +197,11 @@ class LabelStore:
                 self._status[i][v] = st.astype(np.int8)
 
     # -- queries --------------------------------------------------------------------------
+    @property
+    def animals(self) -> tuple[str, ...]:
+        """The animals labeled at each instant (``()`` for one animal)."""
+        return tuple(dict.fromkeys(x.individual for x in self.instants if x.individual))
+
     def __len__(self) -> int:
         return len(self.instants)
 
@@ -233,7 +254,13 @@ class LabelStore:
         hit = np.flatnonzero(pred.frame_index == x.frame)
         if not len(hit):
             return None
-        X = np.asarray(pred.poses[hit[0]], dtype=np.float64)  # (K, 3)
+        X = np.asarray(pred.poses[hit[0]], dtype=np.float64)  # (K, 3), or (A, K, 3)
+        if pred.individuals is not None:
+            if x.individual not in pred.individuals:
+                return None
+            X = X[pred.individuals.index(x.individual)]
+        if not np.isfinite(X).any():
+            return None
         return self.session(i).rig.project(X, distort=True)  # (V, K, 2)
 
     def state(self, i: int) -> dict[str, object]:
@@ -252,10 +279,24 @@ class LabelStore:
             raise RuntimeError("the instant's geometry was not computed")
         pred = self._predicted(i)
         ref = median_lengths(np.delete(self._bones, i, axis=0))
+        same = self._moments[(x.session, x.frame)]
+        labeled = self._labeled()
         return {
             "index": i,
             "session": x.session,
             "frame": x.frame,
+            "individual": x.individual,
+            "animals": [
+                {"index": j, "name": self.instants[j].individual, "labeled": bool(labeled[j])}
+                for j in same
+            ],
+            "others": {
+                self.instants[j].individual: self._per_view(
+                    j, np.where((self._status[j] == VISIBLE)[..., None], self._points[j], np.nan)
+                )
+                for j in same
+                if j != i and labeled[j]
+            },
             "version": self._version[i],
             "cameras": list(sess.cameras),
             "labels": self._labels_json(i),
@@ -355,6 +396,7 @@ class LabelStore:
         status = np.zeros((n, len(cams), K), np.int8)
         sess: list[str] = []
         frames: list[int] = []
+        animals: list[str] = []
         infos: dict[str, SessionInfo] = {}
         if keep is not None:
             cols = [cams.index(c) for c in keep.cameras]
@@ -365,6 +407,7 @@ class LabelStore:
             status[:n0, cols] = np.where(kv, VISIBLE, UNLABELED)
             sess += [str(s) for s in keep.session]
             frames += [int(f) for f in keep.frame_index]
+            animals += [""] * n0 if keep.individual is None else [str(a) for a in keep.individual]
             infos.update(keep.sessions)
         for r, i in enumerate(rows, start=n0):
             x = self.instants[i]
@@ -375,10 +418,14 @@ class LabelStore:
             p3[r] = self._p3d[i]
             sess.append(x.session)
             frames.append(x.frame)
+            animals.append(x.individual)
         for name in {self.instants[i].session for i in rows}:
             infos[name] = self._session_info(self.sessions[name])
+        # the individual column only where some row names an animal: a one-animal run
+        # writes the file exactly as before
+        ind = np.array(animals, dtype=object) if any(animals) else None
         ls = LabelSet(np.array(sess, dtype=object), np.array(frames, np.int64), p2, p3,
-                      tuple(cams), self.skeleton.keypoints, infos, vis)  # fmt: skip
+                      tuple(cams), self.skeleton.keypoints, infos, vis, ind)  # fmt: skip
         return ls, status
 
     def _session_info(self, s: Session) -> SessionInfo:
@@ -392,6 +439,8 @@ class LabelStore:
         with atomic_h5(self.output.resolve()) as f:
             fill_labels_h5(f, labels)
             f.create_dataset(STATUS_DATASET, data=status, compression="gzip")
+            if self.animals:
+                f["labelui"].attrs[ANIMALS_ATTR] = list(self.animals)
 
     def write(self) -> None:
         """Write the labels file now (atomically; a symbolic link is written through).
@@ -401,6 +450,14 @@ class LabelStore:
         """
         with self._lock:
             self._write()
+
+
+def read_animals(path: Path) -> tuple[str, ...]:
+    """The animals a labeling run of this file labeled (``()``: not recorded, or one)."""
+    with h5py.File(path, "r") as f:
+        grp = f.get("labelui")
+        names = [] if grp is None else list(grp.attrs.get(ANIMALS_ATTR, []))
+    return tuple(n.decode() if isinstance(n, bytes) else str(n) for n in names)
 
 
 def read_status(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:

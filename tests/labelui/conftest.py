@@ -35,6 +35,16 @@ def synth_session(tmp_path_factory: pytest.TempPathFactory) -> SynthSession:
     return SynthSession(out, paths.calibration, read_labels_h5(paths.labels))
 
 
+@pytest.fixture(scope="session")
+def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, LabelSet]:
+    """Two rats, three 320x256 cameras, 6 frames: folder, calibration, true labels."""
+    out = tmp_path_factory.mktemp("animals") / "pair"
+    cfg = SceneConfig(n_cameras=3, frames=6, size=(320, 256), seed=3, animals=2,
+                      motion_blur=False)  # fmt: skip
+    paths = generate_session(out, cfg, workers=1, progress=False)
+    return out, paths.calibration, read_labels_h5(paths.labels)
+
+
 @pytest.fixture
 def store(synth_session: SynthSession, tmp_path: Path) -> Iterator[LabelStore]:
     """A store over four evenly spread instants, writing tmp_path/labels.h5."""

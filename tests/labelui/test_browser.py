@@ -321,3 +321,48 @@ def test_predicted_markers_accepted_and_least_confident_button(driver, synth_ses
             lab = st["labels"][cam]["Nose"]
             np.testing.assert_allclose([lab["x"], lab["y"]], want[v], atol=2e-3)
         assert len(read_labels_h5(tmp_path / "l.h5")) == 1
+
+
+def test_several_animals_selector_and_the_others_drawn(driver, pair, tmp_path):
+    """Two rats: the animal buttons switch between the animals of a frame (and A does), a
+    label goes to the selected animal, and the other animal's labels are drawn."""
+    folder, calib, truth = pair
+    store = open_store([folder], calib, "rat", tmp_path / "labels.h5", per_session=2,
+                       animals=("animal0", "animal1"))  # fmt: skip
+    frame = store.instants[0].frame
+    rows = {a: int(np.flatnonzero((truth.frame_index == frame) & (truth.individual == a))[0])
+            for a in ("animal0", "animal1")}  # fmt: skip
+    k = next(k for k in range(len(truth.keypoints))
+             if truth.visible2d[rows["animal0"], 0, k] and truth.visible2d[rows["animal1"], 0, k])
+    kp = truth.keypoints[k]
+    with background_server(store) as running:
+        _open(driver, running)
+        buttons = driver.find_elements(By.CSS_SELECTOR, "#animals button.animal")
+        assert [b.get_attribute("data-animal") for b in buttons] == ["animal0", "animal1"]
+        assert "animal0" in driver.find_element(By.ID, "where").text
+        _select_keypoint(driver, k)
+        _click_image(driver, "cam0", truth.points2d[rows["animal0"], 0, k])
+        _wait(lambda: _state(driver)["version"] == 1)
+        # A: the other animal of the same frame, with the first one's label drawn
+        driver.find_element(By.TAG_NAME, "body").send_keys("a")
+        _wait(lambda: driver.execute_script("return document.body.dataset.instant === '1'"))
+        st = _state(driver)
+        assert st["individual"] == "animal1" and st["labels"]["cam0"] == {}
+        drawn = st["others"]["animal0"]["cam0"][kp]
+        np.testing.assert_allclose(drawn, truth.points2d[rows["animal0"], 0, k], atol=0.3)
+        _select_keypoint(driver, k)
+        _click_image(driver, "cam0", truth.points2d[rows["animal1"], 0, k])
+        _wait(lambda: _state(driver)["version"] == 1)
+        driver.execute_script("Object.values(FP.S.views).forEach((v) => { v.fitted = false; });"
+                              "FP.load(FP.S.idx)")  # fmt: skip
+        time.sleep(0.5)
+        labeled = [b.text for b in driver.find_elements(By.CSS_SELECTOR, "#animals button")]
+        assert labeled == ["animal0 \u2713", "animal1 \u2713"]
+        _shot(driver, tmp_path, "label_animals")
+        # the button goes back to the first animal
+        driver.find_element(By.CSS_SELECTOR, '#animals button[data-animal="animal0"]').click()
+        _wait(lambda: driver.execute_script("return document.body.dataset.instant === '0'"))
+    ls = read_labels_h5(store.output)
+    assert list(ls.individual) == ["animal0", "animal1"]
+    for r, a in enumerate(("animal0", "animal1")):
+        np.testing.assert_allclose(ls.points2d[r, 0, k], truth.points2d[rows[a], 0, k], atol=0.3)

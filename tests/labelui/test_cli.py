@@ -64,6 +64,9 @@ def test_startup_refusals_before_any_server(synth_session, tmp_path):
     res = _run(base + ["--frames", tmp_path / "sel.csv", "-o", tmp_path / "d.h5"])
     assert res.exit_code == 1 and "outside the videos" in res.output
     assert not (tmp_path / "d.h5").exists() and not lock_path(tmp_path / "d.h5").exists()
+    # animals named twice
+    res = _run(base + ["--animals", "resident,resident", "-o", tmp_path / "e.h5"])
+    assert res.exit_code == 1 and "distinct names" in res.output and "Traceback" not in res.output
 
 
 def test_resume_keeps_states_and_other_sessions(synth_session, tmp_path):

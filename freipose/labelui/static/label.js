@@ -1,7 +1,8 @@
 // The labeling page of `freipose label`: every view of one instant, labels saved on each edit.
 // Server state per instant (GET/POST /api/instant/<i>): labels, predicted, points3d,
-// projected, residuals, bones, progress, version. Image coordinates are pixels with the
-// origin at the centre of the top-left pixel.
+// projected, residuals, bones, progress, version; with several animals also individual,
+// animals (the instants of the same frame, one per animal) and others (their labels).
+// Image coordinates are pixels with the origin at the centre of the top-left pixel.
 "use strict";
 
 const FP = (() => {
@@ -11,6 +12,12 @@ const FP = (() => {
     yaw: 0.6, pitch: 0.5, lastSwitchMs: null, depths: null, conflicts: 0,
   };
   const HIT = 9; // CSS px: grab radius of a marker
+  // colours of the other animals' labels (drawn for reference, not editable)
+  const ANIMAL_COLORS = ["#ffd166", "#06d6a0", "#ef476f", "#118ab2", "#f78c6b", "#c77dff"];
+  function animalColor(name) {
+    const a = (S.cfg.animals || []).indexOf(name);
+    return ANIMAL_COLORS[(a < 0 ? 0 : a) % ANIMAL_COLORS.length];
+  }
 
   async function api(path, opts) {
     const r = await fetch(path, Object.assign({ credentials: "same-origin" }, opts || {}));
@@ -176,6 +183,36 @@ const FP = (() => {
       ctx.strokeStyle = "rgba(255,255,255,0.55)";
       ctx.beginPath(); ctx.moveTo(p[0], p[1]); ctx.lineTo(q[0], q[1]); ctx.stroke();
     }
+    // the other animals of this frame: their labels as small squares and thin limbs
+    for (const [name, views] of Object.entries(S.cur.others || {})) {
+      const pts = views[v.cam] || {};
+      const col = animalColor(name);
+      ctx.strokeStyle = col;
+      ctx.lineWidth = 1;
+      ctx.setLineDash([3, 3]);
+      for (const [a, b] of S.cfg.limbs) {
+        const ends = [a, b].map((ix) => {
+          const ps = ix.map((k) => pts[kps[k]]);
+          if (ps.some((p) => !p)) return null;
+          return [0, 1].map((d) => ps.reduce((s, p) => s + p[d], 0) / ps.length);
+        });
+        if (!ends[0] || !ends[1]) continue;
+        const p = toScreen(v, ends[0]), q = toScreen(v, ends[1]);
+        ctx.beginPath(); ctx.moveTo(p[0], p[1]); ctx.lineTo(q[0], q[1]); ctx.stroke();
+      }
+      ctx.setLineDash([]);
+      let first = null;
+      for (const p of Object.values(pts)) {
+        const q = toScreen(v, p);
+        ctx.strokeRect(q[0] - 3, q[1] - 3, 6, 6);
+        if (!first || q[1] < first[1]) first = q;
+      }
+      if (first) {
+        ctx.fillStyle = col;
+        ctx.font = "11px sans-serif";
+        ctx.fillText(name, first[0] + 6, first[1] - 6);
+      }
+    }
     // epipolar curves of the current keypoint from the other views' labels
     const kp = kpName(S.kp);
     for (const other of S.cur.cameras) {
@@ -310,7 +347,34 @@ const FP = (() => {
     const x = S.cfg.instants[S.idx];
     document.getElementById("where").textContent =
       `instant ${S.idx + 1}/${S.cfg.instants.length}: ${x.session} frame ${x.frame}` +
+      (x.individual ? `, ${x.individual}` : "") +
       (x.confidence === null ? "" : ` (confidence ${x.confidence.toFixed(2)})`);
+    renderAnimals();
+  }
+
+  // the animal selector: one button per animal of this frame (A: the next one)
+  function renderAnimals() {
+    const box = document.getElementById("animals");
+    box.innerHTML = "";
+    const list = S.cur.animals || [];
+    box.hidden = list.length < 2;
+    for (const a of list) {
+      const b = document.createElement("button");
+      b.textContent = a.name + (a.labeled ? " \u2713" : "");
+      b.className = "animal" + (a.index === S.idx ? " current" : "");
+      b.style.borderColor = animalColor(a.name);
+      b.dataset.animal = a.name;
+      b.title = `label ${a.name} at this instant (A: next animal)`;
+      b.onclick = () => load(a.index);
+      box.append(b);
+    }
+  }
+
+  function nextAnimal() {
+    const list = S.cur.animals || [];
+    if (list.length < 2) return;
+    const at = list.findIndex((a) => a.index === S.idx);
+    load(list[(at + 1) % list.length].index);
   }
 
   // -- editing -------------------------------------------------------------------------
@@ -544,7 +608,7 @@ const FP = (() => {
       ArrowRight: () => load(S.idx + 1), ArrowLeft: () => load(S.idx - 1),
       ArrowDown: () => selectKeypoint(1), ArrowUp: () => selectKeypoint(-1),
       s: () => selectKeypoint(1), w: () => selectKeypoint(-1),
-      l: () => leastConfident(), Tab: () => nextView(e.shiftKey ? -1 : 1),
+      l: () => leastConfident(), Tab: () => nextView(e.shiftKey ? -1 : 1), a: () => nextAnimal(),
       Enter: () => acceptProjected(e.shiftKey), o: () => mark("occluded"),
       x: () => mark("notinview"), Delete: () => mark(null), Backspace: () => mark(null),
       f: () => { Object.values(S.views).forEach(fit); drawAll(); },
@@ -587,5 +651,5 @@ const FP = (() => {
   }
 
   window.addEventListener("load", start);
-  return { S, load, setView, imageToClient, acceptProjected, selectKeypoint, shown };
+  return { S, load, setView, imageToClient, acceptProjected, selectKeypoint, shown, nextAnimal };
 })();
