@@ -332,8 +332,11 @@ def test_several_animals_selector_and_the_others_drawn(driver, pair, tmp_path):
     frame = store.instants[0].frame
     rows = {a: int(np.flatnonzero((truth.frame_index == frame) & (truth.individual == a))[0])
             for a in ("animal0", "animal1")}  # fmt: skip
-    k = next(k for k in range(len(truth.keypoints))
-             if truth.visible2d[rows["animal0"], 0, k] and truth.visible2d[rows["animal1"], 0, k])
+    k = next(
+        k
+        for k in range(len(truth.keypoints))
+        if truth.visible2d[rows["animal0"], 0, k] and truth.visible2d[rows["animal1"], 0, k]
+    )
     kp = truth.keypoints[k]
     with background_server(store) as running:
         _open(driver, running)
