@@ -119,19 +119,27 @@ def _one_animal(path: Path, animal: str, out: Path) -> None:
 
 
 def train(
-    out: Path, labels: Path, a: argparse.Namespace, seed: int, validation: Path | None = None
+    out: Path,
+    labels: Path,
+    a: argparse.Namespace,
+    seed: int,
+    validation: Path | None = None,
+    mask_others: bool = False,
 ) -> Path:
     """Fine-tune the base model on ``labels``; returns the checkpoint.
 
     With ``validation`` labels the inference settings are chosen on them after training
-    (``[data] validation_labels``, as ``docs/own-data.md`` recommends).
+    (``[data] validation_labels``, as ``docs/own-data.md`` recommends); ``mask_others``
+    sets ``model.mask_others`` (the other animals painted out).
     """
     out.mkdir(parents=True, exist_ok=True)
     cfg = out / "train.toml"
     val = f'validation_labels = "{validation}"\n' if validation else ""
+    mask = "mask_others = true\n" if mask_others else ""
     cfg.write_text(
         f'[data]\nlabels = "{labels}"\n{val}skeleton = "rat"\n\n[model]\n'
-        f'preset = "{a.preset}"\n\n[schedule]\nsteps = {a.steps}\n'
+        f'preset = "{a.preset}"\n{mask}'
+        f"\n[schedule]\nsteps = {a.steps}\n"
         f"checkpoint_every = {a.steps}\nseed = {seed}\n",
         encoding="utf-8",
     )
@@ -171,7 +179,8 @@ def by_distance(model: Path, labels: Path, near_mm: float) -> dict[str, dict[str
     out = {}
     for a in ("animal0", "animal1"):
         near, apart = (who == a) & (dist < near_mm), (who == a) & (dist >= near_mm)
-        out[a] = {"near_P1_median": float(np.nanmedian(err[near])),
+        out[a] = {"P1_median": float(np.nanmedian(err[who == a])),
+                  "near_P1_median": float(np.nanmedian(err[near])),
                   "apart_P1_median": float(np.nanmedian(err[apart])),
                   "near_share": float(near.sum() / max((who == a).sum(), 1))}  # fmt: skip
     return out
@@ -195,8 +204,20 @@ def run_seed(out: Path, files: dict[str, Path], a: argparse.Namespace, seed: int
             "ratio": among["P1_median"] / alone["P1_median"],
             "ratio_single_network": ref["P1_median"] / alone["P1_median"],
         }
-    for name, model in (("social_network", social), ("single_network", single)):
+    nets = [("social_network", social), ("single_network", single)]
+    if a.mask_others:
+        masked = train(run / "social_masked", files["social_train"], a, seed,
+                       files.get("social_val"), mask_others=True)  # fmt: skip
+        nets.append(("masked_network", masked))
+    for name, model in nets:
         res[f"{name}_by_distance"] = by_distance(model, files["social_test"], a.near_mm)
+    if a.mask_others:
+        # scored on the two-animal file: its painted passes need every animal of an instant
+        res["ratio_masked_worst"] = max(
+            res["masked_network_by_distance"][f"animal{k}"]["P1_median"]
+            / res[f"animal{k}"]["single_network_alone"]["P1_median"]
+            for k in range(2)
+        )
     res["ratio_worst"] = max(res[f"animal{k}"]["ratio"] for k in range(2))
     res["ratio_single_network_worst"] = max(
         res[f"animal{k}"]["ratio_single_network"] for k in range(2)
@@ -218,6 +239,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--preset", default="small", help="network preset [small]")
     ap.add_argument("--init", default="base", help="base, scratch or a checkpoint [base]")
     ap.add_argument("--seeds", type=int, default=1, help="training seeds 0.. [1]")
+    ap.add_argument("--mask-others", action="store_true",
+                    help="also train and score a social network with model.mask_others (the "
+                         "other animals painted out)")  # fmt: skip
     ap.add_argument("--near-mm", type=float, default=150.0,
                     help="centres closer than this are near each other [150]")  # fmt: skip
     return ap
@@ -244,6 +268,13 @@ def main(argv: list[str] | None = None) -> int:
                   f"(x{x['ratio']:.2f}), single-animal network "
                   f"{x['single_network_among']['P1_median']:.2f} mm "
                   f"(x{x['ratio_single_network']:.2f})", flush=True)  # fmt: skip
+            if a.mask_others:
+                m = r["masked_network_by_distance"][f"animal{k}"]
+                alone = x["single_network_alone"]["P1_median"]
+                print(f"seed {seed}, animal {k}, social network with the other animals "
+                      f"painted out: {m['P1_median']:.2f} mm (x{m['P1_median'] / alone:.2f}); "
+                      f"{m['near_P1_median']:.2f} mm near, {m['apart_P1_median']:.2f} mm "
+                      "apart", flush=True)  # fmt: skip
     ratios = [r["ratio_worst"] for r in runs]
     summary = {
         "ratio_worst_median": float(np.median(ratios)),
@@ -252,6 +283,13 @@ def main(argv: list[str] | None = None) -> int:
             np.median([r["ratio_single_network_worst"] for r in runs])
         ),
     }
+    if a.mask_others:
+        masked = [r["ratio_masked_worst"] for r in runs]
+        summary["ratio_masked_worst_median"] = float(np.median(masked))
+        summary["ratio_masked_worst_max"] = float(np.max(masked))
+        print(f"== with the other animals painted out (model.mask_others): x"
+              f"{summary['ratio_masked_worst_median']:.2f} (median over {len(runs)} seeds, "
+              f"max x{summary['ratio_masked_worst_max']:.2f})")  # fmt: skip
     print(f"== the worse animal's P1 among two animals over its error alone: social network "
           f"x{summary['ratio_worst_median']:.2f} (median over {len(runs)} seeds, max "
           f"x{summary['ratio_worst_max']:.2f}; target <= 1.3), single-animal network "

@@ -76,6 +76,13 @@ class ModelConfig:
             fusion's P1 (its distance from the view's ray at P1's depth), so that one view
             that refined onto the wrong part does not pull the point; a keypoint that no view
             supports within it falls back to P0. 0 fuses every view (as in training).
+        mask_others: with several animals (labels with ``individual``, ``freipose predict
+            --animals``), show each animal's views with the other animals' bodies painted
+            grey where they are not over its own (:mod:`freipose.nn.instances`); inference
+            first runs the network on the unpainted views, then ``mask_passes`` times with
+            the other animals painted at the previous pass's poses.
+        mask_radius: half-width in mm of a body around its keypoints for ``mask_others``.
+        mask_passes: painted inference passes after the first (``mask_others``).
         pretrained: optional local file with encoder weights (a state dict; loaded
             non-strictly, the missing and unexpected keys are logged).
         init: the weights a new run starts from: ``"base"`` (the base model shipped for
@@ -107,6 +114,9 @@ class ModelConfig:
     volume_sigma: float = 1.0
     map_window: int = 3
     fusion_reject: float = 1.0
+    mask_others: bool = False
+    mask_radius: float = 20.0
+    mask_passes: int = 2
     pretrained: str = ""
     init: str = "base"
 
@@ -114,6 +124,11 @@ class ModelConfig:
         check_numbers(self, "model", MODEL_RANGES, ConfigError)
         if self.kind not in ("voxel", "baseline"):
             raise ConfigError(f"model.kind must be 'voxel' or 'baseline', got {self.kind!r}")
+        if not 1 <= self.mask_passes <= 10:
+            raise ConfigError(
+                f"model.mask_passes must be in 1..10 (painted passes after the first), "
+                f"got {self.mask_passes}"
+            )
         if self.norm not in ("group", "batch", "none"):
             raise ConfigError(f"model.norm must be 'group', 'batch' or 'none', got {self.norm!r}")
         if len(self.encoder_channels) != len(self.encoder_convs) or not self.encoder_channels:

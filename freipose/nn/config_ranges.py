@@ -25,6 +25,7 @@ MODEL_RANGES: Mapping[str, Bounds] = MappingProxyType(
         "map_sigma": (*_SIGMA, "map pixels"),
         "volume_sigma": (*_SIGMA, "voxels"),
         "fusion_reject": (0.0, 1000.0, "voxels; 0: fuse every view"),
+        "mask_radius": (0.0, 1000.0, "mm around a body's keypoints"),
     }
 )
 

@@ -32,6 +32,7 @@ from freipose.geometry.crops import (
 from freipose.geometry.transforms import rodrigues
 from freipose.io.calibration_world import stored_up_or_z
 from freipose.nn.config import AugmentConfig, ModelConfig
+from freipose.nn.instances import TRAIN_UNPAINTED, paint_other_animals
 from freipose.nn.types import Batch, PreparedSample, Sample, SampleSource
 
 BORDER = 128
@@ -267,6 +268,34 @@ def _crop_labels(sample: Sample, crops: ViewCrops, size: int) -> CropLabels:
     return CropLabels(p3, m3, p2c, vis & inside & crops.valid[:, None])
 
 
+def _other_animals_painted(
+    sample: Sample,
+    rig: CameraRig,
+    images: list[np.ndarray],
+    model: ModelConfig,
+    aug: Augmentation | None,
+) -> list[np.ndarray]:
+    """The views with the other animals painted out (``model.mask_others``).
+
+    The other animals are ``others3d``, this animal ``own3d`` (else its labels). When
+    augmenting, a share of the samples stays unpainted and the poses get the P0 jitter
+    (``augment.refine_jitter``), as the first inference pass's poses would be off.
+    """
+    others = sample.get("others3d")
+    if others is None or np.size(others) == 0:
+        return images
+    own = sample.get("own3d", sample.get("points3d"))
+    others = np.asarray(others, np.float64)
+    if aug is not None:
+        if aug.rng.random() < TRAIN_UNPAINTED:
+            return images
+        sd = aug.config.refine_jitter
+        others = others + aug.rng.normal(0.0, sd, size=others.shape)
+        if own is not None:
+            own = np.asarray(own, np.float64) + aug.rng.normal(0.0, sd, size=np.shape(own))
+    return paint_other_animals(images, rig, own, others, model.mask_radius)
+
+
 def prepare_sample(
     sample: Sample,
     model: ModelConfig,
@@ -279,7 +308,8 @@ def prepare_sample(
     The stages: the cube centre (:func:`_cube_center`), the voxel grid's orientation
     (:func:`_grid_rotation`), the view crops and crop cameras (:func:`_crop_views`) and the
     labels in the crops (:func:`_crop_labels`); with augmentation they draw from ``rng`` in
-    that order, then the P0 jitter.
+    that order, then the P0 jitter (with ``model.mask_others`` and other animals in the
+    sample, the painting draws first: :func:`_other_animals_painted`).
 
     Args:
         sample: a ``MultiViewDataset`` sample (``rig``, ``images``, optional labels).
@@ -311,6 +341,8 @@ def prepare_sample(
     images = sample.get("images") or []
     if images and len(images) != len(rig):
         raise SampleError(f"sample has {len(images)} images for {len(rig)} cameras")
+    if model.mask_others and images:
+        images = _other_animals_painted(sample, rig, images, model, aug)
     crops = _crop_views(rig, images, center, model, aug)
     res: PreparedSample = {
         "images": crops.images,

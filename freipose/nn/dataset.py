@@ -72,6 +72,19 @@ def list_collate(batch: list[Sample]) -> list[Sample]:
     return list(batch)
 
 
+def _other_rows(labels: LabelSet) -> list[np.ndarray] | None:
+    """Per row, the rows of the other animals at its session and frame (None: one animal)."""
+    if labels.individual is None:
+        return None
+    at: dict[tuple[str, int], list[int]] = {}
+    for r, (s, f) in enumerate(zip(labels.session, labels.frame_index, strict=True)):
+        at.setdefault((str(s), int(f)), []).append(r)
+    return [
+        np.array([o for o in at[(str(s), int(f))] if o != r], np.int64)
+        for r, (s, f) in enumerate(zip(labels.session, labels.frame_index, strict=True))
+    ]
+
+
 def labeled_sample(
     rig: CameraRig | None,
     images: list[np.ndarray],
@@ -153,6 +166,8 @@ class MultiViewDataset(torch.utils.data.Dataset):
             self.labels = read_labels_h5(path)
             self.root = Path(root) if root is not None else path.resolve().parent
         self.load_images = bool(load_images)
+        # with several animals: the rows of the other animals at each row's instant
+        self._others = _other_rows(self.labels)
         all_cams = self.labels.cameras
         if cameras is not None:
             unknown = [c for c in cameras if c not in all_cams]
@@ -294,7 +309,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
                     ) from exc
                 except MediaError as exc:
                     raise LabelsDataError(f"session {s!r}, camera {c!r}: {exc}") from exc
-        return labeled_sample(
+        sample = labeled_sample(
             rig,
             images,
             p2,
@@ -305,6 +320,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
             frame_index=fi,
             index=i,
         )
+        if self._others is not None:
+            sample["others3d"] = lab.points3d[self._others[i]].copy()
+        return sample
 
     def validate(self) -> None:
         """Open every video once and check every labeled frame index lies inside it.

@@ -14,7 +14,7 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -31,7 +31,7 @@ from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.failure_modes import NOT_LABELED
 from freipose.nn.fast import optimize
 from freipose.nn.inference import predict_prepared
-from freipose.nn.types import SampleSource
+from freipose.nn.types import Sample, SampleSource
 from freipose.progress import progress_bar
 from freipose.skeleton import Skeleton
 
@@ -72,6 +72,55 @@ def usable_indices(source: SampleSource) -> np.ndarray:
     )
 
 
+def first_pass_sample(sample: Sample) -> Sample:
+    """The sample as a first inference pass sees it: without the other animals' labels.
+
+    ``others3d`` of a labels file are the true poses of the other animals; inference knows
+    them only from its own earlier pass (:func:`_painted_pass`), so evaluation must not use
+    them.
+    """
+    if "others3d" not in sample:
+        return sample
+    out = dict(sample)
+    out.pop("others3d")
+    return cast(Sample, out)
+
+
+def _painted_pass(
+    model: Any,
+    source: SampleSource,
+    idx: np.ndarray,
+    centres: Sequence[np.ndarray],
+    moments: Sequence[tuple[str, int]],
+    prev: np.ndarray,
+    batch_size: int,
+) -> dict[str, np.ndarray]:
+    """``model.mask_others``: predict again with the other animals painted out.
+
+    Each sample's own pose and those of the other animals at its instant (same session and
+    frame) are the previous pass's P1 (``prev``, (N, K, 3)).
+
+    Returns:
+        ``P0``, ``P1`` (N, K, 3) and ``confidence`` (N, K).
+    """
+    at: dict[tuple[str, int], list[int]] = {}
+    for r, m in enumerate(moments):
+        at.setdefault(m, []).append(r)
+    outs: dict[str, list[np.ndarray]] = {"P0": [], "P1": [], "confidence": []}
+    for start in range(0, len(idx), batch_size):
+        items = []
+        for r in range(start, min(start + batch_size, len(idx))):
+            s = dict(first_pass_sample(source[int(idx[r])]))
+            others = [o for o in at[moments[r]] if o != r]
+            s["own3d"] = prev[r]
+            s["others3d"] = prev[others].reshape(len(others), *prev.shape[1:])
+            items.append(prepare_sample(cast(Sample, s), model.cfg, center=centres[r]))
+        pred = predict_prepared(model, collate_prepared(items))
+        for k in outs:
+            outs[k].append(pred[k])
+    return {k: np.concatenate(v) for k, v in outs.items()}
+
+
 def predict_dataset(
     model: Any,
     source: SampleSource,
@@ -99,17 +148,21 @@ def predict_dataset(
     cfg = model.cfg
     idx = usable_indices(source) if indices is None else np.asarray(indices, dtype=np.int64)
     rng = np.random.default_rng(seed)
+    centres: list[np.ndarray] = []
     outs: dict[str, list[np.ndarray]] = {"P0": [], "P1": [], "confidence": [], "gt": []}
+    moments: list[tuple[str, int]] = []
     model.eval()
     for start in progress_bar(
         range(0, len(idx), batch_size), desc="evaluate", disable=not progress or None
     ):
         items = []
         for i in idx[start : start + batch_size]:
-            s = source[int(i)]
+            s = first_pass_sample(source[int(i)])
             c = label_centers(s["points3d"], s.get("mask3d"))
             if center_noise > 0:
                 c = c + rng.normal(0, center_noise, size=3)
+            centres.append(c)
+            moments.append((str(s.get("session", "")), int(s.get("frame_index", -1))))
             items.append(prepare_sample(s, cfg, center=c))
             gt = np.asarray(s["points3d"], np.float64).copy()
             if s.get("mask3d") is not None:
@@ -118,6 +171,11 @@ def predict_dataset(
         pred = predict_prepared(model, collate_prepared(items))
         for k in ("P0", "P1", "confidence"):
             outs[k].append(pred[k])
+    if getattr(cfg, "mask_others", False) and len(idx):
+        for _ in range(cfg.mask_passes):
+            prev = np.concatenate(outs["P1"])
+            painted = _painted_pass(model, source, idx, centres, moments, prev, batch_size)
+            outs.update({k: [v] for k, v in painted.items()})
     res = {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in outs.items()}
     res["index"] = idx
     return res

@@ -21,7 +21,7 @@ from freipose.nn.config import ModelConfig
 from freipose.nn.data import collate_prepared, prepare_sample, to_device
 from freipose.nn.fast import inference_autocast
 from freipose.nn.model import BaselineNet, VoxelPoseNet
-from freipose.nn.types import Batch, Prediction
+from freipose.nn.types import Batch, Prediction, Sample
 
 
 def crop_to_image(points2d: np.ndarray, affine: np.ndarray) -> np.ndarray:
@@ -124,6 +124,7 @@ def predict_batch(
     images: Sequence[Sequence[np.ndarray]],
     rigs: Sequence[CameraRig],
     centers: np.ndarray,
+    animals: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Prediction:
     """Predict poses from full frames and cube centres (e.g. from the detector).
 
@@ -132,6 +133,9 @@ def predict_batch(
         images: per sample, one BGR uint8 (H, W, 3) full frame per camera of its rig.
         rigs: per sample, the cameras (samples may have different rigs / view counts).
         centers: (B, 3) cube centres in mm; a NaN row gives NaN outputs for that sample.
+        animals: with ``model.mask_others``, ``(own, others)``: (B, K, 3) each sample's pose
+            and (B, M, K, 3) the other animals' at its instant, from a first pass (NaN
+            where unknown); their bodies are painted out (:mod:`freipose.nn.instances`).
 
     Returns:
         ``P0``, ``P1`` (B, K, 3) world mm, ``confidence`` (B, K) in [0, 1], ``points2d``
@@ -161,12 +165,11 @@ def predict_batch(
     ok = [i for i in range(B) if np.all(np.isfinite(centers[i]))]
     if not ok:
         return res
-    items = [
-        prepare_sample(
-            {"rig": rigs[i], "images": list(images[i]), "index": i}, cfg, center=centers[i]
-        )
-        for i in ok
-    ]
+    samples: list[Sample] = [{"rig": rigs[i], "images": list(images[i]), "index": i} for i in ok]
+    if animals is not None:
+        for s, i in zip(samples, ok, strict=True):
+            s["own3d"], s["others3d"] = animals[0][i], animals[1][i]
+    items = [prepare_sample(s, cfg, center=centers[i]) for s, i in zip(samples, ok, strict=True)]
     model.eval()
     out = predict_prepared(model, collate_prepared(items))
     v = out["points2d"].shape[1]

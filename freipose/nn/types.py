@@ -50,6 +50,10 @@ class Sample(TypedDict, total=False):
         visible2d: (V, K) bool, labeled and visible.
         points3d: (K, 3) float64 mm, NaN where unknown.
         mask3d: (K,) bool, finite ``points3d``.
+        others3d: (M, K, 3) float64 mm, the other animals at this instant (labels with
+            ``individual``, or a first inference pass); used by ``model.mask_others``.
+        own3d: (K, 3) float64 mm, this animal's pose from a first inference pass (the
+            body ``model.mask_others`` keeps; default ``points3d``).
     """
 
     session: str
@@ -62,6 +66,8 @@ class Sample(TypedDict, total=False):
     visible2d: np.ndarray
     points3d: np.ndarray
     mask3d: np.ndarray
+    others3d: np.ndarray
+    own3d: np.ndarray
 
 
 class SampleSource(Protocol):

@@ -42,12 +42,13 @@ MAX_INSTANTS = 256
 
 def _batches(source: SampleSource, model: ModelConfig, batch_size: int = 4) -> list[Batch]:
     """The usable validation instants, cropped around their label centres, collated."""
-    from freipose.nn.evaluate import usable_indices
+    from freipose.nn.evaluate import first_pass_sample, usable_indices
 
     idx = usable_indices(source)
     if len(idx) > MAX_INSTANTS:
         idx = idx[np.linspace(0, len(idx) - 1, MAX_INSTANTS).round().astype(int)]
-    prepared = [prepare_sample(source[int(i)], model) for i in idx]
+    # the inputs of a first inference pass (no other animal painted out from the labels)
+    prepared = [prepare_sample(first_pass_sample(source[int(i)]), model) for i in idx]
     return [
         collate_prepared(prepared[i : i + batch_size]) for i in range(0, len(prepared), batch_size)
     ]

@@ -182,6 +182,7 @@ class _AtCentres:
     centres: np.ndarray
     valid: np.ndarray
     rig: CameraRig
+    animals: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def keypoints(self) -> tuple[str, ...]:
@@ -195,7 +196,25 @@ class _AtCentres:
         shown = np.isin(self.rig.names, rig.names)
         rows = np.flatnonzero((self.valid == shown).all(1))
         frames = [[images[c][i] for c in range(len(rig))] for i in range(len(rows))]
-        return self.network.predict_at(frames, rig, self.centres[rows])
+        if self.animals is None:
+            return self.network.predict_at(frames, rig, self.centres[rows])
+        cues = (self.animals[0][rows], self.animals[1][rows])
+        return self.network.predict_at(frames, rig, self.centres[rows], animals=cues)
+
+
+def _pass_animals(poses: np.ndarray, a_n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row (animal-major), its own pose and the other animals' at its frame.
+
+    Args:
+        poses: (A*B, K, 3) a pass's poses, row ``a * B + b``.
+        a_n: the number of animals A.
+
+    Returns:
+        ``(own, others)``: (A*B, K, 3) and (A*B, A-1, K, 3).
+    """
+    per = poses.reshape(a_n, -1, *poses.shape[1:])  # (A, B, K, 3)
+    others = np.stack([np.delete(per, a, axis=0).swapaxes(0, 1) for a in range(a_n)])
+    return poses, others.reshape(-1, a_n - 1, *poses.shape[1:])
 
 
 def estimate_animals(
@@ -206,6 +225,9 @@ def estimate_animals(
     centres: np.ndarray,
 ) -> tuple[list[Estimate], np.ndarray]:
     """The network on every animal's cube of B frames, the animals as extra samples.
+
+    With ``model.mask_others`` the network runs again ``model.mask_passes`` times, each
+    animal's views with the other animals painted out at the previous pass's poses.
 
     Args:
         network: the pose network.
@@ -225,6 +247,13 @@ def estimate_animals(
     est, ran = estimate_with_missing(
         _AtCentres(network, flat, valid_t, rig), tiled, valid_t, rig, MIN_VIEWS
     )
+    cfg = getattr(getattr(network, "model", None), "cfg", None)
+    for _ in range(cfg.mask_passes if getattr(cfg, "mask_others", False) and a_n > 1 else 0):
+        # again with the other animals painted out, at the previous pass's poses
+        est, ran = estimate_with_missing(
+            _AtCentres(network, flat, valid_t, rig, _pass_animals(est.poses, a_n)),
+            tiled, valid_t, rig, MIN_VIEWS,
+        )  # fmt: skip
     parts = []
     for a in range(a_n):
         sl = slice(a * b_n, (a + 1) * b_n)

@@ -189,7 +189,11 @@ class NetworkEstimator:
         return self.predict_at(frames, rig, centers)
 
     def predict_at(
-        self, frames: Sequence[Sequence[np.ndarray]], rig: CameraRig, centers: np.ndarray
+        self,
+        frames: Sequence[Sequence[np.ndarray]],
+        rig: CameraRig,
+        centers: np.ndarray,
+        animals: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Estimate:
         """The network on cubes at given centres (the detection already done).
 
@@ -197,6 +201,8 @@ class NetworkEstimator:
             frames: per sample, one BGR image per camera of ``rig``.
             rig: the cameras (C).
             centers: (B, 3) world mm cube centres; a NaN row gives a sample not found.
+            animals: ``(own, others)`` poses of a first pass for ``model.mask_others``
+                (:func:`freipose.nn.inference.predict_batch`).
 
         Returns:
             The :class:`Estimate` of the B samples.
@@ -208,7 +214,7 @@ class NetworkEstimator:
 
         C, B = len(rig), len(frames)
         with torch.inference_mode():
-            out = predict_batch(self.model, frames, [rig] * B, centers)
+            out = predict_batch(self.model, frames, [rig] * B, centers, animals)
         poses = out["P1"] if self.refine else out["P0"]
         boxes = cube_crop_boxes(rig, centers, self.cube_size)  # (B, C, 4), NaN without centre
         raw = raw_uncertainty(out["P0"], out["P1"], out["points2d"], out["confidence2d"],

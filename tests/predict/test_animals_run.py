@@ -25,12 +25,16 @@ class _CentreNetwork:
 
     def __post_init__(self) -> None:
         self.calls: list[tuple[int, tuple[str, ...]]] = []
+        self.animals: list = []
 
-    def predict_at(self, frames, rig: CameraRig, centers: np.ndarray) -> Estimate:
+    def predict_at(self, frames, rig: CameraRig, centers: np.ndarray, animals=None) -> Estimate:
         b, c = len(frames), len(rig)
         assert all(len(f) == c for f in frames)
         self.calls.append((b, tuple(rig.names)))
-        poses = np.repeat(np.asarray(centers, np.float64)[:, None], 2, axis=1)
+        self.animals.append(animals)
+        # each pass moves the poses by 1 mm, so that a pass's input tells which pass made it
+        shift = 0.0 if animals is None else animals[0][:, :1, :] + 1.0 - centers[:, None]
+        poses = np.repeat(np.asarray(centers, np.float64)[:, None], 2, axis=1) + shift
         found = np.isfinite(centers).all(-1)
         return Estimate(poses, np.where(found[:, None], 1.0, 0.0) * np.ones((b, 2)),
                         np.zeros((b, c, 2, 2)), np.ones((b, c, 2)), np.zeros((b, c, 4)),
@@ -61,6 +65,30 @@ def test_each_animal_gets_its_own_centre_and_missing_views_their_own_call() -> N
     # one call with all cameras (frames 0 and 2 of both animals), one without camera 2
     assert sorted(net.calls) == [(2, ("cam0", "cam1")), (4, ("cam0", "cam1", "cam2"))]
     assert np.isnan(ests[0].points2d[1, 2]).all() and (ests[0].confidence2d[1, 2] == 0).all()
+
+
+def test_painted_passes_get_the_previous_pass_poses() -> None:
+    """model.mask_others: the network again mask_passes times, each animal's views painted at
+    the previous pass's poses of itself and of the other animals of its frame."""
+    from types import SimpleNamespace
+
+    from freipose.predict.animals_run import estimate_animals
+
+    rig = small_rig(3)
+    b_n, a_n = 3, 2
+    images = [np.zeros((b_n, 8, 8, 3), np.uint8) for _ in range(3)]
+    centres = np.arange(b_n * a_n * 3, dtype=np.float64).reshape(b_n, a_n, 3)
+    net = _CentreNetwork()
+    net.model = SimpleNamespace(cfg=SimpleNamespace(mask_others=True, mask_passes=2))  # type: ignore[attr-defined]
+    ests, _ = estimate_animals(net, images, np.ones((b_n, 3), bool), rig, centres)  # type: ignore[arg-type]
+    assert len(net.calls) == 3 and net.animals[0] is None
+    for p, (own, others) in enumerate(net.animals[1:], start=1):
+        for a in range(a_n):
+            for b in range(b_n):
+                row = a * b_n + b
+                np.testing.assert_allclose(own[row, 0], centres[b, a] + (p - 1))
+                np.testing.assert_allclose(others[row, 0, 0], centres[b, 1 - a] + (p - 1))
+    np.testing.assert_allclose(ests[1].poses[2, 0], centres[2, 1] + 2)  # the last pass's
 
 
 @pytest.mark.slow
