@@ -572,6 +572,13 @@ def train_from_config(
     labels = read_labels_h5(rel(config.data.labels))
     config = resolve_cube(config, labels)  # model.cube_size "auto": from the labels' extent
     train_ds = MultiViewDataset(labels, root=root or rel(config.data.labels).parent, cameras=cams)
+    if config.model.mask_others and len(labels.individuals) < 2:
+        log.warning(
+            "model.mask_others is set, but the training labels hold one animal per instant "
+            "(no `individual` column with two or more animals): nothing is painted; label "
+            "several animals per instant (freipose label --animals, or labels imported from "
+            "multi-animal SLEAP / DeepLabCut) or leave mask_others out"
+        )
     eval_ds = None
     if config.data.eval_labels:
         ev_path = rel(config.data.eval_labels)

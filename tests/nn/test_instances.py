@@ -110,3 +110,21 @@ def test_evaluation_paints_at_its_own_poses(pair: MultiViewDataset, monkeypatch)
         # predictions, not the labels (the network is a few mm off everywhere)
         assert not any(np.allclose(own, p, equal_nan=True) for p in labels.points3d)
     assert np.isfinite(out["P1"]).all()
+
+
+def test_training_warns_when_labels_hold_one_animal(tmp_path, monkeypatch, caplog) -> None:
+    """model.mask_others with one animal per instant: nothing to paint, and the run says so."""
+    import logging
+
+    import freipose.nn.train as train_mod
+    from freipose.synth import generate_session as gen
+
+    paths = gen(tmp_path / "one", SceneConfig(n_cameras=2, frames=2, size=(160, 128), seed=1),
+                workers=1, progress=False)  # fmt: skip
+    cfg = tmp_path / "train.toml"
+    cfg.write_text(f'[data]\nlabels = "{paths.labels}"\n\n[model]\npreset = "tiny"\n'
+                   "mask_others = true\n", encoding="utf-8")  # fmt: skip
+    monkeypatch.setattr(train_mod, "train_pose", lambda *a, **k: tmp_path / "model.pt")
+    with caplog.at_level(logging.WARNING, logger="freipose.nn.train"):
+        train_mod.train_from_config(cfg, tmp_path / "run", progress=False)
+    assert "nothing is painted" in caplog.text and "--animals" in caplog.text
