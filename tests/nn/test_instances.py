@@ -128,3 +128,26 @@ def test_training_warns_when_labels_hold_one_animal(tmp_path, monkeypatch, caplo
     with caplog.at_level(logging.WARNING, logger="freipose.nn.train"):
         train_mod.train_from_config(cfg, tmp_path / "run", progress=False)
     assert "nothing is painted" in caplog.text and "--animals" in caplog.text
+
+
+def test_predict_batch_paints_the_given_animals(pair: MultiViewDataset) -> None:
+    """The inference entry (predict --animals): poses of the other animals change the input
+    only with model.mask_others, and unknown (NaN) poses paint nothing."""
+    if not BASE.is_file():
+        pytest.skip(f"the shipped base model {BASE} is not in this checkout")
+    from freipose.nn.checkpoint import load_checkpoint
+    from freipose.nn.inference import predict_batch
+
+    model, _, _ = load_checkpoint(BASE)
+    s = pair[0]
+    frames, rigs = [s["images"]], [s["rig"]]
+    centre = np.nanmean(s["points3d"], axis=0)[None]
+    own, others = s["points3d"][None], s["others3d"][None]
+    nan = (own, np.full_like(others, np.nan))
+    plain = predict_batch(model, frames, rigs, centre)["P1"]
+    np.testing.assert_array_equal(predict_batch(model, frames, rigs, centre, (own, others))["P1"],
+                                  plain)  # fmt: skip
+    model.cfg = dataclasses.replace(model.cfg, mask_others=True)
+    np.testing.assert_array_equal(predict_batch(model, frames, rigs, centre, nan)["P1"], plain)
+    painted = predict_batch(model, frames, rigs, centre, (own, others))["P1"]
+    assert np.isfinite(painted).all() and not np.array_equal(painted, plain)
