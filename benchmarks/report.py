@@ -75,6 +75,9 @@ def flatten(figures: dict[str, Any], prefix: str = "") -> dict[str, Any]:
         key = f"{prefix}{k}"
         if isinstance(v, dict):
             out.update(flatten(v, key + "/"))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            # per-run or per-seed records: too long for a table row, kept in the result file
+            out[key] = f"{len(v)} records (in the result file)"
         else:
             out[key] = v
     return out
