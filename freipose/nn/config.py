@@ -2,8 +2,9 @@
 
 A training config is a TOML file with the tables ``[data]``, ``[model]``, ``[schedule]``,
 ``[augment]`` (and ``[detector]``, owned by :mod:`freipose.detect`). ``[model] preset``
-picks one of :data:`PRESETS` (``tiny``, ``small``, ``paper``); every other key of
-``[model]``/``[schedule]``/``[augment]`` overrides a field of the preset. The complete
+picks one of :data:`~freipose.nn.config_presets.PRESETS` (``tiny``, ``small``, ``paper``);
+every other key of ``[model]``/``[schedule]``/``[augment]`` overrides a field of the
+preset. The complete
 resolved config (all defaults filled in) is written next to the checkpoints as
 ``config.toml`` and stored inside every checkpoint. The schema is in ``docs/formats.md``.
 """
@@ -14,11 +15,11 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any, ClassVar
 
 from freipose.errors import FreiPoseError
 from freipose.io.toml import check_numbers, did_you_mean, read_toml
+from freipose.nn.config_presets import PRESETS
 from freipose.nn.config_ranges import AUGMENT_RANGES, MODEL_RANGES, SCHEDULE_RANGES
 from freipose.nn.config_unlabeled import UnlabeledConfig
 
@@ -376,68 +377,6 @@ class TrainConfig:
     extra: Mapping[str, Any] = field(default_factory=dict)
     cube_auto: bool = False
     unlabeled: UnlabeledConfig = field(default_factory=UnlabeledConfig)
-
-
-# Presets: (model overrides, schedule overrides).
-_PRESETS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
-    "tiny": (
-        dict(
-            crop_size=32,
-            encoder_channels=(8, 8, 16),
-            encoder_convs=(1, 1, 1),
-            encoder_pools=2,
-            feature_channels=8,
-            grid_size=8,
-            unet_channels=(8,),
-            refine_channels=8,
-            head_levels=1,
-            heatmap_sigma=1.0,
-        ),
-        dict(
-            steps=20,
-            batch_size=2,
-            lr=2e-3,
-            lr_decay_steps=1000,
-            checkpoint_every=10,
-            eval_every=10,
-            eval_samples=4,
-            log_every=1,
-            amp=False,
-        ),
-    ),
-    "small": (
-        dict(
-            crop_size=128,
-            encoder_channels=(16, 32, 48, 64),
-            encoder_convs=(1, 1, 2, 1),
-            encoder_pools=3,
-            feature_channels=32,
-            grid_size=32,
-            cube_size=320.0,
-            unet_channels=(16, 32, 32),
-            refine_channels=32,
-            head_levels=2,
-            unproject_levels=1,
-            crop_fraction=0.6,
-            heatmap_sigma=1.5,
-        ),
-        dict(
-            steps=3000,
-            refine_start=0.2,
-            batch_size=2,
-            lr=1e-3,
-            lr_decay_steps=2000,
-            checkpoint_every=250,
-            eval_every=250,
-            eval_samples=24,
-            log_every=10,
-        ),
-    ),
-    "paper": ({}, {}),
-}
-PRESETS: Mapping[str, tuple[Mapping[str, Any], Mapping[str, Any]]] = MappingProxyType(
-    {k: (MappingProxyType(m), MappingProxyType(sc)) for k, (m, sc) in _PRESETS.items()}
-)
 
 
 def _fields(cls: type) -> dict[str, dataclasses.Field]:

@@ -15,12 +15,15 @@ of the network over every animal (:func:`freipose.nn.evaluate.predict_dataset`,
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 
 import cv2
 import numpy as np
 
 from freipose.geometry.camera import CameraRig
+
+log = logging.getLogger(__name__)
 
 #: the grey the other animals are painted with (BGR uint8; 0 after the network's
 #: normalisation ``BGR / 255 - 0.5``)
@@ -114,3 +117,14 @@ def paint_other_animals(
             im[paint] = PAINT_VALUE
         out.append(im)
     return out
+
+
+def warn_if_one_animal(mask_others: bool, individuals: Sequence[str]) -> None:
+    """Log a warning when ``mask_others`` is set but the training labels hold one animal."""
+    if mask_others and len(individuals) < 2:
+        log.warning(
+            "model.mask_others is set, but the training labels hold one animal per instant "
+            "(no `individual` column with two or more animals): nothing is painted; label "
+            "several animals per instant (freipose label --animals, or labels imported from "
+            "multi-animal SLEAP / DeepLabCut) or leave mask_others out"
+        )

@@ -44,6 +44,7 @@ from freipose.nn.data import StepBatchSampler, TrainSamples, collate_prepared, t
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.evaluate import jpe, predict_dataset, usable_indices
 from freipose.nn.init import initialize
+from freipose.nn.instances import warn_if_one_animal
 from freipose.nn.losses import baseline_losses, voxel_losses
 from freipose.nn.model import build_model, optimizer_groups
 from freipose.nn.sizing import resolve_cube
@@ -394,12 +395,9 @@ def _train_steps(
 
     sched, rank = run.config.schedule, run.procs.rank
     pbar = progress_bar(
-        total=sched.steps,
-        initial=start,
-        desc=f"train {run.config.model.kind}",
-        unit="step",
+        total=sched.steps, initial=start, desc=f"train {run.config.model.kind}", unit="step",
         disable=(rank != 0 or not progress) or None,
-    )
+    )  # fmt: skip
     acc: dict[str, float] = {}
     nacc = 0
     t0 = time.perf_counter()
@@ -572,13 +570,7 @@ def train_from_config(
     labels = read_labels_h5(rel(config.data.labels))
     config = resolve_cube(config, labels)  # model.cube_size "auto": from the labels' extent
     train_ds = MultiViewDataset(labels, root=root or rel(config.data.labels).parent, cameras=cams)
-    if config.model.mask_others and len(labels.individuals) < 2:
-        log.warning(
-            "model.mask_others is set, but the training labels hold one animal per instant "
-            "(no `individual` column with two or more animals): nothing is painted; label "
-            "several animals per instant (freipose label --animals, or labels imported from "
-            "multi-animal SLEAP / DeepLabCut) or leave mask_others out"
-        )
+    warn_if_one_animal(config.model.mask_others, labels.individuals)
     eval_ds = None
     if config.data.eval_labels:
         ev_path = rel(config.data.eval_labels)

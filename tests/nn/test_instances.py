@@ -125,7 +125,7 @@ def test_training_warns_when_labels_hold_one_animal(tmp_path, monkeypatch, caplo
     cfg.write_text(f'[data]\nlabels = "{paths.labels}"\n\n[model]\npreset = "tiny"\n'
                    "mask_others = true\n", encoding="utf-8")  # fmt: skip
     monkeypatch.setattr(train_mod, "train_pose", lambda *a, **k: tmp_path / "model.pt")
-    with caplog.at_level(logging.WARNING, logger="freipose.nn.train"):
+    with caplog.at_level(logging.WARNING, logger="freipose.nn.instances"):
         train_mod.train_from_config(cfg, tmp_path / "run", progress=False)
     assert "nothing is painted" in caplog.text and "--animals" in caplog.text
 
