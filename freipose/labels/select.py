@@ -16,6 +16,10 @@ Greedy selection over the predicted frames of a session (``poses.h5``):
    never picked, so picks are not near-duplicates of each other.
 
 The result lists the frames in the order they were picked (most useful first).
+
+With several animals (poses with an animal axis) a frame is one instant to label for all
+of them: its confidence is that of its least confident animal, its pose the animals'
+centred poses side by side, and a frame where an animal was not found counts as not found.
 """
 
 from __future__ import annotations
@@ -71,6 +75,27 @@ def _features(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return f.reshape(len(poses), -1), found
 
 
+def _frames_view(poses: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame: pose features, whether found, and mean confidence (0 where not found).
+
+    Args:
+        poses: (T, K, 3), or (T, A, K, 3) with several animals.
+        conf: (T, K) or (T, A, K) keypoint confidences (0 where unknown).
+
+    Returns:
+        ``(features, found, mean_conf)``: (T, F), (T,) and (T,); with several animals
+        the animals' features side by side, found where every animal is, the confidence
+        of the least confident animal.
+    """
+    if poses.ndim == 3:
+        feats, found = _features(poses)
+        return feats, found, np.where(found, conf.mean(1), 0.0)
+    parts = [_features(poses[:, a]) for a in range(poses.shape[1])]
+    found = np.logical_and.reduce([f for _, f in parts])
+    feats = np.concatenate([x for x, _ in parts], axis=1)
+    return feats, found, np.where(found, conf.mean(-1).min(1), 0.0)
+
+
 def select_frames(
     data: PoseData,
     n: int,
@@ -98,9 +123,8 @@ def select_frames(
     fi = data.frame_index
     T = len(fi)
     conf = np.where(np.isfinite(data.confidence), data.confidence, 0.0).astype(np.float64)
-    feats, found = _features(data.poses.astype(np.float64))
-    K = max(1, data.poses.shape[1])
-    mean_conf = np.where(found, conf.mean(1), 0.0)
+    feats, found, mean_conf = _frames_view(data.poses.astype(np.float64), conf)
+    K = max(1, feats.shape[1] // 3)
     sigma = frame_uncertainty(data, found)
     u = _uncertainty_weight(sigma, found) if np.isfinite(sigma).any() else 1.0 - mean_conf
     allowed = np.ones(T, bool)

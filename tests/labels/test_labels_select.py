@@ -53,6 +53,26 @@ def test_select_least_confident_diverse_with_gaps(rng):
         select_frames(d, 0)
 
 
+def test_select_several_animals_by_the_least_confident_animal(rng):
+    """Poses with an animal axis: a frame is as uncertain as its least confident animal,
+    and a frame where one animal was not found comes first."""
+    one = _data(rng)
+    other = _data(rng)
+    poses = np.stack([one.poses, other.poses], axis=1)  # (T, 2, K, 3)
+    conf = np.stack([one.confidence, other.confidence], axis=1)
+    conf[:, 1] = 0.9  # the second animal is sure everywhere ...
+    conf[120:123, 1] = 0.1  # ... except here, where the first one is sure
+    poses[:, 1][60] = other.poses[61]  # the second animal found where the first is not
+    conf[60, 1] = 0.9
+    d = PoseData(poses.astype(np.float32), conf.astype(np.float32), one.keypoints,
+                 one.frame_index, 30.0, individuals=("a0", "a1"))  # fmt: skip
+    sel = select_frames(d, 3, min_gap=10, session="s")
+    fi = sel.frame_index - 1000
+    assert fi[0] == 60 and not sel.found[0]  # one animal missing: not found
+    assert 120 <= fi[1] < 123 and sel.confidence[1] == pytest.approx(0.1)
+    assert 40 <= fi[2] < 45  # the first animal's uncertain stretch
+
+
 def test_select_caps_at_available_frames(rng, caplog):
     T = 30
     d = PoseData(rng.normal(0, 30, (T, 2, 3)), np.full((T, 2), 0.5), ("a", "b"), np.arange(T), 30)
