@@ -19,7 +19,14 @@ from freipose.io.labels import LabelSet, read_labels_h5
 from freipose.io.poses import PoseData, read_poses_h5
 from freipose.io.session import Session, discover_sessions
 from freipose.labels.select import read_selection_csv
-from freipose.labelui.store import Instant, LabelStore, StoreSettings, read_animals, read_status
+from freipose.labelui.store import (
+    Instant,
+    LabelStore,
+    StoreSettings,
+    prediction_at,
+    read_animals,
+    read_status,
+)
 from freipose.skeleton import Skeleton, load_skeleton
 
 log = logging.getLogger(__name__)
@@ -54,16 +61,10 @@ def _predictions(
 
 def _confidence(pred: PoseData | None, frame: int, animal: str = "") -> float:
     """Mean keypoint confidence of the prediction at ``frame`` (of ``animal``, if named)."""
-    if pred is None:
+    row = prediction_at(pred, frame, animal)
+    if row is None:
         return float("nan")
-    hit = np.flatnonzero(pred.frame_index == frame)
-    if not len(hit):
-        return float("nan")
-    c = pred.confidence[hit[0]]
-    if pred.individuals is not None and animal:
-        if animal not in pred.individuals:
-            return float("nan")
-        c = c[pred.individuals.index(animal)]
+    c = row[1]
     return float(np.nanmean(c)) if np.isfinite(c).any() else 0.0
 
 

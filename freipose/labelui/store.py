@@ -248,20 +248,10 @@ class LabelStore:
 
     def _predicted(self, i: int) -> np.ndarray | None:
         x = self.instants[i]
-        pred = self.predictions.get(x.session)
-        if pred is None:
-            return None
-        hit = np.flatnonzero(pred.frame_index == x.frame)
-        if not len(hit):
-            return None
-        X = np.asarray(pred.poses[hit[0]], dtype=np.float64)  # (K, 3), or (A, K, 3)
-        if pred.individuals is not None:
-            if x.individual not in pred.individuals:
-                return None
-            X = X[pred.individuals.index(x.individual)]
-        if not np.isfinite(X).any():
-            return None
-        return self.session(i).rig.project(X, distort=True)  # (V, K, 2)
+        row = prediction_at(self.predictions.get(x.session), x.frame, x.individual)
+        if row is None or row[0].ndim != 2 or not np.isfinite(row[0]).any():
+            return None  # not predicted, or several animals and none named
+        return self.session(i).rig.project(row[0], distort=True)  # (V, K, 2)
 
     def state(self, i: int) -> dict[str, object]:
         """Instant ``i`` as the API returns it (labels, predictions, geometry, bones)."""
@@ -309,14 +299,15 @@ class LabelStore:
             "projected": self._per_view(i, geo.projected),
             "residuals": self._per_view(i, geo.residuals),
             "bones": bone_report(self.skeleton, self._bones[i], ref, self.settings.bone_tolerance),
-            "progress": self._progress(),
+            "progress": self._progress(labeled),
         }
 
     def _labeled(self) -> np.ndarray:
         return np.array([bool((s != UNLABELED).any()) for s in self._status], bool)
 
-    def _progress(self) -> dict[str, object]:
-        done = self._labeled()
+    def _progress(self, done: np.ndarray | None = None) -> dict[str, object]:
+        """Labeled instants / total, per keypoint (``done``: :meth:`_labeled`, if known)."""
+        done = self._labeled() if done is None else done
         per_kp = np.zeros(self.skeleton.num_keypoints, np.int64)
         for s in self._status:
             per_kp += (s != UNLABELED).any(0)
@@ -450,6 +441,36 @@ class LabelStore:
         """
         with self._lock:
             self._write()
+
+
+def prediction_at(
+    pred: PoseData | None, frame: int, individual: str = ""
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The prediction of one instant: ``(poses, confidence)`` at ``frame``.
+
+    Args:
+        pred: a session's predictions (None: none).
+        frame: the video frame.
+        individual: the animal, for predictions with an animal axis (``""``: every animal).
+
+    Returns:
+        (K, 3) float64 poses and (K,) confidences, or (A, K, 3) and (A, K) for every animal
+        of predictions with an animal axis when ``individual`` is ``""``; None where the
+        frame (or the named animal) was not predicted.
+    """
+    if pred is None:
+        return None
+    hit = np.flatnonzero(pred.frame_index == frame)
+    if not len(hit):
+        return None
+    poses = np.asarray(pred.poses[hit[0]], dtype=np.float64)
+    conf = np.asarray(pred.confidence[hit[0]])
+    if pred.individuals is not None and individual:
+        if individual not in pred.individuals:
+            return None
+        a = pred.individuals.index(individual)
+        poses, conf = poses[a], conf[a]
+    return poses, conf
 
 
 def read_animals(path: Path) -> tuple[str, ...]:

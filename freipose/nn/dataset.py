@@ -72,17 +72,19 @@ def list_collate(batch: list[Sample]) -> list[Sample]:
     return list(batch)
 
 
-def _other_rows(labels: LabelSet) -> list[np.ndarray] | None:
-    """Per row, the rows of the other animals at its session and frame (None: one animal)."""
-    if labels.individual is None:
-        return None
+def other_rows(instants: Sequence[tuple[str, int]]) -> list[np.ndarray]:
+    """Per row, the other rows of the same instant: the other animals at its frame.
+
+    Args:
+        instants: per row, its (session, frame).
+
+    Returns:
+        Per row, the (int64) indices of the other rows with the same (session, frame).
+    """
     at: dict[tuple[str, int], list[int]] = {}
-    for r, (s, f) in enumerate(zip(labels.session, labels.frame_index, strict=True)):
-        at.setdefault((str(s), int(f)), []).append(r)
-    return [
-        np.array([o for o in at[(str(s), int(f))] if o != r], np.int64)
-        for r, (s, f) in enumerate(zip(labels.session, labels.frame_index, strict=True))
-    ]
+    for r, key in enumerate(instants):
+        at.setdefault(key, []).append(r)
+    return [np.array([o for o in at[key] if o != r], np.int64) for r, key in enumerate(instants)]
 
 
 def labeled_sample(
@@ -167,7 +169,12 @@ class MultiViewDataset(torch.utils.data.Dataset):
             self.root = Path(root) if root is not None else path.resolve().parent
         self.load_images = bool(load_images)
         # with several animals: the rows of the other animals at each row's instant
-        self._others = _other_rows(self.labels)
+        lab = self.labels
+        self._others = (
+            None
+            if lab.individual is None
+            else other_rows([(str(s), int(f)) for s, f in zip(lab.session, lab.frame_index)])
+        )
         all_cams = self.labels.cameras
         if cameras is not None:
             unknown = [c for c in cameras if c not in all_cams]

@@ -27,7 +27,7 @@ from freipose.nn.checkpoint import load_checkpoint
 from freipose.nn.compare import PairedDifference, paired_difference
 from freipose.nn.config import InferenceOverrides, TrainConfig
 from freipose.nn.data import collate_prepared, prepare_sample
-from freipose.nn.dataset import MultiViewDataset
+from freipose.nn.dataset import MultiViewDataset, other_rows
 from freipose.nn.failure_modes import NOT_LABELED
 from freipose.nn.fast import optimize
 from freipose.nn.inference import predict_prepared
@@ -103,17 +103,14 @@ def _painted_pass(
     Returns:
         ``P0``, ``P1`` (N, K, 3) and ``confidence`` (N, K).
     """
-    at: dict[tuple[str, int], list[int]] = {}
-    for r, m in enumerate(moments):
-        at.setdefault(m, []).append(r)
+    others_of = other_rows(moments)
     outs: dict[str, list[np.ndarray]] = {"P0": [], "P1": [], "confidence": []}
     for start in range(0, len(idx), batch_size):
         items = []
         for r in range(start, min(start + batch_size, len(idx))):
             s = dict(first_pass_sample(source[int(idx[r])]))
-            others = [o for o in at[moments[r]] if o != r]
             s["own3d"] = prev[r]
-            s["others3d"] = prev[others].reshape(len(others), *prev.shape[1:])
+            s["others3d"] = prev[others_of[r]]
             items.append(prepare_sample(cast(Sample, s), model.cfg, center=centres[r]))
         pred = predict_prepared(model, collate_prepared(items))
         for k in outs:

@@ -152,6 +152,17 @@ const FP = (() => {
     ctx.setLineDash([]);
   }
 
+  // a limb's two ends in image pixels (each end the mean of its keypoints), null unless
+  // every keypoint has a point: pointOf(k) gives keypoint k's [x, y] or nothing
+  function limbEnds(limb, pointOf) {
+    const ends = limb.map((ix) => {
+      const ps = ix.map(pointOf);
+      if (ps.some((p) => !p)) return null;
+      return [0, 1].map((d) => ps.reduce((s, p) => s + p[d], 0) / ps.length);
+    });
+    return ends[0] && ends[1] ? ends : null;
+  }
+
   function drawView(v) {
     const canvas = v.canvas, dpr = window.devicePixelRatio || 1;
     const w = v.div.clientWidth, h = v.div.clientHeight;
@@ -172,13 +183,9 @@ const FP = (() => {
     const kps = S.cfg.keypoints;
     // skeleton
     ctx.lineWidth = 1.5;
-    for (const [a, b] of S.cfg.limbs) {
-      const ends = [a, b].map((ix) => {
-        const ps = ix.map((k) => shown(v.cam, kps[k]));
-        if (ps.some((p) => !p)) return null;
-        return [0, 1].map((d) => ps.reduce((s, p) => s + p.p[d], 0) / ps.length);
-      });
-      if (!ends[0] || !ends[1]) continue;
+    for (const limb of S.cfg.limbs) {
+      const ends = limbEnds(limb, (k) => { const sh = shown(v.cam, kps[k]); return sh && sh.p; });
+      if (!ends) continue;
       const p = toScreen(v, ends[0]), q = toScreen(v, ends[1]);
       ctx.strokeStyle = "rgba(255,255,255,0.55)";
       ctx.beginPath(); ctx.moveTo(p[0], p[1]); ctx.lineTo(q[0], q[1]); ctx.stroke();
@@ -190,13 +197,9 @@ const FP = (() => {
       ctx.strokeStyle = col;
       ctx.lineWidth = 1;
       ctx.setLineDash([3, 3]);
-      for (const [a, b] of S.cfg.limbs) {
-        const ends = [a, b].map((ix) => {
-          const ps = ix.map((k) => pts[kps[k]]);
-          if (ps.some((p) => !p)) return null;
-          return [0, 1].map((d) => ps.reduce((s, p) => s + p[d], 0) / ps.length);
-        });
-        if (!ends[0] || !ends[1]) continue;
+      for (const limb of S.cfg.limbs) {
+        const ends = limbEnds(limb, (k) => pts[kps[k]]);
+        if (!ends) continue;
         const p = toScreen(v, ends[0]), q = toScreen(v, ends[1]);
         ctx.beginPath(); ctx.moveTo(p[0], p[1]); ctx.lineTo(q[0], q[1]); ctx.stroke();
       }
