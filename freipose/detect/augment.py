@@ -66,11 +66,13 @@ def augment(
     rng: np.random.Generator,
     out_size: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A random view of ``image`` (h, w, 3) as a square (O, O, 3) input and its box.
+    """A random view of ``image`` (h, w, 3) as a square (O, O, 3) input and its box(es).
 
     Args:
         image: BGR uint8, at roughly the network scale (longest side about ``input_size``).
-        box: (4,) the animal's box in ``image`` pixels, or NaN (no animal in the image).
+        box: (4,) the animal's box in ``image`` pixels, or NaN (no animal in the image);
+            or (M, 4) the boxes of several animals (NaN rows: none), one of which is kept
+            inside the input.
         input_size: S, the side the whole frame is letterboxed into at zoom 1.
         cfg: augmentation strengths.
         rng: random generator.
@@ -78,8 +80,8 @@ def augment(
             the network's scale (cheaper training of the fully convolutional network).
 
     Returns:
-        ``(input_image (O, O, 3) uint8, box (4,))`` with the box clipped to the output, NaN
-        when there is no animal.
+        ``(input_image (O, O, 3) uint8, box (4,) or (M, 4))`` with the boxes clipped to the
+        output, NaN when there is no animal.
     """
     h, w = image.shape[:2]
     base = input_size / max(w, h)
@@ -89,9 +91,12 @@ def augment(
     # Translation: random, but keep the box centre inside the input (random crops).
     tx = rng.uniform(min(0.0, size - w * s), max(0.0, size - w * s))
     ty = rng.uniform(min(0.0, size - h * s), max(0.0, size - h * s))
-    has_box = bool(np.isfinite(box).all())
+    rows = np.asarray(box, dtype=np.float64).reshape(-1, 4)
+    found = np.flatnonzero(np.isfinite(rows).all(-1))
+    has_box = len(found) > 0
     if has_box:
-        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+        keep = rows[found[0] if len(found) == 1 else found[rng.integers(len(found))]]
+        cx, cy = (keep[0] + keep[2]) / 2, (keep[1] + keep[3]) / 2
         m = 0.15 * size
         lo_x, hi_x = m - (cx + 0.5) * s, size - m - (cx + 0.5) * s
         lo_y, hi_y = m - (cy + 0.5) * s, size - m - (cy + 0.5) * s
@@ -118,8 +123,10 @@ def augment(
         borderValue=fill,
     )
     out = _photometric(out, cfg, rng)
-    b = clip_boxes(transform_boxes(box, A), (size, size)) if has_box else np.full(4, np.nan)
-    return out, b
+    b = np.full_like(rows, np.nan)
+    if has_box:
+        b[found] = clip_boxes(transform_boxes(rows[found], A), (size, size))
+    return out, b.reshape(np.shape(box))
 
 
 def _photometric(img: np.ndarray, cfg: AugmentConfig, rng: np.random.Generator) -> np.ndarray:
@@ -149,27 +156,32 @@ def _photometric(img: np.ndarray, cfg: AugmentConfig, rng: np.random.Generator) 
 def make_targets(
     boxes: np.ndarray, input_size: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """CenterNet targets for a batch with at most one box per image.
+    """CenterNet targets for a batch with up to M boxes (animals) per image.
 
     Args:
-        boxes: (B, 4) boxes in input pixels, NaN for images without an animal.
+        boxes: (B, 4) boxes in input pixels, NaN for images without an animal; or
+            (B, M, 4), NaN rows for fewer animals.
         input_size: S (the output grid is S / 4).
 
     Returns:
-        ``heat (B, 1, G, G)`` Gaussian peaks (1 at the centre cell), ``index (B,)`` flat
-        centre cell, ``size (B, 2)`` log box size in cells, ``offset (B, 2)`` sub-cell
-        centre offset, ``mask (B,)`` float 1 where the image has a box.
+        ``heat (B, 1, G, G)`` Gaussian peaks (1 at each centre cell, the largest where two
+        overlap), ``index (B, M)`` flat centre cells, ``size (B, M, 2)`` log box sizes in
+        cells, ``offset (B, M, 2)`` sub-cell centre offsets, ``mask (B, M)`` float 1 where
+        a box is; for (B, 4) boxes without the M axis.
     """
-    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    n = len(b)
+    b = np.asarray(boxes, dtype=np.float64)
+    single = b.ndim < 3
+    b = b.reshape(len(b), -1, 4) if b.size else b.reshape(0, 1, 4)
+    n, m = b.shape[:2]
     g = input_size // STRIDE
     heat = np.zeros((n, 1, g, g), np.float32)
-    index = np.zeros(n, np.int64)
-    size = np.zeros((n, 2), np.float32)
-    offset = np.zeros((n, 2), np.float32)
-    mask = np.zeros(n, np.float32)
+    index = np.zeros((n, m), np.int64)
+    size = np.zeros((n, m, 2), np.float32)
+    offset = np.zeros((n, m, 2), np.float32)
+    mask = np.zeros((n, m), np.float32)
     yy, xx = np.mgrid[0:g, 0:g]
-    for i, bx in enumerate(b):
+    for i, j in np.ndindex(n, m):
+        bx = b[i, j]
         if not np.isfinite(bx).all():
             continue
         w, h = bx[2] - bx[0], bx[3] - bx[1]
@@ -179,9 +191,12 @@ def make_targets(
         gy = ((bx[1] + bx[3]) / 2 + 0.5) / STRIDE
         cx, cy = int(np.clip(np.floor(gx), 0, g - 1)), int(np.clip(np.floor(gy), 0, g - 1))
         sigma = max(0.7, 0.12 * np.sqrt(w * h) / STRIDE)
-        heat[i, 0] = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma**2))
-        index[i] = cy * g + cx
-        size[i] = np.log([w / STRIDE, h / STRIDE])
-        offset[i] = [gx - cx, gy - cy]
-        mask[i] = 1.0
+        peak = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma**2))
+        heat[i, 0] = np.maximum(heat[i, 0], peak)
+        index[i, j] = cy * g + cx
+        size[i, j] = np.log([w / STRIDE, h / STRIDE])
+        offset[i, j] = [gx - cx, gy - cy]
+        mask[i, j] = 1.0
+    if single:
+        return heat, index[:, 0], size[:, 0], offset[:, 0], mask[:, 0]
     return heat, index, size, offset, mask

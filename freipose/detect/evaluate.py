@@ -61,7 +61,8 @@ class DetectionMetrics:
 
     Attributes:
         recall: fraction of views showing the animal whose multi-view consistent box has
-            IoU >= 0.5 with the ground truth.
+            IoU >= 0.5 with the ground truth (labels of several animals per instant: any
+            of the view's boxes, the centre that of the 3D animal hypothesis nearest it).
         recall_top1: the same for each view's best detector box alone (no consistency).
         median_center_error: median distance (mm) of the 3D centre from the ground-truth
             centre over time instants with both (NaN when uncalibrated).
@@ -130,10 +131,16 @@ def evaluate_source(
         if rig is None:
             hits += int(np.sum(np.nan_to_num(box_iou(top1, gt_clip))[shown] >= 0.5))
             continue
-        det = consistent_detection(cands, rig, consistency)
-        hits += int(np.sum(np.nan_to_num(box_iou(det.boxes, gt_clip))[shown] >= 0.5))
-        agrees.append(det.n_agree)
         gt_center = triangulate(box_centers(gt), rig)
+        if s.get("others3d") is not None:  # several animals: the one nearest this animal
+            det = _among_animals(cands, rig, gt_center)
+            any_box = [(np.nan_to_num(box_iou(c.boxes, gt_clip[v])) >= 0.5).any() for v, c in
+                       enumerate(cands)]  # fmt: skip
+            hits += int(np.sum(np.array(any_box, bool)[shown]))
+        else:
+            det = consistent_detection(cands, rig, consistency)
+            hits += int(np.sum(np.nan_to_num(box_iou(det.boxes, gt_clip))[shown] >= 0.5))
+        agrees.append(det.n_agree)
         if np.isfinite(det.center).all():
             n_center += 1
             if np.isfinite(gt_center).all():
@@ -147,6 +154,23 @@ def evaluate_source(
         n_views=n_views,
         n_instants=n_inst,
     )
+
+
+@dataclass(frozen=True)
+class _Found:
+    center: np.ndarray
+    n_agree: int
+
+
+def _among_animals(cands: Sequence[Any], rig: CameraRig, center: np.ndarray) -> _Found:
+    """The 3D animal hypothesis of several animals' boxes nearest ``center`` (NaN: none)."""
+    from freipose.detect.multi import detect_animals
+
+    found = detect_animals(cands, rig)
+    if not len(found.centers) or not np.isfinite(center).all():
+        return _Found(np.full(3, np.nan), 0)
+    h = int(np.argmin(np.linalg.norm(found.centers - center, axis=-1)))
+    return _Found(found.centers[h], int(found.n_views[h]))
 
 
 def measure_fps(

@@ -21,18 +21,25 @@ def focal_loss(logits: torch.Tensor, target: torch.Tensor, n_pos: torch.Tensor) 
 def detection_loss(
     outputs: tuple[torch.Tensor, torch.Tensor, torch.Tensor], boxes: np.ndarray, input_size: int
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Focal heat-map loss + L1 on log size and offset at the centre cell."""
+    """Focal heat-map loss + L1 on log size and offset at the centre cells.
+
+    ``boxes`` (B, 4) or (B, M, 4) in input pixels, NaN where no animal
+    (:func:`~freipose.detect.augment.make_targets`).
+    """
     heat_l, size_p, off_p = outputs
     dev = heat_l.device
     heat, index, size, offset, mask = (
         torch.from_numpy(a).to(dev) for a in make_targets(boxes, input_size)
     )
+    if index.ndim == 1:  # one box per image
+        index, size, offset, mask = index[:, None], size[:, None], offset[:, None], mask[:, None]
     n_pos = mask.sum()
     l_heat = focal_loss(heat_l.float(), heat, n_pos)
-    b = heat_l.shape[0]
-    sp = size_p.float().flatten(2).gather(2, index.view(b, 1, 1).expand(b, 2, 1))[..., 0]
-    op = off_p.float().flatten(2).gather(2, index.view(b, 1, 1).expand(b, 2, 1))[..., 0]
-    m = mask[:, None]
+    b, m_n = index.shape
+    at = index.view(b, 1, m_n).expand(b, 2, m_n)
+    sp = size_p.float().flatten(2).gather(2, at).transpose(1, 2)  # (B, M, 2)
+    op = off_p.float().flatten(2).gather(2, at).transpose(1, 2)
+    m = mask[..., None]
     denom = n_pos.clamp(min=1.0) * 2
     l_size = (F.l1_loss(sp, size, reduction="none") * m).sum() / denom
     l_off = (F.l1_loss(op, offset, reduction="none") * m).sum() / denom

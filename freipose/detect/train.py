@@ -58,12 +58,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from freipose.detect.augment import AugmentConfig, augment
-from freipose.detect.boxes import clip_boxes, visible_fraction
 from freipose.detect.detector import (
     Detector,
     load_backbone_weights,
@@ -71,13 +69,14 @@ from freipose.detect.detector import (
     resolve_device,
     save_checkpoint,
 )
-from freipose.detect.evaluate import DetectionMetrics, evaluate_source, gt_boxes, measure_speed
+from freipose.detect.evaluate import DetectionMetrics, evaluate_source, measure_speed
 from freipose.detect.init import initialize_detector
 from freipose.detect.loss import detection_loss
 from freipose.detect.model import DetectorConfig, DetectorNet, to_tensor
 from freipose.detect.multiview import ConsistencyConfig
 from freipose.detect.ranges import DETECTOR_RANGES
 from freipose.detect.train_log import LOG, log_row, read_log, write_log
+from freipose.detect.train_views import ViewImages, collect_views, stack_boxes
 from freipose.errors import FreiPoseError, InputFileError
 from freipose.io.checkpoints import DETECTOR_TRAINING_STATE
 from freipose.io.lock import output_lock
@@ -170,14 +169,6 @@ class DetectorTrainConfig:
         )
 
 
-@dataclass
-class ViewImages:
-    """Training views cached at network scale: images and boxes (NaN = no animal)."""
-
-    images: list[np.ndarray]
-    boxes: np.ndarray  # (N, 4) in cached-image pixels
-
-
 def _data_paths(config: dict, config_path: Path) -> tuple[list[Path], list[Path], Path | None]:
     data = config.get("data")
     if not isinstance(data, dict) or "labels" not in data:
@@ -210,36 +201,6 @@ def _datasets(paths: Sequence[Path], root: Path | None) -> list:
     from freipose.nn.dataset import MultiViewDataset
 
     return [MultiViewDataset(p, root=root) for p in paths]
-
-
-def collect_views(
-    samples: Sequence[dict] | Any, indices: Sequence[int], cfg: DetectorTrainConfig
-) -> ViewImages:
-    """Cache the training views of ``samples[i]`` for ``i`` in ``indices`` at network scale.
-
-    Views whose ground-truth box is unknown (no labels) are skipped; views whose box lies
-    entirely outside the image are kept as negatives (no animal).
-    """
-    images: list[np.ndarray] = []
-    boxes: list[np.ndarray] = []
-    for i in progress_bar(indices, desc="loading training views", disable=None, leave=False):
-        s = samples[int(i)]
-        gt = gt_boxes(s, cfg.box_margin)
-        for v, img in enumerate(s["images"]):
-            if not np.isfinite(gt[v]).all():
-                continue
-            h, w = img.shape[:2]
-            frac = float(visible_fraction(gt[v], (w, h)))
-            box = clip_boxes(gt[v], (w, h)) if frac > 0 else np.full(4, np.nan)
-            sc = cfg.input_size / max(w, h)
-            small = cv2.resize(
-                img,
-                (max(1, round(w * sc)), max(1, round(h * sc))),
-                interpolation=cv2.INTER_AREA if sc < 1 else cv2.INTER_LINEAR,
-            )
-            images.append(small)
-            boxes.append((box + 0.5) * sc - 0.5)
-    return ViewImages(images, np.array(boxes).reshape(-1, 4))
 
 
 class AugmentedBatches(torch.utils.data.Dataset):
@@ -459,7 +420,7 @@ def _training_views(
     keep = min(len(items), max(1, cfg.max_images // n_views_est))
     sel = np.unique(np.linspace(0, len(items) - 1, keep).round().astype(int))
     views = _collect_items(train_sets, [items[i] for i in sel], cfg)
-    n_neg = int((~np.isfinite(views.boxes).all(-1)).sum())
+    n_neg = int((~np.isfinite(views.boxes).all(-1).reshape(len(views.images), -1).any(1)).sum())
     used = min(n_eval, cfg.max_eval_instants)  # [detector] max_eval_instants
     log.info(
         "detector: %d training views from %d time instants (%d without the animal); %d of "
@@ -590,5 +551,4 @@ def _collect_items(
         if idx:
             parts.append(collect_views(ds, idx, cfg))
     images = [im for p in parts for im in p.images]
-    boxes = np.concatenate([p.boxes for p in parts]) if parts else np.zeros((0, 4))
-    return ViewImages(images, boxes)
+    return ViewImages(images, stack_boxes([b for p in parts for b in p.boxes]))
