@@ -19,6 +19,13 @@ the coat colours (motion alone), and the tracker fed the true centres (an ideal
 detector; it must not switch). The
 2-animal figures are the target's; the 3-animal figures are printed and recorded.
 
+With ``--detector-steps N`` the same sessions are also tracked with a trained detector's
+peaks (:class:`freipose.detect.multi.PeakBoxes`) instead of the split foreground: per
+animal count, ``--detector-sessions`` training sessions (seeds 2000 + i, the last one for
+the training's evaluation) are rendered with their labels (a row per animal and frame)
+and the detector is fine-tuned from the shipped base for N steps (input side the
+image's longer side, batch 8); its figures are recorded under ``detector``.
+
 Example (about 2 minutes per 2-minute session on 2 cores)::
 
     flock /work/notes/heavy.lock python benchmarks/social.py --sessions 3 --seconds 120
@@ -30,6 +37,7 @@ import argparse
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from _results import write_result
@@ -46,14 +54,54 @@ from freipose.synth import SceneConfig, generate_session
 ARENA = np.array([[-300.0, 300], [-300, 300], [-20, 250]])
 
 
-def run_session(folder: Path, animals: int, seed: int, args: argparse.Namespace) -> dict:
-    """Render one session, track it three ways and return its figures."""
+def _render(folder: Path, animals: int, seed: int, args: argparse.Namespace) -> Any:
     frames_n = int(round(args.seconds * args.fps))
     cfg = SceneConfig(frames=frames_n, fps=args.fps, seed=seed, n_cameras=args.cameras,
                       size=(args.width, args.height), animals=animals,
                       coat_mix=args.coat_mix)  # fmt: skip
+    return generate_session(folder / f"a{animals}_s{seed}", cfg, workers=1, progress=False)
+
+
+def train_detector(folder: Path, animals: int, args: argparse.Namespace) -> Path:
+    """Render the training sessions and fine-tune the detector on them (resumable)."""
+    from freipose.detect.train import train_detector as train
+
+    labels = [_render(folder, animals, 2000 + i, args).labels
+              for i in range(args.detector_sessions)]  # fmt: skip
+    side = 32 * int(np.ceil(max(args.width, args.height) / 32))
+    config = {
+        "data": {"labels": [str(p) for p in labels[:-1]], "eval_labels": str(labels[-1])},
+        "detector": {"input_size": side, "width": 0.35, "neck_channels": 24,
+                     "steps": args.detector_steps, "batch_size": 8, "max_images": 2400,
+                     "max_eval_instants": 40, "warmup_steps": 20, "checkpoint_every": 500,
+                     "log_every": 250},
+    }  # fmt: skip
+    out = folder / f"detector_a{animals}"
+    return train(config, folder / "detector.toml", out, resume=True, device="cpu")
+
+
+def _detector_figures(frames: list, rig: Any, truth: Any, animals: int, path: Path) -> dict:
+    from freipose.detect.detector import Detector
+    from freipose.detect.multi import PeakBoxes
+
+    source = PeakBoxes(Detector.load(path, top_k=animals + 2), max_boxes=animals + 2)
     t0 = time.perf_counter()
-    paths = generate_session(folder / f"a{animals}_s{seed}", cfg, workers=1, progress=False)
+    res = track_recording(frames, rig, source, animals, truth.fps, bounds=ARENA)
+    t_track = time.perf_counter() - t0
+    s = score_tracks(res, truth.extra["points2d"], truth.extra["visible2d"], rig)
+    return {"switches": s.switches, "recall_boxes": list(s.recall_boxes),
+            "recall_tracked": list(s.recall_tracked), "followed": list(s.followed),
+            "center_error_mm": s.center_error_mm, "switches_flagged": s.switches_flagged,
+            "track_ms_per_frame": 1000 * t_track / len(frames)}  # fmt: skip
+
+
+def run_session(
+    folder: Path, animals: int, seed: int, args: argparse.Namespace, detector: Path | None
+) -> dict:
+    """Render one session, track it three ways (and with the detector) and return its figures."""
+    frames_n = int(round(args.seconds * args.fps))
+    t0 = time.perf_counter()
+    paths = _render(folder, animals, seed, args)
     t_render = time.perf_counter() - t0
     rig = load_calibration(paths.calibration)
     truth = read_poses_h5(paths.truth)
@@ -76,7 +124,7 @@ def run_session(folder: Path, animals: int, seed: int, args: argparse.Namespace)
     ideal = track_animals(list(centres), animals, truth.fps)
     ideal_sw, _ = identity_switches(ideal.centers, centres)
     contact = truth.extra["contact"]
-    return {
+    out = {
         "seed": seed,
         "minutes": full.minutes,
         "switches": full.switches,
@@ -93,6 +141,9 @@ def run_session(folder: Path, animals: int, seed: int, args: argparse.Namespace)
         "render_s": t_render,
         "track_ms_per_frame": 1000 * t_track / frames_n,
     }
+    if detector is not None:
+        out["detector"] = _detector_figures(frames, rig, truth, animals, detector)
+    return out
 
 
 def summarize(runs: list[dict]) -> dict:
@@ -120,6 +171,23 @@ def summarize(runs: list[dict]) -> dict:
         "switches_flagged": sum(r["switches_flagged"] for r in runs),
         "contact_fraction": float(np.mean([r["contact_fraction"] for r in runs])),
         "track_ms_per_frame": float(np.median([r["track_ms_per_frame"] for r in runs])),
+    } | _detector_summary(runs, minutes)
+
+
+def _detector_summary(runs: list[dict], minutes: float) -> dict:
+    """The detector's totals over the sessions (empty without ``--detector-steps``)."""
+    det = [r["detector"] for r in runs if "detector" in r]
+    if not det:
+        return {}
+    return {
+        "detector_switches_per_10min": 10 * sum(d["switches"] for d in det) / minutes,
+        "detector_min_recall_boxes": min(min(d["recall_boxes"]) for d in det),
+        "detector_median_recall_boxes": float(
+            np.median([x for d in det for x in d["recall_boxes"]])
+        ),
+        "detector_min_recall_tracked": min(min(d["recall_tracked"]) for d in det),
+        "detector_min_followed": min(min(d["followed"]) for d in det),
+        "detector_median_center_error_mm": float(np.median([d["center_error_mm"] for d in det])),
     }
 
 
@@ -134,6 +202,18 @@ def main() -> None:
     ap.add_argument("--coat-mix", default="different", choices=("random", "same", "different"))
     ap.add_argument("--animals", default="2,3", help="animal counts [2,3]")
     ap.add_argument("--workdir", type=Path, default=None, help="keep the sessions here")
+    ap.add_argument(
+        "--detector-steps",
+        type=int,
+        default=0,
+        help="also track with a detector fine-tuned this many steps [0: no]",
+    )
+    ap.add_argument(
+        "--detector-sessions",
+        type=int,
+        default=6,
+        help="training sessions of the detector, the last for evaluation [6]",
+    )
     args = ap.parse_args()
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     figures: dict = {}
@@ -141,8 +221,9 @@ def main() -> None:
         folder = args.workdir or Path(tmp)
         for n in (int(a) for a in args.animals.split(",")):
             runs = []
+            det = train_detector(folder, n, args) if args.detector_steps > 0 else None
             for i in range(args.sessions):
-                r = run_session(folder, n, 1000 + i, args)
+                r = run_session(folder, n, 1000 + i, args, det)
                 runs.append(r)
                 print(f"{n} animals, seed {r['seed']}: {r['switches']} switches "
                       f"(frame by frame only {r['switches_frame_by_frame']}, motion only "
@@ -153,6 +234,12 @@ def main() -> None:
                       f"followed {np.round(r['followed'], 3)}; centre error "
                       f"{r['center_error_mm']:.1f} mm; contact {100 * r['contact_fraction']:.0f} %",
                       flush=True)  # fmt: skip
+                if "detector" in r:
+                    d = r["detector"]
+                    print(f"  with the detector: {d['switches']} switches; recall boxes "
+                          f"{np.round(d['recall_boxes'], 3)}, tracked "
+                          f"{np.round(d['recall_tracked'], 3)}; centre error "
+                          f"{d['center_error_mm']:.1f} mm", flush=True)  # fmt: skip
             s = summarize(runs)
             figures[f"animals{n}"] = {"summary": s, "runs": runs}
             print(f"== {n} animals: {s['switches_per_10min']:.2f} switches per 10 min "
@@ -164,6 +251,13 @@ def main() -> None:
                   f"({100 * s['flagged_fraction']:.1f} % of the frames flagged), "
                   f"median centre error {s['median_center_error_mm']:.1f} mm",
                   flush=True)  # fmt: skip
+            if "detector_switches_per_10min" in s:
+                print(f"== {n} animals with the detector: "
+                      f"{s['detector_switches_per_10min']:.2f} switches per 10 min, recall per "
+                      f"animal and view >= {s['detector_min_recall_boxes']:.3f} (median "
+                      f"{s['detector_median_recall_boxes']:.3f}; tracked "
+                      f"{s['detector_min_recall_tracked']:.3f}), median centre error "
+                      f"{s['detector_median_center_error_mm']:.1f} mm", flush=True)  # fmt: skip
     write_result("social", figures, extra=settings)
 
 
