@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 
 #: "session 12", "sessions 14 and 16-19", "session-20": a numbered work session
-HISTORY = re.compile(r"(?<!--)\bsessions?[ -]\d+", re.I)  # not the option --sessions N
+#: (not an option such as --sessions N or --detector-sessions N)
+HISTORY = re.compile(r"(?<!-)\bsessions?[ -]\d+", re.I)
 
 
 def _history(text: str) -> list[str]:
@@ -52,6 +53,8 @@ def test_history_detector_finds_what_it_should() -> None:
     assert _history("sessions 14 and 16-19")
     assert not _history("one folder per session\nsession/cam0.mp4\nsessions of 30 s")
     assert not _history("python benchmarks/train_base.py --sessions 96")
+    assert not _history("python benchmarks/social.py --detector-sessions 6")
+    assert _history("as in session-20")
 
 
 def test_readme_is_a_short_product_page() -> None:
