@@ -95,6 +95,7 @@ def augment(
     found = np.flatnonzero(np.isfinite(rows).all(-1))
     has_box = len(found) > 0
     if has_box:
+        # the box kept inside: one of several at random (one box: no draw, as ever)
         keep = rows[found[0] if len(found) == 1 else found[rng.integers(len(found))]]
         cx, cy = (keep[0] + keep[2]) / 2, (keep[1] + keep[3]) / 2
         m = 0.15 * size

@@ -28,11 +28,11 @@ def detection_loss(
     """
     heat_l, size_p, off_p = outputs
     dev = heat_l.device
+    given = np.asarray(boxes, dtype=np.float64)
+    per_image = given[:, None] if given.ndim == 2 else given  # (B, M, 4), M = 1: one box
     heat, index, size, offset, mask = (
-        torch.from_numpy(a).to(dev) for a in make_targets(boxes, input_size)
+        torch.from_numpy(a).to(dev) for a in make_targets(per_image, input_size)
     )
-    if index.ndim == 1:  # one box per image
-        index, size, offset, mask = index[:, None], size[:, None], offset[:, None], mask[:, None]
     n_pos = mask.sum()
     l_heat = focal_loss(heat_l.float(), heat, n_pos)
     b, m_n = index.shape

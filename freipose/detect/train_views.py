@@ -70,7 +70,7 @@ def _all_boxes(sample: dict, margin: float) -> np.ndarray:
     if others is None or rig is None or not len(others):
         return own
     p3 = np.asarray(others, dtype=np.float64)  # (A-1, K, 3)
-    uv = np.stack([rig.project(p) for p in p3], axis=1)  # (V, A-1, K, 2)
+    uv = np.moveaxis(rig.project(p3), 0, 1)  # (A-1, V, K, 2) -> (V, A-1, K, 2)
     return np.concatenate([own, boxes_from_points(uv, margin=margin)], axis=1)
 
 
