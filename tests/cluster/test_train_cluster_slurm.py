@@ -3,8 +3,9 @@
 One run is submitted with ``--no-wait`` and then waited for by the same command (which
 must not submit it twice); another is requeued midway (``scontrol requeue``: SIGTERM,
 then the same job again) and must continue from its checkpoint to the same weights, bit
-for bit. SLURM holds a requeued job back for about two minutes (its BeginTime); the test
-releases it with ``scontrol update starttime=now``, as an administrator may.
+for bit. SLURM holds a requeued job back for the credential lifetime (its BeginTime; two
+minutes by default, 15 s on the SLURM of ``.ci/start-slurm``); the test releases it at
+once with ``scontrol update starttime=now``, as an administrator may.
 """
 
 from __future__ import annotations
