@@ -89,10 +89,19 @@ def _detector_figures(frames: list, rig: Any, truth: Any, animals: int, path: Pa
     res = track_recording(frames, rig, source, animals, truth.fps, bounds=ARENA)
     t_track = time.perf_counter() - t0
     s = score_tracks(res, truth.extra["points2d"], truth.extra["visible2d"], rig)
-    return {"switches": s.switches, "recall_boxes": list(s.recall_boxes),
-            "recall_tracked": list(s.recall_tracked), "followed": list(s.followed),
-            "center_error_mm": s.center_error_mm, "switches_flagged": s.switches_flagged,
-            "track_ms_per_frame": 1000 * t_track / len(frames)}  # fmt: skip
+    return _scores(s) | {"track_ms_per_frame": 1000 * t_track / len(frames)}
+
+
+def _scores(s: Any) -> dict:
+    """The figures of a :class:`~freipose.predict.animals.TrackScores` that both runs record."""
+    return {
+        "switches": s.switches,
+        "recall_boxes": list(s.recall_boxes),
+        "recall_tracked": list(s.recall_tracked),
+        "followed": list(s.followed),
+        "center_error_mm": s.center_error_mm,
+        "switches_flagged": s.switches_flagged,
+    }
 
 
 def run_session(
@@ -127,16 +136,11 @@ def run_session(
     out = {
         "seed": seed,
         "minutes": full.minutes,
-        "switches": full.switches,
+        **_scores(full),
         "switches_motion_only": int(blind_sw),
         "switches_frame_by_frame": int(online_sw),
         "switches_true_centres": int(ideal_sw),
-        "recall_boxes": list(full.recall_boxes),
-        "recall_tracked": list(full.recall_tracked),
-        "followed": list(full.followed),
-        "center_error_mm": full.center_error_mm,
         "flagged_fraction": full.flagged_fraction,
-        "switches_flagged": full.switches_flagged,
         "contact_fraction": float(np.asarray(contact).any((1, 2)).mean()),
         "render_s": t_render,
         "track_ms_per_frame": 1000 * t_track / frames_n,

@@ -420,7 +420,8 @@ def _training_views(
     keep = min(len(items), max(1, cfg.max_images // n_views_est))
     sel = np.unique(np.linspace(0, len(items) - 1, keep).round().astype(int))
     views = _collect_items(train_sets, [items[i] for i in sel], cfg)
-    n_neg = int((~np.isfinite(views.boxes).all(-1).reshape(len(views.images), -1).any(1)).sum())
+    boxed = np.isfinite(views.boxes).all(-1).reshape(len(views.images), -1)  # (N, M)
+    n_neg = int((~boxed.any(1)).sum())  # views with no animal at all
     used = min(n_eval, cfg.max_eval_instants)  # [detector] max_eval_instants
     log.info(
         "detector: %d training views from %d time instants (%d without the animal); %d of "
