@@ -381,6 +381,13 @@ def _wait_for_listed(task: TrainTask, job: dict[str, Any], config: ClusterConfig
                 log=job.get("log"))  # fmt: skip
 
 
+def _journal_unwatched_end(task: TrainTask) -> None:
+    """Journal ``done`` for a job that wrote the model while no command watched it."""
+    job = _last_job(task)
+    if job is not None and not job["ended"] and task.model().is_file():
+        journal(task.out, "done", unit=UNIT, job_id=job["job_id"])
+
+
 def _running_job(task: TrainTask, config: ClusterConfig) -> tuple[dict[str, Any], str] | None:
     """The job of an earlier command that SLURM still lists, with its state; else None."""
     job = _last_job(task)
@@ -421,6 +428,7 @@ def run_train(
 
     _refuse_other_job(task.out)
     if task.model().is_file():
+        _journal_unwatched_end(task)
         say(f"{task.out}: the run is complete ({task.model()}); nothing to submit")
         return ClusterTrainResult(task.model(), "", 0)
     inner = make_train_executor(task, config)  # before anything is written
@@ -454,6 +462,7 @@ def run_train(
                 max_retries=config.max_retries, poll_s=config.poll_s, progress=False,
             )  # fmt: skip
             show()
+            _journal_unwatched_end(task)
     finally:
         executor.close()
     if report.failed:

@@ -156,3 +156,25 @@ def test_local_job_on_this_machines_gpus(tmp_path):
     assert res.exit_code == 0, res.output
     assert f"1 node(s) x {gpus} process(es) on GPUs" in res.output
     assert read_checkpoint(out / "model.pt")["step"] == 4 and logged_steps(out) == [1, 2, 3, 4]
+
+
+def test_a_job_that_ended_unwatched_is_journaled_done(tmp_path):
+    """A job that wrote model.pt while no command watched it ends in the journal as done."""
+    from freipose.cluster.config import ClusterConfig
+    from freipose.cluster.driver import journal
+    from freipose.cluster.train import TrainTask, run_train
+
+    out = tmp_path / "run"
+    task = TrainTask(config=tmp_path / "train.toml", out=out, kind=None, init=None,
+                     device="cpu", nodes=1, tasks_per_node=1, threads=1, steps=2,
+                     executor="slurm")  # fmt: skip
+    journal(out, "submitted", unit="train", job_id="41", attempt=1, executor="slurm")
+    (out / "model.pt").write_bytes(b"written by the job")
+    said: list[str] = []
+    res = run_train(task, ClusterConfig(executor="slurm"), say=said.append)
+    assert res.model == out / "model.pt" and res.submitted == 0
+    assert "the run is complete" in said[0]
+    assert [(e["event"], e.get("job_id")) for e in read_journal(out)] == [
+        ("submitted", "41"), ("done", "41")]  # fmt: skip
+    run_train(task, ClusterConfig(executor="slurm"), say=said.append)
+    assert len(read_journal(out)) == 2  # journaled once
