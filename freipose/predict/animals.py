@@ -43,7 +43,9 @@ from freipose.predict.tracking import (
     TrackingConfig,
     Tracks,
     colour_features,
+    identity_accuracy,
     identity_switches,
+    lasting_switches,
     switch_events,
     track_animals,
 )
@@ -201,6 +203,11 @@ class TrackScores:
         switches_flagged: the switches where the tracker flagged one of the two tracks
             from ``flag_window`` frames before the animal was last matched to the frame of
             the switch (a user who checks the flagged frames finds these).
+        lasting_switches: the switches after which the animal stays with the new track
+            for at least ``lasting_s`` (:func:`~freipose.predict.tracking.lasting_switches`);
+            the others are strays of a track onto another animal and back.
+        identity_accuracy: share of the matched animal-frames in which the animal is on
+            its own track (:func:`~freipose.predict.tracking.identity_accuracy`).
     """
 
     switches: int
@@ -213,6 +220,8 @@ class TrackScores:
     flagged_fraction: float
     n_visible: tuple[int, ...]
     switches_flagged: int
+    lasting_switches: int
+    identity_accuracy: float
 
 
 def true_animal_boxes(points2d: np.ndarray, rig: CameraRig) -> tuple[np.ndarray, np.ndarray]:
@@ -230,6 +239,7 @@ def score_tracks(
     min_visible: float = 0.5,
     max_dist: float = 60.0,
     flag_window: int = 5,
+    lasting_s: float = 1.0,
 ) -> TrackScores:
     """Scores of a :class:`RecordingTracks` against known keypoints.
 
@@ -241,6 +251,7 @@ def score_tracks(
         min_visible: fraction of an animal's keypoints visible in a view for it to count.
         max_dist: farthest track from a true centre that still follows it, mm.
         flag_window: frames before a switch in which a flag counts for it.
+        lasting_s: shortest time an animal stays with a new track for its switch to last.
 
     Returns:
         :class:`TrackScores`.
@@ -289,6 +300,8 @@ def score_tracks(
         flagged_fraction=float(tr.flagged[matched].mean()) if matched.any() else float("nan"),
         n_visible=tuple(int(v) for v in n_vis),
         switches_flagged=_flagged_switches(assigned, tr.flagged, flag_window),
+        lasting_switches=lasting_switches(assigned, max(int(round(lasting_s * tr.fps)), 1)),
+        identity_accuracy=identity_accuracy(assigned, tr.num_animals),
     )
 
 

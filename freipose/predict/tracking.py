@@ -531,3 +531,61 @@ def switch_events(assigned: np.ndarray) -> np.ndarray:
             if assigned[t0, b] != assigned[t1, b]:
                 rows.append((b, t0, t1, assigned[t0, b], assigned[t1, b]))
     return np.asarray(rows, dtype=np.int64).reshape(-1, 5)
+
+
+def lasting_switches(assigned: np.ndarray, min_frames: int) -> int:
+    """Identity switches after which the animal stays with its new track.
+
+    A track that strays onto the other animal of a contact for a few frames and comes back
+    makes two switches of :func:`identity_switches` (there and back), yet every animal
+    keeps its track. Here each animal's runs of matches to one track (from its first to
+    its last frame, unmatched frames inside a run allowed) shorter than ``min_frames`` are
+    dropped, neighbouring runs of the same track joined, and the changes of track between
+    the remaining runs counted: a swap that lasts.
+
+    Args:
+        assigned: (T, B) the track matched to each true animal per frame, -1 none.
+        min_frames: shortest run that counts (e.g. one second of frames).
+
+    Returns:
+        The count.
+    """
+    count = 0
+    for b in range(assigned.shape[1]):
+        seen = np.flatnonzero(assigned[:, b] >= 0)
+        runs: list[list[int]] = []  # [track, first frame, last frame]
+        for t in seen:
+            k = int(assigned[t, b])
+            if runs and runs[-1][0] == k:
+                runs[-1][2] = int(t)
+            else:
+                runs.append([k, int(t), int(t)])
+        kept = [r[0] for r in runs if r[2] - r[1] + 1 >= min_frames]
+        count += sum(1 for old, new in zip(kept[:-1], kept[1:], strict=True) if old != new)
+    return count
+
+
+def identity_accuracy(assigned: np.ndarray, n_tracks: int) -> float:
+    """Share of the matched animal-frames in which the animal is on its own track.
+
+    Tracks and animals are paired one to one so that this share is largest (each
+    animal's own track); a frame where the animal is matched to another track counts
+    against it, however short the stray (the identity precision of the IDF1 score, over
+    the frames where the animal is matched to some track).
+
+    Args:
+        assigned: (T, B) the track matched to each true animal per frame, -1 none.
+        n_tracks: A, the number of tracks.
+
+    Returns:
+        The share in [0, 1]; NaN when no animal is ever matched.
+    """
+    counts = np.zeros((assigned.shape[1], max(n_tracks, 1)))
+    for b in range(assigned.shape[1]):
+        k = assigned[:, b]
+        np.add.at(counts[b], k[k >= 0], 1)
+    total = counts.sum()
+    if total == 0:
+        return float("nan")
+    rows, cols = linear_sum_assignment(-counts)
+    return float(counts[rows, cols].sum() / total)

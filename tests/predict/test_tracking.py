@@ -12,7 +12,9 @@ from freipose.predict.tracking import (
     TrackingConfig,
     TrackingError,
     colour_features,
+    identity_accuracy,
     identity_switches,
+    lasting_switches,
     track_animals,
 )
 from freipose.synth.rig import default_rig
@@ -137,6 +139,24 @@ def test_identity_switches_counts_a_swap() -> None:
     swapped[10:] = truth[10:, ::-1]
     assert identity_switches(swapped, truth)[0] == 2
     assert identity_switches(truth, truth)[0] == 0
+
+
+def test_lasting_switches_tell_a_swap_from_a_stray() -> None:
+    truth = np.stack([_line((-200, 0), (200, 0), 40), _line((-200, 200), (200, 200), 40)], 1)
+    swapped = truth.copy()
+    swapped[20:] = truth[20:, ::-1]  # the tracks exchange the animals for good
+    strayed = truth.copy()
+    strayed[20:23] = truth[20:23, ::-1]  # three frames on the other animal, then back
+    strayed[30, 0] = np.nan  # an unmatched frame inside a run does not end it
+    n_swap, a_swap = identity_switches(swapped, truth)
+    n_stray, a_stray = identity_switches(strayed, truth)
+    assert (n_swap, n_stray) == (2, 4)
+    assert lasting_switches(a_swap, 5) == 2
+    assert lasting_switches(a_stray, 5) == 0
+    assert lasting_switches(a_stray, 3) == 4  # strays as long as the threshold count
+    assert identity_accuracy(a_swap, 2) == pytest.approx(0.5)
+    assert identity_accuracy(a_stray, 2) == pytest.approx(1 - 6 / 79)
+    assert np.isnan(identity_accuracy(np.full((5, 2), -1), 2))
 
 
 def test_colour_features_and_bad_input() -> None:
