@@ -20,7 +20,7 @@ touching animals), then :func:`freipose.predict.animals.score_tracks` against th
 References in the same run: the frame-by-frame tracker alone (without the
 whole-recording identity pass, :mod:`freipose.predict.identity`), the tracker without
 the coat colours (motion alone), and the tracker fed the true centres (an ideal
-detector; it must not switch). The
+detector; what it switches, motion alone cannot tell apart). The
 2-animal figures are the target's; the 3-animal figures are printed and recorded.
 
 With ``--detector-steps N`` the same sessions are also tracked with a trained detector's
