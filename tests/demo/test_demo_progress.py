@@ -1,46 +1,20 @@
 """A piped ``freipose demo`` prints a line at least every 30 s of training and prediction.
 
-The train and predict steps of the shared tiny demo run again in a subprocess whose
-standard output and error go to a pipe (as under nohup or in a cluster job's log); the
-arrival time of every line is recorded.
+The shared tiny demo (``conftest.py``) runs in a subprocess whose standard output and
+error go to a pipe (as under nohup or in a cluster job's log); the arrival time of every
+line is recorded.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
-import subprocess
-import sys
-import time
 
 import pytest
 
 from freipose.demo.markers import STEPS
 
 MAX_GAP_S = 30.0
-
-
-def _rerun_train_and_predict(out, work):
-    """Copy the demo folder without its training and prediction; run the demo piped."""
-    shutil.copytree(out, work)
-    for step in ("train", "predict"):
-        (work / ".demo" / f"{step}.done").unlink()
-    for folder in ("train", "poses", "overlay"):
-        shutil.rmtree(work / folder, ignore_errors=True)
-    env = {**os.environ, "FREIPOSE_PROGRESS_SECONDS": "2", "PYTHONUNBUFFERED": "1"}
-    cmd = [sys.executable, "-m", "freipose.cli.main", "demo", str(work), "--preset", "tiny"]
-    t0 = time.monotonic()
-    lines = []
-    with subprocess.Popen(
-        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
-    ) as proc:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            lines.append((time.monotonic() - t0, line.rstrip("\n")))
-        rc = proc.wait()
-    return rc, lines
 
 
 def _header(lines, step):
@@ -50,11 +24,9 @@ def _header(lines, step):
 
 
 @pytest.mark.slow
-def test_piped_demo_prints_progress_during_training_and_prediction(tiny_demo, tmp_path):
-    out, _ = tiny_demo
-    rc, lines = _rerun_train_and_predict(out, tmp_path / "demo_out")
+def test_piped_demo_prints_progress_during_training_and_prediction(tiny_demo_lines):
+    out, lines = tiny_demo_lines
     text = "\n".join(ln for _, ln in lines)
-    assert rc == 0, text
     first, last = _header(lines, "train"), _header(lines, "evaluate")
     window = lines[first : last + 1]
     gaps = [b[0] - a[0] for a, b in zip(window, window[1:])]
@@ -68,9 +40,9 @@ def test_piped_demo_prints_progress_during_training_and_prediction(tiny_demo, tm
     bars = [ln for _, ln in window if re.search(r"\d+/\d+ \w+ \(\d+%\), \d+:\d\d elapsed", ln)]
     assert any(ln.startswith("train voxel") or "step" in ln for ln in bars), text
     assert "\r" not in text  # lines, not a terminal bar
-    # the steps ran again here (not skipped) and wrote their outputs
+    # the steps ran (not skipped) and wrote their outputs
     assert "train: done earlier" not in text and "predict: done earlier" not in text
-    marker = json.loads((tmp_path / "demo_out" / ".demo" / "predict.done").read_text())
+    marker = json.loads((out / ".demo" / "predict.done").read_text())
     assert marker["results"]["poses"]
 
 
