@@ -10,97 +10,46 @@ from __future__ import annotations
 
 import socket
 import sys
-from pathlib import Path
 
 import pytest
 import torch
 from click.testing import CliRunner
+from conftest import EVERY, LOCAL_JOB, STEPS, logged_steps, same_weights, train_config
+from gloo_direct import direct_process
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
+from freipose.cli.main import cli
+from freipose.cluster.driver import read_journal
+from freipose.nn.checkpoint import read_checkpoint
 
-from nn_toydata import toy_samples, write_toy_labels  # noqa: E402
-
-from freipose.cli.main import cli  # noqa: E402
-from freipose.cluster.driver import read_journal  # noqa: E402
-from freipose.nn.checkpoint import read_checkpoint  # noqa: E402
-
-JOB = ["--executor", "local", "--tasks-per-node", "2", "--threads", "1"]
+JOB = LOCAL_JOB
 
 
-def train_config(folder: Path, steps: int, checkpoint_every: int) -> Path:
-    """A tiny training config on 4 toy samples, global batch 4 (2 per process)."""
-    write_toy_labels(folder / "data", toy_samples(4))
-    path = folder / "cfg.toml"
-    path.write_text(
-        '[data]\nlabels = "data/labels.h5"\n'
-        '[model]\npreset = "tiny"\ncube_size = 300.0\ninit = "scratch"\n'
-        f"[schedule]\nsteps = {steps}\ncheckpoint_every = {checkpoint_every}\nbatch_size = 4\n"
-        "[augment]\nenabled = false\n"
-    )
-    return path
-
-
-def same_weights(a: Path, b: Path) -> bool:
-    """Whether two checkpoints hold the same weights, bit for bit."""
-    wa, wb = read_checkpoint(a)["model"], read_checkpoint(b)["model"]
-    return wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
-
-
-def logged_steps(run: Path) -> list[int]:
-    """The steps of the run's log.csv, in order."""
-    return [int(r.split(",")[0]) for r in (run / "log.csv").read_text().split()[1:]]
-
-
-def _direct_process(rank: int, port: int, config: str, out: str, stop_after: int) -> None:
-    """Process ``rank`` of 2 launched as torchrun would, stopped after ``stop_after`` steps."""
-    import os
-
-    from freipose.io.labels import read_labels_h5
-    from freipose.nn.config import load_config
-    from freipose.nn.dataset import MultiViewDataset
-    from freipose.nn.train import train_pose
-    from freipose.skeleton import Skeleton
-
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank),
-                      WORLD_SIZE="2")  # fmt: skip
-    torch.set_num_threads(1)
-    labels_path = Path(config).parent / "data" / "labels.h5"
-    labels = read_labels_h5(labels_path)
-    source = MultiViewDataset(labels, root=labels_path.parent)
-    try:
-        train_pose(load_config(config), out, source, Skeleton("labels", labels.keypoints),
-                   progress=False, stop_after=stop_after)  # fmt: skip
-    finally:
-        torch.distributed.destroy_process_group()
-
-
-def test_local_job_of_two_gloo_processes_continues_a_run_bit_for_bit(tmp_path):
-    cfg = train_config(tmp_path, steps=4, checkpoint_every=2)
-    runner = CliRunner()
-    whole, part = tmp_path / "whole", tmp_path / "part"
-    res = runner.invoke(cli, ["-q", "train", str(cfg), "--out", str(whole), *JOB])
-    assert res.exit_code == 0, res.output
-    assert "1 node(s) x 2 process(es) on CPUs" in res.output
-    assert logged_steps(whole) == [1, 2, 3, 4]
-    # two processes launched directly stop after step 2; the job continues their run
+def test_local_job_of_two_gloo_processes_continues_a_run_bit_for_bit(gloo_run, tmp_path):
+    cfg, whole = gloo_run["config"], gloo_run["run"]
+    assert "1 node(s) x 2 process(es) on CPUs" in gloo_run["output"]
+    assert logged_steps(whole) == list(range(1, STEPS + 1))
+    # two processes launched directly stop after a checkpoint; the job continues their run
+    part = tmp_path / "part"
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    torch.multiprocessing.spawn(_direct_process, args=(port, str(cfg), str(part), 2), nprocs=2)
-    assert read_checkpoint(part / "checkpoint.pt")["step"] == 2
+    torch.multiprocessing.spawn(direct_process, args=(port, str(cfg), str(part), EVERY),
+                                nprocs=2)  # fmt: skip
+    assert read_checkpoint(part / "checkpoint.pt")["step"] == EVERY
+    runner = CliRunner()
     res = runner.invoke(cli, ["-q", "train", str(cfg), "--out", str(part), *JOB])
     assert res.exit_code != 0 and "pass --resume" in res.output, res.output
     res = runner.invoke(cli, ["-q", "train", str(cfg), "--out", str(part), *JOB, "--resume"])
     assert res.exit_code == 0, res.output
     assert same_weights(whole / "model.pt", part / "model.pt")
-    assert logged_steps(part) == [1, 2, 3, 4]
+    assert logged_steps(part) == list(range(1, STEPS + 1))
     # the same command again: complete, nothing submitted
     res = runner.invoke(cli, ["-q", "train", str(cfg), "--out", str(whole), *JOB])
     assert res.exit_code == 0 and "the run is complete" in res.output, res.output
     assert [e["event"] for e in read_journal(whole)] == ["submitted", "done"]
     res = runner.invoke(cli, ["jobs", str(whole)])
     assert res.exit_code == 0, res.output
-    assert "2 process(es)): done, step 4 of 4, job local-1 (attempt 1)" in res.output
+    assert f"2 process(es)): done, step {STEPS} of {STEPS}, job local-1 (attempt 1)" in res.output
 
 
 def test_a_job_that_fails_is_retried_then_reported_with_its_error(tmp_path):

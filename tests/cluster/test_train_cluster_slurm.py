@@ -1,12 +1,13 @@
 """A training job of 2 gloo processes on a real SLURM (the single-node SLURM of ``.ci/run``).
 
-One run is submitted and waited for; another is submitted with ``--no-wait``, waited for by
-the same command (which must not submit it twice), requeued midway (``scontrol requeue``:
-SIGTERM, then the same job again) and later signalled as at its time limit, and must
-continue from its checkpoints to the first run's weights, bit for bit. SLURM holds a
-requeued job back for the credential lifetime (its BeginTime; two minutes by default, 15 s
-on the SLURM of ``.ci/start-slurm``); the test releases it at once with ``scontrol update
-starttime=now``, as an administrator may.
+A run is submitted with ``--no-wait``, waited for by the same command (which must not
+submit it twice), requeued midway (``scontrol requeue``: SIGTERM, then the same job again)
+and later signalled as at its time limit; it must continue from its checkpoints to the
+weights of the same training run uninterrupted as a local job of 2 processes (``gloo_run``
+in ``conftest.py``), bit for bit. SLURM holds a requeued job back for the credential
+lifetime (its BeginTime; two minutes by default, 15 s on the SLURM of ``.ci/start-slurm``);
+the test releases it at once with ``scontrol update starttime=now``, as an administrator
+may.
 """
 
 from __future__ import annotations
@@ -18,14 +19,19 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import cluster_file, slurm_reason
-from test_train_cluster import logged_steps, same_weights, train_config
+from conftest import (
+    EVERY,
+    STEPS,
+    cluster_file,
+    logged_steps,
+    same_weights,
+    slurm_reason,
+    train_config,
+)
 
 from freipose.cluster.driver import read_journal
 
 pytestmark = pytest.mark.slurm
-
-STEPS, EVERY = 30, 4
 
 
 @pytest.fixture(scope="module")
@@ -109,25 +115,22 @@ def _interrupted(
     return job_id, stopped
 
 
-def test_slurm_training_requeued_midway_equals_an_uninterrupted_run(slurm, tmp_path):
+def test_slurm_training_requeued_midway_equals_an_uninterrupted_run(slurm, gloo_run, tmp_path):
     """A job requeued by SLURM, then signalled as at its time limit, resumes bit for bit.
 
-    The reference runs as a job of its own; the other run is submitted with ``--no-wait``,
-    waited for by the same command (which must not submit it twice) and interrupted twice:
-    ``scontrol requeue`` (SIGTERM, then SLURM starts the same job again) after step 6, and
-    USR2 (submitit's signal before the time limit, on which it calls TrainJob.checkpoint
-    and requeues the job; a job that is not checkpointable would end and be submitted
-    again: 2 jobs) after step 18. Four job starts of 2 processes on the node's 2 cores,
-    mostly the 10-15 s from a job's start to its first step (Python, PyTorch, the process
-    group).
+    The run is submitted with ``--no-wait``, waited for by the same command (which must not
+    submit it twice) and interrupted twice: ``scontrol requeue`` (SIGTERM, then SLURM starts
+    the same job again) after step 6, and USR2 (submitit's signal before the time limit, on
+    which it calls TrainJob.checkpoint and requeues the job; a job that is not
+    checkpointable would end and be submitted again: 2 jobs) after step 18. Its weights
+    equal those of the uninterrupted local job of ``gloo_run``: same processes, same
+    threads. Three job starts of 2 processes on the node's 2 cores, mostly the 10-15 s
+    from a job's start to its first step (Python, PyTorch, the process group).
     """
     cfg = train_config(tmp_path, steps=STEPS, checkpoint_every=EVERY)
     cl = cluster_file(tmp_path, poll_s=0.5, cpus=1, mem_gb=2, time_min=10)
     job = ["--executor", "slurm", "--cluster", cl, "--tasks-per-node", "2"]
-    ref = tmp_path / "ref"
-    res = _cli("train", cfg, "--out", ref, *job)
-    assert res.returncode == 0 and f"wrote {ref / 'model.pt'}" in res.stdout, res
-    assert [e["event"] for e in read_journal(ref)] == ["submitted", "done"]
+    ref = gloo_run["run"]
     run = tmp_path / "run"
     interrupts = [(6, ["scontrol", "requeue"]), (18, ["scancel", "--signal=USR2"])]
     job_id, stopped = _interrupted(cfg, run, job, interrupts)
