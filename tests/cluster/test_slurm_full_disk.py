@@ -1,7 +1,7 @@
 """A unit whose output disk is full, on a real SLURM scheduler, then freed and resumed.
 
-The output folder is a real 16 MB tmpfs. Two toy sessions of 3 units (16, 16 and 8
-frames) run one unit at a time (``array_parallelism = 1``); when 5 units are done the disk
+The output folder is a real 16 MB tmpfs. Two toy sessions of 2 units (24 and 16
+frames) run one unit at a time (``array_parallelism = 1``); when 3 units are done the disk
 is filled up to less than the last unit's part can take. That unit fails, is retried, and
 fails again; the run ends with a report naming the unit, the full disk and its path, the
 session that had no room to be joined (its parts are kept), and the command that finishes
@@ -29,7 +29,7 @@ from freipose.cluster.driver import read_journal
 pytestmark = pytest.mark.slurm
 
 STUDY = SESSIONS[:2]
-PER_SESSION = 3  # units of 16, 16 and 8 frames
+PER_SESSION = 2  # units of 24 and 16 frames
 UNITS = 2 * PER_SESSION
 HEADROOM = 40 * 1024  # bytes left free: less than one unit's part needs (over 64 KiB)
 
@@ -92,7 +92,7 @@ def _freipose(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 
 def test_full_output_disk_for_one_unit_is_reported_then_resumed(toy_study, out, tmp_path):
-    cfg = cluster_file(tmp_path, executor="slurm", chunk_frames=16, array_parallelism=1,
+    cfg = cluster_file(tmp_path, executor="slurm", chunk_frames=24, array_parallelism=1,
                        poll_s=0.5, max_retries=1, cpus=1, mem_gb=1, time_min=10)  # fmt: skip
     study = {**toy_study, "sessions": toy_study["sessions"][: len(STUDY)]}
     cmd = [sys.executable, "-m", "freipose.cli.main",
