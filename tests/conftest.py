@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -125,3 +126,26 @@ def lock_holders() -> Iterator[LockHolders]:
     yield holders
     for p in holders.procs:
         holders.release(p)
+
+
+@pytest.fixture(scope="session")
+def own_data_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """Every command of ``docs/own-data.md``, run once in a folder (``own_data_page.py``).
+
+    Returns:
+        ``folder`` (read-only for the tests: copy it to continue), ``outputs`` (by the
+        commands' first two words) and ``ran`` (the number of commands).
+    """
+    pytest.importorskip("sleap_io")
+    from click.testing import CliRunner
+    from own_data_page import DOC, SUBSTITUTIONS, run_blocks, substituted
+
+    text = substituted(DOC, SUBSTITUTIONS)
+    folder = tmp_path_factory.mktemp("own_data")
+    here = Path.cwd()
+    os.chdir(folder)
+    try:
+        outputs, ran = run_blocks(text, CliRunner())
+    finally:
+        os.chdir(here)
+    return {"folder": folder, "outputs": outputs, "ran": ran}

@@ -1,10 +1,8 @@
 """Every command of ``docs/own-data.md``, run in order on its small synthetic own rig.
 
-The fenced ``bash`` blocks of the document are run as written (``freipose ...`` lines,
-backslash continuations joined, globs expanded in the working folder) after the
-substitutions below, which only shrink sizes (frames, training steps, the tiny network);
-a ``toml`` block after ``<!-- file: NAME -->`` is written to NAME. Each substitution must
-match the document, so the test follows it when it changes.
+The commands run once per test session (``own_data_run`` in ``conftest.py``, with the
+substitutions of ``own_data_page.py``, which only shrink sizes); this test checks what
+they printed and wrote.
 """
 
 from __future__ import annotations
@@ -12,50 +10,13 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import pytest
-from click.testing import CliRunner
-
-from freipose.cli.main import cli
 from freipose.io.labels import read_labels_h5
 from freipose.nn.checkpoint import read_checkpoint
-from freipose.testing import fenced_blocks, freipose_commands
-
-ROOT = Path(__file__).resolve().parents[1]
-DOC = ROOT / "docs" / "own-data.md"
-
-SUBSTITUTIONS = {
-    "--frames 600": "--frames 40",
-    "--gap 30": "--gap 3",
-    'preset = "small"': 'preset = "tiny"',
-    "steps = 600": "steps = 2",
-    "checkpoint_every = 200": "checkpoint_every = 2",
-    "eval_every = 200": "eval_every = 2",
-    "steps = 300": "steps = 2\ninput_size = 64\nwidth = 0.25\nbatch_size = 2",
-    "--n 20": "--n 3",
-}
 
 
-def test_own_datafreipose_commands(tmp_path, monkeypatch):
-    pytest.importorskip("sleap_io")
-    text = DOC.read_text(encoding="utf-8")
-    for old in SUBSTITUTIONS:
-        assert old in text, f"docs/own-data.md no longer holds {old!r}: update the test"
-    for old, new in SUBSTITUTIONS.items():
-        text = text.replace(old, new)
-    monkeypatch.chdir(tmp_path)
-    runner = CliRunner()
-    outputs = {}
-    ran = 0
-    for lang, body, name in fenced_blocks(text):
-        if lang == "toml" and name:
-            Path(name).write_text(body, encoding="utf-8")
-        if lang != "bash":
-            continue
-        for args in freipose_commands(body):
-            res = runner.invoke(cli, args)
-            assert res.exit_code == 0, f"freipose {' '.join(args)}\n{res.output}"
-            outputs[" ".join(args[:2])] = outputs.get(" ".join(args[:2]), "") + res.output
-            ran += 1
+def test_own_datafreipose_commands(own_data_run, monkeypatch):
+    outputs, ran = own_data_run["outputs"], own_data_run["ran"]
+    monkeypatch.chdir(own_data_run["folder"])
     assert ran >= 14
     calib = next(out for cmd, out in outputs.items() if cmd.startswith("calib rec/"))
     assert "WARNING" not in calib, calib  # the documented recording covers the floor
