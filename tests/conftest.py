@@ -130,7 +130,7 @@ def lock_holders() -> Iterator[LockHolders]:
 
 @pytest.fixture(scope="session")
 def own_data_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """Every command of ``docs/own-data.md``, run once in a folder (``own_data_page.py``).
+    """Every command of ``docs/own-data.md``, run once in a folder (``doc_pages.py``).
 
     Returns:
         ``folder`` (read-only for the tests: copy it to continue), ``outputs`` (by the
@@ -138,7 +138,7 @@ def own_data_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """
     pytest.importorskip("sleap_io")
     from click.testing import CliRunner
-    from own_data_page import DOC, SUBSTITUTIONS, run_blocks, substituted
+    from doc_pages import DOC, SUBSTITUTIONS, run_blocks, substituted
 
     text = substituted(DOC, SUBSTITUTIONS)
     folder = tmp_path_factory.mktemp("own_data")

@@ -1,7 +1,7 @@
 """Every command of ``docs/own-data.md``, run in order on its small synthetic own rig.
 
 The commands run once per test session (``own_data_run`` in ``conftest.py``, with the
-substitutions of ``own_data_page.py``, which only shrink sizes); this test checks what
+substitutions of ``doc_pages.py``, which only shrink sizes); this test checks what
 they printed and wrote.
 """
 

@@ -97,6 +97,13 @@ def slurm_reason() -> str | None:
     return None
 
 
+def squeue_state(job_id: str) -> str:
+    """The job's state in ``squeue`` (``PENDING``, ``RUNNING``, ...); empty once it left."""
+    out = subprocess.run(["squeue", "-h", "-j", job_id, "-o", "%T"], capture_output=True,
+                         text=True, check=False).stdout.split()  # fmt: skip
+    return out[0] if out else ""
+
+
 def train_config(folder: Path, steps: int, checkpoint_every: int) -> Path:
     """A tiny training config on 4 toy samples, global batch 4 (2 per process)."""
     write_toy_labels(folder / "data", toy_samples(4))

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import SESSIONS, cluster_file, predict_args, slurm_reason
+from conftest import SESSIONS, cluster_file, predict_args, slurm_reason, squeue_state
 from predict_helpers import h5_equal
 
 from freipose.cluster.driver import read_journal
@@ -57,9 +57,7 @@ def _release_when_pending(job_id: str, wait_s: float = 30.0) -> None:
     """Once the requeued ``job_id`` is pending again, let it start now."""
     t_end = time.monotonic() + wait_s
     while time.monotonic() < t_end:
-        state = subprocess.run(["squeue", "-h", "-j", job_id, "-o", "%T"], capture_output=True,
-                               text=True, check=False).stdout.split()  # fmt: skip
-        if state and state[0] == "PENDING":
+        if squeue_state(job_id) == "PENDING":
             subprocess.run(["scontrol", "update", f"jobid={job_id}", "starttime=now"],
                            check=False, capture_output=True)  # fmt: skip
             return

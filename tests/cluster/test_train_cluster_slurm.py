@@ -26,6 +26,7 @@ from conftest import (
     logged_steps,
     same_weights,
     slurm_reason,
+    squeue_state,
     train_config,
 )
 
@@ -44,12 +45,6 @@ def slurm() -> None:
 def _cli(*args: object, timeout: float = 300) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "freipose.cli.main", "-q", *map(str, args)]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=False)
-
-
-def _squeue_state(job: str) -> str:
-    out = subprocess.run(["squeue", "-h", "-j", job, "-o", "%T"], capture_output=True,
-                         text=True, check=False).stdout.split()  # fmt: skip
-    return out[0] if out else ""
 
 
 def _until(what: str, ok, deadline: float) -> None:  # noqa: ANN001 - a callable
@@ -103,7 +98,7 @@ def _interrupted(
             step = _last_step(run)
             assert step < STEPS, f"the run ended (step {step}) before the test could interrupt it"
             subprocess.run([*interrupt, job_id], check=True)
-            _until("the requeued job", lambda: _squeue_state(job_id) == "PENDING", deadline)
+            _until("the requeued job", lambda: squeue_state(job_id) == "PENDING", deadline)
             stopped.append(_last_step(run))  # no step is logged until it starts again
             subprocess.run(["scontrol", "update", f"jobid={job_id}", "starttime=now"],
                            check=True)  # fmt: skip

@@ -19,9 +19,7 @@ import h5py
 import pandas as pd
 import pytest
 from click.testing import CliRunner
-
-from freipose.cli.main import cli
-from freipose.testing import fenced_blocks, freipose_commands
+from doc_pages import run_blocks, substituted
 
 ROOT = Path(__file__).resolve().parents[2]
 TUTORIALS = ROOT / "docs" / "tutorials"
@@ -56,21 +54,7 @@ CLUSTER_SUBSTITUTIONS = {
 
 def run_page(name: str, substitutions: dict[str, str]) -> dict[str, str]:
     """Run the page's blocks in the current folder; the output of each command by its line."""
-    text = (TUTORIALS / name).read_text(encoding="utf-8")
-    for old, new in substitutions.items():
-        assert old in text, f"docs/tutorials/{name} no longer holds {old!r}: update the test"
-        text = text.replace(old, new)
-    runner = CliRunner()
-    outputs = {}
-    for lang, body, file_name in fenced_blocks(text):
-        if lang == "toml" and file_name:
-            Path(file_name).write_text(body, encoding="utf-8")
-        if lang != "bash":
-            continue
-        for args in freipose_commands(body):
-            res = runner.invoke(cli, args)
-            assert res.exit_code == 0, f"freipose {' '.join(args)}\n{res.output}"
-            outputs[" ".join(args)] = res.output
+    outputs, _ = run_blocks(substituted(TUTORIALS / name, substitutions), CliRunner(), None)
     return outputs
 
 

@@ -13,7 +13,7 @@ import shutil
 from pathlib import Path
 
 from click.testing import CliRunner
-from own_data_page import run_blocks, substituted
+from doc_pages import run_blocks, substituted
 
 from freipose.io.poses import read_poses_h5
 from freipose.nn.checkpoint import validation_record
