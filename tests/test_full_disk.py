@@ -35,25 +35,28 @@ T = 24
 KW = {"batch_size": 4, "chunk_frames": 8, "progress": False}
 
 # `freipose ARGS...` in a child process; predict runs the blob estimator of the prediction
-# tests instead of a network (the writer, the locks and the messages are the real ones)
+# tests instead of a network (the writer, the locks and the messages are the real ones).
+# Only predict imports the network module (and with it PyTorch): the other commands start
+# as a user's would.
 CLI = f"""
 import sys
-sys.path.insert(0, {str(PREDICT_HELPERS)!r})
-import freipose.io.checkpoints, freipose.predict.network
-from predict_helpers import BlobEstimator
-from freipose.predict.run import predict_session
+if sys.argv[1] == "predict":
+    sys.path.insert(0, {str(PREDICT_HELPERS)!r})
+    import freipose.io.checkpoints, freipose.predict.network
+    from predict_helpers import BlobEstimator
+    from freipose.predict.run import predict_session
 
-def fake(sessions, model, spec, outdir, *, shard=None, overwrite=False, report=None, **kw):
-    out = []
-    for s in sessions:
-        r = predict_session(s, BlobEstimator(), outdir, shard=shard, overwrite=overwrite,
-                            batch_size=4, chunk_frames=8, progress=False)
-        report(r)
-        out.append(r)
-    return out
+    def fake(sessions, model, spec, outdir, *, shard=None, overwrite=False, report=None, **kw):
+        out = []
+        for s in sessions:
+            r = predict_session(s, BlobEstimator(), outdir, shard=shard, overwrite=overwrite,
+                                batch_size=4, chunk_frames=8, progress=False)
+            report(r)
+            out.append(r)
+        return out
 
-freipose.io.checkpoints.check_checkpoints = lambda *a: None
-freipose.predict.network.predict_sessions = fake
+    freipose.io.checkpoints.check_checkpoints = lambda *a: None
+    freipose.predict.network.predict_sessions = fake
 from freipose.cli.main import cli
 cli(sys.argv[1:], prog_name="freipose")
 """
