@@ -187,13 +187,43 @@ def adaptive_q_scale(
     ratio = np.pad(a2 / e / CHI2_1_MEDIAN, ((pad, pad), (0, 0), (0, 0)), constant_values=np.nan)
     win = np.lib.stride_tricks.sliding_window_view(ratio, ADAPT_WINDOW, axis=0)
     enough = np.isfinite(win).sum(axis=-1) > pad
-    lo, m = np.nanquantile(np.where(enough[..., None], win, 0.0), [ADAPT_QUANTILE, 0.5], axis=-1)
+    lo, m = _row_quantiles(np.where(enough[..., None], win, 0.0), (ADAPT_QUANTILE, 0.5))
     q_new = ADAPT_BOOST * (np.where(enough, m, 1.0) * e - noise) * 1.5 / h**3
     scale = np.where(enough & (lo >= ADAPT_THRESHOLD), q_new / q, 1.0)
     scale = np.clip(np.nan_to_num(scale, nan=1.0), 1.0, MAX_Q_SCALE)
     # the whole window of a raised frame moves fast: its edges and dips are raised too
     wide = np.pad(scale, ((pad, pad), (0, 0), (0, 0)), constant_values=1.0)
     return np.lib.stride_tricks.sliding_window_view(wide, ADAPT_WINDOW, axis=0).max(axis=-1)
+
+
+def _row_quantiles(x: np.ndarray, quantiles: tuple[float, ...]) -> list[np.ndarray]:
+    """``np.nanquantile(x, q, axis=-1)`` for each ``q`` (its linear method), every row at once.
+
+    The same floats as NumPy's, which treats a row with NaNs on its own (a Python loop
+    over the rows); here the rows are sorted together and each quantile interpolated
+    between its two neighbours among the row's values.
+
+    Args:
+        x: (..., N) values, NaN where there is none.
+        quantiles: quantiles in [0, 1].
+
+    Returns:
+        One (...) array per quantile, NaN for a row without values.
+    """
+    xs = np.sort(x, axis=-1)  # NaN last
+    n = (~np.isnan(x)).sum(axis=-1)[..., None]
+    out = []
+    for q in quantiles:
+        v = (n - 1) * np.float64(q)
+        top = v >= n - 1  # NumPy's index -1: the largest value, its weight counted from -1
+        prev = np.where(top, -1.0, np.floor(v))
+        gamma = v - prev
+        lo = np.take_along_axis(xs, np.where(top, n - 1, prev).astype(np.intp).clip(0), -1)
+        hi = np.take_along_axis(xs, np.where(top, n - 1, prev + 1).astype(np.intp).clip(0), -1)
+        diff = hi - lo
+        res = np.where(gamma >= 0.5, hi - diff * (1 - gamma), lo + diff * gamma)
+        out.append(np.where(n > 0, res, np.nan)[..., 0])
+    return out
 
 
 def _spikes(z: np.ndarray) -> np.ndarray:

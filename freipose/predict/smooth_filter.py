@@ -117,6 +117,16 @@ def _prior(z0: np.ndarray, osd: np.ndarray, shape: tuple[int, ...]):
                np.broadcast_to(osd**2, shape).copy()]  # fmt: skip
 
 
+def _step_terms(h: float, qa: np.ndarray, osd: np.ndarray, tau: np.ndarray):
+    """The prediction's factors for a step of ``h`` s.
+
+    phi, phi^2, the offset's covariance increment and the process noise's three, from
+    (G, K, 1) ``qa`` (the process noise of the step), ``osd`` and ``tau``.
+    """
+    phi = np.exp(-h / tau)
+    return (phi, phi * phi, osd**2 * (1 - phi * phi), qa * h**3 / 3, qa * h * h / 2, qa * h)
+
+
 def forward(
     z: np.ndarray,
     conf: np.ndarray,
@@ -129,7 +139,10 @@ def forward(
     """Kalman filter of every series and parameter candidate at once.
 
     The covariance is kept as its six entries (position, velocity, offset), each a
-    (G, K, 3) array, so that a step is a few array operations.
+    (G, K, 3) array, so that a step is a few array operations. What does not depend on
+    the state (the measurement variances, the prediction's factors for a repeated frame
+    interval) is computed once, and a frame where every keypoint is measured and used
+    skips the masking.
 
     Args:
         z: (T, K, 3) measurements in mm, NaN where missing.
@@ -146,59 +159,81 @@ def forward(
     shape = np.broadcast_shapes(q.shape, (1, k_n, 3))
     valid = np.isfinite(z).all(axis=-1)
     first = np.where(valid.any(axis=0), valid.argmax(axis=0), 0)
-    (x, v, b), (xx, xv, xb, vv, vb, bb) = _prior(np.nan_to_num(z[first, np.arange(k_n)]), osd,
-                                                 shape)  # fmt: skip
+    zn = np.nan_to_num(z)
+    (x, v, b), (xx, xv, xb, vv, vb, bb) = _prior(zn[first, np.arange(k_n)], osd, shape)
     loglik = np.zeros(shape[:2])
     streak = np.zeros(shape[:2], np.int64)
     rejected = np.zeros((t_n, k_n), bool)
     out: list[list[np.ndarray]] = [[], [], [], []]
+    all_valid = valid.all(axis=1)
+    counted = valid & (np.arange(t_n)[:, None] > first[None])
+    all_counted = counted.all(axis=1)
+    r_all = sigma0[None] ** 2 * conf[:, None, :, None] ** (-beta)[None]  # (T, G, K, 1)
+    last_h, terms = None, ()
     for t in range(t_n):
         if t > 0:
             h = dt[t]
-            qa = q if q_scale is None else q * q_scale[t][None]
-            phi = np.exp(-h / tau)
+            if q_scale is None:
+                if h != last_h:  # frames at a constant rate: computed once
+                    last_h, terms = h, _step_terms(h, q, osd, tau)
+                phi, phi2, bq, q3, q2, q1 = terms
+            else:
+                phi, phi2, bq, q3, q2, q1 = _step_terms(h, q * q_scale[t][None], osd, tau)
             x, b = x + h * v, phi * b
-            xx = xx + 2 * h * xv + h * h * vv + qa * h**3 / 3
-            xv = xv + h * vv + qa * h * h / 2
+            xx = xx + 2 * h * xv + h * h * vv + q3
+            xv = xv + h * vv + q2
             xb = phi * (xb + h * vb)
-            vv = vv + qa * h
+            vv = vv + q1
             vb = phi * vb
-            bb = phi * phi * bb + osd**2 * (1 - phi * phi)
+            bb = phi2 * bb + bq
         if keep:
             out[2].append(np.stack([x[0], v[0], b[0]], -1))
             out[3].append(_cov((xx[0], xv[0], xb[0], vv[0], vb[0], bb[0])))
-        ok = valid[t][None]
-        if ok.any():
-            r = sigma0**2 * conf[t][None, :, None] ** (-beta)  # (G, K, 1)
-            s = xx + 2 * xb + bb + r
-            e = np.where(ok[..., None], np.nan_to_num(z[t])[None] - x - b, 0.0)
-            d2 = (e * e / s).sum(axis=-1)
-            counts = ok & (t > first)[None]
-            ll = -0.5 * np.log(s).sum(axis=-1) - 0.5 * (NU + 3) * np.log1p(d2 / NU)
-            loglik += np.where(counts, ll, 0.0)
+        full = bool(all_valid[t])
+        if full or valid[t].any():
+            ok = valid[t][None]
+            r = r_all[t]  # (G, K, 1)
+            base = xx + 2 * xb + bb
+            s = base + r
+            e = zn[t][None] - x - b
+            if not full:
+                e = np.where(ok[..., None], e, 0.0)
+            d2 = np.add.reduce(e * e / s, axis=-1)
+            ll = -0.5 * np.add.reduce(np.log(s), axis=-1) - 0.5 * (NU + 3) * np.log1p(d2 / NU)
+            loglik += ll if all_counted[t] else np.where(counted[t][None], ll, 0.0)
             if weights is None:
                 w = np.where(d2 > GROSS_D2, 0.0, (NU + 3) / (NU + d2))
                 gross = ok & (w == 0)
-                restart = gross & (streak >= MAX_REJECT_RUN)
-                streak = np.where(ok, np.where(gross & ~restart, streak + 1, 0), streak)
-                if restart.any():
-                    m0, p0 = _prior(np.nan_to_num(z[t]), osd, shape)
-                    rs = restart[..., None]
-                    x, v, b = (np.where(rs, n, o) for n, o in zip(m0, (x, v, b), strict=True))
-                    xx, xv, xb, vv, vb, bb = (
-                        np.where(rs, n, o)
-                        for n, o in zip(p0, (xx, xv, xb, vv, vb, bb), strict=True)
-                    )
-                    w = np.where(restart, 1.0, w)
-                    e = np.where(rs, 0.0, e)
-                rejected[t] = (ok & (w == 0))[0]
+                if full and not gross.any():  # the common frame: nothing left out
+                    streak[:] = 0
+                    used = ok
+                else:
+                    restart = gross & (streak >= MAX_REJECT_RUN)
+                    streak = np.where(ok, np.where(gross & ~restart, streak + 1, 0), streak)
+                    if restart.any():
+                        m0, p0 = _prior(zn[t], osd, shape)
+                        rs = restart[..., None]
+                        x, v, b = (np.where(rs, n, o) for n, o in zip(m0, (x, v, b), strict=True))
+                        xx, xv, xb, vv, vb, bb = (
+                            np.where(rs, n, o)
+                            for n, o in zip(p0, (xx, xv, xb, vv, vb, bb), strict=True)
+                        )
+                        w = np.where(restart, 1.0, w)
+                        e = np.where(rs, 0.0, e)
+                        base = xx + 2 * xb + bb
+                    used = ok & (w > 0)
+                    rejected[t] = (ok & (w == 0))[0]
             else:
                 w = np.broadcast_to(weights[t][None], shape[:2])
-            use = (ok & (w > 0))[..., None]
+                used = ok & (w > 0)
             # after any restart: the covariances of the state with the measurement
-            s_eff = xx + 2 * xb + bb + r / np.maximum(w, 1e-12)[..., None]
+            s_eff = base + r / np.maximum(w, 1e-12)[..., None]
             hx, hv, hb = xx + xb, xv + vb, xb + bb
-            gx, gv, gb = (np.where(use, g / s_eff, 0.0) for g in (hx, hv, hb))
+            if used.all():
+                gx, gv, gb = hx / s_eff, hv / s_eff, hb / s_eff
+            else:
+                use = used[..., None]
+                gx, gv, gb = (np.where(use, g / s_eff, 0.0) for g in (hx, hv, hb))
             x, v, b = x + gx * e, v + gv * e, b + gb * e
             xx, xv, xb = xx - gx * hx, xv - gx * hv, xb - gx * hb
             vv, vb, bb = vv - gv * hv, vb - gv * hb, bb - gb * hb
