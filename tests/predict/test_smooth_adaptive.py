@@ -97,3 +97,22 @@ def test_sudden_step_followed_not_left_out():
     assert not res.rejected[395:410, 2].any()
     err = np.linalg.norm(res.mean[398:408, 2] - truth[398:408, 2], axis=-1)
     assert err.max() < 5.0  # the step is followed, not smoothed away
+
+
+def test_running_quantiles_equal_numpys():
+    """The windows' quantiles of the adaptive noise are NumPy's nanquantile, float for float."""
+    import warnings
+
+    from freipose.predict.smooth import _row_quantiles
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(400, 3, 9)) * 50
+    x[rng.random(x.shape) < 0.4] = np.nan
+    x[0, 0] = np.nan  # a row without values
+    x[1, 0, 1:] = np.nan  # a row of one value
+    qs = (0.5, 0.0, 0.1, 0.37, 0.9, 1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the row without values
+        ref = np.nanquantile(x, list(qs), axis=-1)
+    for a, b in zip(ref, _row_quantiles(x, qs), strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
