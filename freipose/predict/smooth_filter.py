@@ -127,6 +127,59 @@ def _step_terms(h: float, qa: np.ndarray, osd: np.ndarray, tau: np.ndarray):
     return (phi, phi * phi, osd**2 * (1 - phi * phi), qa * h**3 / 3, qa * h * h / 2, qa * h)
 
 
+def _predict(state: tuple[np.ndarray, ...], h: float, terms: tuple[np.ndarray, ...]):
+    """The state ``(x, v, b, xx, xv, xb, vv, vb, bb)`` a step of ``h`` s later.
+
+    ``terms``: :func:`_step_terms` of the step.
+    """
+    x, v, b, xx, xv, xb, vv, vb, bb = state
+    phi, phi2, bq, q3, q2, q1 = terms
+    return (x + h * v, v, phi * b, xx + 2 * h * xv + h * h * vv + q3, xv + h * vv + q2,
+            phi * (xb + h * vb), vv + q1, phi * vb, phi2 * bb + bq)  # fmt: skip
+
+
+def _online_weights(
+    d2: np.ndarray, ok: np.ndarray, full: bool, streak: np.ndarray
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Student-t weights of a frame's measurements from their (G, K) ``d2``.
+
+    A gross outlier (``d2`` above :data:`GROSS_D2`) gets weight 0; after more than
+    :data:`MAX_REJECT_RUN` in a row the series restarts at the measurement.
+
+    Returns:
+        ``(w, restart, streak)``: the (G, K) weights, where to restart (None: a frame
+        with every keypoint measured and none left out) and the updated runs of outliers.
+    """
+    w = np.where(d2 > GROSS_D2, 0.0, (NU + 3) / (NU + d2))
+    gross = ok & (w == 0)
+    if full and not gross.any():
+        return w, None, np.zeros_like(streak)
+    restart = gross & (streak >= MAX_REJECT_RUN)
+    return w, restart, np.where(ok, np.where(gross & ~restart, streak + 1, 0), streak)
+
+
+def _correct(
+    state: tuple[np.ndarray, ...], e: np.ndarray, s_eff: np.ndarray, used: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """The Kalman correction of the state ``(x, v, b, xx, xv, xb, vv, vb, bb)``.
+
+    Args:
+        state: three means and six covariance entries, each (G, K, 3).
+        e: (G, K, 3) innovations.
+        s_eff: (G, K, 3) innovation variances with the measurements' weights.
+        used: (G, K) the measurements that count (elsewhere the state stays).
+    """
+    x, v, b, xx, xv, xb, vv, vb, bb = state
+    hx, hv, hb = xx + xb, xv + vb, xb + bb
+    if used.all():
+        gx, gv, gb = hx / s_eff, hv / s_eff, hb / s_eff
+    else:
+        use = used[..., None]
+        gx, gv, gb = (np.where(use, g / s_eff, 0.0) for g in (hx, hv, hb))
+    return (x + gx * e, v + gv * e, b + gb * e, xx - gx * hx, xv - gx * hv, xb - gx * hb,
+            vv - gv * hv, vb - gv * hb, bb - gb * hb)  # fmt: skip
+
+
 def forward(
     z: np.ndarray,
     conf: np.ndarray,
@@ -170,27 +223,21 @@ def forward(
     all_counted = counted.all(axis=1)
     r_all = sigma0[None] ** 2 * conf[:, None, :, None] ** (-beta)[None]  # (T, G, K, 1)
     last_h, terms = None, ()
+    st = (x, v, b, xx, xv, xb, vv, vb, bb)
     for t in range(t_n):
         if t > 0:
             h = dt[t]
-            if q_scale is None:
-                if h != last_h:  # frames at a constant rate: computed once
-                    last_h, terms = h, _step_terms(h, q, osd, tau)
-                phi, phi2, bq, q3, q2, q1 = terms
-            else:
-                phi, phi2, bq, q3, q2, q1 = _step_terms(h, q * q_scale[t][None], osd, tau)
-            x, b = x + h * v, phi * b
-            xx = xx + 2 * h * xv + h * h * vv + q3
-            xv = xv + h * vv + q2
-            xb = phi * (xb + h * vb)
-            vv = vv + q1
-            vb = phi * vb
-            bb = phi2 * bb + bq
+            if q_scale is not None:
+                terms = _step_terms(h, q * q_scale[t][None], osd, tau)
+            elif h != last_h:  # frames at a constant rate: computed once
+                last_h, terms = h, _step_terms(h, q, osd, tau)
+            st = _predict(st, h, terms)
         if keep:
-            out[2].append(np.stack([x[0], v[0], b[0]], -1))
-            out[3].append(_cov((xx[0], xv[0], xb[0], vv[0], vb[0], bb[0])))
+            out[2].append(np.stack([a[0] for a in st[:3]], -1))
+            out[3].append(_cov(tuple(a[0] for a in st[3:])))
         full = bool(all_valid[t])
         if full or valid[t].any():
+            x, v, b, xx, xv, xb, vv, vb, bb = st
             ok = valid[t][None]
             r = r_all[t]  # (G, K, 1)
             base = xx + 2 * xb + bb
@@ -202,44 +249,25 @@ def forward(
             ll = -0.5 * np.add.reduce(np.log(s), axis=-1) - 0.5 * (NU + 3) * np.log1p(d2 / NU)
             loglik += ll if all_counted[t] else np.where(counted[t][None], ll, 0.0)
             if weights is None:
-                w = np.where(d2 > GROSS_D2, 0.0, (NU + 3) / (NU + d2))
-                gross = ok & (w == 0)
-                if full and not gross.any():  # the common frame: nothing left out
-                    streak[:] = 0
-                    used = ok
-                else:
-                    restart = gross & (streak >= MAX_REJECT_RUN)
-                    streak = np.where(ok, np.where(gross & ~restart, streak + 1, 0), streak)
-                    if restart.any():
+                w, restart, streak = _online_weights(d2, ok, full, streak)
+                used = ok
+                if restart is not None:
+                    if restart.any():  # a run of gross outliers: the track starts again there
                         m0, p0 = _prior(zn[t], osd, shape)
                         rs = restart[..., None]
-                        x, v, b = (np.where(rs, n, o) for n, o in zip(m0, (x, v, b), strict=True))
-                        xx, xv, xb, vv, vb, bb = (
-                            np.where(rs, n, o)
-                            for n, o in zip(p0, (xx, xv, xb, vv, vb, bb), strict=True)
-                        )
-                        w = np.where(restart, 1.0, w)
-                        e = np.where(rs, 0.0, e)
-                        base = xx + 2 * xb + bb
+                        st = tuple(np.where(rs, n, o) for n, o in zip((*m0, *p0), st, strict=True))
+                        w, e = np.where(restart, 1.0, w), np.where(rs, 0.0, e)
+                        base = st[3] + 2 * st[5] + st[8]
                     used = ok & (w > 0)
                     rejected[t] = (ok & (w == 0))[0]
             else:
                 w = np.broadcast_to(weights[t][None], shape[:2])
                 used = ok & (w > 0)
             # after any restart: the covariances of the state with the measurement
-            s_eff = base + r / np.maximum(w, 1e-12)[..., None]
-            hx, hv, hb = xx + xb, xv + vb, xb + bb
-            if used.all():
-                gx, gv, gb = hx / s_eff, hv / s_eff, hb / s_eff
-            else:
-                use = used[..., None]
-                gx, gv, gb = (np.where(use, g / s_eff, 0.0) for g in (hx, hv, hb))
-            x, v, b = x + gx * e, v + gv * e, b + gb * e
-            xx, xv, xb = xx - gx * hx, xv - gx * hv, xb - gx * hb
-            vv, vb, bb = vv - gv * hv, vb - gv * hb, bb - gb * hb
+            st = _correct(st, e, base + r / np.maximum(w, 1e-12)[..., None], used)
         if keep:
-            out[0].append(np.stack([x[0], v[0], b[0]], -1))
-            out[1].append(_cov((xx[0], xv[0], xb[0], vv[0], vb[0], bb[0])))
+            out[0].append(np.stack([a[0] for a in st[:3]], -1))
+            out[1].append(_cov(tuple(a[0] for a in st[3:])))
     return Pass(loglik, rejected, tuple(np.stack(o) for o in out) if keep else ())
 
 
