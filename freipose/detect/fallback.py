@@ -172,14 +172,16 @@ class BackgroundSubtractor:
                 f"camera {camera}: image of shape {np.asarray(image).shape} does not match the "
                 f"background's size {self._full_size[camera]}"
             )
-        diff = np.abs(img - bg).max(-1)
+        d = np.abs(img - bg)
+        diff = d[..., 0]
+        for c in range(1, d.shape[-1]):  # the largest difference over the channels
+            diff = np.maximum(diff, d[..., c])
         # A median filter removes pixel noise without growing the foreground's outline.
-        diff = cv2.medianBlur(np.clip(diff, 0, 255).astype(np.uint8), 5).astype(np.float32)
+        grey = cv2.medianBlur(np.clip(diff, 0, 255).astype(np.uint8), 5)
+        diff = grey.astype(np.float32)
         thr = self.threshold
         if thr is None:
-            med = float(np.median(diff))
-            mad = float(np.median(np.abs(diff - med)))
-            thr = max(20.0, med + 6 * 1.4826 * mad)
+            thr = max(20.0, _median_and_mad(grey, 6 * 1.4826))
         mask = (diff > thr).astype(np.uint8) * 255
         k = np.ones((3, 3), np.uint8)
         mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, k)
@@ -204,6 +206,29 @@ class BackgroundSubtractor:
             b = (b + 0.5) / s - 0.5  # back to full-image pixels
             out.append(Candidates(b, areas / areas.max()))
         return out
+
+
+def _median_and_mad(grey: np.ndarray, k: float) -> float:
+    """``median + k * MAD`` of a uint8 image, from its histogram.
+
+    The same value as ``np.median`` of the grey levels and of their absolute deviations
+    (both exact: the levels are integers, a median of an even count the mean of the two
+    middle values).
+    """
+    counts = np.bincount(grey.ravel(), minlength=256)
+    levels = np.arange(256, dtype=np.float64)
+    med = _sorted_median(levels, counts)
+    dev = np.abs(levels - med)
+    order = np.argsort(dev, kind="stable")
+    return med + k * _sorted_median(dev[order], counts[order])
+
+
+def _sorted_median(values: np.ndarray, counts: np.ndarray) -> float:
+    """The median of ``values`` (ascending) each repeated ``counts`` times."""
+    cum = np.cumsum(counts)
+    n = int(cum[-1])
+    lo, hi = values[np.searchsorted(cum, [(n - 1) // 2 + 1, n // 2 + 1])]
+    return float((lo + hi) / 2)
 
 
 def _merged_blobs(stats: np.ndarray, min_area: float, gap: float) -> tuple[np.ndarray, np.ndarray]:

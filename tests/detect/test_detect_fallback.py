@@ -86,3 +86,19 @@ def test_bgsub_on_a_synthetic_session(tmp_path):
     assert m.n_views > 100
     assert m.recall >= 0.7, m.summary()
     assert m.center_rate >= 0.95 and m.median_center_error < 25.0, m.summary()
+
+
+def test_automatic_threshold_is_numpys_median_plus_six_mad():
+    """The histogram median and MAD of the grey difference equal np.median's, even or odd."""
+    from freipose.detect.fallback import _median_and_mad
+
+    rng = np.random.default_rng(0)
+    for n in range(100):
+        h, w = rng.integers(1, 40, 2)
+        grey = (rng.random((h, w)) ** rng.uniform(0.2, 5) * 255).astype(np.uint8)
+        if n % 4 == 0:
+            grey[:] = rng.integers(0, 256)  # one level: MAD 0
+        d = grey.astype(np.float32)
+        med = float(np.median(d))
+        mad = float(np.median(np.abs(d - med)))
+        assert _median_and_mad(grey, 6 * 1.4826) == med + 6 * 1.4826 * mad, (h, w)
