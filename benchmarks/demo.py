@@ -7,7 +7,9 @@ finished before (``--from DIR...``), and records each as a result ``demo`` (see
 centre error, the held-out median JPE of voxel P1, voxel P0 and the baseline, the whole
 pipeline's JPE per day, the best single variable and its F1, the stimulated paw's share among
 the 5 and 10 best variables, the balanced accuracy on the raw and on the smoothed predicted
-poses, the number of significant variables, and the wall time per step and in total.
+poses, the number of significant variables, and the wall time per step and in total; with
+the preset, the starting weights and the networks' training schedule (steps, learning rate
+and the step where it drops).
 
     python benchmarks/demo.py --seed 0 1 2 --work runs          # about 8 min per seed, 2 cores
     python benchmarks/demo.py --from runs/demo_seed0 runs/demo_seed1
@@ -30,6 +32,8 @@ from freipose.demo.summary import SUMMARY
 
 POSES = ("predicted", "smoothed", "truth")
 METHODS = ("voxel_P1", "voxel_P0", "baseline")
+# the schedule recorded with each run (the networks' budgets: runs of other ones differ)
+SCHEDULE_KEYS = ("steps", "lr", "lr_decay_steps")
 
 
 def _get(d: dict[str, Any], *keys: str) -> Any:
@@ -101,13 +105,23 @@ def step_seconds(folder: Path, summary: dict[str, Any]) -> dict[str, float]:
     return {**out, "total": round(sum(out.values()), 2)}
 
 
-def demo_seed(folder: Path) -> int:
-    """The training seed of the demo in ``folder`` (0 where its preset names none)."""
+def _marker_preset(folder: Path) -> dict[str, Any]:
+    """The preset stored in the first step marker of the demo in ``folder`` (``{}``: none)."""
     for step in STEPS:
         m = read_marker(folder, step)
         if m is not None:
-            return int(_get(m, "preset", "pose", "seed") or 0)
-    return 0
+            return m.get("preset") or {}
+    return {}
+
+
+def demo_seed(folder: Path) -> int:
+    """The training seed of the demo in ``folder`` (0 where its preset names none)."""
+    return int(_get(_marker_preset(folder), "pose", "seed") or 0)
+
+
+def schedule_of(pose: dict[str, Any]) -> dict[str, Any]:
+    """The training schedule of a demo preset's ``pose`` table: steps, rate and its drop."""
+    return {k: pose[k] for k in SCHEDULE_KEYS if k in pose}
 
 
 def record(folder: Path, command: list[str] | None = None) -> Path | None:
@@ -137,6 +151,7 @@ def record(folder: Path, command: list[str] | None = None) -> Path | None:
         "preset": summary.get("preset"),
         "init": summary.get("init"),
         "freipose_version": summary.get("freipose_version"),
+        "schedule": schedule_of(_marker_preset(folder).get("pose") or {}),
         "folder": folder.name,
         "finished": finished.strftime("%Y-%m-%dT%H:%M:%SZ"),
     }

@@ -35,13 +35,21 @@ def fake_results(bench, tmp_path, monkeypatch):
     folder = tmp_path / "results"
     monkeypatch.setenv("FREIPOSE_RESULTS_DIR", str(folder))
     mp = monkeypatch
+    # the demo as it runs today: the default preset's starting weights and schedule
+    from freipose.demo.presets import PRESETS
+
+    now = dict(preset="small", init=PRESETS["small"].init,
+               schedule=bench.schedule_of(PRESETS["small"].pose))  # fmt: skip
     for seed, (jpe, best) in enumerate([(3.6, "v1"), (3.9, "v1"), (3.7, "v2")]):
         figs = {"held_out_jpe_mm": {"voxel_P1": jpe}, "analysis": {"predicted": {
             "best_variable": best, "balanced_accuracy": 0.7 + seed / 100},
             "smoothed": {"balanced_accuracy": 0.8 if seed == 0 else 0.6}}}  # fmt: skip
-        _result(mp, "demo", figs, "avx512", seed, preset="small")
-    _result(mp, "demo", {"held_out_jpe_mm": {"voxel_P1": 4.2}}, "avx2", 0, preset="small")
+        _result(mp, "demo", figs, "avx512", seed, **now)
+    _result(mp, "demo", {"held_out_jpe_mm": {"voxel_P1": 4.2}}, "avx2", 0, **now)
     _result(mp, "demo", {"held_out_jpe_mm": {"voxel_P1": 99.0}}, "avx2", 0, preset="tiny")
+    # a run of another schedule: its own table on the page, not in the README's ranges
+    earlier = {**now, "schedule": {**now["schedule"], "steps": 1}}
+    _result(mp, "demo", {"held_out_jpe_mm": {"voxel_P1": 77.0}}, "avx512", 0, **earlier)
     _result(mp, "synth", {"render_fps": 10.0, "ok": True}, "avx2", 0, frames=100)
     _result(mp, "synth", {"render_fps": 30.0, "ok": True}, "avx2", 0, frames=20)
     return folder
@@ -49,7 +57,7 @@ def fake_results(bench, tmp_path, monkeypatch):
 
 def test_files_name_the_date_commit_and_cpu_kind_and_hold_the_provenance(fake_results):
     files = sorted((fake_results / "demo").glob("*.json"))
-    assert len(files) == 5
+    assert len(files) == 6
     date, commit, machine, n = files[0].stem.split("_")
     assert len(date) == 10 and machine.startswith(("avx512-", "avx2-")) and int(n) >= 1
     rec = json.loads(files[0].read_text())
@@ -67,6 +75,7 @@ def test_aggregation_gives_median_range_runs_and_seeds(bench, fake_results):
     assert "| analysis/predicted/best_variable | v1 (2x), v2 | v1 (2x), v2 | - |" in text
     # other settings (the tiny preset, other frame counts) are other tables, not in the range
     assert text.count("## demo") == 1 and "### preset=tiny" in text and "99" in text
+    assert "77" in text and text.count("### ") == 5  # the demo's 3 settings, synth's 2
     assert "### frames=100" in text and "### frames=20" in text
     assert "| render_fps | 10 |" in text and "| ok | true |" in text
     assert "```bash\npython benchmarks/x.py --seed " in text
@@ -97,6 +106,7 @@ def test_readme_block_shows_ranges_per_cpu_kind(bench, fake_results, tmp_path):
     assert "old" not in text
     assert "| figure | avx512: 3 runs, seeds 0, 1, 2 | avx2: 1 run, seed 0 |" in text
     assert "| Held-out median JPE, voxel network (P1) | 3.6-3.9 mm | 4.2 mm |" in text
+    assert "77" not in text and "99" not in text  # other schedules and presets
     assert "v1 (2 of 4), v2 (1 of 4)" in text
     # a conclusion that does not hold in every run says so
     assert "Smoothing raised the balanced accuracy in 1 of 3 runs" in text

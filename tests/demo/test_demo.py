@@ -201,3 +201,7 @@ def test_small_preset_training_config_is_valid_and_trains_on_view_subsets(tmp_pa
     assert cfg.augment.max_views == 4 < PRESETS["small"].n_cameras
     assert cfg.schedule.steps == PRESETS["small"].pose["steps"]
     assert cfg.schedule.refine_start == 0.0 and cfg.model.init == "base"
+    # fine-tuning the bases: a short phase at the high rate, most steps after its drop
+    sched = cfg.schedule
+    assert sched.lr_at(sched.lr_decay_steps - 1) == sched.lr > sched.lr_at(sched.lr_decay_steps)
+    assert sched.lr_decay_steps <= sched.steps // 2
