@@ -188,10 +188,12 @@ _PRESETS = {
         eval_instants=60,
         # 4 of the 7 views per training sample: cheaper steps, so more of them in the
         # demo's time; the refinement head trains from the first step (the base's is
-        # trained already). Fine-tuning from the bases needs only a short phase at the
-        # high rate: the rate drops tenfold every 100 steps (1e-3, 1e-4, 1e-5), and these
-        # 300 steps give the voxel network about the held-out error of 600 steps with one
-        # drop at step 400, in half the time (the demo's runs in docs/benchmarks.md)
+        # trained already). The demo's rat resembles the bases' training scenes, so a short
+        # phase at the high rate suffices: the rate drops tenfold every 100 steps (1e-3,
+        # 1e-4, 1e-5), and these 300 steps give the voxel network about the held-out error
+        # of 600 steps with one drop at step 400, in half the time (the demo's runs in
+        # docs/benchmarks.md). A rig unlike those scenes needs the longer schedule
+        # (benchmarks/own_rig.py)
         pose=dict(
             preset="small",
             steps=300,
