@@ -23,8 +23,9 @@ costs, at the same training budget:
   among two animals is also split by the distance between the animals' labeled centres
   (``--near-mm``): near each other, parts of one hide the other's.
 
-``--seeds N`` repeats the trainings with N seeds (the data stay); a finished step is
-skipped when run again on the same ``--out``.
+``--seeds N`` repeats the trainings with N seeds (the data stay); ``--schedule KEY=VALUE``
+sets a ``[schedule]`` value of every training; a finished step is skipped when run again on
+the same ``--out``.
 
 Example (about 25 minutes on 2 cores)::
 
@@ -140,7 +141,7 @@ def train(
         f'[data]\nlabels = "{labels}"\n{val}skeleton = "rat"\n\n[model]\n'
         f'preset = "{a.preset}"\n{mask}'
         f"\n[schedule]\nsteps = {a.steps}\n"
-        f"checkpoint_every = {a.steps}\nseed = {seed}\n",
+        f"checkpoint_every = {a.steps}\nseed = {seed}\n" + "".join(f"{kv}\n" for kv in a.schedule),
         encoding="utf-8",
     )
     model = out / "pose" / "model.pt"
@@ -239,6 +240,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--preset", default="small", help="network preset [small]")
     ap.add_argument("--init", default="base", help="base, scratch or a checkpoint [base]")
     ap.add_argument("--seeds", type=int, default=1, help="training seeds 0.. [1]")
+    ap.add_argument("--schedule", action="append", default=[], metavar="KEY=VALUE",
+                    help="a [schedule] setting of every training (TOML), repeatable")  # fmt: skip
     ap.add_argument("--mask-others", action="store_true",
                     help="also train and score a social network with model.mask_others (the "
                          "other animals painted out)")  # fmt: skip
@@ -295,6 +298,8 @@ def main(argv: list[str] | None = None) -> int:
           f"x{summary['ratio_worst_max']:.2f}; target <= 1.3), single-animal network "
           f"x{summary['ratio_single_network_worst_median']:.2f}")  # fmt: skip
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(a).items()}
+    if not a.schedule:  # runs with the preset's schedule share one table
+        del settings["schedule"]
     write_result("social_poses", {"summary": summary, "runs": runs}, extra=settings)
     return 0
 
