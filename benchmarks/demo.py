@@ -105,18 +105,17 @@ def step_seconds(folder: Path, summary: dict[str, Any]) -> dict[str, float]:
     return {**out, "total": round(sum(out.values()), 2)}
 
 
-def _marker_preset(folder: Path) -> dict[str, Any]:
-    """The preset stored in the first step marker of the demo in ``folder`` (``{}``: none)."""
+def marker_pose(folder: Path) -> dict[str, Any]:
+    """The networks' ``pose`` table of the demo in ``folder`` (``{}``: no step marker).
+
+    It comes from the preset stored in the first step marker; its ``seed`` is the training
+    seed (absent: 0).
+    """
     for step in STEPS:
         m = read_marker(folder, step)
         if m is not None:
-            return m.get("preset") or {}
+            return _get(m, "preset", "pose") or {}
     return {}
-
-
-def demo_seed(folder: Path) -> int:
-    """The training seed of the demo in ``folder`` (0 where its preset names none)."""
-    return int(_get(_marker_preset(folder), "pose", "seed") or 0)
 
 
 def schedule_of(pose: dict[str, Any]) -> dict[str, Any]:
@@ -143,7 +142,8 @@ def record(folder: Path, command: list[str] | None = None) -> Path | None:
     summary = json.loads(path.read_text(encoding="utf-8"))
     if "analysis" not in summary:
         raise SystemExit(f"{folder}: the demo has not finished (no analysis in {SUMMARY})")
-    seed = demo_seed(folder)
+    pose = marker_pose(folder)
+    seed = int(pose.get("seed") or 0)
     figures = demo_figures(summary, step_seconds(folder, summary))
     finished = dt.datetime.fromtimestamp(path.stat().st_mtime, dt.timezone.utc)
     extra = {
@@ -151,7 +151,7 @@ def record(folder: Path, command: list[str] | None = None) -> Path | None:
         "preset": summary.get("preset"),
         "init": summary.get("init"),
         "freipose_version": summary.get("freipose_version"),
-        "schedule": schedule_of(_marker_preset(folder).get("pose") or {}),
+        "schedule": schedule_of(pose),
         "folder": folder.name,
         "finished": finished.strftime("%Y-%m-%dT%H:%M:%SZ"),
     }
