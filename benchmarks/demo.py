@@ -11,7 +11,7 @@ poses, the number of significant variables, and the wall time per step and in to
 the preset, the starting weights and the networks' training schedule (steps, learning rate
 and the step where it drops).
 
-    python benchmarks/demo.py --seed 0 1 2 --work runs          # about 5 min per seed, 2 cores
+    python benchmarks/demo.py --seed 0 1 2 --work runs          # 5-7 min per seed, 2 cores
     python benchmarks/demo.py --from runs/demo_seed0 runs/demo_seed1
 """
 
