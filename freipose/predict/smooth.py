@@ -47,7 +47,11 @@ it no ensemble, its white error would take the network's correlated error for mo
 or damp movement as noise, and a per-frame variance from the network's own uncertainty
 (its confidence, or the spread of the views' points about the 3D pose, which on the
 demo's predictions tracks the error no better than the confidence: rank correlation
-0.54-0.56 against 0.59) rises where the poses are unusual, not where they jitter.
+0.54-0.56 against 0.59) rises where the poses are unusual, not where they jitter. Nor
+does an ensemble take the persistent error away: the predictions of augmented copies of
+each frame (the voxel grid turned about the up, the cube shifted by up to a voxel) and
+of networks fine-tuned with different seeds err nearly alike
+(``benchmarks/smooth_ensembles.py``; ``docs/how-to/smooth.md`` gives the figures).
 """
 
 from __future__ import annotations
