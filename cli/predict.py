@@ -61,7 +61,8 @@ from freipose.errors import FreiPoseError
     show_default=True,
     help="How the network runs: optimized (auto; channels-last layout and a gathered "
     "unprojection, the eager poses within fp32 rounding), eager (the reference) or bf16 "
-    "(optimized in bfloat16; poses a median 0.25 mm from fp32, see docs/explanation/"
+    "(optimized in bfloat16, for CPUs with AVX-512-BF16 or AMX and GPUs of compute "
+    "capability 8.0 or newer; poses a median 0.25 mm from fp32, see docs/explanation/"
     "backends.md).",
 )
 @click.option(

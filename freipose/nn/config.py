@@ -254,6 +254,8 @@ class ScheduleConfig:
     DDP each of W processes takes ``batch_size / W``). The learning rate is
     ``lr * lr_decay ** (step // lr_decay_steps)``. The refinement head is frozen (its loss
     weighted 0) for the first ``refine_start`` fraction of the steps, as in the original.
+    ``amp``: bfloat16 autocast on a GPU with bfloat16 units (compute capability 8.0 or
+    newer); training runs in fp32 elsewhere.
     """
 
     steps: int = 60000

@@ -15,8 +15,11 @@
 and gives the same poses within fp32 rounding (``tests/nn/test_fast.py``). ``bf16`` is
 ``optimized`` under bfloat16 autocast (convolutions in bfloat16: AMX / AVX-512-BF16 on CPUs
 that have them, tensor cores on GPUs; the geometry, soft-argmax and triangulation stay fp32),
-the path the GPU runs; its poses differ from fp32 by a bound stated in docs/explanation/
-backends.md and checked by the tests. ``auto`` is ``optimized``.
+the path a GPU with bfloat16 units runs; its poses differ from fp32 by a bound stated in
+docs/explanation/backends.md and checked by the tests. ``auto`` is ``optimized``. A device
+without bfloat16 units (:func:`bf16_support`: a CPU without AVX-512-BF16 or AMX, a GPU
+older than compute capability 8.0) emulates bfloat16 many times slower than fp32, so there
+nothing runs in bfloat16 by default and ``freipose predict`` refuses ``--backend bf16``.
 
 :func:`optimize` applies a backend to a network in place (its weights keep their values and
 their state-dict names); :func:`inference_autocast` is the autocast context of a backend on a
@@ -83,6 +86,33 @@ def optimize(model: nn.Module, backend: str = "auto") -> nn.Module:
     return model
 
 
+def bf16_support(device: torch.device | str) -> tuple[bool, str]:
+    """Whether a device computes bfloat16 in hardware, and what it is (for messages).
+
+    CPUs: AVX-512-BF16 or AMX units (without them oneDNN emulates bfloat16; on a 2-core
+    AVX2 CPU the network ran about 15 times slower than in fp32, ``benchmarks/predict.py``);
+    a PyTorch that cannot tell counts as yes. GPUs: compute capability 8.0 or newer (ROCm:
+    every GPU).
+
+    Args:
+        device: ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Returns:
+        ``(native, description)``, e.g. ``(False, "this CPU (AVX2)")``.
+    """
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        props = torch.cuda.get_device_properties(dev)
+        text = f"GPU {props.name} (compute capability {props.major}.{props.minor})"
+        return bool(torch.version.hip) or props.major >= 8, text
+    if dev.type != "cpu":
+        return False, f"device {dev}"
+    probes = [getattr(torch.cpu, n, None) for n in ("_is_avx512_bf16_supported",
+                                                     "_is_amx_tile_supported")]  # fmt: skip
+    native = any(p() for p in probes if p is not None) or all(p is None for p in probes)
+    return native, f"this CPU ({torch.backends.cpu.get_cpu_capability()})"
+
+
 def backend_of(model: nn.Module) -> str:
     """The backend a network runs on (``eager`` unless :func:`optimize` set another)."""
     return str(getattr(getattr(model, "module", model), "backend", "eager"))
@@ -90,7 +120,9 @@ def backend_of(model: nn.Module) -> str:
 
 @contextlib.contextmanager
 def inference_autocast(model: nn.Module, device: torch.device) -> Iterator[None]:
-    """The autocast of a network's backend: bfloat16 for ``bf16`` and on CUDA, else none.
+    """The autocast of a network's backend: bfloat16 for ``bf16`` and on a bf16 GPU, else none.
+
+    A GPU computes in bfloat16 where it has the units for it (:func:`bf16_support`).
 
     Args:
         model: a network (possibly wrapped, with ``module``).
@@ -99,7 +131,7 @@ def inference_autocast(model: nn.Module, device: torch.device) -> Iterator[None]
     Yields:
         Nothing; inside the context the network runs in its precision.
     """
-    amp = device.type == "cuda" or backend_of(model) == "bf16"
+    amp = backend_of(model) == "bf16" or (device.type == "cuda" and bf16_support(device)[0])
     with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp):
         yield
 

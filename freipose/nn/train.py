@@ -43,6 +43,7 @@ from freipose.nn.config import TrainConfig, config_to_dict, load_config
 from freipose.nn.data import StepBatchSampler, TrainSamples, collate_prepared, to_device
 from freipose.nn.dataset import MultiViewDataset
 from freipose.nn.evaluate import jpe, predict_dataset, usable_indices
+from freipose.nn.fast import bf16_support
 from freipose.nn.init import initialize
 from freipose.nn.instances import warn_if_one_animal
 from freipose.nn.losses import baseline_losses, voxel_losses
@@ -335,7 +336,7 @@ def _optimizer_step(run: TrainRun, batch: Batch, step: int) -> dict[str, float]:
         g["lr"] = lr * g["lr_scale"]
     run.net.train()
     b = to_device(batch, dev)
-    amp = sched.amp and dev.type == "cuda"
+    amp = sched.amp and dev.type == "cuda" and bf16_support(dev)[0]
     with torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=amp):
         out = run.net(b)
     if mcfg.kind == "voxel":

@@ -252,17 +252,24 @@ def load_model(
         InputFileError: no such file.
         CheckpointError: not a FreiPose pose checkpoint (e.g. a detector checkpoint), corrupt.
         PredictError: weights that do not fit the network (e.g. a hand-edited file), an
-            unknown backend.
+            unknown backend, ``bf16`` on a device without bfloat16 units.
     """
     from freipose.nn.checkpoint import load_checkpoint
     from freipose.nn.config import ConfigError
-    from freipose.nn.fast import optimize, resolve_backend
+    from freipose.nn.fast import bf16_support, optimize, resolve_backend
 
     try:
         backend = resolve_backend(backend)
     except ValueError as exc:
         raise PredictError(f"--{exc}") from exc
 
+    native, what = bf16_support(device)
+    if backend == "bf16" and not native:
+        raise PredictError(
+            "--backend bf16 needs bfloat16 units (a CPU with AVX-512-BF16 or AMX, a GPU of "
+            f"compute capability 8.0 or newer); {what} has none and would emulate bfloat16, "
+            "many times slower than fp32: use --backend auto"
+        )
     path = Path(model_path)
     try:
         model, config, skeleton = load_checkpoint(path, device, overrides=overrides)

@@ -149,3 +149,34 @@ def test_cuda_optimized_poses_within_bf16_bound(rendered) -> None:
     d = np.linalg.norm(got["P1"] - ref["P1"], axis=-1)
     assert np.median(d) < BF16_MEDIAN_MM, f"median {np.median(d):.3f} mm"
     assert np.percentile(d, 90) < BF16_P90_MM, f"90th percentile {np.percentile(d, 90):.3f} mm"
+
+
+@pytest.mark.parametrize("avx512_bf16, amx, native", [(False, False, False), (True, False, True),
+                                                      (False, True, True)])  # fmt: skip
+def test_bf16_support_of_the_cpu_follows_its_units(monkeypatch, avx512_bf16, amx, native) -> None:
+    from freipose.nn.fast import bf16_support
+
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: avx512_bf16)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: amx)
+    got, what = bf16_support("cpu")
+    assert got is native
+    assert what == f"this CPU ({torch.backends.cpu.get_cpu_capability()})"
+
+
+def test_bf16_support_without_the_probes_trusts_the_user(monkeypatch) -> None:
+    from freipose.nn.fast import bf16_support
+
+    monkeypatch.delattr(torch.cpu, "_is_avx512_bf16_supported", raising=False)
+    monkeypatch.delattr(torch.cpu, "_is_amx_tile_supported", raising=False)
+    assert bf16_support("cpu")[0] is True
+
+
+def test_inference_autocast_on_the_cpu_only_for_the_bf16_backend() -> None:
+    from freipose.nn.fast import inference_autocast
+
+    net = torch.nn.Linear(2, 2)
+    cpu = torch.device("cpu")
+    for backend, expected in (("optimized", False), ("eager", False), ("bf16", True)):
+        optimize(net, backend)
+        with inference_autocast(net, cpu):
+            assert torch.is_autocast_enabled("cpu") is expected, backend

@@ -70,3 +70,39 @@ def test_predict_refuses_unknown_backend(session, tmp_path: Path) -> None:
     )  # fmt: skip
     assert res.exit_code != 0
     assert "fastest" in res.output and "optimized" in res.output
+
+
+def _cpu_bf16_units(monkeypatch: pytest.MonkeyPatch, present: bool) -> None:
+    """Make PyTorch report a CPU with (or without) AVX-512-BF16 and AMX units."""
+    import torch
+
+    for probe in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"):
+        monkeypatch.setattr(torch.cpu, probe, lambda: present, raising=False)
+
+
+def test_predict_refuses_bf16_on_a_cpu_without_bf16_units(
+    session, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Emulated bfloat16 is many times slower than fp32: one clear message, nothing written."""
+    _cpu_bf16_units(monkeypatch, False)
+    paths, boxes = session
+    args = ["predict", str(paths.folder), "--model", str(BASE), "--calibration",
+            str(paths.calibration), "--method", "fixed", "--fixed-boxes", str(boxes),
+            "-o", str(tmp_path / "out"), "--device", "cpu", "--backend", "bf16"]  # fmt: skip
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code != 0
+    assert "Traceback" not in res.output
+    assert "--backend bf16 needs bfloat16 units" in res.output
+    assert "this CPU (" in res.output and "--backend auto" in res.output
+    assert not list((tmp_path / "out").glob("*.poses.h5"))
+
+
+def test_load_model_takes_bf16_on_a_cpu_with_bf16_units(monkeypatch: pytest.MonkeyPatch) -> None:
+    from freipose.nn.fast import backend_of
+    from freipose.predict.network import load_model
+
+    if not BASE.is_file():
+        pytest.skip(f"the shipped base model {BASE} is not in this checkout")
+    _cpu_bf16_units(monkeypatch, True)
+    net, _, _, _ = load_model(BASE, "cpu", None, "bf16")
+    assert backend_of(net) == "bf16"
