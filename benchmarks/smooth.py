@@ -124,29 +124,36 @@ def _amplitude(x: np.ndarray, fps: float, windows: np.ndarray) -> float:
     return float(np.mean(amps)) if amps else float("nan")
 
 
+def error_figures(est: np.ndarray, truth: np.ndarray, fps: float) -> dict[str, float]:
+    """Median and mean JPE (mm) and median velocity error (mm/s) of (T, K, 3) ``est``.
+
+    The velocity from frame differences, against the truth's; frames without a
+    prediction (NaN) are left out.
+    """
+    e = np.linalg.norm(est - truth, axis=-1)
+    vt = np.diff(truth, axis=0) * fps
+    v = np.linalg.norm(np.diff(est, axis=0) * fps - vt, axis=-1)
+    return {"median_jpe_mm": float(np.nanmedian(e)), "mean_jpe_mm": float(np.nanmean(e)),
+            "velocity_error_mm_s": float(np.nanmedian(v))}  # fmt: skip
+
+
 def _errors(raw: PoseData, truth: np.ndarray, est: dict[str, np.ndarray]) -> dict[str, dict]:
     """Print JPE, velocity error and lag of the raw and each smoothed estimate."""
-    fps = raw.fps
-    vt = np.diff(truth, axis=0) * fps
-    er = np.linalg.norm(raw.poses - truth, axis=-1)
-    jr, mr = float(np.nanmedian(er)), float(np.nanmean(er))
-    vr = float(np.nanmedian(np.linalg.norm(np.diff(raw.poses, axis=0) * fps - vt, axis=-1)))
+    out = {"raw": error_figures(raw.poses, truth, raw.fps)}
+    jr, mr, vr = out["raw"].values()
     print(f"{'':22s} {'median JPE':>11s} {'mean JPE':>9s} {'vel. error':>11s} {'vel/raw':>8s} "
           f"{'lag':>4s}")  # fmt: skip
     print(f"{'raw':22s} {jr:8.2f} mm {mr:6.2f} mm {vr:6.1f} mm/s {1:8.2f} "
           f"{_lag(truth, raw.poses)[0]:4d}")  # fmt: skip
-    out = {"raw": {"median_jpe_mm": jr, "mean_jpe_mm": mr, "velocity_error_mm_s": vr}}
     for name, m in est.items():
-        e = np.linalg.norm(m - truth, axis=-1)
-        j, mj = float(np.median(e)), float(np.mean(e))
-        v = float(np.median(np.linalg.norm(np.diff(m, axis=0) * fps - vt, axis=-1)))
+        f = error_figures(m, truth, raw.fps)
+        j, mj, v = f.values()
         pooled, per = _lag(truth, m)
         vals, counts = np.unique(per, return_counts=True)
         spread = ", ".join(f"{a}: {b}" for a, b in zip(vals, counts, strict=True))
         print(f"{name:22s} {j:8.2f} mm {mj:6.2f} mm {v:6.1f} mm/s {v / vr:8.2f} {pooled:4d}   "
               f"(per axis {spread})")  # fmt: skip
-        out[name] = {"median_jpe_mm": j, "mean_jpe_mm": mj, "velocity_error_mm_s": v,
-                     "lag_frames": pooled}  # fmt: skip
+        out[name] = f | {"lag_frames": pooled}
     return out
 
 

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 from _results import write_result
-from smooth import _truth
+from smooth import _truth, error_figures
 
 from freipose.io.poses import PoseData, read_poses_h5
 from freipose.predict.smooth import smooth_poses
@@ -79,25 +79,20 @@ def tta_predictions(demo: Path, session: str, frames: int) -> tuple[np.ndarray, 
         for batch in reader:
             rows = [int(f) for f in batch.frame_index if np.isfinite(centres[f]).all()]
             views = {f: [im[i] for im in batch.images] for i, f in enumerate(batch.frame_index)}
+            crops: dict[bytes, list] = {}  # the crops of a cube shift, prepared once
             for a, (turn, shift) in enumerate(augs):
-                items = []
-                for f in rows:
-                    sample = {"rig": s.rig, "images": views[f], "index": f}
-                    item = prepare_sample(sample, cfg, center=centres[f] + shift)
-                    item["grid_rotation"] = rodrigues(np.radians(turn) * up)
-                    items.append(item)
+                if shift.tobytes() not in crops:
+                    crops[shift.tobytes()] = [
+                        prepare_sample({"rig": s.rig, "images": views[f], "index": f}, cfg,
+                                       center=centres[f] + shift)
+                        for f in rows
+                    ]  # fmt: skip
+                turned = rodrigues(np.radians(turn) * up)
+                items = [{**item, "grid_rotation": turned} for item in crops[shift.tobytes()]]
                 if items:
                     out = predict_prepared(net, collate_prepared(items))
                     poses[a, rows], conf[a, rows] = out["P1"], out["confidence"]
     return poses, conf
-
-
-def error_figures(est: np.ndarray, truth: np.ndarray, fps: float) -> dict[str, float]:
-    """Median and mean JPE (mm) and median velocity error (mm/s) of (T, K, 3) ``est``."""
-    e = np.linalg.norm(est - truth, axis=-1)
-    v = np.linalg.norm(np.diff(est - truth, axis=0) * fps, axis=-1)
-    return {"median_jpe_mm": float(np.nanmedian(e)), "mean_jpe_mm": float(np.nanmean(e)),
-            "velocity_error_mm_s": float(np.nanmedian(v))}  # fmt: skip
 
 
 def member_correlation(members: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -113,24 +108,30 @@ def member_correlation(members: np.ndarray, truth: np.ndarray) -> dict[str, floa
     return out
 
 
-def _smoothed(raw: PoseData, poses: np.ndarray, conf: np.ndarray) -> np.ndarray:
-    """``smooth_poses`` of (T, K, 3) poses with the frames and rate of ``raw``."""
+def with_smoothed(raw: PoseData, poses: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``(poses, smoothed)``: (T, K, 3) poses and their ``smooth_poses`` at ``raw``'s frames."""
     n = len(poses)
     data = PoseData(poses=poses.astype(np.float32), confidence=conf.astype(np.float32),
                     keypoints=raw.keypoints, frame_index=raw.frame_index[:n], fps=raw.fps,
                     up=raw.up, skeleton=raw.skeleton)  # fmt: skip
-    return smooth_poses(data).poses.astype(np.float64)
+    return poses, smooth_poses(data).poses.astype(np.float64)
 
 
 def compare(raw: PoseData, truth: np.ndarray, estimates: dict[str, tuple]) -> dict[str, Any]:
-    """Figures of the single network and of each (poses, confidences) estimate, raw and smoothed."""
+    """Figures of the single network and of each :func:`with_smoothed` estimate, both versions.
+
+    Args:
+        raw: the single network's predictions.
+        truth: (T, K, 3) the true poses of its frames.
+        estimates: name -> ``(poses, smoothed)``, (F, K, 3) each over the first F frames.
+    """
     n = len(next(iter(estimates.values()))[0]) if estimates else raw.num_frames
     single = raw.poses[:n].astype(np.float64)
-    rows = {"single": (single, raw.confidence[:n]), **estimates}
+    rows = {"single": with_smoothed(raw, single, raw.confidence[:n]), **estimates}
     base = error_figures(single, truth[:n], raw.fps)["velocity_error_mm_s"]
     out: dict[str, Any] = {}
-    for name, (poses, conf) in rows.items():
-        for label, x in ((name, poses), (f"{name}, smoothed", _smoothed(raw, poses, conf))):
+    for name, (poses, smoothed) in rows.items():
+        for label, x in ((name, poses), (f"{name}, smoothed", smoothed)):
             f = error_figures(x, truth[:n], raw.fps)
             out[label] = f | {"velocity_ratio": f["velocity_error_mm_s"] / base}
     return out
@@ -197,9 +198,10 @@ def main() -> None:
         if len(raws) > 1:
             members = np.stack([r.poses.astype(np.float64) for r in raws])
             conf = np.mean([r.confidence for r in raws], axis=0)
+            mean = {"ensemble of demos": with_smoothed(raws[0], members.mean(0), conf)}
+            alike = member_correlation(members, truth)
             for i, (d, raw) in enumerate(zip(args.demo, raws, strict=True)):
-                f = compare(raw, truth, {"ensemble of demos": (members.mean(0), conf)})
-                f |= member_correlation(members, truth)
+                f = compare(raw, truth, mean) | alike
                 runs.append({"session": session, "demo": d.name, "kind": "ensemble", "figures": f})
                 if i == 0:
                     _print(f"{session}: the {len(raws)} demos' mean against {d.name}", f)
@@ -208,8 +210,10 @@ def main() -> None:
         for d, raw in zip(args.demo, raws, strict=True):
             poses, conf = tta_predictions(d, session, args.frames)
             n = poses.shape[1]
-            f = compare(raw, truth, {"4 turns": (poses[:4].mean(0), conf[:4].mean(0)),
-                                     "8 members": (poses.mean(0), conf.mean(0))})  # fmt: skip
+            f = compare(raw, truth, {
+                "4 turns": with_smoothed(raw, poses[:4].mean(0), conf[:4].mean(0)),
+                "8 members": with_smoothed(raw, poses.mean(0), conf.mean(0)),
+            })  # fmt: skip
             f |= member_correlation(poses, truth[:n])
             f["member0_vs_single_max_mm"] = float(np.nanmax(np.abs(poses[0] - raw.poses[:n])))
             runs.append({"session": session, "demo": d.name, "kind": "tta", "figures": f})

@@ -263,8 +263,8 @@ def load_model(
     except ValueError as exc:
         raise PredictError(f"--{exc}") from exc
 
-    native, what = bf16_support(device)
-    if backend == "bf16" and not native:
+    native, what = bf16_support(device) if backend == "bf16" else (True, "")
+    if not native:
         raise PredictError(
             "--backend bf16 needs bfloat16 units (a CPU with AVX-512-BF16 or AMX, a GPU of "
             f"compute capability 8.0 or newer); {what} has none and would emulate bfloat16, "
