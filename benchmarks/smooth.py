@@ -159,7 +159,11 @@ def _errors(raw: PoseData, truth: np.ndarray, est: dict[str, np.ndarray]) -> dic
 
 
 def _analysis(demo: Path, held_out) -> dict[str, dict]:
-    """The demo's analysis on raw and smoothed poses of every session, side by side."""
+    """The demo's analysis on raw and smoothed poses of every session, side by side.
+
+    Smoothed as ``freipose smooth`` does by default, with one process noise per keypoint
+    (``fixed q``) and with ``--bones`` where the skeleton has bones.
+    """
     from freipose.demo.context import DemoContext
     from freipose.demo.markers import read_marker
     from freipose.demo.presets import PRESETS
@@ -171,14 +175,19 @@ def _analysis(demo: Path, held_out) -> dict[str, dict]:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(tmp)
-        for label, adaptive in (("smoothed", True), ("smoothed, fixed q", False)):
-            sub = base / label.replace(", ", "_").replace(" ", "_")
+        variants = {
+            "smoothed": lambda d: _smoothed(d, True, held_out),
+            "smoothed, fixed q": lambda d: _smoothed(d, False, None),
+        }
+        if _with_bones(read_poses_h5(demo / "poses" / f"{preset.analysed[0].name}.poses.h5"),
+                       held_out) is not None:  # fmt: skip
+            variants[BONES] = lambda d: smooth_poses(d, error_floor=held_out, bones=True)
+        for label, smooth in variants.items():
+            sub = base / label.replace(", ", "_").replace(" ", "_").replace("--", "")
             (sub / "poses").mkdir(parents=True)
             for s in preset.analysed:
                 d = read_poses_h5(demo / "poses" / f"{s.name}.poses.h5")
-                write_poses_h5(
-                    _smoothed(d, adaptive, held_out), sub / "poses" / f"{s.name}.poses.h5"
-                )
+                write_poses_h5(smooth(d), sub / "poses" / f"{s.name}.poses.h5")
             rows.append((label, analyze_poses(ctx, sub / "study.toml",
                          study_toml(ctx, sub, sub / "poses"), sub / "results")))  # fmt: skip
         raw = analyze_poses(ctx, base / "study.toml", study_toml(ctx, base), base / "results")
