@@ -179,8 +179,7 @@ def _analysis(demo: Path, held_out) -> dict[str, dict]:
             "smoothed": lambda d: _smoothed(d, True, held_out),
             "smoothed, fixed q": lambda d: _smoothed(d, False, None),
         }
-        if _with_bones(read_poses_h5(demo / "poses" / f"{preset.analysed[0].name}.poses.h5"),
-                       held_out) is not None:  # fmt: skip
+        if _has_bones(read_poses_h5(demo / "poses" / f"{preset.analysed[0].name}.poses.h5")):
             variants[BONES] = lambda d: smooth_poses(d, error_floor=held_out, bones=True)
         for label, smooth in variants.items():
             sub = base / label.replace(", ", "_").replace(" ", "_").replace("--", "")
@@ -385,11 +384,16 @@ def main() -> None:
     write_result("smooth", figures, extra=extra)
 
 
-def _with_bones(raw: PoseData, held_out) -> PoseData | None:
-    """``freipose smooth --bones`` (with ``--validation``); None without bones in the skeleton."""
+def _has_bones(data: PoseData) -> bool:
+    """Whether the poses' skeleton has limbs between single keypoints (``--bones`` applies)."""
     from freipose.predict.smooth_bones import bone_pairs
 
-    if raw.skeleton is None or not len(bone_pairs(raw.skeleton, raw.keypoints)):
+    return data.skeleton is not None and bool(len(bone_pairs(data.skeleton, data.keypoints)))
+
+
+def _with_bones(raw: PoseData, held_out) -> PoseData | None:
+    """``freipose smooth --bones`` (with ``--validation``); None without bones in the skeleton."""
+    if not _has_bones(raw):
         print("--bones: the poses have no skeleton with single-keypoint limbs")
         return None
     return smooth_poses(raw, error_floor=held_out, bones=True)

@@ -43,3 +43,22 @@ def test_targets_of_each_estimate(bench, capsys):
     }  # fmt: skip
     printed = capsys.readouterr().out
     assert "targets (smoothed):" in printed and f"targets ({bench.BONES}):" in printed
+
+
+def test_bones_apply_only_with_single_keypoint_limbs(bench):
+    import numpy as np
+
+    from freipose.io.poses import PoseData
+    from freipose.skeleton import Skeleton
+
+    kp = ("head", "neck", "paw")
+    poses = np.zeros((3, 3, 3), np.float32)
+
+    def data(skeleton):
+        return PoseData(poses=poses, confidence=np.ones((3, 3), np.float32), keypoints=kp,
+                        frame_index=np.arange(3), fps=10.0, skeleton=skeleton)  # fmt: skip
+
+    limb = Skeleton("toy", kp, limbs=(((0,), (1,)),))
+    grouped = Skeleton("toy", kp, limbs=(((0, 1), (2,)),))  # a group's centre: no bone
+    assert bench._has_bones(data(limb))
+    assert not bench._has_bones(data(grouped)) and not bench._has_bones(data(None))
