@@ -10,6 +10,7 @@ import pytest
 BENCHMARK = "own_rig"  # the script the conftest fixture ``bench`` loads
 
 
+@pytest.mark.slow
 def test_own_rig_minimal_budget(bench, tmp_path, capsys):
     pytest.importorskip("sleap_io")
     out = tmp_path / "own"

@@ -16,6 +16,7 @@ DATA = ROOT.parent / "shared" / "data" / "sleap-8cam-2mice"
 BENCHMARK = "real_finetune"  # the script the conftest fixture ``bench`` loads
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     not (DATA / "min_session_frame_groups.slp").is_file(),
     reason=f"the real SLEAP session {DATA} is absent (shared data not mounted)",

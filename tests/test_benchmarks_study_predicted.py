@@ -57,6 +57,7 @@ def tiny_run(bench, tmp_path_factory):
     return work, args, bench.main(args)
 
 
+@pytest.mark.slow
 def test_a_tiny_study_is_rendered_with_the_preset_schedules_and_predicted(bench, tiny_run):
     work, _, path = tiny_run
     rec = json.loads(path.read_text())["figures"]
@@ -78,6 +79,7 @@ def test_a_tiny_study_is_rendered_with_the_preset_schedules_and_predicted(bench,
     assert {r["animals"] for r in rec["design"]["table"]} == {1}
 
 
+@pytest.mark.slow
 def test_a_rerun_keeps_what_is_rendered_and_predicted(bench, tiny_run, capsys):
     work, args, _ = tiny_run
     poses = sorted((work / "poses").glob("*.poses.h5"))

@@ -66,6 +66,7 @@ def study_result(tmp_path_factory):
     return out, res.output
 
 
+@pytest.mark.slow
 def test_attribution_finds_the_stimulated_keypoint(study_result):
     out, _ = study_result
     att = pd.read_csv(out / "attribution.csv")
@@ -95,6 +96,7 @@ def test_attribution_finds_the_stimulated_keypoint(study_result):
         assert np.allclose(g["p_adjusted"], np.minimum(1, g["p_value"] * 912), rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_full_classifier_generalizes_and_outputs_exist(study_result):
     out, output = study_result
     cls = pd.read_csv(out / "classification.csv")
@@ -123,6 +125,7 @@ def test_full_classifier_generalizes_and_outputs_exist(study_result):
     assert len(list((out / "variables").glob("*.vars.h5"))) == 4
 
 
+@pytest.mark.slow
 def test_rerun_reuses_cached_variables(study_result):
     out, _ = study_result
     cache = out / "variables" / "rat1_test.vars.h5"

@@ -123,6 +123,7 @@ def test_ar1_error_persists_over_frames():
     assert 2.5 < float(e.std()) < 3.5 and 0.7 < lag1 < 0.9  # exp(-1/5) = 0.82
 
 
+@pytest.mark.slow
 def test_null_benchmark_runs_and_records(tmp_path):
     env = {**os.environ, "FREIPOSE_RESULTS_DIR": str(tmp_path), "OMP_NUM_THREADS": "1"}
     script = ROOT / "benchmarks" / "null_studies.py"

@@ -44,6 +44,7 @@ def test_recovers_rig(result, rig):
     assert np.allclose(result.rig[0].R, np.eye(3)) and np.allclose(result.rig[0].t, 0)
 
 
+@pytest.mark.slow
 def test_scipy_solver_agrees(dets, rig):
     # the cross-check solver (scipy least_squares) reaches the same optimum from the same start
     few = [CameraDetections(d.name, d.size, d.points[:40]) for d in dets[:2]]
@@ -54,6 +55,7 @@ def test_scipy_solver_agrees(dets, rig):
     assert np.abs(a.rig.K - b.rig.K).max() < 0.5
 
 
+@pytest.mark.slow
 def test_square_pixels_tie_agrees_with_scipy(dets, rig):
     # fy tied to fx (square pixels): both solvers keep fx == fy exactly and reach one optimum
     few = [CameraDetections(d.name, d.size, d.points[:40]) for d in dets[:2]]

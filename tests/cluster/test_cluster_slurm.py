@@ -101,6 +101,7 @@ def _interfere(proc: subprocess.Popen, out: Path, deadline: float) -> dict[str, 
     return actions
 
 
+@pytest.mark.slow
 def test_slurm_units_survive_cancel_and_requeue(slurm, toy_study, tmp_path):
     out = tmp_path / "poses"
     cfg = cluster_file(tmp_path, executor="slurm", chunk_frames=8, array_parallelism=2,

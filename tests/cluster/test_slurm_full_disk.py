@@ -91,6 +91,7 @@ def _freipose(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=False)
 
 
+@pytest.mark.slow
 def test_full_output_disk_for_one_unit_is_reported_then_resumed(toy_study, out, tmp_path):
     cfg = cluster_file(tmp_path, executor="slurm", chunk_frames=24, array_parallelism=1,
                        poll_s=0.5, max_retries=1, cpus=1, mem_gb=1, time_min=10)  # fmt: skip

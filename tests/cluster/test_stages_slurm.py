@@ -19,6 +19,7 @@ def _freipose(*args: object) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
 
 
+@pytest.mark.slow
 def test_detect_and_smooth_units_on_slurm(inputs, tmp_path):  # noqa: F811 - the fixture
     reason = slurm_reason()
     if reason is not None:

@@ -24,6 +24,7 @@ from freipose.nn.checkpoint import read_checkpoint
 JOB = LOCAL_JOB
 
 
+@pytest.mark.slow
 def test_local_job_of_two_gloo_processes_continues_a_run_bit_for_bit(gloo_run, tmp_path):
     cfg, whole = gloo_run["config"], gloo_run["run"]
     assert "1 node(s) x 2 process(es) on CPUs" in gloo_run["output"]

@@ -110,6 +110,7 @@ def _interrupted(
     return job_id, stopped
 
 
+@pytest.mark.slow
 def test_slurm_training_requeued_midway_equals_an_uninterrupted_run(slurm, gloo_run, tmp_path):
     """A job requeued by SLURM, then signalled as at its time limit, resumes bit for bit.
 

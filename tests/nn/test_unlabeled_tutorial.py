@@ -12,6 +12,7 @@ import json
 import shutil
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 from doc_pages import run_blocks, substituted
 
@@ -30,6 +31,7 @@ SUBSTITUTIONS = {
 }
 
 
+@pytest.mark.slow
 def test_few_labels_tutorial_commands(own_data_run, tmp_path, monkeypatch):
     text = substituted(PAGE, SUBSTITUTIONS)
     shutil.copytree(own_data_run["folder"], tmp_path / "own")
