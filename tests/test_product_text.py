@@ -85,6 +85,10 @@ def test_readme_commands_are_the_ones_ci_runs() -> None:
     torch_pin, extras, pytest_cmd = test_cmd.groups()
     assert f"torch=={torch_pin}" in ci
     assert re.search(rf"^{re.escape(pytest_cmd)}$", ci, re.M), "CI must run the README's command"
+    # the default suite leaves out the tests marked slow; CI must still run them
+    assert "-m 'not slow'" in (ROOT / "pyproject.toml").read_text(encoding="utf-8")
+    assert re.search(rf"^{re.escape(pytest_cmd)} -m slow$", ci, re.M), "CI must run the slow tests"
+    assert "-m slow" in text, "the README must say how to run the slow tests"
     ci_extras = set(re.search(r'-e "\.\[([\w,]+)\]"', ci).group(1).split(","))
     assert set(extras.split(",")) <= ci_extras
     demo = re.search(r"^pip install torch==(\S+) && pip install -e \. && freipose demo", text, re.M)
