@@ -19,6 +19,13 @@ Each session is read twice:
    confidence and its flag where a swap cannot be ruled out or was undone). An animal that its track
    does not match in a frame has NaN poses there; a frame is ``status`` 0 when any animal
    was predicted.
+3. **poses' identities** (:func:`freipose.predict.identity.relabel_by_poses`): in close
+   contact an animal's cube holds parts of the other, and the two poses can come out
+   exchanged for a frame or a few although the tracks were right; once all rows are
+   written, the rows are reordered per frame so that every animal's whole pose moves
+   continuously (``extra/identity_order``: the track each animal's pose came from; the
+   frames where it changes are flagged). A run killed while reordering finishes it when
+   started again.
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ from freipose.io.lock import output_lock
 from freipose.io.session import Session
 from freipose.io.video import frame_range
 from freipose.predict.estimator import Estimate, estimate_with_missing
+from freipose.predict.identity import relabel_by_poses
 from freipose.predict.network import (
     DetectorSpec,
     NetworkEstimator,
@@ -322,6 +330,10 @@ def predict_animal_session(session: Session, run: AnimalRun, outdir: str | Path)
                                    run.network.cube_size, run.network.consistency.min_views,
                                    run.batch_size, run.progress)  # fmt: skip
             frames, missing = _predict_rows(session, run, tracks, writer, done)
+            order = writer.stored_animal_order()
+            if order is None:
+                order = relabel_by_poses(writer.poses(), session.fps).order
+            writer.reorder_animals(order)
             up = None
             if world_up(session.rig) is None:
                 k = len(header.keypoints)

@@ -260,3 +260,115 @@ def resolve_identities(
     return IdentityResolution(
         order, moved, int(moved.any(1).sum()), separation, margin[rows, order]
     )
+
+
+@dataclass(frozen=True)
+class PoseRelabelling:
+    """What :func:`relabel_by_poses` did.
+
+    Attributes:
+        order: (T, A) int64 per frame the input row that animal ``a``'s pose comes from.
+        corrected: (T, A) bool, the frames where an animal's pose changed row (output order).
+        changes: the number of frames with a correction.
+    """
+
+    order: np.ndarray
+    corrected: np.ndarray
+    changes: int
+
+
+def _held(poses: np.ndarray, frames: int) -> np.ndarray:
+    """(T, A, K, 3) the poses; a missing keypoint holds its row's last position.
+
+    It holds for up to ``frames`` frames and is NaN after.
+    """
+    out = np.array(poses, dtype=np.float64)
+    age = np.zeros(out.shape[1:3])  # (A, K) frames since each keypoint was last seen
+    for t in range(1, len(out)):
+        gap = ~np.isfinite(out[t]).all(-1)
+        age = np.where(gap, age + 1, 0)
+        fill = gap & (age <= frames)
+        out[t][fill] = out[t - 1][fill]
+    return out
+
+
+def _short_runs(off: np.ndarray, longest: int) -> np.ndarray:
+    """(T,) bool: the frames of ``off`` in runs of at most ``longest`` consecutive frames."""
+    edges = np.diff(np.r_[0, off.astype(np.int8), 0])
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    keep = np.zeros(len(off), bool)
+    for a, b in zip(starts, stops, strict=True):
+        keep[a:b] = b - a <= longest
+    return keep
+
+
+def relabel_by_poses(
+    poses: np.ndarray,
+    fps: float,
+    keep_weight: float = 0.03,
+    hold_s: float = 0.5,
+    longest_s: float = 1.0,
+) -> PoseRelabelling:
+    """Which row's pose is which animal's in every frame, from the continuity of whole poses.
+
+    The cube of an animal in close contact holds parts of the other animals, and its pose can
+    come out as another animal's (while that animal's cube gives this one's): the tracks
+    stayed right, the poses exchanged rows for a frame or a few. Per frame the assignment of
+    rows to animals is a permutation (A! states); the Viterbi algorithm finds the sequence
+    that minimises the sum over frames and animals of the RMS distance of an animal's
+    keypoints from the frame before, plus ``keep_weight`` x the animals' median body length
+    (the largest distance between two keypoints) per frame that departs from the rows' own
+    order: an exchange is made only where it makes the whole poses move markedly less. A
+    missing keypoint holds its last position for up to ``hold_s``; after a longer gap it
+    does not count. Exchanges that last longer than ``longest_s`` are not made: an exchange
+    of identities over a long stretch is the tracker's decision (made from the coats and the
+    motion of the whole recording, :func:`resolve_identities`), not a stray of the poses.
+
+    Args:
+        poses: (T, A, K, 3) per frame and row (the tracks' order) the pose, mm, NaN missing.
+        fps: frame rate.
+        keep_weight: cost of a frame out of the rows' order, in body lengths.
+        hold_s: longest gap over which a missing keypoint's last position counts, seconds.
+        longest_s: longest exchange made, seconds.
+
+    Returns:
+        :class:`PoseRelabelling`; with one animal, more than ``MAX_ANIMALS``, fewer than two
+        frames or no pose at all, the rows' own order and no corrections.
+    """
+    x = np.asarray(poses, dtype=np.float64)
+    if x.ndim != 4 or x.shape[-1] != 3:
+        raise ValueError(f"poses must be (T, A, K, 3), got {x.shape}")
+    t_n, a_n = x.shape[:2]
+    same = np.broadcast_to(np.arange(a_n), (t_n, a_n)).copy()
+    none = PoseRelabelling(same, np.zeros((t_n, a_n), bool), 0)
+    if a_n < 2 or a_n > MAX_ANIMALS or t_n < 2 or not np.isfinite(x).any():
+        return none
+    sample = x[:: max(t_n // 1000, 1)]  # the body length from up to about 1000 frames
+    diff = np.linalg.norm(sample[:, :, :, None] - sample[:, :, None], axis=-1)  # (t, A, K, K)
+    per = np.where(np.isfinite(diff), diff, -np.inf).max(axis=(-1, -2))  # (t, A)
+    length = float(np.median(per[np.isfinite(per)])) if np.isfinite(per).any() else 0.0
+    perms = np.array(list(itertools.permutations(range(a_n))), dtype=np.int64)  # (S, A)
+    keep = keep_weight * length * (perms != np.arange(a_n)).any(1)  # (S,)
+    held = _held(x, int(round(hold_s * fps)))
+    fwd = keep.copy()
+    back = np.zeros((t_n, len(perms)), dtype=np.int64)
+    for t in range(1, t_n):
+        d = held[t - 1][:, None] - held[t][None]  # (A, A, K, 3): row i at t-1 to row j at t
+        sq = np.sum(d * d, axis=-1)
+        ok = np.isfinite(sq)
+        n = np.maximum(ok.sum(-1), 1)
+        rms = np.sqrt(np.where(ok, sq, 0.0).sum(-1) / n)  # (A, A)
+        step = rms[perms[:, None, :], perms[None, :, :]].sum(-1)  # (S, S)
+        total = fwd[:, None] + step
+        back[t] = np.argmin(total, 0)
+        fwd = total[back[t], np.arange(len(perms))] + keep
+    states = np.zeros(t_n, dtype=np.int64)
+    states[-1] = int(np.argmin(fwd))
+    for t in range(t_n - 1, 0, -1):
+        states[t - 1] = back[t, states[t]]
+    order = perms[states]
+    off = (order != np.arange(a_n)).any(1)
+    order = np.where(_short_runs(off, max(int(round(longest_s * fps)), 1))[:, None], order, same)
+    moved = np.zeros((t_n, a_n), bool)
+    moved[1:] = order[1:] != order[:-1]
+    return PoseRelabelling(order, moved, int(moved.any(1).sum()))

@@ -285,6 +285,8 @@ ROW_FIELDS = (
 )
 _ANIMAL_ONLY = ("identity_confidence", "extra/identity_flagged")
 ANIMAL_ROW_FIELDS = (*ROW_FIELDS, "identity_confidence", "identity_flagged")  # an animal axis
+_ANIMAL_FIELDS = tuple(k for k in ANIMAL_ROW_FIELDS if k not in ("status", "frame_ok"))
+ORDER_PATH = "extra/identity_order"  #: (T, A) int8, the track each animal's row came from
 _PATHS = {
     "poses": "poses",
     "confidence": "confidence",
@@ -536,6 +538,66 @@ class IncrementalPosesWriter:
         if self._f is None:
             raise RuntimeError("IncrementalPosesWriter.poses before open()")
         return self._f["poses"][()]
+
+    def stored_animal_order(self) -> np.ndarray | None:
+        """(T, A) the animal order a :meth:`reorder_animals` began with, or None (not begun)."""
+        if self._f is None:
+            raise RuntimeError("IncrementalPosesWriter.stored_animal_order before open()")
+        return self._f[ORDER_PATH][()].astype(np.int64) if ORDER_PATH in self._f else None
+
+    def reorder_animals(self, order: np.ndarray) -> None:
+        """Reorder the animal axis of every row, once all rows are written.
+
+        Animal ``a``'s row ``t`` becomes input row ``order[t, a]`` in every per-animal
+        dataset, and ``extra/identity_flagged`` is set where an animal's row changes from
+        the frame before (where the order moved an animal to another track). The order is
+        stored first (``extra/identity_order``, kept in the output: the track each animal's
+        pose came from); the rows are then rewritten a chunk at a time, the attribute
+        ``reordered_frames`` counting them, so that a run killed here and resumed passes
+        :meth:`stored_animal_order` again and finishes the same reordering.
+
+        Args:
+            order: (T, A) int, each row a permutation of the animals.
+
+        Raises:
+            ValueError: not all rows are written, or ``order`` is not per-frame permutations.
+        """
+        f = self._f
+        if f is None or self.header.individuals is None:
+            raise RuntimeError("reorder_animals needs an open output with an animal axis")
+        t_n, a_n = self.header.num_frames, len(self.header.individuals)
+        order = np.asarray(order, np.int64)
+        if self.completed != t_n or self._buffered:
+            raise ValueError(f"reorder_animals after {self.completed} of {t_n} rows")
+        if order.shape != (t_n, a_n) or not (np.sort(order, 1) == np.arange(a_n)).all():
+            raise ValueError(f"order must be (T, A) = ({t_n}, {a_n}) permutations")
+        stored = self.stored_animal_order()
+        if stored is not None and not np.array_equal(stored, order):
+            raise ValueError(f"{self.partial} was being reordered in another order")
+        assert self._out is not None
+        try:
+            if stored is None:
+                f.create_dataset(ORDER_PATH, data=order.astype(np.int8))
+                f.attrs["reordered_frames"] = 0
+                self._out.flush()
+            moved = np.zeros((t_n, a_n), bool)
+            moved[1:] = order[1:] != order[:-1]
+            for a in range(int(f.attrs.get("reordered_frames", t_n)), t_n, self.chunk_rows):
+                b = min(a + self.chunk_rows, t_n)
+                idx = order[a:b]
+                for k in _ANIMAL_FIELDS:
+                    ds = f[_PATHS[k]]
+                    rows = ds[a:b]
+                    sel = idx.reshape(idx.shape + (1,) * (rows.ndim - 2))
+                    rows = np.take_along_axis(rows, sel, axis=1)
+                    if k == "identity_flagged":
+                        rows = rows | moved[a:b]
+                    ds[a:b] = rows
+                f.attrs["reordered_frames"] = b
+                self._out.flush()
+        except OutputWriteError:
+            self._give_up()
+            raise
 
     def finish(self, up: WorldUp | None = None) -> Path:
         """Write what is buffered, mark the file complete and move it to its final name.

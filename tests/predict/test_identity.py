@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from freipose.predict.identity import resolve_identities, track_features
 from freipose.predict.tracking import identity_switches
@@ -130,3 +131,55 @@ def test_switches_flagged_counts_a_flag_near_a_switch_on_either_track() -> None:
     flagged[:] = False
     flagged[20, 0] = True  # after the switch: not a warning of it
     assert _flagged_switches(assigned, flagged, 5) == 0
+
+
+def _two_walking_poses(n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 2, 4, 3) two 4-keypoint bodies (100 mm long) walking 60 mm apart, side by side."""
+    body = np.array([[0.0, 0, 40], [40, 0, 40], [70, 0, 40], [100, 0, 30]])
+    walk = np.cumsum(rng.normal(0, 5, (n, 3)) * [1, 1, 0], 0)
+    return np.stack([walk[:, None] + body, walk[:, None] + body + [0, 60, 0]], 1)
+
+
+def test_relabel_by_poses_undoes_poses_exchanged_for_a_few_frames() -> None:
+    from freipose.predict.identity import relabel_by_poses
+
+    rng = np.random.default_rng(3)
+    truth = _two_walking_poses(60, rng)
+    poses = truth + rng.normal(0, 2, truth.shape)
+    poses[20:23] = poses[20:23, ::-1]  # the two cubes' poses exchanged for 3 frames
+    poses[40, 1, :2] = np.nan  # a few keypoints missing
+    poses[41:43, 0] = np.nan  # one animal not found for a few frames
+    poses[43:46] = poses[43:46, ::-1]  # and exchanged right after: its last pose tells
+    res = relabel_by_poses(poses, 10.0)
+    expect = np.tile([0, 1], (60, 1))
+    expect[20:23] = expect[43:46] = [1, 0]
+    np.testing.assert_array_equal(res.order, expect)
+    assert res.changes == 4 and res.corrected[[20, 23, 43, 46]].all()
+    assert res.corrected.sum() == 8
+    fixed = np.take_along_axis(poses, res.order[:, :, None, None], 1)
+    np.testing.assert_allclose(fixed[20:23], poses[20:23, ::-1])
+    # nothing exchanged: nothing moved, however noisy the poses
+    clean = relabel_by_poses(truth + rng.normal(0, 8, truth.shape), 10.0)
+    assert clean.changes == 0 and (clean.order == [0, 1]).all()
+    # exchanged for longer than a second: the tracker's decision, not a stray; kept
+    long = truth.copy()
+    long[30:45] = long[30:45, ::-1]
+    assert relabel_by_poses(long, 10.0).changes == 0
+    assert relabel_by_poses(long, 10.0, longest_s=2.0).changes == 2
+
+
+def test_relabel_by_poses_keeps_the_rows_where_they_do_not_tell() -> None:
+    from freipose.predict.identity import relabel_by_poses
+
+    rng = np.random.default_rng(4)
+    poses = _two_walking_poses(30, rng)
+    poses[10:] = poses[10:, ::-1]  # a lasting exchange at frame 10 ...
+    poses[8:16] = np.nan  # ... while both were lost for long: nothing tells which is which
+    res = relabel_by_poses(poses, 10.0)
+    assert res.changes == 0  # the rows stay (the tracker's identities decide)
+    one = relabel_by_poses(poses[:, :1], 10.0)
+    assert one.changes == 0 and one.order.shape == (30, 1)
+    empty = relabel_by_poses(np.full((5, 2, 4, 3), np.nan), 10.0)
+    assert empty.changes == 0
+    with pytest.raises(ValueError, match="T, A, K, 3"):
+        relabel_by_poses(poses[0], 10.0)

@@ -56,6 +56,8 @@ def test_predicted_animals_are_each_near_their_own_truth(pair: tuple[Path, Path]
     assert d.identity_confidence is not None and d.identity_confidence.shape == (T, 2)
     assert d.extra["identity_flagged"].shape == (T, 2)
     assert d.extra["identity_flagged"].dtype == bool
+    order = np.asarray(d.extra["identity_order"])  # the track each animal's pose came from
+    assert order.shape == (T, 2) and (np.sort(order, 1) == [0, 1]).all()
     assert d.extra["center"].shape == (T, 2, 3) and d.extra["points2d"].shape == (T, 2, 4, 12, 2)
     assert d.provenance["animals"] == 2 and d.provenance["detection"] == "bgsub"
     assert (d.extra["status"] == 0).all()

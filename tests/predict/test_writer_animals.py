@@ -82,3 +82,70 @@ def test_shards_with_animal_axis_merge(tmp_path):
     assert d.individuals == ("m1", "m2") and d.poses.shape == (10, 2, 2, 3)
     np.testing.assert_allclose(d.poses[5:, 0], ests[0].poses)
     np.testing.assert_allclose(d.identity_confidence[:, 1], [0.5] * 5 + [0.75] * 5)
+
+
+def test_reorder_animals_moves_every_per_animal_dataset_and_resumes(tmp_path):
+    import h5py
+
+    from freipose.predict.writer import ORDER_PATH
+
+    rig = make_circle_rig(3)
+    rng = np.random.default_rng(2)
+    ests = [_est(rng, 10, 3) for _ in range(2)]
+    ident = np.tile([0.25, 0.75], (10, 1))
+    order = np.tile([0, 1], (10, 1))
+    order[3:5] = [1, 0]  # animal 0's poses of frames 3-4 are in row 1
+    order[8:] = [1, 0]
+
+    def written(path):
+        w = IncrementalPosesWriter(path, _header(rig), chunk_rows=4)
+        w.open()
+        w.add_animals(ests, np.zeros(10), np.ones((10, 3), bool), ident)
+        return w
+
+    w = written(tmp_path / "a.poses.h5")
+    with pytest.raises(ValueError, match="permutations"):
+        w.reorder_animals(np.zeros((10, 2), int))
+    w.reorder_animals(order)
+    d = read_poses_h5(w.finish())
+    rows = np.arange(10)
+    for a in range(2):
+        src = [ests[k] for k in order[:, a]]
+        np.testing.assert_allclose(d.poses[:, a], [e.poses[t] for t, e in zip(rows, src)])
+        np.testing.assert_allclose(
+            d.extra["points2d"][:, a], [e.points2d[t] for t, e in zip(rows, src)]
+        )
+        centres = [e.center[t] for t, e in zip(rows, src)]
+        np.testing.assert_allclose(d.extra["center"][:, a], centres)
+        np.testing.assert_allclose(d.identity_confidence[:, a], ident[rows, order[:, a]])
+    flagged = np.asarray(d.extra["identity_flagged"])
+    np.testing.assert_array_equal(flagged.any(1), np.isin(rows, [3, 5, 8]))
+    np.testing.assert_array_equal(d.extra["identity_order"], order)
+    # killed after the first chunk of the reordering: the run started again finishes it
+    w = written(tmp_path / "b.poses.h5")
+    real = w._out.flush
+    calls = []
+
+    def killed(*args, **kwargs):
+        calls.append(1)
+        real(*args, **kwargs)
+        if len(calls) == 2:  # the order stored, the first chunk rewritten
+            raise KeyboardInterrupt
+
+    w._out.flush = killed
+    with pytest.raises(KeyboardInterrupt):
+        w.reorder_animals(order)
+    w._out.flush = real
+    w.close()
+    with h5py.File(partial_path(tmp_path / "b.poses.h5"), "r") as f:
+        assert int(f.attrs["reordered_frames"]) == 4 and ORDER_PATH in f
+    w = IncrementalPosesWriter(tmp_path / "b.poses.h5", _header(rig), chunk_rows=4)
+    assert w.open() == 10
+    stored = w.stored_animal_order()
+    np.testing.assert_array_equal(stored, order)
+    with pytest.raises(ValueError, match="another order"):
+        w.reorder_animals(np.tile([0, 1], (10, 1)))
+    w.reorder_animals(stored)
+    again = read_poses_h5(w.finish())
+    np.testing.assert_array_equal(again.poses, d.poses)
+    np.testing.assert_array_equal(again.extra["identity_flagged"], d.extra["identity_flagged"])
