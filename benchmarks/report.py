@@ -45,8 +45,8 @@ CLUSTER_BEGIN, CLUSTER_END = "<!-- cluster-figures:begin -->", "<!-- cluster-fig
 BENCHMARKS = (
     "accuracy", "analysis", "calibration", "calibration_coverage", "classifier_days", "cluster",
     "demo", "detector", "engines", "label_efficiency", "label_page", "null_studies", "own_rig",
-    "predict", "real_finetune", "runtimes", "smooth", "smooth_ensembles", "social", "social_poses",
-    "study_predicted", "synth", "throughput", "train_base",
+    "predict", "real_finetune", "runtimes", "smooth", "smooth_ensembles", "social",
+    "social_identity", "social_poses", "study_predicted", "synth", "throughput", "train_base",
 )  # fmt: skip
 # settings that differ between runs of the same experiment (not a different experiment)
 RUN_KEYS = {"seed", "folder", "finished", "demo", "out", "workdir", "work", "export"}

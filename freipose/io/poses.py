@@ -218,7 +218,7 @@ class PoseData(PicklableFrozen):
 #: shape has A after T (``points2d`` (T, A, C, K, 2)); the others are per frame
 ANIMAL_EXTRAS = frozenset(
     ("points2d", "confidence2d", "boxes", "center", "smooth_std", "filled", "rejected",
-     "smooth_weight", "smooth_offset", "uncertainty", "identity_flagged",
+     "smooth_weight", "smooth_offset", "uncertainty", "identity_flagged", "identity_order",
      # the truth of synthetic scenes of several animals (freipose.synth.social_scene)
      "visible2d", "hidden_by_animal", "on_top_of", "lift", "contact")
 )  # fmt: skip
@@ -237,6 +237,7 @@ _EXTRA_SHAPES: Mapping[str, tuple[int | str, ...]] = MappingProxyType(
         "rejected": ("T", "K"),
         "uncertainty": ("T", "K"),
         "identity_flagged": ("T",),
+        "identity_order": ("T",),
     }
 )
 
