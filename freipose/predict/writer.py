@@ -33,7 +33,7 @@ import json
 import logging
 import os
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -574,27 +574,34 @@ class IncrementalPosesWriter:
         stored = self.stored_animal_order()
         if stored is not None and not np.array_equal(stored, order):
             raise ValueError(f"{self.partial} was being reordered in another order")
-        assert self._out is not None
-        try:
-            if stored is None:
+        out = self._out
+        assert out is not None
+        moved = np.zeros((t_n, a_n), bool)
+        moved[1:] = order[1:] != order[:-1]
+        if stored is None:
+            with self._removed_if_failed(out):
                 f.create_dataset(ORDER_PATH, data=order.astype(np.int8))
                 f.attrs["reordered_frames"] = 0
-                self._out.flush()
-            moved = np.zeros((t_n, a_n), bool)
-            moved[1:] = order[1:] != order[:-1]
-            for a in range(int(f.attrs.get("reordered_frames", t_n)), t_n, self.chunk_rows):
-                b = min(a + self.chunk_rows, t_n)
-                idx = order[a:b]
-                for k in _ANIMAL_FIELDS:
-                    ds = f[_PATHS[k]]
-                    rows = ds[a:b]
-                    sel = idx.reshape(idx.shape + (1,) * (rows.ndim - 2))
-                    rows = np.take_along_axis(rows, sel, axis=1)
-                    if k == "identity_flagged":
-                        rows = rows | moved[a:b]
-                    ds[a:b] = rows
-                f.attrs["reordered_frames"] = b
-                self._out.flush()
+        for lo in range(int(f.attrs.get("reordered_frames", t_n)), t_n, self.chunk_rows):
+            hi = min(lo + self.chunk_rows, t_n)
+            rows = {k: f[_PATHS[k]][lo:hi] for k in _ANIMAL_FIELDS}
+            # rewritten chunks are compressed anew and may take more room than they did; a
+            # disk too full for them stops here with the file intact (resumable)
+            check_free_space(self.path, sum(v.nbytes for v in rows.values()),
+                             "its reordered rows take")  # fmt: skip
+            with self._removed_if_failed(out):
+                for k, v in rows.items():
+                    sel = order[lo:hi].reshape(hi - lo, a_n, *(1,) * (v.ndim - 2))
+                    v = np.take_along_axis(v, sel, axis=1)
+                    f[_PATHS[k]][lo:hi] = v | moved[lo:hi] if k == "identity_flagged" else v
+                f.attrs["reordered_frames"] = hi
+
+    @contextlib.contextmanager
+    def _removed_if_failed(self, out: H5Output) -> Iterator[None]:
+        """Writes, then a flush; a failed one removes the (then damaged) partial file."""
+        try:
+            yield
+            out.flush()
         except OutputWriteError:
             self._give_up()
             raise

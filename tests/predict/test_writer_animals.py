@@ -149,3 +149,29 @@ def test_reorder_animals_moves_every_per_animal_dataset_and_resumes(tmp_path):
     again = read_poses_h5(w.finish())
     np.testing.assert_array_equal(again.poses, d.poses)
     np.testing.assert_array_equal(again.extra["identity_flagged"], d.extra["identity_flagged"])
+
+
+def test_a_disk_too_full_to_reorder_keeps_the_rows(tmp_path, monkeypatch):
+    import freipose.predict.writer as writer
+    from freipose.errors import OutputWriteError
+
+    rig = make_circle_rig(2)
+    rng = np.random.default_rng(5)
+    path = tmp_path / "full.poses.h5"
+    w = IncrementalPosesWriter(path, _header(rig), chunk_rows=4)
+    w.open()
+    w.add_animals([_est(rng, 10, 2) for _ in range(2)], np.zeros(10), np.ones((10, 2), bool))
+    before = np.array(w.poses())
+
+    def full(path, needed, what="it takes"):
+        raise OutputWriteError(f"no room: {what}")
+
+    monkeypatch.setattr(writer, "check_free_space", full)
+    with pytest.raises(OutputWriteError, match="reordered rows"):
+        w.reorder_animals(np.tile([1, 0], (10, 1)))
+    w.close()
+    monkeypatch.undo()
+    w = IncrementalPosesWriter(path, _header(rig), chunk_rows=4)
+    assert w.open() == 10  # the predictions are kept; the run started again reorders them
+    w.reorder_animals(w.stored_animal_order())
+    np.testing.assert_array_equal(read_poses_h5(w.finish()).poses, before[:, ::-1])
