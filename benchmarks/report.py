@@ -171,7 +171,7 @@ def runs_text(runs: list[dict[str, Any]]) -> str:
 
 
 # options whose value is a folder of the machine that ran the benchmark: shown as a name to fill in
-LOCAL_FOLDERS = {"--work": "WORK", "--out": "OUT", "--demo": "DEMO"}
+LOCAL_FOLDERS = {"--work": "WORK", "--out": "OUT", "--demo": "DEMO", "--workdir": "WORKDIR"}
 
 
 def command_text(rec: dict[str, Any]) -> str:

@@ -166,9 +166,11 @@ def test_results_off_writes_nothing(bench, monkeypatch, tmp_path):
 
 def test_commands_are_shown_from_the_repository_root_without_local_folders(bench):
     rec = {"command": ["cluster.py", "--sessions", "8", "--work", "/tmp/cb/run1",
-                       "--out=/work/runs/x", "--demo", "/work/runs/demo-seed0"]}  # fmt: skip
+                       "--out=/work/runs/x", "--demo", "/work/runs/demo-seed0",
+                       "--workdir", "/tmp/s"]}  # fmt: skip
     assert bench.command_text(rec) == (
         "python benchmarks/cluster.py --sessions 8 --work WORK --out=OUT --demo DEMO"
+        " --workdir WORKDIR"
     )
     rec = {"command": ["benchmarks/predict.py", "--model", "/m/voxel_small.pt"]}
     assert bench.command_text(rec) == "python benchmarks/predict.py --model /m/voxel_small.pt"
