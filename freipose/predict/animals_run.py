@@ -16,7 +16,9 @@ Each session is read twice:
    :class:`~freipose.predict.writer.IncrementalPosesWriter` with an animal axis:
    ``individuals`` ``animal_0``, ``animal_1``, ... (the tracks, in the order they were
    first found), ``identity_confidence`` and ``extra/identity_flagged`` (the tracker's
-   confidence and its flag where a swap cannot be ruled out or was undone). An animal that its track
+   confidence and its flag where a swap cannot be ruled out or was undone, and the frames
+   where two animals' poses lie on each other: one animal found twice,
+   :func:`~freipose.predict.identity.coincident_poses`). An animal that its track
    does not match in a frame has NaN poses there; a frame is ``status`` 0 when any animal
    was predicted.
 3. **poses' identities** (:func:`freipose.predict.identity.relabel_by_poses`): in close
@@ -45,7 +47,7 @@ from freipose.io.lock import output_lock
 from freipose.io.session import Session
 from freipose.io.video import frame_range
 from freipose.predict.estimator import Estimate, estimate_with_missing
-from freipose.predict.identity import relabel_by_poses
+from freipose.predict.identity import coincident_poses, relabel_by_poses
 from freipose.predict.network import (
     DetectorSpec,
     NetworkEstimator,
@@ -372,8 +374,9 @@ def _predict_rows(
             )
             found = np.stack([np.isfinite(e.poses).all(-1).any(-1) for e in ests]).any(0)
             status = np.where(~ran, STATUS_FEW_VIEWS, np.where(found, STATUS_OK, STATUS_NOT_FOUND))
+            twice = coincident_poses(np.stack([e.poses for e in ests], 1))  # one animal twice
             writer.add_animals(ests, status, fb.valid, tracks.confidence[rows],
-                               tracks.flagged[rows])  # fmt: skip
+                               tracks.flagged[rows] | twice)  # fmt: skip
             n += len(fb)
             bar.update(len(fb))
         missing = {session.rig.names[c]: i for c, i in sorted(reader.first_missing.items())}

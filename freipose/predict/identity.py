@@ -372,3 +372,30 @@ def relabel_by_poses(
     moved = np.zeros((t_n, a_n), bool)
     moved[1:] = order[1:] != order[:-1]
     return PoseRelabelling(order, moved, int(moved.any(1).sum()))
+
+
+def coincident_poses(poses: np.ndarray, fraction: float = 0.1) -> np.ndarray:
+    """(B, A) bool: the rows whose pose lies on another row's (one animal found twice).
+
+    Two animals cannot share their space: two poses whose keypoints lie, in the median,
+    within ``fraction`` of a body length (the larger of the two poses' largest distance
+    between two keypoints) of the same keypoints of the other are one animal's pose twice,
+    and the other animal was missed there.
+
+    Args:
+        poses: (B, A, K, 3) per frame and row the pose, mm, NaN missing.
+        fraction: the distance, in body lengths.
+    """
+    x = np.asarray(poses, dtype=np.float64)
+    b_n, a_n = x.shape[:2]
+    out = np.zeros((b_n, a_n), bool)
+    spread = np.linalg.norm(x[:, :, :, None] - x[:, :, None], axis=-1)  # (B, A, K, K)
+    length = np.where(np.isfinite(spread), spread, -np.inf).max(axis=(-1, -2))  # (B, A)
+    for i, j in itertools.combinations(range(a_n), 2):
+        d = np.linalg.norm(x[:, i] - x[:, j], axis=-1)  # (B, K)
+        ok = np.isfinite(d)
+        med = np.array([np.median(r[k]) if k.any() else np.inf for r, k in zip(d, ok, strict=True)])
+        near = med < fraction * np.maximum(length[:, i], length[:, j])
+        out[:, i] |= near
+        out[:, j] |= near
+    return out

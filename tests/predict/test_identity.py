@@ -183,3 +183,22 @@ def test_relabel_by_poses_keeps_the_rows_where_they_do_not_tell() -> None:
     assert empty.changes == 0
     with pytest.raises(ValueError, match="T, A, K, 3"):
         relabel_by_poses(poses[0], 10.0)
+
+
+def test_coincident_poses_flags_one_animal_found_twice() -> None:
+    from freipose.predict.identity import coincident_poses
+
+    rng = np.random.default_rng(6)
+    poses = _two_walking_poses(4, rng)  # 100 mm bodies, 60 mm apart
+    poses[1, 1] = poses[1, 0] + rng.normal(0, 3, (4, 3))  # frame 1: both rows on animal 0
+    poses[2, 1, :3] = poses[2, 0, :3] + 2.0  # frame 2: three of four keypoints shared
+    poses[3, 1] = np.nan  # frame 3: one row missing
+    got = coincident_poses(poses)
+    np.testing.assert_array_equal(got, [[False, False], [True, True], [True, True],
+                                        [False, False]])  # fmt: skip
+    # climbing over each other: one body 40 mm above the other is two animals
+    over = _two_walking_poses(1, rng)
+    over[0, 1] = over[0, 0] + [0, 0, 40]
+    assert not coincident_poses(over).any()
+    assert coincident_poses(over, fraction=0.5).all()
+    assert coincident_poses(np.zeros((3, 1, 4, 3))).shape == (3, 1)
