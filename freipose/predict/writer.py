@@ -413,6 +413,8 @@ class IncrementalPosesWriter:
                 f.attrs["reordered_frames"] = 0
         for lo in range(int(f.attrs.get("reordered_frames", t_n)), t_n, self.chunk_rows):
             hi = min(lo + self.chunk_rows, t_n)
+            if (order[lo:hi] == np.arange(a_n)).all() and not moved[lo:hi].any():
+                continue  # nothing moves in these rows
             rows = {k: f[_PATHS[k]][lo:hi] for k in _ANIMAL_FIELDS}
             # rewritten chunks are compressed anew and may take more room than they did; a
             # disk too full for them stops here with the file intact (resumable)
