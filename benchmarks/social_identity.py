@@ -24,7 +24,7 @@ exact truth:
 ``--workdir`` keeps the sessions and the predictions; a finished step is skipped when run
 again.
 
-Example (about 6 minutes per 2-minute session on 2 cores)::
+Example (about 7 minutes per 2-minute session on 2 cores, its rendering included)::
 
     python benchmarks/social_identity.py --sessions 5 --seconds 120 \
         --model bench/social_poses/seed0/social_masked/pose/model.pt
