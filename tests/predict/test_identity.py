@@ -202,3 +202,18 @@ def test_coincident_poses_flags_one_animal_found_twice() -> None:
     assert not coincident_poses(over).any()
     assert coincident_poses(over, fraction=0.5).all()
     assert coincident_poses(np.zeros((3, 1, 4, 3))).shape == (3, 1)
+
+
+def test_relabel_by_poses_with_three_animals() -> None:
+    from freipose.predict.identity import relabel_by_poses
+
+    rng = np.random.default_rng(7)
+    two = _two_walking_poses(40, rng)
+    truth = np.concatenate([two, two[:, :1] + [0, -200, 0]], axis=1)  # a third, far away
+    poses = truth + rng.normal(0, 2, truth.shape)
+    poses[15:17] = poses[15:17][:, [0, 2, 1]]  # rows 1 and 2 exchanged for two frames
+    res = relabel_by_poses(poses, 10.0)
+    expect = np.tile([0, 1, 2], (40, 1))
+    expect[15:17] = [0, 2, 1]
+    np.testing.assert_array_equal(res.order, expect)
+    assert res.changes == 2 and not res.corrected[:, 0].any()
