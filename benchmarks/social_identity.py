@@ -19,6 +19,9 @@ exact truth:
   animal-frames on the animal's own row) tell strays from swaps;
 * the same for the poses in the tracks' order (``extra/identity_order`` undone): what the
   poses' identity pass (:func:`freipose.predict.identity.relabel_by_poses`) changed;
+* how many of the switches of the written poses a user who checks the flagged frames finds
+  (``extra/identity_flagged`` on either row within 5 frames before), and the share of
+  flagged animal-frames;
 * the median error of each animal's keypoints on its own row (P1).
 
 ``--workdir`` keeps the sessions and the predictions; a finished step is skipped when run
@@ -44,6 +47,7 @@ from _results import write_result
 from scipy.optimize import linear_sum_assignment
 
 from freipose.io.poses import read_poses_h5
+from freipose.predict.animals import flagged_switches
 from freipose.predict.tracking import identity_accuracy, identity_switches, lasting_switches
 from freipose.synth import SceneConfig, generate_session
 
@@ -59,11 +63,14 @@ def _session(folder: Path, seed: int, args: argparse.Namespace) -> Path:
     return out
 
 
-def pose_identity(poses: np.ndarray, truth: np.ndarray, fps: float) -> dict[str, float]:
+def pose_identity(
+    poses: np.ndarray, truth: np.ndarray, fps: float, flagged: np.ndarray | None = None
+) -> dict[str, float]:
     """Identity figures of poses (T, A, K, 3) against true poses (T, B, K, 3).
 
     A pose is matched to a true animal within 60 mm RMS over the keypoints (the distance at
-    which ``benchmarks/social.py`` matches the tracks' centres).
+    which ``benchmarks/social.py`` matches the tracks' centres). With ``flagged`` (T, A),
+    the switches with a flag on either row from 5 frames before are counted too.
     """
     k = poses.shape[2]
     flat = poses.reshape(*poses.shape[:2], -1) / np.sqrt(k)  # norms are RMS keypoint errors
@@ -75,7 +82,11 @@ def pose_identity(poses: np.ndarray, truth: np.ndarray, fps: float) -> dict[str,
         "lasting_switches": lasting_switches(assigned, max(int(round(fps)), 1)),
         "identity_accuracy": identity_accuracy(assigned, poses.shape[1]),
         "matched": float((assigned >= 0).mean()),
-    }
+        **({} if flagged is None else {
+            "switches_flagged": flagged_switches(assigned, flagged, 5),
+            "flagged_fraction": float(np.asarray(flagged).mean()),
+        }),
+    }  # fmt: skip
 
 
 def score(path: Path, truth_path: Path) -> dict[str, Any]:
@@ -84,9 +95,10 @@ def score(path: Path, truth_path: Path) -> dict[str, Any]:
     p, g = np.asarray(pred.poses, np.float64), np.asarray(truth.poses, np.float64)
     with h5py.File(path, "r") as f:
         order = f["extra/identity_order"][()].astype(np.int64)
+        flagged = f["extra/identity_flagged"][()] if "extra/identity_flagged" in f else None
     tracks_order = np.empty_like(p)  # row k of frame t: the pose of track k
     np.put_along_axis(tracks_order, order[:, :, None, None], p, axis=1)
-    written = pose_identity(p, g, pred.fps)
+    written = pose_identity(p, g, pred.fps, flagged)
     err = [[np.nanmedian(np.linalg.norm(p[:, a] - g[:, b], axis=-1)) for b in range(g.shape[1])]
            for a in range(p.shape[1])]  # fmt: skip
     rows, own = linear_sum_assignment(np.nan_to_num(np.asarray(err), nan=1e9))
@@ -128,7 +140,9 @@ def main() -> None:
             runs.append(r)
             t = r["tracks_order"]
             print(f"seed {seed}: {r['switches']} switches of the poses (lasting "
-                  f"{r['lasting_switches']}, identity accuracy {r['identity_accuracy']:.3f}); "
+                  f"{r['lasting_switches']}, identity accuracy {r['identity_accuracy']:.3f}, "
+                  f"{r['switches_flagged']} flagged, {100 * r['flagged_fraction']:.1f} % of "
+                  f"the animal-frames flagged); "
                   f"in the tracks' order {t['switches']} (lasting {t['lasting_switches']}, "
                   f"identity accuracy {t['identity_accuracy']:.3f}); {r['relabelled_frames']} "
                   f"frames relabelled; median error {np.round(r['jpe_mm'], 2)} mm in "
@@ -140,6 +154,9 @@ def main() -> None:
         "switches_per_10min": sum(r["switches"] for r in runs) * per10,
         "lasting_switches_per_10min": sum(r["lasting_switches"] for r in runs) * per10,
         "min_identity_accuracy": min(r["identity_accuracy"] for r in runs),
+        "switches_flagged": sum(r["switches_flagged"] for r in runs),
+        "switches": sum(r["switches"] for r in runs),
+        "flagged_fraction": float(np.mean([r["flagged_fraction"] for r in runs])),
         "tracks_order_switches_per_10min": sum(r["tracks_order"]["switches"] for r in runs) * per10,
         "tracks_order_lasting_switches_per_10min": sum(
             r["tracks_order"]["lasting_switches"] for r in runs
@@ -152,7 +169,9 @@ def main() -> None:
     }
     print(f"== poses written: {summary['switches_per_10min']:.1f} switches per 10 min (lasting "
           f"{summary['lasting_switches_per_10min']:.1f}, identity accuracy >= "
-          f"{summary['min_identity_accuracy']:.3f}); in the tracks' order "
+          f"{summary['min_identity_accuracy']:.3f}; {summary['switches_flagged']} of "
+          f"{summary['switches']} switches flagged, {100 * summary['flagged_fraction']:.1f} % "
+          f"of the animal-frames); in the tracks' order "
           f"{summary['tracks_order_switches_per_10min']:.1f} (lasting "
           f"{summary['tracks_order_lasting_switches_per_10min']:.1f}, identity accuracy >= "
           f"{summary['tracks_order_min_identity_accuracy']:.3f}) over {minutes:.1f} min",

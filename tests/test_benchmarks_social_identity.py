@@ -22,6 +22,12 @@ def test_pose_identity_counts_strays_and_swaps(bench):
     got = bench.pose_identity(stray, truth, 10.0)
     assert got["switches"] == 4 and got["lasting_switches"] == 0
     assert np.isclose(got["identity_accuracy"], 38 / 40)
+    flagged = np.zeros((40, 2), bool)
+    flagged[30, 0] = True  # a flag long after the stray finds none of its switches
+    assert bench.pose_identity(stray, truth, 10.0, flagged)["switches_flagged"] == 0
+    flagged[9, 0] = True  # one frame before it: all four
+    got = bench.pose_identity(stray, truth, 10.0, flagged)
+    assert got["switches_flagged"] == 4 and np.isclose(got["flagged_fraction"], 2 / 80)
     swap = truth.copy()
     swap[20:] = swap[20:, ::-1]  # exchanged for good
     got = bench.pose_identity(swap, truth, 10.0)

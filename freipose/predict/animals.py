@@ -299,13 +299,13 @@ def score_tracks(
         center_error_mm=float(np.median(errs)) if errs else float("nan"),
         flagged_fraction=float(tr.flagged[matched].mean()) if matched.any() else float("nan"),
         n_visible=tuple(int(v) for v in n_vis),
-        switches_flagged=_flagged_switches(assigned, tr.flagged, flag_window),
+        switches_flagged=flagged_switches(assigned, tr.flagged, flag_window),
         lasting_switches=lasting_switches(assigned, max(int(round(lasting_s * tr.fps)), 1)),
         identity_accuracy=identity_accuracy(assigned, tr.num_animals),
     )
 
 
-def _flagged_switches(assigned: np.ndarray, flagged: np.ndarray, window: int) -> int:
+def flagged_switches(assigned: np.ndarray, flagged: np.ndarray, window: int) -> int:
     """Switches (:func:`~freipose.predict.tracking.switch_events`) with a flag on either track.
 
     Args:

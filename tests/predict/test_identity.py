@@ -120,17 +120,17 @@ def test_track_features_and_trivial_cases() -> None:
 
 
 def test_switches_flagged_counts_a_flag_near_a_switch_on_either_track() -> None:
-    from freipose.predict.animals import _flagged_switches
+    from freipose.predict.animals import flagged_switches
 
     assigned = np.array([[0, 1]] * 10 + [[-1, -1]] * 3 + [[1, 0]] * 10)  # both switch at 13
     flagged = np.zeros((23, 2), bool)
-    assert _flagged_switches(assigned, flagged, 5) == 0
+    assert flagged_switches(assigned, flagged, 5) == 0
     flagged[6, 1] = True  # 3 frames before the animals were last matched, on track 1
-    assert _flagged_switches(assigned, flagged, 5) == 2  # both switches involve track 1
-    assert _flagged_switches(assigned, flagged, 2) == 0
+    assert flagged_switches(assigned, flagged, 5) == 2  # both switches involve track 1
+    assert flagged_switches(assigned, flagged, 2) == 0
     flagged[:] = False
     flagged[20, 0] = True  # after the switch: not a warning of it
-    assert _flagged_switches(assigned, flagged, 5) == 0
+    assert flagged_switches(assigned, flagged, 5) == 0
 
 
 def _two_walking_poses(n: int, rng: np.random.Generator) -> np.ndarray:
