@@ -40,7 +40,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 from _cli import step
 from _results import write_result
@@ -93,9 +92,8 @@ def score(path: Path, truth_path: Path) -> dict[str, Any]:
     """The figures of one predicted session (module docstring)."""
     pred, truth = read_poses_h5(path), read_poses_h5(truth_path)
     p, g = np.asarray(pred.poses, np.float64), np.asarray(truth.poses, np.float64)
-    with h5py.File(path, "r") as f:
-        order = f["extra/identity_order"][()].astype(np.int64)
-        flagged = f["extra/identity_flagged"][()] if "extra/identity_flagged" in f else None
+    order = np.asarray(pred.extra["identity_order"], np.int64)
+    flagged = pred.extra.get("identity_flagged")
     tracks_order = np.empty_like(p)  # row k of frame t: the pose of track k
     np.put_along_axis(tracks_order, order[:, :, None, None], p, axis=1)
     written = pose_identity(p, g, pred.fps, flagged)

@@ -163,6 +163,55 @@ def _step_costs(
     return step
 
 
+def _best_path(
+    unary: np.ndarray, step: Callable[[int], np.ndarray], first: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The forward pass of the Viterbi algorithm and the best state per frame.
+
+    Args:
+        unary: (T, S) cost of each state in each frame.
+        step: t -> (S, S) cost of going from each state at t - 1 to each state at t.
+        first: the only state allowed in the first frame (None: any).
+
+    Returns:
+        ``(fwd, states)``: (T, S) the best cost of a sequence ending in each state, and (T,)
+        the best sequence.
+    """
+    t_n, s_n = unary.shape
+    fwd = np.full((t_n, s_n), np.inf)
+    if first is None:
+        fwd[0] = unary[0]
+    else:
+        fwd[0, first] = unary[0, first]
+    back = np.zeros((t_n, s_n), dtype=np.int64)
+    for t in range(1, t_n):
+        total = fwd[t - 1][:, None] + step(t)
+        back[t] = np.argmin(total, 0)
+        fwd[t] = total[back[t], np.arange(s_n)] + unary[t]
+    states = np.zeros(t_n, dtype=np.int64)
+    states[-1] = int(np.argmin(fwd[-1]))
+    for t in range(t_n - 1, 0, -1):
+        states[t - 1] = back[t, states[t]]
+    return fwd, states
+
+
+def order_changes(order: np.ndarray) -> np.ndarray:
+    """(T, A) bool: the frames where an animal's row differs from the frame before."""
+    moved = np.zeros(order.shape, bool)
+    moved[1:] = order[1:] != order[:-1]
+    return moved
+
+
+def _body_lengths(poses: np.ndarray) -> np.ndarray:
+    """(..., A) each pose's largest distance between two keypoints, -inf without one.
+
+    Args:
+        poses: (..., A, K, 3) mm, NaN missing.
+    """
+    spread = np.linalg.norm(poses[..., :, None, :] - poses[..., None, :, :], axis=-1)
+    return np.where(np.isfinite(spread), spread, -np.inf).max(axis=(-1, -2))
+
+
 def _viterbi(
     appearance: np.ndarray,
     centers: np.ndarray,
@@ -184,17 +233,7 @@ def _viterbi(
     for t in range(t_n - 1, 0, -1):
         bwd[t - 1] = (step(t) + (appearance[t] + bwd[t])[None, :]).min(1)
     first = int(np.argmin(appearance[0] + bwd[0]))
-    fwd = np.full((t_n, s_n), np.inf)
-    fwd[0, first] = appearance[0, first]
-    back = np.zeros((t_n, s_n), dtype=np.int64)
-    for t in range(1, t_n):
-        total = fwd[t - 1][:, None] + step(t)
-        back[t] = np.argmin(total, 0)
-        fwd[t] = total[back[t], np.arange(s_n)] + appearance[t]
-    states = np.zeros(t_n, dtype=np.int64)
-    states[-1] = int(np.argmin(fwd[-1]))
-    for t in range(t_n - 1, 0, -1):
-        states[t - 1] = back[t, states[t]]
+    fwd, states = _best_path(appearance, step, first)
     through = fwd + bwd  # (T, S) best cost of a sequence through each state
     best = through[np.arange(t_n), states]
     other = perms[None, :, :] != perms[states][:, None, :]  # (T, S, A)
@@ -253,8 +292,7 @@ def resolve_identities(
     rename = np.empty(a_n, dtype=np.int64)
     rename[animals] = tracks_
     order = np.argsort(rename[ident], axis=1)  # (T, A) the track of animal a
-    moved = np.zeros((t_n, a_n), bool)
-    moved[1:] = order[1:] != order[:-1]
+    moved = order_changes(order)
     margin = np.where(amb, margin, np.inf)  # apart from the others: no exchange here
     rows = np.arange(t_n)[:, None]
     return IdentityResolution(
@@ -343,34 +381,24 @@ def relabel_by_poses(
     none = PoseRelabelling(same, np.zeros((t_n, a_n), bool), 0)
     if a_n < 2 or a_n > MAX_ANIMALS or t_n < 2 or not np.isfinite(x).any():
         return none
-    sample = x[:: max(t_n // 1000, 1)]  # the body length from up to about 1000 frames
-    diff = np.linalg.norm(sample[:, :, :, None] - sample[:, :, None], axis=-1)  # (t, A, K, K)
-    per = np.where(np.isfinite(diff), diff, -np.inf).max(axis=(-1, -2))  # (t, A)
+    per = _body_lengths(x[:: max(t_n // 1000, 1)])  # from up to about 1000 frames
     length = float(np.median(per[np.isfinite(per)])) if np.isfinite(per).any() else 0.0
     perms = np.array(list(itertools.permutations(range(a_n))), dtype=np.int64)  # (S, A)
     keep = keep_weight * length * (perms != np.arange(a_n)).any(1)  # (S,)
     held = _held(x, int(round(hold_s * fps)))
-    fwd = keep.copy()
-    back = np.zeros((t_n, len(perms)), dtype=np.int64)
-    for t in range(1, t_n):
+
+    def step(t: int) -> np.ndarray:
         d = held[t - 1][:, None] - held[t][None]  # (A, A, K, 3): row i at t-1 to row j at t
         sq = np.sum(d * d, axis=-1)
         ok = np.isfinite(sq)
-        n = np.maximum(ok.sum(-1), 1)
-        rms = np.sqrt(np.where(ok, sq, 0.0).sum(-1) / n)  # (A, A)
-        step = rms[perms[:, None, :], perms[None, :, :]].sum(-1)  # (S, S)
-        total = fwd[:, None] + step
-        back[t] = np.argmin(total, 0)
-        fwd = total[back[t], np.arange(len(perms))] + keep
-    states = np.zeros(t_n, dtype=np.int64)
-    states[-1] = int(np.argmin(fwd))
-    for t in range(t_n - 1, 0, -1):
-        states[t - 1] = back[t, states[t]]
+        rms = np.sqrt(np.where(ok, sq, 0.0).sum(-1) / np.maximum(ok.sum(-1), 1))  # (A, A)
+        return rms[perms[:, None, :], perms[None, :, :]].sum(-1)  # (S, S)
+
+    _, states = _best_path(np.broadcast_to(keep, (t_n, len(perms))), step)
     order = perms[states]
     off = (order != np.arange(a_n)).any(1)
     order = np.where(_short_runs(off, max(int(round(longest_s * fps)), 1))[:, None], order, same)
-    moved = np.zeros((t_n, a_n), bool)
-    moved[1:] = order[1:] != order[:-1]
+    moved = order_changes(order)
     return PoseRelabelling(order, moved, int(moved.any(1).sum()))
 
 
@@ -389,8 +417,7 @@ def coincident_poses(poses: np.ndarray, fraction: float = 0.1) -> np.ndarray:
     x = np.asarray(poses, dtype=np.float64)
     b_n, a_n = x.shape[:2]
     out = np.zeros((b_n, a_n), bool)
-    spread = np.linalg.norm(x[:, :, :, None] - x[:, :, None], axis=-1)  # (B, A, K, K)
-    length = np.where(np.isfinite(spread), spread, -np.inf).max(axis=(-1, -2))  # (B, A)
+    length = _body_lengths(x)  # (B, A)
     for i, j in itertools.combinations(range(a_n), 2):
         d = np.linalg.norm(x[:, i] - x[:, j], axis=-1)  # (B, K)
         ok = np.isfinite(d)
